@@ -1,0 +1,37 @@
+# Two commands on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+export VTK_DEFAULT_OPENGL_WINDOW ?= vtkOSOpenGLRenderWindow
+
+.PHONY: demo test bench sysdeps clean
+
+# Offscreen rendering needs Debian's OSMesa/EGL/GL libraries; install them when
+# missing and we are allowed to (root), otherwise say what to install.
+sysdeps:
+	@if ! ldconfig -p | grep -q libOSMesa; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 libegl1 libgl1 libxrender1 >/dev/null) \
+	      || echo "warning: could not install libosmesa6 libegl1 libgl1; 3-D pictures will be skipped" >&2; \
+	  else echo "note: install libosmesa6 libegl1 libgl1 for offscreen 3-D pictures" >&2; fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+demo: sysdeps $(STAMP)
+	$(VENV)/bin/heartreg demo -o demo_out
+
+test: sysdeps $(STAMP)
+	$(PY) -m pytest -q
+
+bench: sysdeps $(STAMP)
+	$(PY) bench/run_all.py
+
+clean:
+	rm -rf $(VENV) demo_out bench/out

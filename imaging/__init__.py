@@ -1,0 +1,3 @@
+"""imaging package."""
+
+__all__: list[str] = []

@@ -1,0 +1,3 @@
+"""modeling package."""
+
+__all__: list[str] = []

@@ -1,0 +1,3 @@
+"""registration package."""
+
+__all__: list[str] = []
