@@ -1,0 +1,3 @@
+from heartreg.cli import main
+import sys
+sys.exit(main())

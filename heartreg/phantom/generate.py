@@ -1,0 +1,151 @@
+"""One phantom case on disk: the gated CT study, the QRS file, the session, the truth.
+
+``make_phantom(out_dir, preset=..., size=..., seed=...)`` writes::
+
+    OUT_DIR/ct/          the gated CT series and its ECG waveform instance (DICOM)
+    OUT_DIR/qrs.csv      R-peak times of the CT, column time_s (AcquisitionTime clock)
+    OUT_DIR/session/     the intra-operative session (docs/formats.md)
+    OUT_DIR/truth.json   every true value, the configuration and the seed
+
+Everything is written under a temporary name inside ``OUT_DIR`` first and moved
+into place at the end, so a failure never leaves a half-written case.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from heartreg import __version__
+from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, make_config
+from heartreg.phantom.ct import write_ct_study
+from heartreg.phantom.layout import T_patient_from_probe, make_heart
+from heartreg.phantom.session import write_session
+
+__all__ = ["make_phantom", "PhantomError", "TRUTH_FORMAT_VERSION"]
+
+TRUTH_FORMAT_VERSION = 1
+_OUTPUTS = ("ct", "qrs.csv", "session", "truth.json")
+
+
+class PhantomError(ValueError):
+    """Invalid phantom request (bad argument or an output folder in the way)."""
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def make_phantom(
+    out_dir,
+    *,
+    preset: str = "default",
+    size: str = "sample",
+    seed: int = 0,
+    session: bool = True,
+    progress: bool = False,
+    overwrite: bool = False,
+    **overrides,
+) -> dict:
+    """Write a complete phantom case to ``out_dir`` and return its truth.
+
+    Parameters
+    ----------
+    out_dir : path
+        Output folder; created if missing.  Existing phantom outputs in it are
+        refused unless ``overwrite``.
+    preset : str
+        A name from :data:`heartreg.phantom.config.PRESETS`.
+    size : {'sample', 'full'}
+        CT grid (see :data:`heartreg.phantom.config.SIZES`).
+    seed : int
+        Non-negative seed: the same seed gives the same bytes.
+    session : bool
+        Also write the intra-operative session.
+    **overrides
+        Fields of :class:`~heartreg.phantom.config.PhantomConfig` to replace
+        (e.g. ``n_points=20``).
+
+    Returns
+    -------
+    dict
+        The contents of ``truth.json``.
+    """
+    if size not in SIZES:
+        raise PhantomError(f"size must be one of {sorted(SIZES)}, got {size!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise PhantomError(f"seed must be a non-negative integer, got {seed!r}")
+    try:
+        config = make_config(preset, **overrides)
+    except (ValueError, TypeError) as exc:
+        raise PhantomError(str(exc)) from None
+
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise PhantomError(f"output {out_dir} exists and is not a folder")
+    present = [name for name in _OUTPUTS if (out_dir / name).exists()]
+    if present and not overwrite:
+        raise PhantomError(
+            f"{out_dir} already holds phantom outputs ({', '.join(present)}); "
+            "choose an empty folder or pass overwrite=True (--overwrite)"
+        )
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    staging = Path(tempfile.mkdtemp(prefix=".phantom-", dir=out_dir))
+    try:
+        ct_truth = write_ct_study(staging, config, size=size, seed=int(seed), progress=progress)
+        truth = {
+            "format": "heartreg-phantom-truth",
+            "version": TRUTH_FORMAT_VERSION,
+            "generator": f"heartreg {__version__}",
+            "preset": config.name,
+            "size": size,
+            "seed": int(seed),
+            "paper_image_phase": PAPER_IMAGE_PHASE.get(config.name),
+        }
+        truth.update(ct_truth.to_dict())
+        heart = make_heart(config)
+        truth.update(
+            {
+                "respiration_phase": config.image_resp_phase,
+                "heart_axes_patient": heart.axes_patient,
+                "heart_axes_note": "columns x, y, z of the heart construction frame in the CT patient frame (LPS)",
+                "heart_origin_patient_mm": heart.origin_patient_mm,
+                "T_patient_from_heart": heart.T_patient_from_heart,
+                "heart_euler_xyz_deg": list(config.euler_xyz_deg),
+                "T_patient_from_probe": T_patient_from_probe(),
+            }
+        )
+        if session:
+            session_truth = write_session(staging, config, seed=int(seed), progress=progress)
+            truth["session"] = session_truth.to_dict()
+        truth["config"] = config.to_dict()
+        truth = _jsonable(truth)
+        (staging / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n")
+        for name in _OUTPUTS:
+            src = staging / name
+            if not src.exists():
+                continue
+            dst = out_dir / name
+            if dst.is_dir():
+                shutil.rmtree(dst)
+            elif dst.exists():
+                dst.unlink()
+            src.rename(dst)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return truth
