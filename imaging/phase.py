@@ -1,0 +1,320 @@
+"""Cardiac phase of every CT slice and of the volume (paper section 2.2.2, Fig. 4).
+
+A slice's cardiac phase is ``(t - R_k) / (R_{k+1} - R_k)`` for the R-peaks around
+its acquisition time ``t``; the volume's phase phi_C* is the mean of the slice
+phases (as the paper), reported beside their circular mean.
+
+R-peak sources, in order of preference (DESIGN.md section 4):
+
+1. a user's R-peak file (CSV, column ``time_s``, seconds after midnight on the
+   (0008,0032) *AcquisitionTime* clock);
+2. GE (0049,xx0C) *RpeakTimeStamps* (block ``GEMS_CT_CARDIAC_001``), in ms on the
+   clock of GE (0019,xx24) *Mid Scan Time* (block ``GEMS_ACQU_01``);
+3. a DICOM ECG waveform instance of the study, with QRS detection on it;
+4. (0018,1060) *Trigger Time* over (0018,1062) *Nominal Interval* or the
+   (0018,1088) *Heart Rate*;
+5. (0020,9241) *Nominal Percentage of Cardiac Phase*.
+
+The first source that can time every slice wins; the report names it and how
+the clocks were aligned.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from imaging.ecg import cardiac_phase, detect_r_peaks
+
+__all__ = [
+    "GatingError",
+    "SlicePhase",
+    "PhaseReport",
+    "MOTION_FREE_WINDOW",
+    "JUMP_THRESHOLD",
+    "read_qrs_file",
+    "compute_phase_report",
+]
+
+#: The diastolic window the paper relies on as nearly motion-free.
+MOTION_FREE_WINDOW = (0.6, 0.8)
+#: Consecutive slices whose phases differ by more than this (circularly) are a jump.
+JUMP_THRESHOLD = 0.1
+
+
+class GatingError(ValueError):
+    """No usable cardiac gating information for the slices."""
+
+
+@dataclass(frozen=True)
+class SlicePhase:
+    """Cardiac phase of one slice."""
+
+    index: int
+    position_mm: float
+    time_s: float
+    cardiac_phase: float
+
+
+@dataclass(frozen=True)
+class PhaseReport:
+    """Per-slice cardiac phases and the volume's phase.
+
+    Attributes
+    ----------
+    slices : tuple of SlicePhase
+        In volume order (sorted along the slice normal).
+    volume_cardiac_phase : float
+        phi_C*, the arithmetic mean of the slice phases (paper section 2.2.2).
+    circular_mean_phase : float
+        The circular mean, robust to phases that wrap past 1.
+    source : str
+        Which R-peak/gating source timed the slices.
+    clock : str
+        How slice times and R-peaks were put on one clock.
+    r_peaks_s : (n,) float64
+        The R-peaks used (on the slice clock), empty for nominal sources.
+    jumps : tuple of int
+        Indices i where slice i and i+1 differ by more than JUMP_THRESHOLD.
+    fraction_in_window : float
+        Share of slices with phase inside MOTION_FREE_WINDOW.
+    notes : tuple of str
+        Sources tried and skipped, and why.
+    """
+
+    slices: tuple[SlicePhase, ...]
+    volume_cardiac_phase: float
+    circular_mean_phase: float
+    source: str
+    clock: str
+    r_peaks_s: np.ndarray
+    jumps: tuple[int, ...]
+    fraction_in_window: float
+    notes: tuple[str, ...] = ()
+
+    @property
+    def phases(self) -> np.ndarray:
+        return np.array([s.cardiac_phase for s in self.slices])
+
+    @property
+    def n_slices(self) -> int:
+        return len(self.slices)
+
+    def to_dict(self) -> dict:
+        return {
+            "volume_cardiac_phase": self.volume_cardiac_phase,
+            "circular_mean_phase": self.circular_mean_phase,
+            "source": self.source,
+            "clock": self.clock,
+            "n_slices": self.n_slices,
+            "fraction_in_window": self.fraction_in_window,
+            "motion_free_window": list(MOTION_FREE_WINDOW),
+            "jumps": list(self.jumps),
+            "jump_threshold": JUMP_THRESHOLD,
+            "r_peaks_s": [float(t) for t in self.r_peaks_s],
+            "notes": list(self.notes),
+        }
+
+
+def read_qrs_file(path) -> np.ndarray:
+    """R-peak times from a CSV file with a ``time_s`` column (seconds after
+    midnight on the AcquisitionTime clock).
+
+    Returns
+    -------
+    (n,) float64, s, strictly increasing
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="") as fh:
+            reader = csv.DictReader(fh)
+            if reader.fieldnames is None or "time_s" not in reader.fieldnames:
+                raise GatingError(
+                    f"QRS file {path} needs a header with a 'time_s' column "
+                    f"(found {reader.fieldnames})"
+                )
+            values = []
+            for row_number, row in enumerate(reader, start=2):
+                try:
+                    values.append(float(row["time_s"]))
+                except (TypeError, ValueError):
+                    raise GatingError(
+                        f"QRS file {path}, line {row_number}: time_s {row['time_s']!r} is not a number"
+                    ) from None
+    except OSError as exc:
+        raise GatingError(f"cannot read QRS file {path}: {exc.strerror or exc}") from None
+    times = np.asarray(values, dtype=float)
+    if len(times) < 2:
+        raise GatingError(f"QRS file {path} holds {len(times)} R-peak(s); at least 2 are needed")
+    if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+        raise GatingError(f"QRS file {path}: time_s must be finite and strictly increasing")
+    return times
+
+
+def _circular_mean(phases: np.ndarray) -> float:
+    angle = np.angle(np.mean(np.exp(2j * np.pi * phases)))
+    return float(np.mod(angle / (2 * np.pi), 1.0))
+
+
+def _report(volume, times_s, phases, source, clock, r_peaks, notes) -> PhaseReport:
+    phases = np.asarray(phases, dtype=float)
+    slices = tuple(
+        SlicePhase(
+            index=s.index,
+            position_mm=float(s.position_mm),
+            time_s=float(t) if t is not None and np.isfinite(t) else float("nan"),
+            cardiac_phase=float(p),
+        )
+        for s, t, p in zip(volume.slices, times_s, phases)
+    )
+    step = np.abs(np.diff(phases))
+    step = np.minimum(step, 1.0 - step)
+    lo, hi = MOTION_FREE_WINDOW
+    return PhaseReport(
+        slices=slices,
+        volume_cardiac_phase=float(np.mean(phases)),
+        circular_mean_phase=_circular_mean(phases),
+        source=source,
+        clock=clock,
+        r_peaks_s=np.asarray(r_peaks, dtype=float),
+        jumps=tuple(int(i) for i in np.flatnonzero(step > JUMP_THRESHOLD)),
+        fraction_in_window=float(np.mean((phases >= lo) & (phases <= hi))),
+        notes=tuple(notes),
+    )
+
+
+def _column(volume, name) -> np.ndarray:
+    return np.array(
+        [np.nan if getattr(s, name) is None else float(getattr(s, name)) for s in volume.slices]
+    )
+
+
+def _from_r_peaks(times_s, r_peaks_s, what):
+    phases = cardiac_phase(times_s, r_peaks_s)
+    bad = ~np.isfinite(phases)
+    if bad.any():
+        return None, (
+            f"{what}: {int(bad.sum())} slice time(s) fall outside the R-peaks "
+            f"({r_peaks_s[0]:.3f}..{r_peaks_s[-1]:.3f} s); not extrapolated"
+        )
+    return phases, None
+
+
+def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_records=()) -> PhaseReport:
+    """Cardiac phase of every slice of ``volume`` from the best available source.
+
+    Parameters
+    ----------
+    volume : imaging.Volume
+        Its ``slices`` carry the slice clocks and gating attributes; its
+        ``series`` the GE R-peak time stamps, if any.
+    qrs_s : (n,) float, s, optional
+        R-peak times on the AcquisitionTime clock (a user's QRS file).
+    qrs_label : str
+        How to name the R-peak times in the report (e.g. the file name).
+    ecg_records : sequence of imaging.waveform.EcgRecord
+        ECG waveform instances of the study (start times on the AcquisitionTime clock).
+
+    Raises
+    ------
+    GatingError
+        When no source can time every slice; the message lists what was looked for.
+    """
+    notes: list[str] = []
+    acq = _column(volume, "acquisition_time_s")
+    has_acq = bool(np.all(np.isfinite(acq)))
+
+    # 1. the user's R-peak file, on the AcquisitionTime clock
+    if qrs_s is not None:
+        r = np.asarray(qrs_s, dtype=float)
+        if not has_acq:
+            notes.append(f"{qrs_label}: slices lack AcquisitionTime/ContentTime, cannot align")
+        else:
+            phases, why = _from_r_peaks(acq, r, qrs_label)
+            if phases is not None:
+                return _report(
+                    volume, acq, phases, f"{qrs_label} (R-peak times)",
+                    "slice AcquisitionTime and the R-peak file share the AcquisitionTime clock",
+                    r, notes,
+                )
+            notes.append(why)
+
+    # 2. GE RpeakTimeStamps on the Mid Scan Time clock
+    rpeaks_ms = getattr(volume.series, "rpeak_timestamps_ms", None)
+    mid = _column(volume, "mid_scan_time_s")
+    if rpeaks_ms:
+        if not np.all(np.isfinite(mid)):
+            notes.append("GE RpeakTimeStamps present but some slices lack GE Mid Scan Time")
+        else:
+            r = np.asarray(rpeaks_ms, dtype=float) / 1000.0
+            phases, why = _from_r_peaks(mid, r, "GE RpeakTimeStamps")
+            if phases is not None:
+                clock = "GE Mid Scan Time and RpeakTimeStamps share the scan's origin"
+                times = mid
+                if has_acq:
+                    offset = acq - mid
+                    spread_ms = 1000.0 * float(np.ptp(offset))
+                    clock += (
+                        f"; AcquisitionTime = origin + Mid Scan Time with origin "
+                        f"{np.median(offset):.3f} s after midnight (spread {spread_ms:.1f} ms)"
+                    )
+                    times = mid + np.median(offset)
+                    r = r + np.median(offset)
+                return _report(volume, times, phases, "GE RpeakTimeStamps (0049,xx0C)", clock, r, notes)
+            notes.append(why)
+    else:
+        notes.append("no GE RpeakTimeStamps (0049,xx0C)")
+
+    # 3. an ECG waveform instance of the study, QRS detection on it
+    for record in ecg_records:
+        label = f"ECG waveform {getattr(record, 'source', '')}".strip()
+        if not has_acq:
+            notes.append(f"{label}: slices lack AcquisitionTime, cannot align")
+            continue
+        try:
+            peaks = detect_r_peaks(record.signal_mv, record.rate_hz, start_s=record.start_time_s)
+        except ValueError as exc:
+            notes.append(f"{label}: {exc}")
+            continue
+        phases, why = _from_r_peaks(acq, peaks.times_s, label)
+        if phases is not None:
+            return _report(
+                volume, acq, phases, f"{label} (Pan-Tompkins QRS detection)",
+                "waveform AcquisitionDateTime + MultiplexGroupTimeOffset on the AcquisitionTime clock",
+                peaks.times_s, notes,
+            )
+        notes.append(why)
+    if not ecg_records:
+        notes.append("no DICOM ECG waveform instance in the study")
+
+    # 4. TriggerTime over the nominal RR interval
+    trigger = _column(volume, "trigger_time_ms")
+    interval = _column(volume, "nominal_interval_ms")
+    rate = _column(volume, "heart_rate_bpm")
+    rr_ms = np.where(np.isfinite(interval) & (interval > 0), interval, 60000.0 / np.where(rate > 0, rate, np.nan))
+    if np.all(np.isfinite(trigger)) and np.all(np.isfinite(rr_ms)):
+        phases = np.mod(trigger / rr_ms, 1.0)
+        return _report(
+            volume, acq if has_acq else np.full(len(acq), np.nan), phases,
+            "TriggerTime / nominal RR interval", "phases relative to each slice's own trigger R-peak",
+            np.empty(0), notes,
+        )
+    notes.append("no TriggerTime with NominalInterval or HeartRate on every slice")
+
+    # 5. the nominal percentage of the cardiac cycle
+    pct = _column(volume, "nominal_cardiac_percent")
+    if np.all(np.isfinite(pct)):
+        return _report(
+            volume, acq if has_acq else np.full(len(acq), np.nan), np.mod(pct / 100.0, 1.0),
+            "NominalPercentageOfCardiacPhase", "nominal (reconstruction) phase, no clock",
+            np.empty(0), notes,
+        )
+    notes.append("no NominalPercentageOfCardiacPhase on every slice")
+    raise GatingError(
+        "no cardiac gating information for the slices; looked for: "
+        + "; ".join(notes)
+        + ". Pass an R-peak file with --qrs FILE (CSV, column time_s, seconds after midnight)"
+    )

@@ -1,0 +1,217 @@
+"""Automatic whole-heart (epicardial) segmentation of contrast cardiac CT.
+
+Classical tools only (scipy.ndimage), in four steps:
+
+1. *tissue*: the HU volume, lightly smoothed against noise, between ``hu_low``
+   (midway between fat and myocardium, so the mask's edge is the epicardium) and
+   ``hu_high`` (below metal);
+2. *seed*: the contrast blood pool, the largest connected component of
+   ``blood_hu`` voxels — vertebrae are cut apart by their discs, the liver and
+   muscle stay below it — or the component at a seed point the user gives in
+   patient mm;
+3. *heart region*: the tissue component touching the seed;
+4. *cut the vessels and bridges*: a morphological opening with a ball of radius
+   ``vessel_radius_mm`` (computed with distance transforms on a ~1 mm grid)
+   removes tubes thinner than it — aorta, pulmonary arteries, any thin bridge to
+   the liver or chest wall — and keeps the heart body, whose smallest radius of
+   curvature is larger; the full-resolution tissue mask within ``margin_mm`` of
+   that core is the heart, holes filled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
+
+
+class SegmentationError(ValueError):
+    """No heart-like region could be segmented."""
+
+
+@dataclass(frozen=True)
+class HeartSegmentation:
+    """The heart mask and how it was found.
+
+    Attributes
+    ----------
+    mask : (n_slices, n_rows, n_cols) bool
+        Whole heart (epicardium inward), indexed ``[k, j, i]`` like the volume.
+    seed_patient_mm : (3,) float64
+        Centre of the blood-pool seed, patient frame.
+    volume_ml : float
+        Volume of the mask.
+    parameters : dict
+        The parameters used.
+    notes : tuple of str
+    """
+
+    mask: np.ndarray
+    seed_patient_mm: np.ndarray
+    volume_ml: float
+    parameters: dict
+    notes: tuple[str, ...] = ()
+
+
+def _spacing(T) -> np.ndarray:
+    return np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
+
+
+def _opening_mm(mask, spacing_kji, radius_mm):
+    """Binary opening by a ball of ``radius_mm`` using Euclidean distance transforms."""
+    inside = ndimage.distance_transform_edt(mask, sampling=spacing_kji)
+    core = inside > radius_mm
+    if not core.any():
+        return core
+    outside = ndimage.distance_transform_edt(~core, sampling=spacing_kji)
+    return outside <= radius_mm
+
+
+def segment_heart(
+    hu,
+    T_patient_from_voxel,
+    *,
+    hu_low: float = 0.0,
+    hu_high: float = 1500.0,
+    blood_hu: tuple[float, float] = (200.0, 650.0),
+    seed_patient_mm=None,
+    vessel_radius_mm: float = 14.0,
+    margin_mm: float = 2.0,
+    smooth_mm: float = 0.6,
+    coarse_mm: float = 1.0,
+    min_volume_ml: float = 50.0,
+) -> HeartSegmentation:
+    """Segment the whole heart (epicardial surface inward) in a contrast CT.
+
+    Parameters
+    ----------
+    hu : (n_slices, n_rows, n_cols) array
+        HU volume indexed ``[k, j, i]``.
+    T_patient_from_voxel : (4, 4) float64
+        Maps ``(i, j, k, 1)`` to patient mm.
+    hu_low, hu_high : float
+        Tissue range; ``hu_low`` sits midway between pericardial fat (~-100 HU)
+        and myocardium (~100 HU).
+    blood_hu : (float, float)
+        Range of contrast-enhanced blood, for the automatic seed.
+    seed_patient_mm : (3,) float, optional
+        A point inside the heart (patient mm) instead of the automatic seed.
+    vessel_radius_mm : float
+        Tubes thinner than this radius are cut off (great vessels, bridges).
+    margin_mm : float
+        How far past the opened core the full-resolution boundary is kept.
+    smooth_mm : float
+        Gaussian sigma applied before thresholding.
+    coarse_mm : float
+        Grid spacing for the opening (speed); never finer than the volume.
+    min_volume_ml : float
+        Smaller results are refused as not heart-like.
+
+    Raises
+    ------
+    SegmentationError
+        If no blood pool or no heart-sized region is found.
+    """
+    hu = np.asarray(hu)
+    if hu.ndim != 3:
+        raise ValueError(f"hu must be a 3-D volume (k, j, i), got shape {hu.shape}")
+    T = np.asarray(T_patient_from_voxel, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"T_patient_from_voxel must have shape (4, 4), got {T.shape}")
+    if not hu_low < hu_high:
+        raise ValueError(f"hu_low ({hu_low}) must be below hu_high ({hu_high})")
+    spacing_ijk = _spacing(T)
+    spacing_kji = spacing_ijk[::-1]
+    voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
+    notes: list[str] = []
+
+    sigma = smooth_mm / spacing_kji
+    smooth = ndimage.gaussian_filter(hu.astype(np.float32), sigma=sigma)
+    tissue = (smooth > hu_low) & (smooth < hu_high)
+
+    # ---- seed: the contrast blood pool
+    if seed_patient_mm is None:
+        blood = (smooth > blood_hu[0]) & (smooth < blood_hu[1])
+        labels, n = ndimage.label(blood)
+        if n == 0:
+            raise SegmentationError(
+                f"no contrast-enhanced blood ({blood_hu[0]:.0f}-{blood_hu[1]:.0f} HU) in the volume; "
+                "is this a contrast CT? give a seed point inside the heart (--seed-mm X Y Z)"
+            )
+        sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
+        seed_label = int(np.argmax(sizes)) + 1
+        seed_mask = labels == seed_label
+        kji = np.argwhere(seed_mask).mean(axis=0)
+        seed_mm = T[:3, :3] @ kji[::-1] + T[:3, 3]
+        notes.append(f"seed: largest blood-pool component ({sizes.max() * voxel_ml:.0f} ml)")
+    else:
+        seed_mm = np.asarray(seed_patient_mm, dtype=float).reshape(3)
+        ijk = np.linalg.solve(T[:3, :3], seed_mm - T[:3, 3])
+        kji = np.round(ijk[::-1]).astype(int)
+        if np.any(kji < 0) or np.any(kji >= np.array(hu.shape)):
+            raise SegmentationError(f"seed point {seed_mm.tolist()} mm lies outside the volume")
+        if not tissue[tuple(kji)]:
+            raise SegmentationError(
+                f"seed point {seed_mm.tolist()} mm is not in heart tissue "
+                f"({smooth[tuple(kji)]:.0f} HU outside {hu_low:.0f}..{hu_high:.0f})"
+            )
+        seed_mask = np.zeros(hu.shape, bool)
+        seed_mask[tuple(kji)] = True
+        notes.append("seed: given point")
+
+    # ---- heart region: tissue connected to the seed
+    labels, _ = ndimage.label(tissue)
+    touched = np.unique(labels[seed_mask & tissue])
+    touched = touched[touched > 0]
+    if touched.size == 0:
+        raise SegmentationError("the blood-pool seed does not touch any tissue in range")
+    region = np.isin(labels, touched)
+    del labels
+
+    # ---- crop to the region, open on a coarse grid to cut vessels and bridges
+    box = ndimage.find_objects(region.astype(np.uint8))[0]
+    pad = [int(np.ceil((vessel_radius_mm + margin_mm) / s)) + 1 for s in spacing_kji]
+    box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, hu.shape))
+    sub = region[box]
+    step = np.maximum(1, np.floor(coarse_mm / spacing_kji).astype(int))
+    coarse = sub[:: step[0], :: step[1], :: step[2]]
+    core = _opening_mm(coarse, spacing_kji * step, vessel_radius_mm)
+    labels, n = ndimage.label(core)
+    if n == 0:
+        raise SegmentationError(
+            f"no heart-sized region: nothing thicker than {2 * vessel_radius_mm:.0f} mm is "
+            "connected to the blood pool; lower vessel_radius_mm or give a seed point"
+        )
+    seed_sub = seed_mask[box][:: step[0], :: step[1], :: step[2]]
+    counts = ndimage.sum_labels(seed_sub, labels, index=np.arange(1, n + 1))
+    sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
+    keep = int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+    core = labels == keep
+    # back to full resolution: nearest-neighbour upsampling of the core
+    full = np.zeros(sub.shape, bool)
+    idx = [np.minimum(np.arange(s) // st, c - 1) for s, st, c in zip(sub.shape, step, core.shape)]
+    full[:] = core[np.ix_(*idx)]
+    near = ndimage.distance_transform_edt(~full, sampling=spacing_kji) <= margin_mm + 0.5 * float(np.max(spacing_kji * step))
+    heart = ndimage.binary_fill_holes(sub & near)
+    labels, n = ndimage.label(heart)
+    if n > 1:
+        sizes = ndimage.sum_labels(heart, labels, index=np.arange(1, n + 1))
+        heart = labels == (int(np.argmax(sizes)) + 1)
+
+    mask = np.zeros(hu.shape, bool)
+    mask[box] = heart
+    volume_ml = float(mask.sum() * voxel_ml)
+    if volume_ml < min_volume_ml:
+        raise SegmentationError(
+            f"segmented region is {volume_ml:.0f} ml, smaller than a heart ({min_volume_ml:.0f} ml); "
+            "check the HU range or give a seed point"
+        )
+    parameters = dict(
+        hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), vessel_radius_mm=vessel_radius_mm,
+        margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
+        seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),
+    )
+    return HeartSegmentation(mask, seed_mm, volume_ml, parameters, tuple(notes))
