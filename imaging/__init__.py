@@ -1,3 +1,52 @@
-"""imaging package."""
+"""imaging: from a DICOM CT study on disk to a HU volume and per-slice cardiac phases.
 
-__all__: list[str] = []
+Only this package touches ``pydicom`` datasets; later stages receive arrays,
+affines and frozen dataclasses.
+"""
+
+from imaging.ecg import RPeaks, cardiac_phase, detect_r_peaks
+from imaging.events import SignalError, phase_from_events
+from imaging.phase import GatingError, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
+from imaging.phase_io import plot_phases, write_phase_report
+from imaging.respiration import expiration_onsets, respiration_phase
+from imaging.series import SeriesSummary, StudyError, StudyWarning, list_series, load_study
+from imaging.volume import (
+    DecoderUnavailableError,
+    PixelDataError,
+    SeriesError,
+    SeriesInfo,
+    SliceInfo,
+    Volume,
+)
+from imaging.waveform import EcgRecord, WaveformError, read_ecg_waveform
+
+__all__ = [
+    "DecoderUnavailableError",
+    "EcgRecord",
+    "GatingError",
+    "PhaseReport",
+    "PixelDataError",
+    "RPeaks",
+    "SeriesError",
+    "SeriesInfo",
+    "SeriesSummary",
+    "SignalError",
+    "SliceInfo",
+    "SlicePhase",
+    "StudyError",
+    "StudyWarning",
+    "Volume",
+    "WaveformError",
+    "cardiac_phase",
+    "compute_phase_report",
+    "detect_r_peaks",
+    "expiration_onsets",
+    "list_series",
+    "load_study",
+    "phase_from_events",
+    "plot_phases",
+    "read_ecg_waveform",
+    "read_qrs_file",
+    "respiration_phase",
+    "write_phase_report",
+]

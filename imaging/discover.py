@@ -1,0 +1,530 @@
+"""Find DICOM files under a folder and read the headers needed to group them.
+
+Only headers are read here (``stop_before_pixels=True``); pixel data are decoded
+later, one slice at a time, by :mod:`imaging.volume`. Every image frame becomes one
+private :class:`_Frame` record (a classic single-frame file gives one record, an
+Enhanced CT multi-frame file one per frame, with its per-frame functional groups
+resolved and the shared groups as fallback). Files that carry no image (ECG
+waveforms, structured reports, ...) become :class:`_Other` records so that
+``list_series`` can show them.
+
+Nothing identifying a patient is copied out of the datasets.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pydicom
+from pydicom.dataelem import RawDataElement
+from pydicom.errors import InvalidDicomError
+
+logger = logging.getLogger(__name__)
+
+_DICOMDIR_SOP_CLASS = "1.2.840.10008.1.3.10"
+_PIXEL_DATA_TAG = (0x7FE0, 0x0010)
+_ITEM_TAG = (0xFFFE, 0xE000)
+_SEQ_DELIM_TAG = (0xFFFE, 0xE0DD)
+
+GE_ACQU_CREATOR = "GEMS_ACQU_01"
+GE_MID_SCAN_TIME = (0x0019, 0x24)  # (0019,xx24) *Mid Scan Time*, s since scan origin
+GE_CARDIAC_CREATOR = "GEMS_CT_CARDIAC_001"
+GE_RPEAK_TIMESTAMPS = (0x0049, 0x0C)  # (0049,xx0C) *RpeakTimeStamps*, ms, VR FD 1-n
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One image frame as read from a header (no pixels)."""
+
+    path: str
+    frame: int | None  # 0-based frame number for multi-frame files, else None
+    n_frames_in_file: int
+    sop_instance_uid: str
+    sop_class_uid: str
+    transfer_syntax_uid: str
+    series_instance_uid: str
+    study_instance_uid: str
+    frame_of_reference_uid: str
+    series_number: int | None
+    description: str
+    modality: str
+    manufacturer: str
+    model_name: str
+    image_type: tuple[str, ...]
+    instance_number: int | None
+    ipp: tuple[float, float, float] | None
+    iop: tuple[float, ...] | None
+    pixel_spacing: tuple[float, float] | None
+    slice_thickness_mm: float | None
+    gantry_tilt_deg: float | None
+    rows: int
+    columns: int
+    samples_per_pixel: int
+    bits_allocated: int
+    bits_stored: int
+    pixel_representation: int
+    slope: float | None
+    intercept: float | None
+    acquisition_time_s: float | None
+    mid_scan_time_s: float | None
+    trigger_time_ms: float | None
+    nominal_interval_ms: float | None
+    heart_rate_bpm: float | None
+    nominal_cardiac_percent: float | None
+    temporal_position: int | None
+    acquisition_number: int | None
+    rpeak_timestamps_ms: tuple[float, ...] | None = field(default=None, repr=False)
+
+    @property
+    def is_localizer(self) -> bool:
+        return "LOCALIZER" in self.image_type
+
+
+@dataclass(frozen=True)
+class _Other:
+    """A DICOM file without an image frame (waveform, SR, ...)."""
+
+    path: str
+    series_instance_uid: str
+    study_instance_uid: str
+    series_number: int | None
+    description: str
+    modality: str
+    sop_class_uid: str
+
+
+@dataclass(frozen=True)
+class _Scan:
+    """What discovery found under a path."""
+
+    frames: tuple[_Frame, ...]
+    others: tuple[_Other, ...]
+    n_files: int
+    skipped_non_dicom: tuple[str, ...]
+    skipped_dicomdir: tuple[str, ...]
+    skipped_broken: tuple[tuple[str, str], ...]  # (file, reason)
+
+
+# --------------------------------------------------------------------- values
+
+
+def _as_float(value) -> float | None:
+    """Decode a numeric DICOM value robustly: DS/IS/FD, multi-valued, or UN bytes."""
+    if value is None:
+        return None
+    if isinstance(value, (bytes, bytearray)):
+        raw = bytes(value)
+        text = raw.replace(b"\x00", b" ").strip()
+        try:
+            return float(text.decode("ascii").split("\\")[0])
+        except (UnicodeDecodeError, ValueError):
+            pass
+        if len(raw) == 8:
+            return float(struct.unpack("<d", raw)[0])
+        if len(raw) == 4:
+            return float(struct.unpack("<f", raw)[0])
+        return None
+    if isinstance(value, (list, tuple, pydicom.multival.MultiValue)):
+        return _as_float(value[0]) if len(value) else None
+    if isinstance(value, str) and not value.strip():
+        return None
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        return None
+    return out if np.isfinite(out) else None
+
+
+def _plausible_times(arr: np.ndarray) -> bool:
+    return bool(
+        arr.size and np.all(np.isfinite(arr)) and np.all(np.abs(arr) < 1e9)
+        and np.all(np.diff(arr) >= 0)
+    )
+
+
+def _as_floats(value) -> tuple[float, ...] | None:
+    """Decode a multi-valued float (FD 1-n) of time stamps, also from UN bytes.
+
+    Bytes are read as little-endian float64 (GE writes FD); if that gives no
+    finite, non-decreasing series, as float32, then as backslash-separated text.
+    """
+    if value is None:
+        return None
+    if isinstance(value, (bytes, bytearray)):
+        raw = bytes(value)
+        for dtype, width in (("<f8", 8), ("<f4", 4)):
+            if raw and len(raw) % width == 0:
+                arr = np.frombuffer(raw, dtype=dtype)
+                if _plausible_times(arr):
+                    return tuple(float(v) for v in arr)
+        try:
+            text = raw.replace(b"\x00", b" ").decode("ascii").strip()
+            return tuple(float(v) for v in text.split("\\") if v.strip())
+        except (UnicodeDecodeError, ValueError):
+            return None
+    if isinstance(value, (list, tuple, pydicom.multival.MultiValue)):
+        out = [_as_float(v) for v in value]
+        return None if any(v is None for v in out) else tuple(out)
+    single = _as_float(value)
+    return None if single is None else (single,)
+
+
+def _as_int(value) -> int | None:
+    f = _as_float(value)
+    return None if f is None else int(round(f))
+
+
+def _tm_to_seconds(value) -> float | None:
+    """DICOM TM ('HHMMSS.FFFFFF', also 'HH:MM:SS' of old files) -> seconds after midnight."""
+    if value is None:
+        return None
+    text = str(value).strip().replace(":", "")
+    if not text:
+        return None
+    try:
+        hh = int(text[0:2])
+        mm = int(text[2:4]) if len(text) >= 4 else 0
+        ss = float(text[4:]) if len(text) > 4 else 0.0
+    except ValueError:
+        return None
+    return hh * 3600.0 + mm * 60.0 + ss
+
+
+def _dt_to_seconds(value) -> float | None:
+    """DICOM DT ('YYYYMMDDHHMMSS.FFFFFF&ZZXX') -> seconds after midnight (offset ignored)."""
+    if value is None:
+        return None
+    text = str(value).strip()
+    if len(text) <= 8:
+        return None
+    time_part = text[8:]
+    for sign in "+-":
+        if sign in time_part:
+            time_part = time_part.split(sign)[0]
+    return _tm_to_seconds(time_part)
+
+
+def _private_value(ds, group: int, creator: str, offset: int):
+    """Value of a private element, or None when its block or element is absent.
+
+    Elements read as UN (explicit VR UN, or implicit VR) come back as raw bytes:
+    pydicom would otherwise apply its private dictionary's VR, which for
+    (0049,xx0C) *RpeakTimeStamps* says FL where GE writes FD.
+    """
+    try:
+        block = ds.private_block(group, creator)
+    except KeyError:
+        return None
+    tag = block.get_tag(offset)
+    if tag not in ds:
+        return None
+    elem = ds.get_item(tag)
+    if isinstance(elem, RawDataElement):
+        if elem.VR in (None, "UN"):
+            return None if elem.value is None else bytes(elem.value)
+        return ds[tag].value
+    return elem.value
+
+
+def _seq_item(container, keyword):
+    """First item of the sequence `keyword` in `container`, or None."""
+    if container is None:
+        return None
+    seq = container.get(keyword)
+    if seq is None or len(seq) == 0:
+        return None
+    return seq[0]
+
+
+def _first(keyword, *items):
+    """The first present, non-empty value of `keyword` among datasets `items`."""
+    for item in items:
+        if item is None:
+            continue
+        value = item.get(keyword)
+        if value is not None and value != "":
+            return value
+    return None
+
+
+def _str(ds, keyword) -> str:
+    value = ds.get(keyword)
+    return "" if value is None else str(value).strip()
+
+
+# ------------------------------------------------------------------ headers
+
+
+def _check_pixel_extent(fp, ds, size: int) -> str | None:
+    """Return a reason when the pixel data run past the end of the file, else None.
+
+    `fp` stands right before (7FE0,0010) after ``dcmread(stop_before_pixels=True)``.
+    Native data: the element's length must fit. Encapsulated data: the item headers
+    are walked (seeking over the fragments) up to the sequence delimiter.
+    """
+    start = fp.tell()
+    if start >= size:
+        return None  # no pixel data element at all (header-only file)
+    implicit, little = ds.original_encoding
+    end = "<" if little is not False else ">"
+    head = fp.read(8)
+    if len(head) < 8:
+        return "file ends inside the (7FE0,0010) Pixel Data header"
+    group, elem = struct.unpack(end + "HH", head[:4])
+    if (group, elem) != _PIXEL_DATA_TAG:
+        return None  # something else (e.g. float pixel data); leave it to the decoder
+    if implicit:
+        (length,) = struct.unpack(end + "I", head[4:8])
+    else:
+        vr = head[4:6]
+        if vr in (b"OB", b"OW", b"OF", b"OD", b"OL", b"UN", b"OV", b"SQ", b"UT"):
+            more = fp.read(4)
+            if len(more) < 4:
+                return "file ends inside the (7FE0,0010) Pixel Data header"
+            (length,) = struct.unpack(end + "I", more)
+        else:
+            (length,) = struct.unpack(end + "H", head[6:8])
+    if length != 0xFFFFFFFF:
+        if fp.tell() + length > size:
+            return (
+                f"Pixel Data holds {size - fp.tell()} of {length} bytes "
+                "(file truncated)"
+            )
+        return None
+    while True:
+        item = fp.read(8)
+        if len(item) < 8:
+            return "file ends before the end of the encapsulated Pixel Data (truncated)"
+        group, elem, item_len = struct.unpack(end + "HHI", item)
+        if (group, elem) == _SEQ_DELIM_TAG:
+            return None
+        if (group, elem) != _ITEM_TAG:
+            return f"unexpected tag ({group:04X},{elem:04X}) inside encapsulated Pixel Data"
+        if fp.tell() + item_len > size:
+            return "a Pixel Data fragment runs past the end of the file (truncated)"
+        fp.seek(item_len, os.SEEK_CUR)
+
+
+def _read_header(path: str):
+    """Read one file's header. Returns (dataset, None) or (None, reason/kind)."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as fp:
+        try:
+            ds = pydicom.dcmread(fp, stop_before_pixels=True)
+        except InvalidDicomError:
+            # Files without the 128-byte preamble: accept only if they look like images.
+            fp.seek(0)
+            try:
+                ds = pydicom.dcmread(fp, stop_before_pixels=True, force=True)
+            except Exception:  # noqa: BLE001 - anything unreadable is "not DICOM"
+                return None, "not-dicom"
+            if "SOPInstanceUID" not in ds or "SeriesInstanceUID" not in ds:
+                return None, "not-dicom"
+        except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds here
+            return None, f"unreadable header ({type(exc).__name__}: {exc})"
+        try:
+            reason = _check_pixel_extent(fp, ds, size)
+        except Exception as exc:  # noqa: BLE001
+            reason = f"unreadable Pixel Data ({type(exc).__name__}: {exc})"
+    if reason is not None:
+        return None, reason
+    return ds, None
+
+
+def _frames_from_dataset(ds, path: str) -> list[_Frame]:
+    """One _Frame per image frame of `ds` (header only)."""
+    meta = getattr(ds, "file_meta", None)
+    ts = str(meta.get("TransferSyntaxUID", "")) if meta is not None else ""
+    if not ts:
+        implicit, little = ds.original_encoding
+        ts = "1.2.840.10008.1.2" if implicit else "1.2.840.10008.1.2.1"
+    n_frames = _as_int(ds.get("NumberOfFrames")) or 1
+    shared = _seq_item(ds, "SharedFunctionalGroupsSequence")
+    per_frame = ds.get("PerFrameFunctionalGroupsSequence")
+    is_enhanced = per_frame is not None or shared is not None
+    rpeaks = _as_floats(
+        _private_value(ds, GE_RPEAK_TIMESTAMPS[0], GE_CARDIAC_CREATOR, GE_RPEAK_TIMESTAMPS[1])
+    )
+    mid_scan = _as_float(
+        _private_value(ds, GE_MID_SCAN_TIME[0], GE_ACQU_CREATOR, GE_MID_SCAN_TIME[1])
+    )
+    top_time = _dt_to_seconds(ds.get("AcquisitionDateTime"))
+    if top_time is None:
+        top_time = _tm_to_seconds(ds.get("AcquisitionTime"))
+    if top_time is None:
+        top_time = _tm_to_seconds(ds.get("ContentTime"))
+    common = dict(
+        path=path,
+        n_frames_in_file=n_frames,
+        sop_instance_uid=_str(ds, "SOPInstanceUID"),
+        sop_class_uid=_str(ds, "SOPClassUID"),
+        transfer_syntax_uid=ts,
+        series_instance_uid=_str(ds, "SeriesInstanceUID"),
+        study_instance_uid=_str(ds, "StudyInstanceUID"),
+        frame_of_reference_uid=_str(ds, "FrameOfReferenceUID"),
+        series_number=_as_int(ds.get("SeriesNumber")),
+        description=_str(ds, "SeriesDescription"),
+        modality=_str(ds, "Modality"),
+        manufacturer=_str(ds, "Manufacturer"),
+        model_name=_str(ds, "ManufacturerModelName"),
+        instance_number=_as_int(ds.get("InstanceNumber")),
+        gantry_tilt_deg=_as_float(ds.get("GantryDetectorTilt")),
+        rows=int(ds.get("Rows", 0) or 0),
+        columns=int(ds.get("Columns", 0) or 0),
+        samples_per_pixel=int(ds.get("SamplesPerPixel", 1) or 1),
+        bits_allocated=int(ds.get("BitsAllocated", 16) or 16),
+        bits_stored=int(ds.get("BitsStored", ds.get("BitsAllocated", 16)) or 16),
+        pixel_representation=int(ds.get("PixelRepresentation", 0) or 0),
+        mid_scan_time_s=mid_scan,
+        rpeak_timestamps_ms=rpeaks,
+    )
+    top_type = tuple(str(v).upper() for v in (ds.get("ImageType") or ()))
+    frames = []
+    for f in range(n_frames):
+        pf = per_frame[f] if per_frame is not None and f < len(per_frame) else None
+        groups = (pf, shared) if is_enhanced else ()
+
+        def grp(keyword, _groups=groups):
+            for g in _groups:
+                item = _seq_item(g, keyword)
+                if item is not None:
+                    return item
+            return None
+
+        plane_pos = grp("PlanePositionSequence")
+        plane_ori = grp("PlaneOrientationSequence")
+        measures = grp("PixelMeasuresSequence")
+        transform = grp("PixelValueTransformationSequence")
+        content = grp("FrameContentSequence")
+        cardiac = grp("CardiacSynchronizationSequence")
+        frame_type_item = grp("CTImageFrameTypeSequence")
+        ipp = _first("ImagePositionPatient", plane_pos, ds)
+        iop = _first("ImageOrientationPatient", plane_ori, ds)
+        spacing = _first("PixelSpacing", measures, ds)
+        frame_type = _first("FrameType", frame_type_item)
+        image_type = top_type + tuple(str(v).upper() for v in (frame_type or ()))
+        t = _dt_to_seconds(_first("FrameAcquisitionDateTime", content))
+        trigger = _as_float(_first("TriggerTime", cardiac, ds))
+        if trigger is None:
+            trigger = _as_float(_first("NominalCardiacTriggerDelayTime", cardiac))
+        interval = _as_float(_first("NominalInterval", cardiac, ds))
+        if interval is None:
+            interval = _as_float(_first("RRIntervalTimeNominal", cardiac))
+        frames.append(
+            _Frame(
+                frame=f if (n_frames > 1 or is_enhanced) else None,
+                image_type=image_type,
+                ipp=tuple(float(v) for v in ipp) if ipp is not None and len(ipp) == 3 else None,
+                iop=tuple(float(v) for v in iop) if iop is not None and len(iop) == 6 else None,
+                pixel_spacing=(
+                    (float(spacing[0]), float(spacing[1]))
+                    if spacing is not None and len(spacing) == 2
+                    else None
+                ),
+                slice_thickness_mm=_as_float(_first("SliceThickness", measures, ds)),
+                slope=_as_float(_first("RescaleSlope", transform, ds)),
+                intercept=_as_float(_first("RescaleIntercept", transform, ds)),
+                acquisition_time_s=t if t is not None else top_time,
+                trigger_time_ms=trigger,
+                nominal_interval_ms=interval,
+                heart_rate_bpm=_as_float(_first("HeartRate", cardiac, ds)),
+                nominal_cardiac_percent=_as_float(
+                    _first("NominalPercentageOfCardiacPhase", cardiac, ds)
+                ),
+                temporal_position=_as_int(
+                    _first("TemporalPositionIndex", content)
+                    if content is not None
+                    else ds.get("TemporalPositionIdentifier")
+                ),
+                acquisition_number=_as_int(
+                    _first("FrameAcquisitionNumber", content)
+                    if content is not None
+                    else ds.get("AcquisitionNumber")
+                ),
+                **common,
+            )
+        )
+    return frames
+
+
+def _iter_files(root: Path) -> Iterable[str]:
+    if root.is_file():
+        yield str(root)
+        return
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames.sort()
+        for name in sorted(filenames):
+            yield os.path.join(dirpath, name)
+
+
+def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
+    """Read the headers of every file under `path` (recursively, any file names).
+
+    DICOMDIR files are skipped; non-DICOM files are counted; DICOM files whose
+    header or pixel data are cut short are skipped and reported with a reason.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise FileNotFoundError(f"study path {str(root)!r} does not exist")
+    files = list(_iter_files(root))
+    frames: list[_Frame] = []
+    others: list[_Other] = []
+    non_dicom: list[str] = []
+    dicomdir: list[str] = []
+    broken: list[tuple[str, str]] = []
+    iterator = files
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(files, desc="reading headers", unit="file", leave=False)
+    for name in iterator:
+        if os.path.basename(name).upper() == "DICOMDIR":
+            dicomdir.append(name)
+            continue
+        try:
+            ds, why = _read_header(name)
+        except OSError as exc:
+            broken.append((name, f"cannot open ({exc.strerror or exc})"))
+            continue
+        if ds is None:
+            (non_dicom.append(name) if why == "not-dicom" else broken.append((name, why)))
+            continue
+        meta = getattr(ds, "file_meta", None)
+        sop_class = _str(ds, "SOPClassUID") or (
+            str(meta.get("MediaStorageSOPClassUID", "")) if meta is not None else ""
+        )
+        if sop_class == _DICOMDIR_SOP_CLASS or "DirectoryRecordSequence" in ds:
+            dicomdir.append(name)
+            continue
+        has_image = int(ds.get("Rows", 0) or 0) > 0 and int(ds.get("Columns", 0) or 0) > 0
+        if not has_image:
+            others.append(
+                _Other(
+                    path=name,
+                    series_instance_uid=_str(ds, "SeriesInstanceUID"),
+                    study_instance_uid=_str(ds, "StudyInstanceUID"),
+                    series_number=_as_int(ds.get("SeriesNumber")),
+                    description=_str(ds, "SeriesDescription"),
+                    modality=_str(ds, "Modality"),
+                    sop_class_uid=sop_class,
+                )
+            )
+            continue
+        try:
+            frames.extend(_frames_from_dataset(ds, name))
+        except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
+            broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
+    return _Scan(
+        frames=tuple(frames),
+        others=tuple(others),
+        n_files=len(files),
+        skipped_non_dicom=tuple(non_dicom),
+        skipped_dicomdir=tuple(dicomdir),
+        skipped_broken=tuple(broken),
+    )

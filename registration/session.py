@@ -1,0 +1,479 @@
+"""Read an intra-operative session folder (format ``heartreg-session`` v1).
+
+The format is documented in ``docs/formats.md`` (section *Session folder*).  In
+short: ``session.json`` (metadata and the list of point records),
+``points/point_NNN.csv`` (one record per attachment point: time, robot and
+reference-probe poses in the tracker frame with scalar-first quaternions, ECG,
+inspiratory and expiratory flow) and ``fiducials.csv`` (the 9 chest staples as
+touched with the tracked stylus, reference-probe frame).
+
+:func:`read_session` validates everything and returns the robot poses in the
+reference-probe frame, ``T_probe_from_robot = inv(T_tracker_from_probe) @
+T_tracker_from_robot``.  A record too short to cover two breaths is not
+dropped silently: it is listed in :attr:`Session.exclusions` with the reason.
+Anything else that is wrong stops the reading with a :class:`SessionError`
+naming the file, the column and the row.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "SESSION_FORMAT",
+    "SUPPORTED_VERSIONS",
+    "SESSION_UNITS",
+    "POINT_COLUMNS",
+    "FIDUCIAL_COLUMNS",
+    "FIDUCIAL_ORDER",
+    "MIN_DURATION_S",
+    "QUATERNION_TOL",
+    "SessionError",
+    "SessionNotFoundError",
+    "PointRecord",
+    "Session",
+    "read_session",
+]
+
+SESSION_FORMAT = "heartreg-session"
+SUPPORTED_VERSIONS = (1,)
+#: the only units version 1 knows.
+SESSION_UNITS = {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"}
+POINT_COLUMNS = (
+    "time_s",
+    "robot_x_mm", "robot_y_mm", "robot_z_mm",
+    "robot_qw", "robot_qx", "robot_qy", "robot_qz",
+    "probe_x_mm", "probe_y_mm", "probe_z_mm",
+    "probe_qw", "probe_qx", "probe_qy", "probe_qz",
+    "ecg_mv", "flow_insp_lpm", "flow_exp_lpm",
+)  # fmt: skip
+FIDUCIAL_COLUMNS = ("fiducial", "x_mm", "y_mm", "z_mm")
+FIDUCIAL_ORDER = "rows superior to inferior, within a row patient right to left"
+N_FIDUCIALS = 9
+#: a record shorter than this (two breaths at 12/min) cannot fit a respiratory model.
+MIN_DURATION_S = 10.0
+#: quaternions whose norm is off by at most this are renormalised; more is refused.
+QUATERNION_TOL = 1e-3
+#: the median sample interval must match ``sample_rate_hz`` within this fraction.
+RATE_TOL = 0.05
+
+
+class SessionError(ValueError):
+    """A session folder that does not follow the ``heartreg-session`` format."""
+
+
+class SessionNotFoundError(SessionError, FileNotFoundError):
+    """The session folder, its ``session.json`` or a file it lists is missing."""
+
+
+@dataclass(frozen=True, eq=False)
+class PointRecord:
+    """One attachment point's record, robot poses in the reference-probe frame.
+
+    Attributes
+    ----------
+    point_id : int
+        The record's id in ``session.json``.
+    surface_point : int
+        Id of the surface point the robot was attached to.
+    file : str
+        The record's file, relative to the session folder.
+    time_s : (n,) float64, s
+        Sample times, seconds after midnight of the surgery, strictly increasing.
+    T_probe_from_robot : (n, 4, 4) float64
+        Robot pose in the reference-probe frame (mm).
+    ecg_mv : (n,) float64, mV
+    flow_insp_lpm, flow_exp_lpm : (n,) float64, L/min
+        Inspiratory and expiratory airflow.
+    rate_hz : float
+        Declared sample rate.
+    """
+
+    point_id: int
+    surface_point: int
+    file: str
+    time_s: np.ndarray
+    T_probe_from_robot: np.ndarray
+    ecg_mv: np.ndarray
+    flow_insp_lpm: np.ndarray
+    flow_exp_lpm: np.ndarray
+    rate_hz: float
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.time_s.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.time_s[-1] - self.time_s[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Session:
+    """A validated intra-operative session.
+
+    Attributes
+    ----------
+    path : Path
+        The session folder.
+    format_version : int
+    sample_rate_hz : float
+    points : tuple of PointRecord
+        The usable records, in the order of ``session.json``.
+    fiducials_probe_mm : (9, 3) float64, mm
+        Touched staples in the reference-probe frame, rows superior to
+        inferior, within a row patient right to left.
+    exclusions : tuple of (int, str)
+        ``(point id, reason)`` of every record that was read but not used.
+    generator : str
+        The writing software, as recorded (may be empty).
+    """
+
+    path: Path
+    format_version: int
+    sample_rate_hz: float
+    points: tuple[PointRecord, ...]
+    fiducials_probe_mm: np.ndarray
+    exclusions: tuple[tuple[int, str], ...]
+    generator: str = ""
+
+    def point(self, point_id: int) -> PointRecord:
+        """The usable record with id ``point_id``."""
+        for record in self.points:
+            if record.point_id == point_id:
+                return record
+        excluded = dict(self.exclusions)
+        if point_id in excluded:
+            raise KeyError(f"point {point_id} was excluded: {excluded[point_id]}")
+        raise KeyError(f"no point {point_id} in session {self.path}")
+
+
+# --------------------------------------------------------------------- reader
+def read_session(
+    path,
+    *,
+    min_duration_s: float = MIN_DURATION_S,
+    quaternion_tol: float = QUATERNION_TOL,
+) -> Session:
+    """Read and validate a ``heartreg-session`` folder.
+
+    Parameters
+    ----------
+    path : str or Path
+        The session folder (holding ``session.json``), or a folder holding a
+        ``session/`` subfolder (the phantom's output folder).
+    min_duration_s : float, s
+        Records shorter than this are excluded (reported in
+        :attr:`Session.exclusions`), not used.
+    quaternion_tol : float
+        Largest accepted deviation of a quaternion's norm from 1; smaller
+        deviations are renormalised.
+
+    Returns
+    -------
+    Session
+
+    Raises
+    ------
+    SessionNotFoundError
+        The folder, ``session.json`` or a listed file is missing.
+    SessionError
+        Anything that breaks the format, naming the file, column and row; or no
+        usable record at all.
+    """
+    if not min_duration_s >= 0:
+        raise ValueError(f"min_duration_s must be >= 0 s, got {min_duration_s!r}")
+    if not 0 < quaternion_tol < 1:
+        raise ValueError(f"quaternion_tol must be in (0, 1), got {quaternion_tol!r}")
+    folder = _find_folder(Path(path))
+    meta = _read_meta(folder)
+    rate_hz = float(meta["sample_rate_hz"])
+
+    points, exclusions = [], []
+    for entry in meta["points"]:
+        record = _read_point(folder, entry, rate_hz, quaternion_tol)
+        if record.n_samples < 2 or record.duration_s < min_duration_s:
+            duration = record.duration_s if record.n_samples >= 2 else 0.0
+            exclusions.append(
+                (
+                    record.point_id,
+                    f"{record.file}: record lasts {duration:.2f} s, shorter than "
+                    f"min_duration_s = {min_duration_s:g} s (two breaths)",
+                )
+            )
+            continue
+        points.append(record)
+    if not points:
+        reasons = "; ".join(f"point {i}: {why}" for i, why in exclusions) or "session.json lists no points"
+        raise SessionError(
+            f"{folder}: no usable point record ({reasons}); record longer points or "
+            "lower min_duration_s"
+        )
+    fiducials = _read_fiducials(folder, meta["fiducials_file"])
+    return Session(
+        path=folder,
+        format_version=int(meta["version"]),
+        sample_rate_hz=rate_hz,
+        points=tuple(points),
+        fiducials_probe_mm=fiducials,
+        exclusions=tuple(exclusions),
+        generator=str(meta.get("generator", "")),
+    )
+
+
+def _find_folder(path: Path) -> Path:
+    if not path.exists():
+        raise SessionNotFoundError(f"session folder {path} does not exist")
+    if path.is_file() and path.name == "session.json":
+        path = path.parent
+    if not (path / "session.json").is_file() and (path / "session" / "session.json").is_file():
+        path = path / "session"
+    if not (path / "session.json").is_file():
+        raise SessionNotFoundError(
+            f"{path} has no session.json: pass the folder written by the tracker "
+            "logger or the phantom (it holds session.json, points/ and fiducials.csv)"
+        )
+    return path
+
+
+def _read_meta(folder: Path) -> dict:
+    file = folder / "session.json"
+    try:
+        meta = json.loads(file.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SessionError(f"{file} is not valid JSON: {exc}") from None
+    if not isinstance(meta, dict):
+        raise SessionError(f"{file} must hold a JSON object, got {type(meta).__name__}")
+    if meta.get("format") != SESSION_FORMAT:
+        raise SessionError(
+            f"{file}: 'format' is {meta.get('format')!r}, expected {SESSION_FORMAT!r}; "
+            "this is not a heartreg session"
+        )
+    version = meta.get("version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise SessionError(f"{file}: 'version' must be an integer, got {version!r}")
+    if version not in SUPPORTED_VERSIONS:
+        hint = "upgrade heartreg" if version > max(SUPPORTED_VERSIONS) else "rewrite the session"
+        raise SessionError(
+            f"{file}: {SESSION_FORMAT} version {version} is not supported "
+            f"(this reader knows {', '.join(map(str, SUPPORTED_VERSIONS))}); {hint}"
+        )
+    units = meta.get("units")
+    if not isinstance(units, dict):
+        raise SessionError(f"{file}: 'units' must be an object like {json.dumps(SESSION_UNITS)}")
+    for key, expected in SESSION_UNITS.items():
+        if key not in units:
+            raise SessionError(f"{file}: 'units' has no {key!r} (expected {expected!r})")
+        if units[key] != expected:
+            raise SessionError(
+                f"{file}: unknown unit units.{key} = {units[key]!r}; version 1 accepts only "
+                f"{expected!r}: convert the data"
+            )
+    for key in sorted(set(units) - set(SESSION_UNITS)):
+        raise SessionError(f"{file}: unknown quantity units.{key} = {units[key]!r}")
+    if meta.get("quaternion_order") != "wxyz":
+        raise SessionError(
+            f"{file}: 'quaternion_order' is {meta.get('quaternion_order')!r}; version 1 "
+            "stores scalar-first quaternions and needs 'wxyz'"
+        )
+    frames = meta.get("frames")
+    if not isinstance(frames, dict) or frames.get("poses") != "tracker":
+        raise SessionError(f"{file}: 'frames' must be {{\"poses\": \"tracker\"}}, got {frames!r}")
+    rate = meta.get("sample_rate_hz")
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not np.isfinite(rate) or rate <= 0:
+        raise SessionError(f"{file}: 'sample_rate_hz' must be a positive number, got {rate!r}")
+    order = meta.get("fiducial_order")
+    if order != FIDUCIAL_ORDER:
+        raise SessionError(
+            f"{file}: 'fiducial_order' is {order!r}; version 1 requires {FIDUCIAL_ORDER!r}"
+        )
+    fid = meta.get("fiducials_file")
+    if not isinstance(fid, str) or not fid:
+        raise SessionError(f"{file}: 'fiducials_file' must name a file, got {fid!r}")
+    _check_relative(file, "fiducials_file", fid)
+    points = meta.get("points")
+    if not isinstance(points, list):
+        raise SessionError(f"{file}: 'points' must be a list of point records, got {type(points).__name__}")
+    seen: set[int] = set()
+    for k, entry in enumerate(points):
+        where = f"{file}: points[{k}]"
+        if not isinstance(entry, dict):
+            raise SessionError(f"{where} must be an object with 'id', 'file', 'surface_point'")
+        for key in ("id", "surface_point"):
+            value = entry.get(key)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise SessionError(f"{where}: {key!r} must be an integer, got {value!r}")
+        if not isinstance(entry.get("file"), str) or not entry["file"]:
+            raise SessionError(f"{where}: 'file' must name the record's CSV file")
+        _check_relative(file, f"points[{k}].file", entry["file"])
+        if entry["id"] in seen:
+            raise SessionError(f"{where}: point id {entry['id']} is used twice")
+        seen.add(entry["id"])
+    return meta
+
+
+def _check_relative(file: Path, key: str, name: str) -> None:
+    p = PurePosixPath(name)
+    if p.is_absolute() or ".." in p.parts or "\\" in name:
+        raise SessionError(
+            f"{file}: {key} = {name!r} must be a relative path inside the session folder, "
+            "with '/' separators"
+        )
+
+
+def _read_header(file: Path, rel: str, required) -> list[int]:
+    try:
+        with open(file, encoding="utf-8", newline="") as fh:
+            header = fh.readline()
+    except FileNotFoundError:
+        raise SessionNotFoundError(f"{rel} is listed in session.json but missing from the folder") from None
+    except UnicodeDecodeError:
+        raise SessionError(f"{rel}: not a UTF-8 text CSV file") from None
+    names = [c.strip() for c in header.strip().split(",")]
+    dupes = sorted({c for c in names if names.count(c) > 1})
+    if dupes:
+        raise SessionError(f"{rel}: header repeats column(s) {', '.join(dupes)}")
+    missing = [c for c in required if c not in names]
+    if missing:
+        raise SessionError(
+            f"{rel}: missing column(s) {', '.join(missing)}; the header must hold "
+            f"{', '.join(required)}"
+        )
+    return [names.index(c) for c in required]
+
+
+def _load_table(file: Path, rel: str, usecols: list[int], names) -> np.ndarray:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "Empty input file"
+            data = np.loadtxt(file, delimiter=",", skiprows=1, usecols=usecols, ndmin=2, dtype=np.float64)
+    except ValueError as exc:
+        raise SessionError(_locate_bad_cell(file, rel, usecols, names) or f"{rel}: {exc}") from None
+    return data
+
+
+def _locate_bad_cell(file: Path, rel: str, usecols: list[int], names) -> str | None:
+    """Slow path after a parse failure: the first line that does not parse."""
+    with open(file, encoding="utf-8", newline="") as fh:
+        width = len(fh.readline().split(","))
+        for line_no, line in enumerate(fh, start=2):
+            if not line.strip():
+                continue
+            cells = line.rstrip("\r\n").split(",")
+            if len(cells) != width:
+                return f"{rel}: line {line_no} has {len(cells)} fields, the header has {width}"
+            for col, name in zip(usecols, names):
+                try:
+                    float(cells[col])
+                except ValueError:
+                    return (
+                        f"{rel}: column {name!r}, row {line_no - 1} (line {line_no}): "
+                        f"{cells[col].strip()!r} is not a number"
+                    )
+    return None
+
+
+def _check_finite(data: np.ndarray, rel: str, columns) -> None:
+    bad = ~np.isfinite(data)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise SessionError(
+            f"{rel}: column {columns[col]!r}, row {row + 1} (line {row + 2}): value "
+            f"{data[row, col]!r} is not finite ({int(bad.sum())} such values in the file); "
+            "remove or re-record the point"
+        )
+
+
+def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float) -> PointRecord:
+    rel = entry["file"]
+    file = folder / rel
+    cols = _read_header(file, rel, POINT_COLUMNS)
+    data = _load_table(file, rel, cols, POINT_COLUMNS)
+    if data.shape[0] and data.shape[1] != len(POINT_COLUMNS):
+        raise SessionError(f"{rel}: expected {len(POINT_COLUMNS)} columns, read {data.shape[1]}")
+    data = data.reshape(-1, len(POINT_COLUMNS))
+    _check_finite(data, rel, POINT_COLUMNS)
+    time_s = data[:, 0]
+    steps = np.diff(time_s)
+    if (steps <= 0).any():
+        row = int(np.argmax(steps <= 0)) + 1
+        raise SessionError(
+            f"{rel}: column 'time_s' is not strictly increasing at row {row + 1} "
+            f"(line {row + 2}): {time_s[row - 1]!r} then {time_s[row]!r}"
+        )
+    if steps.size:
+        median = float(np.median(steps))
+        if abs(median * rate_hz - 1.0) > RATE_TOL:
+            raise SessionError(
+                f"{rel}: column 'time_s' has a median step of {median:.6g} s but session.json "
+                f"declares sample_rate_hz = {rate_hz:g}"
+            )
+    q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
+    q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
+    R_robot = _matrices(q_robot)
+    R_probe_T = np.swapaxes(_matrices(q_probe), 1, 2)
+    T = np.zeros((data.shape[0], 4, 4))
+    T[:, :3, :3] = R_probe_T @ R_robot
+    T[:, :3, 3] = np.einsum("nij,nj->ni", R_probe_T, data[:, 1:4] - data[:, 8:11])
+    T[:, 3, 3] = 1.0
+    return PointRecord(
+        point_id=int(entry["id"]),
+        surface_point=int(entry["surface_point"]),
+        file=rel,
+        time_s=_frozen(time_s),
+        T_probe_from_robot=_frozen(T),
+        ecg_mv=_frozen(data[:, 15]),
+        flow_insp_lpm=_frozen(data[:, 16]),
+        flow_exp_lpm=_frozen(data[:, 17]),
+        rate_hz=rate_hz,
+    )
+
+
+def _matrices(q_wxyz: np.ndarray) -> np.ndarray:
+    if q_wxyz.shape[0] == 0:
+        return np.zeros((0, 3, 3))
+    return Rotation.from_quat(q_wxyz, scalar_first=True).as_matrix()
+
+
+def _unit_quaternions(q: np.ndarray, rel: str, sensor: str, tol: float) -> np.ndarray:
+    norm = np.linalg.norm(q, axis=1)
+    off = np.abs(norm - 1.0) > tol
+    if off.any():
+        row = int(np.argmax(off))
+        raise SessionError(
+            f"{rel}: columns {sensor}_qw..{sensor}_qz, row {row + 1} (line {row + 2}): "
+            f"quaternion norm {norm[row]:.6g} is not 1 (tolerance {tol:g}; {int(off.sum())} "
+            "such rows); check the quaternion order (w, x, y, z) and the logger"
+        )
+    return q / norm[:, None]
+
+
+def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
+    file = folder / rel
+    cols = _read_header(file, rel, FIDUCIAL_COLUMNS)
+    data = _load_table(file, rel, cols, FIDUCIAL_COLUMNS)
+    if data.shape != (N_FIDUCIALS, len(FIDUCIAL_COLUMNS)):
+        raise SessionError(
+            f"{rel}: expected {N_FIDUCIALS} fiducial rows of {', '.join(FIDUCIAL_COLUMNS)}, "
+            f"got {data.shape[0]} row(s); touch all 9 staples in the documented order"
+        )
+    _check_finite(data, rel, FIDUCIAL_COLUMNS)
+    labels = data[:, 0]
+    if not np.array_equal(labels, np.arange(1, N_FIDUCIALS + 1)):
+        raise SessionError(
+            f"{rel}: column 'fiducial' must number the staples 1..9 in order ({FIDUCIAL_ORDER}), "
+            f"got {labels.tolist()}"
+        )
+    return _frozen(data[:, 1:4])
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a

@@ -1,0 +1,452 @@
+"""Tests for imaging.series / imaging.volume / imaging.discover (load_study, list_series).
+
+Fixtures are tiny CT series written by ``dicom_factory`` whose pixels hold
+round(x + 2y + 3z) of their own LPS position, so the affine is checked voxel by voxel.
+Tolerances: 0 HU where no interpolation happens; 1 HU where the loader interpolates
+linearly (the pattern is linear, so interpolation is exact up to the factory's
+rounding to whole HU: at most 0.5 on each of two samples).
+"""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+
+import numpy as np
+import pydicom
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydicom.data import get_testdata_file
+from pydicom.encaps import encapsulate
+from pydicom.uid import JPEG2000Lossless, JPEGLSLossless, RLELossless
+from scipy.spatial.transform import Rotation
+
+from imaging.series import (
+    SeriesError,
+    StudyError,
+    StudyWarning,
+    list_series,
+    load_study,
+)
+from imaging.volume import DecoderUnavailableError, SliceInfo, Volume
+
+from . import dicom_factory as fac
+
+
+def voxel_positions(vol: Volume) -> np.ndarray:
+    """(k, j, i, 3) LPS positions of every voxel of vol.hu through its affine."""
+    nk, nj, ni = vol.hu.shape
+    k, j, i = np.mgrid[0:nk, 0:nj, 0:ni]
+    ijk = np.stack([i, j, k], axis=-1).reshape(-1, 3)
+    return vol.voxel_to_patient(ijk).reshape(nk, nj, ni, 3)
+
+
+def pattern_error(vol: Volume, mask=None) -> float:
+    err = np.abs(vol.hu.astype(np.float64) - fac.pattern_hu(voxel_positions(vol)))
+    return float(err[mask].max() if mask is not None else err.max())
+
+
+def quiet_load(path, **kw) -> Volume:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StudyWarning)
+        return load_study(path, **kw)
+
+
+@pytest.fixture
+def axial(tmp_path):
+    fac.write_ct_series(tmp_path / "axial")
+    return tmp_path / "axial"
+
+
+# ------------------------------------------------------------ basic geometry
+
+
+def test_axial_series_matches_pattern_voxel_by_voxel(axial):
+    vol = load_study(axial)
+    assert vol.hu.shape == (20, 32, 32)
+    assert vol.hu.dtype == np.int16
+    assert not vol.resampled
+    np.testing.assert_allclose(vol.spacing_mm, [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(vol.T_patient_from_voxel[:3, 3], [-16, -16, -20])
+    assert pattern_error(vol) == 0
+    assert [s.k for s in vol.slices] == list(range(20))
+    assert np.all(np.diff([s.position_mm for s in vol.slices]) > 0)
+    assert any("chose series" in n and "axial CT, 20 image(s)" in n for n in vol.notes)
+
+
+def test_volume_is_frozen_and_read_only(axial):
+    vol = load_study(axial)
+    with pytest.raises(AttributeError):
+        vol.notes = ()
+    with pytest.raises(ValueError):
+        vol.hu[0, 0, 0] = 1
+    with pytest.raises(ValueError, match=r"shape \(n, 3\)"):
+        vol.voxel_to_patient(np.zeros((2, 4)))
+    p = vol.voxel_to_patient([[3, 4, 5]])
+    np.testing.assert_allclose(vol.patient_to_voxel(p), [[3, 4, 5]])
+
+
+def test_no_patient_identity_in_the_result(axial):
+    vol = load_study(axial)
+    text = repr(vol) + repr(vol.series) + repr(vol.slices) + " ".join(vol.notes)
+    assert fac.PATIENT_NAME.split("^")[0] not in text
+    assert fac.PATIENT_ID not in text
+    assert "19700101" not in text
+
+
+def test_slice_times_and_ge_private_tags(axial):
+    vol = load_study(axial)
+    s3 = vol.slices[3]
+    assert s3.mid_scan_time_s == pytest.approx(0.5 + 3 * fac.SLICE_DT_S)
+    # sub-second AcquisitionTime on the seconds-after-midnight clock
+    assert s3.acquisition_time_s == pytest.approx(fac.SCAN_ORIGIN_S + 0.5 + 3 * fac.SLICE_DT_S)
+    rp = vol.series.rpeak_timestamps_ms
+    assert rp is not None and rp[:3] == (-1000.0, -150.0, 700.0)
+
+
+def test_ge_private_tags_as_un_bytes(tmp_path):
+    fac.write_ct_series(tmp_path, n_slices=4, ge_private="UN")
+    vol = load_study(tmp_path)
+    assert vol.slices[2].mid_scan_time_s == pytest.approx(0.5 + 2 * fac.SLICE_DT_S)
+    assert vol.series.rpeak_timestamps_ms[:2] == (-1000.0, -150.0)
+
+
+def test_ge_private_tags_implicit_vr(tmp_path):
+    files = fac.write_ct_series(tmp_path, n_slices=3)
+    for f in files:
+        ds = pydicom.dcmread(f)
+        ds.file_meta.TransferSyntaxUID = pydicom.uid.ImplicitVRLittleEndian
+        ds.save_as(f, enforce_file_format=True)
+    vol = load_study(tmp_path)
+    assert vol.slices[1].mid_scan_time_s == pytest.approx(0.5 + fac.SLICE_DT_S)
+    assert vol.series.rpeak_timestamps_ms[:2] == (-1000.0, -150.0)
+
+
+def test_raw_dataset_without_preamble_or_file_meta(tmp_path):
+    """Old exports: implicit VR, no 128-byte preamble, no file meta."""
+    files = fac.write_ct_series(tmp_path, n_slices=3)
+    for f in files:
+        ds = pydicom.dcmread(f)
+        ds.preamble = None
+        del ds.file_meta
+        pydicom.dcmwrite(f, ds, enforce_file_format=False, implicit_vr=True, little_endian=True)
+    vol = load_study(tmp_path)
+    assert pattern_error(vol) == 0
+    assert vol.slices[1].mid_scan_time_s == pytest.approx(0.5 + fac.SLICE_DT_S)
+    assert vol.series.rpeak_timestamps_ms[:2] == (-1000.0, -150.0)
+
+
+def test_non_image_series_is_listed_not_chosen(tmp_path, axial):
+    ds = pydicom.dcmread(axial / "slice_000.dcm", stop_before_pixels=True)
+    for kw in ("Rows", "Columns", "ImagePositionPatient", "ImageOrientationPatient"):
+        delattr(ds, kw)
+    ds.SOPClassUID = "1.2.840.10008.5.1.4.1.1.9.1.2"  # General ECG Waveform Storage
+    ds.file_meta.MediaStorageSOPClassUID = ds.SOPClassUID
+    ds.SeriesInstanceUID = pydicom.uid.generate_uid()
+    ds.Modality = "ECG"
+    ds.save_as(axial / "ecg.dcm", enforce_file_format=True)
+    summary = list_series(axial)
+    ecg = [s for s in summary if s.modality == "ECG"]
+    assert len(ecg) == 1 and ecg[0].kind == "non-image" and ecg[0].files[0].endswith("ecg.dcm")
+    assert load_study(axial).hu.shape == (20, 32, 32)
+    with pytest.raises(SeriesError, match="cannot be loaded as a volume: no image"):
+        load_study(axial, series=ecg[0].index)
+
+
+# ------------------------------------------------------------- ordering
+
+
+def test_shuffled_names_and_reversed_instance_numbers_give_same_volume(tmp_path, axial):
+    ref = load_study(axial)
+    uid = pydicom.dcmread(axial / "slice_000.dcm").SeriesInstanceUID
+    for seed in range(3):
+        folder = tmp_path / f"shuffled{seed}"
+        fac.write_ct_series(folder, names="shuffled", seed=seed, reverse_instance=seed % 2 == 0,
+                            series_uid=uid)
+        vol = load_study(folder)
+        np.testing.assert_array_equal(vol.hu, ref.hu)
+        np.testing.assert_array_equal(vol.T_patient_from_voxel, ref.T_patient_from_voxel)
+        assert [s.position_mm for s in vol.slices] == [s.position_mm for s in ref.slices]
+    rev = load_study(tmp_path / "shuffled0")
+    assert rev.slices[0].instance_number == 20  # InstanceNumber is informative only
+
+
+# ------------------------------------------------------------- selection
+
+
+@pytest.fixture
+def mixed(tmp_path):
+    study = pydicom.uid.generate_uid()
+    fac.write_ct_series(tmp_path / "ct", n_slices=20, series_number=2, study_uid=study)
+    fac.write_ct_series(tmp_path / "loc", n_slices=2, rows=40, cols=24, iop=fac.CORONAL,
+                        series_number=1, image_type=("ORIGINAL", "PRIMARY", "LOCALIZER"),
+                        description="Scout")
+    fac.write_ct_series(tmp_path / "cor", n_slices=25, iop=fac.CORONAL, series_number=3,
+                        description="Coronal MPR", origin=(-16, -30, 16))
+    (tmp_path / "notes.txt").write_text("not dicom")
+    (tmp_path / "DICOMDIR").write_bytes(b"\0" * 200)
+    return tmp_path
+
+
+def test_list_series_shows_every_group(mixed):
+    summary = list_series(mixed)
+    assert [s.index for s in summary] == [0, 1, 2]
+    by_desc = {s.description: s for s in summary}
+    assert by_desc["Scout"].kind == "localizer"
+    assert by_desc["Cardiac 0.625 mm"].orientation == "axial"
+    assert by_desc["Coronal MPR"].orientation == "coronal"
+    assert by_desc["Coronal MPR"].n_slices == 25
+
+
+def test_automatic_choice_is_axial_ct_not_localizer(mixed):
+    vol = load_study(mixed)
+    assert vol.series.description == "Cardiac 0.625 mm"
+    assert vol.hu.shape == (20, 32, 32)
+    assert any("localizer(s) ignored" in n for n in vol.notes)
+    assert any("1 non-DICOM file(s) ignored" in n for n in vol.notes)
+    assert any("DICOMDIR ignored" in n for n in vol.notes)
+
+
+def test_series_selectable_by_index_and_uid(mixed):
+    summary = {s.description: s for s in list_series(mixed)}
+    cor = summary["Coronal MPR"]
+    by_index = load_study(mixed, series=cor.index)
+    by_uid = load_study(mixed, series=cor.uid)
+    assert by_index.hu.shape == by_uid.hu.shape == (25, 32, 32)
+    assert pattern_error(by_uid) == 0  # coronal: k along -y, affine still right
+    assert np.linalg.det(by_uid.T_patient_from_voxel[:3, :3]) > 0
+    loc = load_study(mixed, series=summary["Scout"])
+    assert loc.hu.shape == (2, 40, 24)
+
+
+def test_unknown_series_lists_choices(mixed):
+    with pytest.raises(SeriesError, match=r"(?s)not found.*\[0\].*Scout.*\[2\]"):
+        load_study(mixed, series="1.2.3.4")
+    with pytest.raises(SeriesError, match="not found"):
+        load_study(mixed, series=17)
+    with pytest.raises(TypeError, match="series must be"):
+        load_study(mixed, series=2.5)
+
+
+def test_two_cardiac_phases_in_one_series_are_split(tmp_path):
+    uid = pydicom.uid.generate_uid()
+    for pct in (40.0, 70.0):
+        def tag(ds, k, pct=pct):
+            ds.NominalPercentageOfCardiacPhase = pct
+        fac.write_ct_series(tmp_path / f"p{pct:g}", n_slices=8, series_uid=uid, extra=tag)
+    summary = list_series(tmp_path)
+    assert [s.subset for s in summary] == [
+        "NominalPercentageOfCardiacPhase=40", "NominalPercentageOfCardiacPhase=70"]
+    assert all(s.kind == "volume" and s.n_slices == 8 for s in summary)
+    with pytest.raises(SeriesError, match=r"split into 2 groups; pass series=<index>"):
+        load_study(tmp_path, series=uid)
+    vol = load_study(tmp_path, series=1)
+    assert vol.series.subset == "NominalPercentageOfCardiacPhase=70"
+    assert {s.nominal_cardiac_percent for s in vol.slices} == {70.0}
+
+
+def test_duplicate_copies_are_kept_once(tmp_path, axial):
+    shutil.copytree(axial, tmp_path / "copy")
+    vol = load_study(tmp_path)
+    assert vol.hu.shape == (20, 32, 32)
+    assert any("duplicate image(s)" in n for n in vol.notes)
+
+
+# ------------------------------------------------------------- irregular stacks
+
+
+def test_missing_slice_is_resampled(tmp_path):
+    fac.write_ct_series(tmp_path, skip=(7,))
+    with pytest.warns(StudyWarning, match="missing slice"):
+        vol = load_study(tmp_path)
+    assert vol.resampled and vol.hu.dtype == np.float32
+    assert vol.hu.shape == (20, 32, 32)
+    assert len(vol.slices) == 19 and vol.slices[7].k == pytest.approx(8.0)
+    assert pattern_error(vol) == 0  # 2 mm steps: the pattern is exact at slice 7
+    assert any("1 missing slice(s)" in n and "2.000 mm" in n for n in vol.notes)
+
+
+def test_missing_slice_refused_when_resampling_off(tmp_path):
+    fac.write_ct_series(tmp_path, skip=(7,))
+    with pytest.raises(SeriesError, match="not a regular orthogonal stack.*missing slice"):
+        load_study(tmp_path, resample=False)
+
+
+def test_uneven_spacing_is_resampled_at_median(tmp_path):
+    z = 2.0 * np.arange(20)
+    z[5] += 0.6
+    z[12:] += 0.8
+    pos = [(-16.0, -16.0, -20.0 + dz) for dz in z]
+    fac.write_ct_series(tmp_path, positions=pos)
+    vol = quiet_load(tmp_path)
+    assert vol.resampled
+    assert vol.spacing_mm[2] == pytest.approx(2.0)
+    assert vol.hu.shape[0] == int(np.floor((z[-1] - z[0]) / 2.0)) + 1
+    assert pattern_error(vol) <= 1.0
+    assert any("uneven slice spacing" in n for n in vol.notes)
+
+
+def test_slice_thickness_differing_from_spacing_is_noted(tmp_path):
+    fac.write_ct_series(tmp_path, n_slices=5, slice_thickness=1.25)
+    vol = load_study(tmp_path)
+    assert any("SliceThickness 1.25 mm differs from the slice spacing 2.000 mm (gaps between"
+               in n for n in vol.notes)
+
+
+def test_wild_gap_is_refused_naming_files(tmp_path):
+    fac.write_ct_series(tmp_path, skip=(8, 9, 10, 11))
+    with pytest.raises(SeriesError, match=r"gap of 10\.000 mm.*slice_007\.dcm.*slice_012\.dcm"):
+        load_study(tmp_path)
+
+
+def test_gantry_tilt_resampled_to_orthogonal_grid(tmp_path):
+    # 0.7 mm posterior shift per 2 mm slice: a ~19 degree tilt, sub-pixel shifts
+    fac.write_ct_series(tmp_path, shear_mm=(0.0, 0.7, 0.0), extra=lambda ds, k: setattr(
+        ds, "GantryDetectorTilt", 19.3))
+    with pytest.warns(StudyWarning, match="sheared stack"):
+        vol = load_study(tmp_path)
+    T = vol.T_patient_from_voxel[:3, :3]
+    np.testing.assert_allclose(T.T @ T, np.diag(vol.spacing_mm ** 2), atol=1e-12)  # orthogonal
+    # voxels inside every acquired slice match the pattern; outside ones are air
+    y = voxel_positions(vol)[..., 1]
+    k = np.arange(20)[:, None, None]
+    inside = (y >= -16 + 0.7 * k) & (y <= -16 + 31 + 0.7 * k)
+    assert inside.sum() > 0.75 * inside.size
+    assert pattern_error(vol, inside) <= 1.0
+    before = y < -16 + 0.7 * k - 1e-6  # anterior of the acquired slice
+    assert before.sum() > 1000 and np.all(vol.hu[before] == -1024)
+    assert any("GantryDetectorTilt 19.3 deg" in n for n in vol.notes)
+
+
+def test_gantry_tilt_refused_when_resampling_off(tmp_path):
+    fac.write_ct_series(tmp_path, shear_mm=(0.0, 0.7, 0.0))
+    with pytest.raises(SeriesError, match="sheared stack.*slice_019.dcm"):
+        load_study(tmp_path, resample=False)
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31 - 1))
+def test_oblique_orientation_exact_through_affine(tmp_path_factory, seed):
+    R = Rotation.random(random_state=seed).as_matrix()
+    iop = tuple(R[:, 0]) + tuple(R[:, 1])
+    folder = tmp_path_factory.mktemp("oblique")
+    fac.write_ct_series(folder, n_slices=6, rows=12, cols=10, iop=iop,
+                        pixel_spacing=(0.8, 0.6), spacing_mm=1.5, origin=(3.0, -7.0, 11.0))
+    vol = load_study(folder)
+    assert not vol.resampled  # oblique but orthogonal: no interpolation
+    np.testing.assert_allclose(vol.spacing_mm, [0.6, 0.8, 1.5], rtol=1e-5)
+    # pattern rounded from IPP/IOP written with 6 decimals: exact but for ties
+    err = np.abs(vol.hu - fac.pattern_hu(voxel_positions(vol)))
+    assert err.max() <= 1 and np.mean(err == 0) > 0.99
+
+
+# ------------------------------------------------------------- pixel encodings
+
+
+def test_enhanced_multiframe_equals_single_frame(tmp_path, axial):
+    ref = load_study(axial)
+    order = list(np.random.default_rng(3).permutation(20))
+    fac.write_enhanced_ct(tmp_path / "enh" / "multi.dcm", frame_order=order)
+    vol = load_study(tmp_path / "enh")
+    np.testing.assert_array_equal(vol.hu, ref.hu)
+    np.testing.assert_allclose(vol.T_patient_from_voxel, ref.T_patient_from_voxel)
+    assert [s.frame for s in vol.slices] == [order.index(k) for k in range(20)]
+    assert vol.slices[4].acquisition_time_s == pytest.approx(
+        fac.SCAN_ORIGIN_S + 0.5 + 4 * fac.SLICE_DT_S)
+    assert vol.slices[4].nominal_cardiac_percent == 70.0
+    assert vol.slices[4].trigger_time_ms == 600.0
+    assert vol.slices[4].nominal_interval_ms == 850.0
+
+
+@pytest.mark.parametrize("syntax", [RLELossless, JPEG2000Lossless], ids=["rle", "j2k"])
+def test_compressed_copies_give_identical_hu(tmp_path, axial, syntax):
+    ref = load_study(axial)
+    fac.write_ct_series(tmp_path / "c", transfer_syntax=syntax)
+    assert pydicom.dcmread(tmp_path / "c" / "slice_000.dcm").file_meta.TransferSyntaxUID == syntax
+    vol = load_study(tmp_path / "c")
+    np.testing.assert_array_equal(vol.hu, ref.hu)
+
+
+def test_syntax_without_decoder_names_the_package(tmp_path):
+    from pydicom.pixels import get_decoder
+
+    dec = get_decoder(JPEGLSLossless)
+    if [p for p in dec.available_plugins if p != "pylibjpeg"]:
+        pytest.skip("a JPEG-LS decoder is installed here")
+    files = fac.write_ct_series(tmp_path, n_slices=2)
+    for f in files:
+        ds = pydicom.dcmread(f)
+        ds.PixelData = encapsulate([b"\xff\xd8\xff\xf7" + b"\0" * 64])
+        ds["PixelData"].VR = "OB"
+        ds.file_meta.TransferSyntaxUID = JPEGLSLossless
+        ds.save_as(f, enforce_file_format=True)
+    with pytest.raises(DecoderUnavailableError, match=r"slice_000.dcm.*install pyjpegls"):
+        load_study(tmp_path)
+
+
+# ------------------------------------------------------------- bad input
+
+
+def test_truncated_file_skipped_with_warning(tmp_path):
+    files = fac.write_ct_series(tmp_path)
+    fac.truncate(files[19], 500)
+    with pytest.warns(StudyWarning, match=r"slice_019\.dcm: Pixel Data holds"):
+        vol = load_study(tmp_path)
+    assert vol.hu.shape == (19, 32, 32)
+    assert any("skipped unreadable DICOM file" in n and "slice_019" in n for n in vol.notes)
+
+
+def test_truncated_compressed_file_skipped(tmp_path):
+    files = fac.write_ct_series(tmp_path, n_slices=5, transfer_syntax=RLELossless)
+    fac.truncate(files[0], 100)
+    with pytest.warns(StudyWarning, match=r"slice_000\.dcm: .*truncated"):
+        vol = load_study(tmp_path)
+    assert len(vol.slices) == 4
+
+
+def test_missing_rescale_tags_assumed_identity(tmp_path):
+    fac.write_ct_series(tmp_path, n_slices=5, rescale=None)
+    with pytest.warns(StudyWarning, match="lack RescaleSlope/RescaleIntercept"):
+        vol = load_study(tmp_path)
+    assert vol.hu.dtype == np.int16
+    assert pattern_error(vol) == 0
+
+
+def test_fractional_slope_gives_float32(tmp_path):
+    fac.write_ct_series(tmp_path, n_slices=4, rescale=(0.5, -1024.0))
+    vol = load_study(tmp_path)
+    assert vol.hu.dtype == np.float32
+    assert pattern_error(vol) == 0
+
+
+def test_folder_without_dicom_is_a_clear_error(tmp_path):
+    (tmp_path / "a.txt").write_text("hello")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "b.bin").write_bytes(b"\x00" * 300)
+    with pytest.raises(StudyError, match=r"no DICOM images found.*2 file\(s\) examined: 2 not DICOM"):
+        load_study(tmp_path)
+    with pytest.raises(StudyError, match="no DICOM images"):
+        list_series(tmp_path / "sub")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_study(tmp_path / "nowhere")
+
+
+# ------------------------------------------------------------- real data
+
+
+def test_pydicom_ct_small_loads_as_one_slice():
+    path = get_testdata_file("CT_small.dcm")
+    ds = pydicom.dcmread(path)
+    vol = load_study(path)
+    assert vol.hu.shape == (1, 128, 128)
+    expected = ds.pixel_array * float(ds.RescaleSlope) + float(ds.RescaleIntercept)
+    np.testing.assert_array_equal(vol.hu[0], expected)
+    ipp = np.array(ds.ImagePositionPatient, dtype=float)
+    dr, dc = (float(v) for v in ds.PixelSpacing)
+    np.testing.assert_allclose(vol.voxel_to_patient([0, 0, 0]), ipp)
+    np.testing.assert_allclose(vol.voxel_to_patient([5, 7, 0]), ipp + [5 * dc, 7 * dr, 0])
+    assert vol.spacing_mm[2] == pytest.approx(float(ds.SliceThickness))
+    assert isinstance(vol.slices[0], SliceInfo)
+    assert vol.slices[0].mid_scan_time_s is not None  # GE private (0019,xx24)
+    assert vol.series.manufacturer == "GE MEDICAL SYSTEMS"

@@ -1,0 +1,382 @@
+"""Reading a heartreg-session folder: round trip against the phantom's truth,
+pose algebra on hand-made records, and every malformed input refused (or, for
+a short record, reported) with a message naming the file, column and row."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+import heartreg.phantom.session as writer
+from heartreg.phantom.config import PhantomConfig
+from heartreg.phantom.layout import make_heart
+from heartreg.phantom.signals import phase_from_events
+from registration import session as reader
+from registration.session import SessionError, SessionNotFoundError, read_session
+
+N_POINTS, DURATION_S = 5, 25.0
+CONFIG = PhantomConfig()
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    out = tmp_path_factory.mktemp("phantom")
+    truth = writer.write_session(out, CONFIG, seed=7, n_points=N_POINTS, duration_s=DURATION_S)
+    return out / "session", truth
+
+
+@pytest.fixture
+def copy(phantom, tmp_path):
+    """A fresh copy of the phantom session to break."""
+    dst = tmp_path / "session"
+    shutil.copytree(phantom[0], dst)
+    return dst
+
+
+def _digest(folder: Path) -> str:
+    h = hashlib.sha256()
+    for f in sorted(folder.rglob("*")):
+        if f.is_file():
+            h.update(str(f.relative_to(folder)).encode() + f.read_bytes())
+    return h.hexdigest()
+
+
+def _edit_meta(folder: Path, **changes) -> None:
+    meta = json.loads((folder / "session.json").read_text())
+    meta.update(changes)
+    (folder / "session.json").write_text(json.dumps(meta))
+
+
+def _edit_cell(file: Path, row: int, column: str, value: str) -> None:
+    """Set one cell; ``row`` counts data rows from 1."""
+    lines = file.read_text().splitlines()
+    col = lines[0].split(",").index(column)
+    cells = lines[row].split(",")
+    cells[col] = value
+    lines[row] = ",".join(cells)
+    file.write_text("\n".join(lines) + "\n")
+
+
+# ------------------------------------------------------------------ contract
+def test_reader_and_writer_agree_on_the_format():
+    assert reader.POINT_COLUMNS == writer.POINT_COLUMNS
+    assert reader.FIDUCIAL_COLUMNS == writer.FIDUCIAL_COLUMNS
+    assert reader.SESSION_UNITS == writer.SESSION_UNITS
+    assert reader.SESSION_FORMAT == writer.SESSION_FORMAT
+    assert writer.SESSION_VERSION in reader.SUPPORTED_VERSIONS
+    assert reader.FIDUCIAL_ORDER == writer.FIDUCIAL_ORDER
+
+
+# ---------------------------------------------------------------- round trip
+def test_round_trip_equals_truth_within_tracker_noise(phantom):
+    folder, truth = phantom
+    before = _digest(folder)
+    session = read_session(folder)
+    assert _digest(folder) == before  # reading never modifies the folder
+    assert session.format_version == 1 and session.sample_rate_hz == 100
+    assert session.exclusions == ()
+    assert [p.point_id for p in session.points] == [p.point_id for p in truth.points]
+    assert session.generator.startswith("heartreg phantom")
+    np.testing.assert_allclose(session.fiducials_probe_mm, truth.fiducials_probe_mm, atol=1e-9)
+    heart = make_heart(CONFIG)
+    T_probe_from_patient = np.linalg.inv(truth.T_patient_from_probe)
+    for record, point in zip(session.points, truth.points):
+        assert record.surface_point == point.point_id
+        assert record.n_samples == 2500 and record.rate_hz == 100
+        assert record.time_s[0] == point.start_s and record.time_s[-1] == point.end_s
+        assert record.duration_s == pytest.approx(DURATION_S - 0.01)
+        T = record.T_probe_from_robot
+        assert T.shape == (2500, 4, 4) and T.dtype == np.float64
+        np.testing.assert_allclose(T[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2), np.broadcast_to(np.eye(3), (2500, 3, 3)), atol=1e-12)
+        pc = phase_from_events(record.time_s, truth.r_peaks_s)
+        pr = phase_from_events(record.time_s, truth.expiration_onsets_s)
+        n = record.n_samples
+        p, R = heart.surface_frames(np.full(n, point.u), np.full(n, point.v), pc, pr)
+        R = R @ Rotation.from_euler("z", point.yaw_deg, degrees=True).as_matrix()
+        p_clean = p @ T_probe_from_patient[:3, :3].T + T_probe_from_patient[:3, 3]
+        R_clean = T_probe_from_patient[:3, :3] @ R
+        # the truth's effective noise is RMS of measured - clean as written: the
+        # reader must reproduce it (to float precision of renormalisation)
+        rms = np.sqrt(np.mean((T[:, :3, 3] - p_clean) ** 2, axis=0))
+        np.testing.assert_allclose(rms, point.position_noise_rms_mm, rtol=1e-4)
+        angle = Rotation.from_matrix(np.swapaxes(R_clean, 1, 2) @ T[:, :3, :3]).magnitude()
+        assert np.degrees(np.sqrt(np.mean(angle**2))) == pytest.approx(point.rotation_noise_rms_deg, rel=1e-4)
+        # and that noise is the tracker's, a few tenths of a mm / degree
+        assert np.all((rms > 0.2) & (rms < 0.6))
+        assert 0.2 < point.rotation_noise_rms_deg < 0.6
+        assert record.ecg_mv.shape == record.flow_insp_lpm.shape == record.flow_exp_lpm.shape == (n,)
+    with pytest.raises(ValueError):
+        session.points[0].time_s[0] = 0.0  # results are read-only
+    assert session.point(2) is session.points[2]
+
+
+def test_parent_folder_is_accepted(phantom):
+    folder, _ = phantom
+    assert len(read_session(folder.parent).points) == N_POINTS
+    assert len(read_session(str(folder / "session.json")).points) == N_POINTS
+
+
+# --------------------------------------------------------- hand-made records
+def _minimal_session(folder: Path, rows: np.ndarray, *, n_points: int = 1) -> None:
+    (folder / "points").mkdir(parents=True)
+    header = ",".join(reader.POINT_COLUMNS)
+    for k in range(n_points):
+        np.savetxt(folder / f"points/point_{k:03d}.csv", rows, delimiter=",", header=header, comments="", fmt="%.12g")
+    fid = np.column_stack([np.arange(1, 10), np.arange(27).reshape(9, 3)])
+    np.savetxt(folder / "fiducials.csv", fid, delimiter=",", header="fiducial,x_mm,y_mm,z_mm", comments="", fmt="%.6g")
+    meta = {
+        "format": "heartreg-session",
+        "version": 1,
+        "units": reader.SESSION_UNITS,
+        "quaternion_order": "wxyz",
+        "frames": {"poses": "tracker"},
+        "sample_rate_hz": 100,
+        "points": [{"id": 10 + k, "file": f"points/point_{k:03d}.csv", "surface_point": 40 + k} for k in range(n_points)],
+        "fiducials_file": "fiducials.csv",
+        "fiducial_order": reader.FIDUCIAL_ORDER,
+    }
+    (folder / "session.json").write_text(json.dumps(meta))
+
+
+def _rows(T_tracker_from_probe, T_tracker_from_robot, n=1200):
+    def cols(T):
+        q = Rotation.from_matrix(T[:3, :3]).as_quat(scalar_first=True)
+        return np.concatenate([T[:3, 3], q])
+
+    row = np.concatenate([[0.0], cols(T_tracker_from_robot), cols(T_tracker_from_probe), [0.1, 2.0, 3.0]])
+    rows = np.tile(row, (n, 1))
+    rows[:, 0] = 3600.0 + np.arange(n) / 100.0
+    return rows
+
+
+_quaternion = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.2)
+_vector = st.lists(st.floats(-400, 400), min_size=3, max_size=3)
+
+
+@settings(max_examples=25, deadline=None)
+@given(_quaternion, _vector, _quaternion, _vector)
+def test_relative_pose_algebra(qp, tp, qr, tr):
+    """Whatever the tracker poses, the reader returns inv(T_tracker_from_probe)
+    @ T_tracker_from_robot, with scalar-first quaternions (w, x, y, z)."""
+    T_tp = np.eye(4)
+    T_tp[:3, :3] = Rotation.from_quat(qp, scalar_first=True).as_matrix()
+    T_tp[:3, 3] = tp
+    T_pr = np.eye(4)
+    T_pr[:3, :3] = Rotation.from_quat(qr, scalar_first=True).as_matrix()
+    T_pr[:3, 3] = tr
+    with tempfile.TemporaryDirectory() as tmp:
+        _minimal_session(Path(tmp), _rows(T_tp, T_tp @ T_pr))
+        record = read_session(tmp).points[0]
+    assert (record.point_id, record.surface_point) == (10, 40)
+    np.testing.assert_allclose(record.T_probe_from_robot[0], T_pr, atol=1e-6)
+    np.testing.assert_allclose(record.T_probe_from_robot[-1], T_pr, atol=1e-6)
+
+
+def test_scalar_first_is_not_scalar_last(tmp_path):
+    """A 90 degree turn about tracker z for the robot, identity probe: the
+    recovered rotation is that turn (a reader taking (x, y, z, w) would not)."""
+    T_r = np.eye(4)
+    T_r[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    _minimal_session(tmp_path, _rows(np.eye(4), T_r))
+    line = (tmp_path / "points/point_000.csv").read_text().splitlines()[1].split(",")
+    assert float(line[4]) == pytest.approx(np.sqrt(0.5))  # robot_qw
+    R = read_session(tmp_path).points[0].T_probe_from_robot[0, :3, :3]
+    np.testing.assert_allclose(R, T_r[:3, :3], atol=1e-9)
+
+
+# --------------------------------------------------------------- bad inputs
+def test_missing_folder_and_session_json(tmp_path, copy):
+    with pytest.raises(SessionNotFoundError, match="does not exist"):
+        read_session(tmp_path / "nowhere")
+    (copy / "session.json").unlink()
+    with pytest.raises(SessionNotFoundError, match="has no session.json"):
+        read_session(copy)
+    with pytest.raises(FileNotFoundError):  # also catchable as the built-in
+        read_session(copy)
+
+
+def test_not_json(copy):
+    (copy / "session.json").write_text("{format: heartreg")
+    with pytest.raises(SessionError, match="session.json is not valid JSON"):
+        read_session(copy)
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ({"format": "other-format"}, "'format' is 'other-format'.*not a heartreg session"),
+        ({"version": 2}, "version 2 is not supported.*upgrade heartreg"),
+        ({"version": "1"}, "'version' must be an integer"),
+        ({"units": {"position": "cm", "time": "s", "ecg": "mV", "flow": "L/min"}}, r"unknown unit units.position = 'cm'"),
+        ({"units": {"position": "mm", "time": "ms", "ecg": "mV", "flow": "L/min"}}, r"units.time = 'ms'"),
+        ({"units": {"position": "mm", "time": "s", "ecg": "mV"}}, r"'units' has no 'flow'"),
+        ({"units": {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min", "angle": "deg"}}, "unknown quantity units.angle"),
+        ({"quaternion_order": "xyzw"}, "'quaternion_order' is 'xyzw'"),
+        ({"frames": {"poses": "probe"}}, "'frames' must be"),
+        ({"sample_rate_hz": 0}, "'sample_rate_hz' must be a positive number"),
+        ({"fiducial_order": "left to right"}, "'fiducial_order'"),
+        ({"points": {"id": 0}}, "'points' must be a list"),
+        ({"points": [{"id": 0, "file": "points/point_000.csv"}]}, r"points\[0\]: 'surface_point' must be an integer"),
+        ({"points": [{"id": 0, "file": "../x.csv", "surface_point": 0}]}, r"points\[0\].file = '../x.csv' must be a relative path"),
+        (
+            {"points": [{"id": 0, "file": "points/point_000.csv", "surface_point": 0}] * 2},
+            r"points\[1\]: point id 0 is used twice",
+        ),
+        ({"points": []}, "no usable point record.*lists no points"),
+    ],
+)
+def test_bad_metadata(copy, changes, match):
+    _edit_meta(copy, **changes)
+    with pytest.raises(SessionError, match=match):
+        read_session(copy)
+
+
+def test_missing_point_file(copy):
+    (copy / "points/point_003.csv").unlink()
+    with pytest.raises(SessionNotFoundError, match="points/point_003.csv is listed in session.json but missing"):
+        read_session(copy)
+
+
+def test_missing_column(copy):
+    file = copy / "points/point_001.csv"
+    lines = file.read_text().splitlines()
+    file.write_text("\n".join(",".join(line.split(",")[:7]) for line in lines) + "\n")  # drops robot_qz ...
+    with pytest.raises(SessionError, match=r"points/point_001.csv: missing column\(s\) robot_qz, probe_x_mm"):
+        read_session(copy)
+
+
+def test_columns_are_found_by_name_not_position(copy, phantom):
+    """Readers select columns by header: a file with its columns reversed and an
+    extra column (a later minor addition) reads the same."""
+    file = copy / "points/point_002.csv"
+    rows = [line.split(",") for line in file.read_text().splitlines()]
+    rows = [r[::-1] + ["battery_v" if k == 0 else "3.3"] for k, r in enumerate(rows)]
+    file.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    a = read_session(phantom[0]).point(2)
+    b = read_session(copy).point(2)
+    np.testing.assert_array_equal(a.T_probe_from_robot, b.T_probe_from_robot)
+    np.testing.assert_array_equal(a.ecg_mv, b.ecg_mv)
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_non_finite_values(copy, value):
+    _edit_cell(copy / "points/point_004.csv", 11, "robot_x_mm", value)
+    with pytest.raises(SessionError, match=r"points/point_004.csv: column 'robot_x_mm', row 11 \(line 12\).*not finite"):
+        read_session(copy)
+
+
+def test_unparseable_value(copy):
+    _edit_cell(copy / "points/point_000.csv", 5, "ecg_mv", "lead-off")
+    with pytest.raises(SessionError, match=r"point_000.csv: column 'ecg_mv', row 5 \(line 6\): 'lead-off' is not a number"):
+        read_session(copy)
+
+
+def test_ragged_row(copy):
+    file = copy / "points/point_000.csv"
+    lines = file.read_text().splitlines()
+    lines[7] = ",".join(lines[7].split(",")[:-2])
+    file.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SessionError, match="point_000.csv: line 8 has 16 fields, the header has 18"):
+        read_session(copy)
+
+
+def test_non_monotonic_time(copy):
+    file = copy / "points/point_002.csv"
+    first = float(file.read_text().splitlines()[1].split(",")[0])
+    _edit_cell(file, 100, "time_s", f"{first:.3f}")
+    with pytest.raises(SessionError, match=r"point_002.csv: column 'time_s' is not strictly increasing at row 100 \(line 101\)"):
+        read_session(copy)
+
+
+def test_sample_rate_must_match_the_clock(copy):
+    _edit_meta(copy, sample_rate_hz=50)
+    with pytest.raises(SessionError, match="median step of 0.01 s but session.json declares sample_rate_hz = 50"):
+        read_session(copy)
+
+
+def _scale_quaternion(file: Path, row: int, prefix: str, factor: float) -> None:
+    for c in "wxyz":
+        lines = file.read_text().splitlines()
+        col = lines[0].split(",").index(f"{prefix}_q{c}")
+        value = float(lines[row].split(",")[col]) * factor
+        _edit_cell(file, row, f"{prefix}_q{c}", f"{value:.9f}")
+
+
+def test_non_unit_quaternion_refused(copy):
+    _scale_quaternion(copy / "points/point_003.csv", 42, "probe", 1.01)
+    with pytest.raises(SessionError, match=r"point_003.csv: columns probe_qw..probe_qz, row 42 \(line 43\): quaternion norm 1.01"):
+        read_session(copy)
+
+
+def test_slightly_off_quaternion_renormalised(copy, phantom):
+    _scale_quaternion(copy / "points/point_003.csv", 42, "robot", 1.0005)
+    T = read_session(copy).point(3).T_probe_from_robot
+    T_ref = read_session(phantom[0]).point(3).T_probe_from_robot
+    np.testing.assert_allclose(T[41], T_ref[41], atol=1e-8)
+
+
+def _truncate(file: Path, n_rows: int) -> None:
+    lines = file.read_text().splitlines()
+    file.write_text("\n".join(lines[: n_rows + 1]) + "\n")
+
+
+def test_short_point_is_reported_not_dropped(copy):
+    _truncate(copy / "points/point_001.csv", 800)  # 7.99 s < two breaths
+    _truncate(copy / "points/point_003.csv", 1)
+    session = read_session(copy)
+    assert [p.point_id for p in session.points] == [0, 2, 4]
+    assert [i for i, _ in session.exclusions] == [1, 3]
+    assert "points/point_001.csv: record lasts 7.99 s, shorter than min_duration_s = 10 s" in session.exclusions[0][1]
+    assert len(read_session(copy, min_duration_s=5.0).points) == 4
+    with pytest.raises(KeyError, match="point 1 was excluded"):
+        session.point(1)
+
+
+def test_no_usable_point(copy):
+    for k in range(N_POINTS):
+        _truncate(copy / f"points/point_{k:03d}.csv", 300)
+    with pytest.raises(SessionError, match="no usable point record.*point 0: points/point_000.csv: record lasts 2.99 s"):
+        read_session(copy)
+
+
+def test_fiducials_wrong_shape(copy):
+    _truncate(copy / "fiducials.csv", 8)
+    with pytest.raises(SessionError, match=r"fiducials.csv: expected 9 fiducial rows .* got 8 row\(s\)"):
+        read_session(copy)
+
+
+def test_fiducials_missing_column(copy):
+    lines = (copy / "fiducials.csv").read_text().splitlines()
+    (copy / "fiducials.csv").write_text("\n".join(",".join(line.split(",")[:3]) for line in lines) + "\n")
+    with pytest.raises(SessionError, match=r"fiducials.csv: missing column\(s\) z_mm"):
+        read_session(copy)
+
+
+def test_fiducials_out_of_order(copy):
+    lines = (copy / "fiducials.csv").read_text().splitlines()
+    lines[1], lines[2] = lines[2], lines[1]
+    (copy / "fiducials.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(SessionError, match="column 'fiducial' must number the staples 1..9 in order"):
+        read_session(copy)
+
+
+def test_fiducials_non_finite(copy):
+    _edit_cell(copy / "fiducials.csv", 4, "y_mm", "nan")
+    with pytest.raises(SessionError, match=r"fiducials.csv: column 'y_mm', row 4"):
+        read_session(copy)
+
+
+def test_bad_arguments(phantom):
+    with pytest.raises(ValueError, match="min_duration_s must be >= 0"):
+        read_session(phantom[0], min_duration_s=-1)
+    with pytest.raises(ValueError, match="quaternion_tol must be in"):
+        read_session(phantom[0], quaternion_tol=0)
