@@ -45,6 +45,77 @@ def _cmd_phantom(args) -> int:
     return 0
 
 
+def _series_arg(value: str):
+    """``--series``: an index from ``--list-series`` or a SeriesInstanceUID."""
+    return int(value) if value.isdigit() else value
+
+
+def _open_study(args):
+    """Load the study's volume and compute its phase report (shared by commands)."""
+    from imaging import compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
+    from imaging.waveform import WaveformError
+
+    volume = load_study(args.study_dir, series=args.series, progress=not args.quiet)
+    qrs = read_qrs_file(args.qrs) if args.qrs else None
+    records = []
+    for path in volume.waveform_files:
+        try:
+            records.append(read_ecg_waveform(path))
+        except WaveformError as exc:
+            print(f"note: {exc}", file=sys.stderr)
+    report = compute_phase_report(
+        volume, qrs_s=qrs, qrs_label=f"R-peak file {Path(args.qrs).name}" if args.qrs else "",
+        ecg_records=records,
+    )
+    return volume, report
+
+
+def _print_series(study_dir) -> int:
+    from imaging import list_series
+
+    for s in list_series(study_dir):
+        print(
+            f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  "
+            f"{s.orientation:<8} {s.description!r}  {s.kind}{(' - ' + s.reason) if s.reason else ''}"
+        )
+    return 0
+
+
+def _cmd_phases(args) -> int:
+    from imaging import write_phase_report
+
+    if args.list_series:
+        return _print_series(args.study_dir)
+    if args.out_dir is None:
+        raise ValueError("give an output folder with -o OUT_DIR (or --list-series)")
+    volume, report = _open_study(args)
+    extra = {
+        "series_instance_uid": volume.series.series_instance_uid,
+        "series_description": volume.series.description,
+        "volume_notes": list(volume.notes),
+    }
+    paths = write_phase_report(report, args.out_dir, extra=extra)
+    lo, hi = 0.6, 0.8
+    print(f"{report.n_slices} slices of series {volume.series.series_instance_uid}")
+    print(f"  R-peak source     {report.source}")
+    print(f"  clock             {report.clock}")
+    print(f"  volume phase      {report.volume_cardiac_phase:.4f} (mean), {report.circular_mean_phase:.4f} (circular mean)")
+    print(f"  slice phases      {report.phases.min():.3f} .. {report.phases.max():.3f}, "
+          f"{100 * report.fraction_in_window:.0f} % inside {lo}-{hi}, {len(report.jumps)} jump(s)")
+    print(f"  written           {', '.join(str(p) for p in paths.values())}")
+    return 0
+
+
+def _add_study_options(p) -> None:
+    p.add_argument("study_dir", type=Path, help="folder holding the DICOM study (searched recursively)")
+    p.add_argument("--qrs", type=Path, default=None,
+                   help="R-peak times, CSV with column time_s (seconds after midnight, AcquisitionTime clock)")
+    p.add_argument("--series", type=_series_arg, default=None,
+                   help="series to use: index from --list-series or SeriesInstanceUID (default: automatic)")
+    p.add_argument("--list-series", action="store_true", help="list the series found and exit")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
 def _build_parser() -> argparse.ArgumentParser:
     from heartreg.phantom.config import PRESETS, SIZES
 
@@ -66,6 +137,11 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)
+
+    p = sub.add_parser("phases", help="cardiac phase of every CT slice (paper Fig. 4)")
+    _add_study_options(p)
+    p.add_argument("-o", "--out-dir", type=Path, default=None, help="folder for phases.csv/json/png")
+    p.set_defaults(func=_cmd_phases)
     return parser
 
 

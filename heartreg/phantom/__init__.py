@@ -1,0 +1,37 @@
+"""The synthetic beating, breathing chest: the project's ground truth.
+
+It writes real DICOM (a prospectively gated CT study with GE cardiac private
+tags and an ECG waveform instance), a real intra-operative session and
+``truth.json``.  It imports nothing from ``imaging``, ``modeling`` or
+``registration``: it is the independent truth they are tested against.
+"""
+
+from heartreg.phantom.chest import ChestModel, build_chest, render_slice
+from heartreg.phantom.config import PRESETS, SIZES, PhantomConfig, make_config
+from heartreg.phantom.ct import AcquisitionPlan, CTStudyExistsError, CTTruth, plan_acquisition, write_ct_study
+from heartreg.phantom.generate import PhantomError, make_phantom
+from heartreg.phantom.heart import AnalyticHeart
+from heartreg.phantom.layout import make_heart
+from heartreg.phantom.session import SessionPointTruth, SessionTruth, write_session
+
+__all__ = [
+    "AcquisitionPlan",
+    "AnalyticHeart",
+    "CTStudyExistsError",
+    "CTTruth",
+    "ChestModel",
+    "PRESETS",
+    "PhantomConfig",
+    "PhantomError",
+    "SIZES",
+    "SessionPointTruth",
+    "SessionTruth",
+    "build_chest",
+    "make_config",
+    "make_heart",
+    "make_phantom",
+    "plan_acquisition",
+    "render_slice",
+    "write_ct_study",
+    "write_session",
+]

@@ -1,0 +1,477 @@
+"""Hounsfield-unit rendering of the phantom's chest in axial planes.
+
+The chest is a stack of analytic structures, each described by an approximate
+signed distance (mm, negative inside) and painted in a fixed order, later
+structures over earlier ones.  Every boundary is blended with a linear ramp of
+width ``edge_mm`` (one pixel by default) in its signed distance, so the
+midpoint between the HU of the two sides lies exactly on the true surface
+(partial volume in the image plane; the slice profile along z is not
+integrated: each slice samples its centre plane).
+
+Anatomy (patient frame, LPS, mm; see :mod:`heartreg.phantom.layout`):
+
+====================  ==========  ==============================================
+structure             HU          where
+====================  ==========  ==============================================
+air                   -1000       outside the body ellipse
+subcutaneous fat      -100        outer 8 mm of the body
+muscle                40          chest wall inside the fat
+ribs                  700         bands in the wall, higher posteriorly
+sternum               450         anterior midline of the wall
+lungs                 -800        thoracic cavity left and right
+mediastinal fat       -100        central band, around vessels and the heart
+liver                 65          below a diaphragm dome touching the heart
+spine                 380 / 700   vertebral body (cancellous / cortex), discs 90,
+                                  canal 20, neural arch 600
+oesophagus            40          in front of the spine, right of the aorta
+trachea               -1000       superior to the heart
+pericardial fat       -100        a 4 mm shell around the epicardium
+myocardium            100         between epicardium and blood pool
+blood (contrast)      350         blood pool, aorta, pulmonary arteries
+fiducial staples      2800        9 ellipsoids on the anterior skin
+====================  ==========  ==============================================
+
+The heart comes from :meth:`AnalyticHeart.signed_distance` at the requested
+cardiac phase and the CT breath-hold; the blood pool is the concentric inner
+surface at ``scale = 1 - wall_thickness / mean(semi axes)``.  The great vessels
+start inside the blood pool near the base and leave through the base cap, so
+the epicardium is a myocardium/fat boundary everywhere except where they join.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from numbers import Real
+
+import numpy as np
+
+from heartreg.phantom.heart import AnalyticHeart
+from heartreg.phantom.layout import (
+    BODY_SEMI_AP_MM,
+    BODY_SEMI_LR_MM,
+    FIDUCIAL_SIZE_MM,
+    fiducials_patient_mm,
+    skin_y_mm,
+)
+
+__all__ = ["HU", "ChestModel", "build_chest", "render_slice"]
+
+#: Hounsfield units of the tissues (see the module table).
+HU = {
+    "air": -1000.0,
+    "fat": -100.0,
+    "muscle": 40.0,
+    "bone": 700.0,
+    "sternum": 450.0,
+    "cancellous": 380.0,
+    "arch": 600.0,
+    "disc": 90.0,
+    "csf": 20.0,
+    "lung": -800.0,
+    "liver": 65.0,
+    "myocardium": 100.0,
+    "blood": 350.0,
+    "metal": 2800.0,
+}
+
+#: body wall layers, inset from the skin ellipse (mm)
+FAT_LAYER_MM = 8.0
+RIB_OUTER_INSET_MM = 12.0
+CAVITY_INSET_MM = 20.0
+#: ribs: vertical pitch, half height, slope dz/dy (higher posteriorly), midline gap
+RIB_PITCH_MM = 26.0
+RIB_HALF_HEIGHT_MM = 5.0
+RIB_SLOPE = 0.35
+RIB_MIDLINE_GAP_MM = 20.0
+#: pericardial fat shell thickness around the epicardium (mm)
+PERICARDIAL_FAT_MM = 4.0
+#: fat rim around the great vessels (mm)
+VESSEL_FAT_MM = 3.0
+#: diaphragm dome: radius of curvature (mm), right-higher tilt (dz/d(-x)), centre
+DOME_RADIUS_MM = 160.0
+DOME_TILT = 0.15
+#: mediastinal band half width (mm) and spine placement (mm)
+MEDIASTINUM_HALF_WIDTH_MM = 20.0
+VERTEBRA_CENTRE_MM = (0.0, 60.0)
+VERTEBRA_RADIUS_MM = 14.0
+CORTEX_MM = 2.0
+DISC_PITCH_MM = 28.0
+DISC_HALF_MM = 2.5
+CANAL_CENTRE_MM = (0.0, 80.0)
+CANAL_RADIUS_MM = 7.0
+ARCH_RADIUS_MM = 11.0
+STERNUM_CENTRE_MM = (0.0, -79.0)
+STERNUM_SEMI_MM = (14.0, 5.0)
+STERNUM_Z_MM = (-60.0, 200.0)
+
+
+@dataclass(frozen=True)
+class _Tube:
+    """A tube of constant radius around a polyline (capsule chain)."""
+
+    points_mm: np.ndarray  # (m, 3)
+    radius_mm: float
+
+    def bbox(self, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        pad = self.radius_mm + margin_mm
+        return self.points_mm.min(axis=0) - pad, self.points_mm.max(axis=0) + pad
+
+
+@dataclass(frozen=True)
+class ChestModel:
+    """Everything the renderer needs that depends on the heart's placement.
+
+    Build it once per phantom with :func:`build_chest`; rendering is then a pure
+    function of (z, phase, grid).
+
+    Attributes
+    ----------
+    heart : AnalyticHeart
+    blood_scale : float
+        ``scale`` of the blood-pool surface in ``implicit_reference``.
+    dome_top_mm : float
+        Height z of the diaphragm dome's vertex (at x = y = 0, before tilt).
+    heart_lo_mm, heart_hi_mm : (3,) float64
+        Bounding box of the epicardium over all cardiac phases at the breath-hold,
+        patient frame.
+    tubes : tuple of (name, _Tube)
+        Aorta, pulmonary arteries, trachea, oesophagus.
+    """
+
+    heart: AnalyticHeart
+    blood_scale: float
+    dome_top_mm: float
+    heart_lo_mm: np.ndarray
+    heart_hi_mm: np.ndarray
+    tubes: tuple
+
+    def dome_z_mm(self, x_mm, y_mm):
+        """Diaphragm height z (mm) at (x, y): a tilted paraboloid, right side higher."""
+        x = np.asarray(x_mm, dtype=float)
+        y = np.asarray(y_mm, dtype=float)
+        return self.dome_top_mm - (x**2 + y**2) / (2.0 * DOME_RADIUS_MM) - DOME_TILT * x
+
+    def vessel_distance_mm(self, points_mm) -> np.ndarray:
+        """Distance (mm) of patient points to the lumen of the contrast vessels
+        (negative inside).  Tests use it to skip the heart base where they join.
+
+        Parameters
+        ----------
+        points_mm : (n, 3) float, mm, patient frame
+
+        Returns
+        -------
+        (n,) float64, mm
+        """
+        p = np.asarray(points_mm, dtype=float).reshape(-1, 3)
+        d = np.full(len(p), np.inf)
+        for name, tube in self.tubes:
+            if name in ("aorta", "pulmonary"):
+                d = np.minimum(d, _tube_distance(p, tube))
+        return d
+
+
+def build_chest(heart: AnalyticHeart) -> ChestModel:
+    """Place the chest's heart-dependent parts (dome, great vessels) around ``heart``.
+
+    Parameters
+    ----------
+    heart : AnalyticHeart
+        The phantom heart in the CT patient frame (see ``layout.make_heart``).
+
+    Returns
+    -------
+    ChestModel
+    """
+    if not isinstance(heart, AnalyticHeart):
+        raise TypeError(f"heart must be an AnalyticHeart, got {type(heart).__name__}")
+    shape = heart.shape
+    mean_semi = 0.5 * (shape.semi_minor_mm + shape.semi_major_mm)
+    blood_scale = float(np.clip(1.0 - shape.wall_thickness_mm / mean_semi, 0.3, 0.95))
+
+    # epicardium over a grid of (u, v) and all cardiac phases at the breath-hold
+    u, v = np.meshgrid(np.linspace(0, 1, 72, endpoint=False), np.linspace(0, 1, 49))
+    u, v = u.ravel(), v.ravel()
+    pts = np.concatenate(
+        [heart.surface_points(u, v, ph, heart.image_resp_phase) for ph in np.linspace(0, 1, 24, endpoint=False)]
+    )
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    # dome vertex: every epicardial point sits at least the fat shell above the dome
+    lift = (pts[:, 0] ** 2 + pts[:, 1] ** 2) / (2.0 * DOME_RADIUS_MM) + DOME_TILT * pts[:, 0]
+    dome_top = float(np.min(pts[:, 2] + lift) - PERICARDIAL_FAT_MM)
+
+    T = heart.T_patient_from_heart
+
+    def at(p_heart):
+        return T[:3, :3] @ np.asarray(p_heart, dtype=float) + T[:3, 3]
+
+    base = shape.base_length_mm
+    base_pole = at([0.0, 0.0, base])
+    # ascending aorta from inside the blood pool, out of the base cap, up and right,
+    # over the arch to the left of the spine and down through the diaphragm
+    a0 = at([-4.0, 6.0, 0.45 * base])
+    a1 = base_pole + np.array([-12.0, -6.0, 12.0])
+    a2 = np.array([a1[0], a1[1] + 8.0, 66.0])
+    a3 = np.array([0.5 * (a1[0] + 24.0), 28.0, 73.0])
+    a4 = np.array([24.0, 50.0, 64.0])
+    a5 = np.array([24.0, 50.0, -200.0])
+    aorta = _Tube(np.stack([a0, a1, a2, a3, a4, a5]), 11.0)
+    # pulmonary trunk from the anterior base, splitting into left and right arteries
+    p0 = at([14.0, -8.0, 0.45 * base])
+    p1 = base_pole + np.array([10.0, -14.0, 14.0])
+    pulmonary = _Tube(np.stack([p0, p1, np.array([55.0, 22.0, 60.0]), np.array([82.0, 32.0, 54.0])]), 8.5)
+    pulmonary_r = _Tube(np.stack([p1, np.array([-4.0, 12.0, 58.0]), np.array([-70.0, 22.0, 52.0])]), 7.5)
+    trachea = _Tube(np.array([[-12.0, 36.0, 66.0], [-12.0, 36.0, 300.0]]), 8.0)
+    oesophagus = _Tube(np.array([[-4.0, 42.0, -200.0], [-4.0, 42.0, 300.0]]), 6.0)
+    tubes = (
+        ("aorta", aorta),
+        ("pulmonary", pulmonary),
+        ("pulmonary", pulmonary_r),
+        ("trachea", trachea),
+        ("oesophagus", oesophagus),
+    )
+    return ChestModel(
+        heart=heart,
+        blood_scale=blood_scale,
+        dome_top_mm=dome_top,
+        heart_lo_mm=lo,
+        heart_hi_mm=hi,
+        tubes=tubes,
+    )
+
+
+# --------------------------------------------------------------------- helpers
+def _ramp(sd, edge_mm):
+    """Occupancy in [0, 1] of a structure with signed distance ``sd``: 1/2 on the surface."""
+    return np.clip(0.5 - sd / edge_mm, 0.0, 1.0)
+
+
+def _paint(img, sd, hu, edge_mm):
+    w = _ramp(sd, edge_mm)
+    img += w * (hu - img)
+
+
+def _ellipse_sd(x, y, a, b):
+    """First-order signed distance (mm) to the ellipse (x/a)^2 + (y/b)^2 = 1."""
+    xa, yb = x / a, y / b
+    g = np.maximum(np.sqrt(xa * xa + yb * yb), 1e-9)
+    grad = np.sqrt((xa / a) ** 2 + (yb / b) ** 2) / g
+    return (g - 1.0) / np.maximum(grad, 1e-12)
+
+
+def _circle_sd(x, y, cx, cy, r):
+    return np.hypot(x - cx, y - cy) - r
+
+
+def _tube_distance(points, tube: _Tube):
+    """Distance (mm) of (n, 3) points to a tube's wall, negative inside."""
+    d = np.full(points.shape[:-1], np.inf)
+    for a, b in zip(tube.points_mm[:-1], tube.points_mm[1:]):
+        ab = b - a
+        t = np.clip(((points - a) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
+        closest = a + t[..., None] * ab
+        d = np.minimum(d, np.linalg.norm(points - closest, axis=-1))
+    return d - tube.radius_mm
+
+
+def _window(coords, lo, hi):
+    """Indices of ``coords`` inside [lo, hi]."""
+    return np.nonzero((coords >= lo) & (coords <= hi))[0]
+
+
+def _tube_on_slice(img, tube, xs, ys, z, hu, edge_mm, offset_mm=0.0):
+    """Paint the part of ``tube`` (inflated by ``offset_mm``) cut by plane z."""
+    margin = offset_mm + edge_mm
+    lo, hi = tube.bbox(margin)
+    if not lo[2] <= z <= hi[2]:
+        return
+    ix, iy = _window(xs, lo[0], hi[0]), _window(ys, lo[1], hi[1])
+    if ix.size == 0 or iy.size == 0:
+        return
+    X, Y = np.meshgrid(xs[ix], ys[iy])
+    P = np.stack([X, Y, np.full_like(X, z)], axis=-1)
+    sd = _tube_distance(P, tube) - offset_mm
+    sub = np.ix_(iy, ix)
+    block = img[sub]
+    _paint(block, sd, hu, edge_mm)
+    img[sub] = block
+
+
+# ---------------------------------------------------------------------- render
+def render_slice(
+    chest: ChestModel | AnalyticHeart,
+    *,
+    z_mm: float,
+    phase_c: float,
+    xs_mm,
+    ys_mm,
+    rng: np.random.Generator | None = None,
+    noise_hu: float = 0.0,
+    edge_mm: float | None = None,
+) -> np.ndarray:
+    """Render one axial slice of the chest in Hounsfield units.
+
+    Parameters
+    ----------
+    chest : ChestModel or AnalyticHeart
+        The chest (from :func:`build_chest`); a bare heart is wrapped on the fly
+        (slower: build the chest once when rendering many slices).
+    z_mm : float
+        Height of the axial plane, patient frame (LPS, +z superior), mm.
+    phase_c : float
+        Cardiac phase in [0, 1) at which the heart is drawn (breath-hold at the
+        heart's ``image_resp_phase``).
+    xs_mm : (n_cols,) float, mm
+        Patient x of the pixel centres of each column (+x patient left).
+    ys_mm : (n_rows,) float, mm
+        Patient y of the pixel centres of each row (+y posterior).
+    rng : numpy.random.Generator, optional
+        Source of the CT noise; required when ``noise_hu > 0``.
+    noise_hu : float
+        Standard deviation of additive white Gaussian noise, HU.
+    edge_mm : float, optional
+        Width of the partial-volume ramp across every boundary, mm.  Default:
+        the mean pixel spacing of ``xs_mm`` and ``ys_mm``.
+
+    Returns
+    -------
+    (n_rows, n_cols) float32, HU
+        Row j, column i is the point (xs_mm[i], ys_mm[j], z_mm).
+    """
+    if isinstance(chest, AnalyticHeart):
+        chest = build_chest(chest)
+    if not isinstance(chest, ChestModel):
+        raise TypeError(f"chest must be a ChestModel (see build_chest), got {type(chest).__name__}")
+    xs = np.asarray(xs_mm, dtype=float)
+    ys = np.asarray(ys_mm, dtype=float)
+    for name, arr in (("xs_mm", xs), ("ys_mm", ys)):
+        if arr.ndim != 1 or arr.size < 1 or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be a non-empty 1-D array of finite mm, got shape {arr.shape}")
+    if not isinstance(z_mm, Real) or not np.isfinite(z_mm):
+        raise ValueError(f"z_mm must be a finite number of mm, got {z_mm!r}")
+    if not isinstance(phase_c, Real) or not 0.0 <= phase_c < 1.0:
+        raise ValueError(f"phase_c must be a cardiac phase in [0, 1), got {phase_c!r}")
+    if not noise_hu >= 0:
+        raise ValueError(f"noise_hu must be >= 0, got {noise_hu!r}")
+    if noise_hu > 0 and not isinstance(rng, np.random.Generator):
+        raise ValueError("rng must be a numpy.random.Generator when noise_hu > 0; pass np.random.default_rng(seed)")
+    if edge_mm is None:
+        steps = [np.abs(np.diff(a)).mean() for a in (xs, ys) if a.size > 1]
+        edge_mm = float(np.mean(steps)) if steps else 1.0
+    if not edge_mm > 0:
+        raise ValueError(f"edge_mm must be positive, got {edge_mm!r}")
+    z = float(z_mm)
+
+    X, Y = np.meshgrid(xs, ys)
+    img = np.full(X.shape, HU["air"])
+    a, b = BODY_SEMI_LR_MM, BODY_SEMI_AP_MM
+
+    # body wall: fat, muscle, ribs
+    _paint(img, _ellipse_sd(X, Y, a, b), HU["fat"], edge_mm)
+    _paint(img, _ellipse_sd(X, Y, a - FAT_LAYER_MM, b - FAT_LAYER_MM), HU["muscle"], edge_mm)
+    cavity = _ellipse_sd(X, Y, a - CAVITY_INSET_MM, b - CAVITY_INSET_MM)
+    rib_shell = np.maximum(_ellipse_sd(X, Y, a - RIB_OUTER_INSET_MM, b - RIB_OUTER_INSET_MM), -cavity)
+    q = (z - RIB_SLOPE * Y) / RIB_PITCH_MM
+    band = (np.abs(q - np.round(q)) * RIB_PITCH_MM - RIB_HALF_HEIGHT_MM) / np.sqrt(1.0 + RIB_SLOPE**2)
+    ribs = np.maximum(np.maximum(rib_shell, band), RIB_MIDLINE_GAP_MM - np.abs(X))
+    _paint(img, ribs, HU["bone"], edge_mm)
+    if STERNUM_Z_MM[0] <= z <= STERNUM_Z_MM[1]:
+        sd = _ellipse_sd(X - STERNUM_CENTRE_MM[0], Y - STERNUM_CENTRE_MM[1], *STERNUM_SEMI_MM)
+        _paint(img, np.maximum(sd, STERNUM_Z_MM[0] - z), HU["sternum"], edge_mm)
+
+    # thoracic cavity: lungs, mediastinum, liver below the dome
+    _paint(img, cavity, HU["lung"], edge_mm)
+    _paint(img, np.maximum(cavity, np.abs(X) - MEDIASTINUM_HALF_WIDTH_MM), HU["fat"], edge_mm)
+    zd = chest.dome_z_mm(X, Y)
+    slope2 = (X / DOME_RADIUS_MM + DOME_TILT) ** 2 + (Y / DOME_RADIUS_MM) ** 2
+    below = (z - zd) / np.sqrt(1.0 + slope2)
+    _paint(img, np.maximum(cavity, below), HU["liver"], edge_mm)
+
+    # spine: vertebral body (cortex, cancellous, discs), neural arch, canal
+    vx, vy = VERTEBRA_CENTRE_MM
+    vb = _circle_sd(X, Y, vx, vy, VERTEBRA_RADIUS_MM)
+    _paint(img, vb, HU["bone"], edge_mm)
+    _paint(img, vb + CORTEX_MM, HU["cancellous"], edge_mm)
+    qd = z / DISC_PITCH_MM
+    disc = abs(qd - round(qd)) * DISC_PITCH_MM - DISC_HALF_MM
+    if disc < edge_mm:
+        _paint(img, np.maximum(vb, disc), HU["disc"], edge_mm)
+    cx, cy = CANAL_CENTRE_MM
+    canal = _circle_sd(X, Y, cx, cy, CANAL_RADIUS_MM)
+    _paint(img, _circle_sd(X, Y, cx, cy, ARCH_RADIUS_MM), HU["arch"], edge_mm)
+    _paint(img, canal, HU["csf"], edge_mm)
+
+    # mediastinal contents: fat around vessels, oesophagus, trachea
+    tubes = dict()
+    for name, tube in chest.tubes:
+        tubes.setdefault(name, []).append(tube)
+    for name in ("aorta", "pulmonary"):
+        for tube in tubes.get(name, []):
+            _tube_on_slice(img, tube, xs, ys, z, HU["fat"], edge_mm, offset_mm=VESSEL_FAT_MM)
+    for tube in tubes.get("oesophagus", []):
+        _tube_on_slice(img, tube, xs, ys, z, HU["muscle"], edge_mm)
+    for tube in tubes.get("trachea", []):
+        _tube_on_slice(img, tube, xs, ys, z, HU["air"], edge_mm)
+
+    # heart: pericardial fat shell, myocardium, contrast blood pool
+    _render_heart(img, chest, xs, ys, z, phase_c, edge_mm)
+    for name in ("aorta", "pulmonary"):
+        for tube in tubes.get(name, []):
+            _tube_on_slice(img, tube, xs, ys, z, HU["blood"], edge_mm)
+
+    _render_fiducials(img, xs, ys, z, edge_mm)
+
+    if noise_hu > 0:
+        img += noise_hu * rng.standard_normal(img.shape)
+    return img.astype(np.float32)
+
+
+def _render_heart(img, chest: ChestModel, xs, ys, z, phase_c, edge_mm):
+    margin = PERICARDIAL_FAT_MM + 2.0 * edge_mm + 1.0
+    lo, hi = chest.heart_lo_mm - margin, chest.heart_hi_mm + margin
+    if not lo[2] <= z <= hi[2]:
+        return
+    ix, iy = _window(xs, lo[0], hi[0]), _window(ys, lo[1], hi[1])
+    if ix.size == 0 or iy.size == 0:
+        return
+    heart = chest.heart
+    X, Y = np.meshgrid(xs[ix], ys[iy])
+    P = np.stack([X, Y, np.full_like(X, z)], axis=-1).reshape(-1, 3)
+    T = heart.T_heart_from_patient
+    h = P @ T[:3, :3].T + T[:3, 3]
+    ref = heart.unbeat(h, heart.contraction(phase_c, heart.image_resp_phase))
+    epi = heart.implicit_reference(ref).reshape(X.shape)
+    inner = heart.implicit_reference(ref, scale=chest.blood_scale).reshape(X.shape)
+    sub = np.ix_(iy, ix)
+    block = img[sub]
+    _paint(block, epi - PERICARDIAL_FAT_MM, HU["fat"], edge_mm)
+    _paint(block, epi, HU["myocardium"], edge_mm)
+    _paint(block, inner, HU["blood"], edge_mm)
+    img[sub] = block
+
+
+def _render_fiducials(img, xs, ys, z, edge_mm):
+    semi = 0.5 * np.asarray(FIDUCIAL_SIZE_MM, dtype=float)  # tangent, SI, thickness
+    reach = semi.max() + edge_mm
+    for c in fiducials_patient_mm():
+        if abs(z - c[2]) > semi[1] + edge_mm:
+            continue
+        ix, iy = _window(xs, c[0] - reach, c[0] + reach), _window(ys, c[1] - reach, c[1] + reach)
+        if ix.size == 0 or iy.size == 0:
+            continue
+        # outward skin normal in the axial plane at the staple
+        dx = 1e-3
+        dy = skin_y_mm(c[0] + dx) - skin_y_mm(c[0] - dx)
+        tangent = np.array([2 * dx, dy]) / np.hypot(2 * dx, dy)
+        normal = np.array([tangent[1], -tangent[0]])  # points anterior (-y)
+        X, Y = np.meshgrid(xs[ix] - c[0], ys[iy] - c[1])
+        p_t = (X * tangent[0] + Y * tangent[1]) / semi[0]
+        p_n = (X * normal[0] + Y * normal[1]) / semi[2]
+        p_z = np.full_like(X, (z - c[2]) / semi[1])
+        g = np.maximum(np.sqrt(p_t**2 + p_n**2 + p_z**2), 1e-9)
+        grad = np.sqrt((p_t / semi[0]) ** 2 + (p_n / semi[2]) ** 2 + (p_z / semi[1]) ** 2) / g
+        sd = np.where(g > 1e-6, (g - 1.0) / np.maximum(grad, 1e-12), -semi[2])
+        sub = np.ix_(iy, ix)
+        block = img[sub]
+        _paint(block, sd, HU["metal"], edge_mm)
+        img[sub] = block

@@ -1,0 +1,210 @@
+"""External label maps (a segmentation from 3D Slicer, TotalSegmentator, ...).
+
+A label map is read with its own affine and resampled onto the CT volume's grid
+through both affines (nearest label), so it may come on any grid, in any
+orientation.  Formats: NIfTI (``.nii``, ``.nii.gz``, through nibabel; RAS on
+disk), NRRD (``.nrrd``, ``.nhdr`` is not supported; raw or gzip encoding, any
+``space``) and DICOM SEG (through :mod:`imaging.seg`).
+"""
+
+from __future__ import annotations
+
+import gzip
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["LabelMapError", "LabelMap", "read_label_map", "mask_on_grid"]
+
+_LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+class LabelMapError(ValueError):
+    """A label map that cannot be read or used."""
+
+
+@dataclass(frozen=True)
+class LabelMap:
+    """Integer labels on their own grid.
+
+    Attributes
+    ----------
+    labels : (n_k, n_j, n_i) int array
+        Indexed ``[k, j, i]`` like :class:`imaging.Volume`.
+    T_patient_from_voxel : (4, 4) float64
+        ``(i, j, k, 1)`` to patient LPS mm.
+    source : str
+    names : dict
+        Label value to name, where the file says.
+    """
+
+    labels: np.ndarray
+    T_patient_from_voxel: np.ndarray
+    source: str
+    names: dict
+
+
+def _read_nifti(path: Path) -> LabelMap:
+    import nibabel as nib
+
+    try:
+        img = nib.load(str(path))
+        data = np.asarray(img.dataobj)
+    except Exception as exc:  # nibabel raises many types for bad files
+        raise LabelMapError(f"cannot read NIfTI label map {path}: {exc}") from None
+    if data.ndim == 4 and data.shape[3] == 1:
+        data = data[..., 0]
+    if data.ndim != 3:
+        raise LabelMapError(f"label map {path} must be 3-D, got shape {data.shape}")
+    T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=float)
+    return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), {})
+
+
+_NRRD_TYPES = {
+    "uchar": "u1", "unsigned char": "u1", "uint8": "u1", "uint8_t": "u1",
+    "signed char": "i1", "int8": "i1", "int8_t": "i1", "char": "i1",
+    "short": "i2", "int16": "i2", "int16_t": "i2", "signed short": "i2",
+    "ushort": "u2", "unsigned short": "u2", "uint16": "u2", "uint16_t": "u2",
+    "int": "i4", "int32": "i4", "int32_t": "i4", "signed int": "i4",
+    "uint": "u4", "unsigned int": "u4", "uint32": "u4", "uint32_t": "u4",
+    "float": "f4", "double": "f8",
+}
+_NRRD_SPACES = {
+    "left-posterior-superior": np.eye(4), "lps": np.eye(4),
+    "right-anterior-superior": _LPS_FROM_RAS, "ras": _LPS_FROM_RAS,
+}
+
+
+def _read_nrrd(path: Path) -> LabelMap:
+    raw = path.read_bytes()
+    end = raw.find(b"\n\n")
+    if not raw.startswith(b"NRRD") or end < 0:
+        raise LabelMapError(f"{path} is not an NRRD file with an attached header")
+    fields = {}
+    for line in raw[:end].decode("ascii", "replace").splitlines()[1:]:
+        if line.startswith("#") or ":" not in line:
+            continue
+        key, _, value = line.partition(":")
+        fields[key.strip().lower()] = value.lstrip("=").strip()
+    try:
+        sizes = [int(v) for v in fields["sizes"].split()]
+        dtype = np.dtype(_NRRD_TYPES[fields["type"].lower()])
+        space = _NRRD_SPACES[fields.get("space", "left-posterior-superior").lower()]
+        directions = [
+            [float(x) for x in d.strip("()").split(",")]
+            for d in fields["space directions"].replace(") (", ")|(").split("|")
+        ]
+        origin = [float(x) for x in fields.get("space origin", "(0,0,0)").strip("()").split(",")]
+    except (KeyError, ValueError) as exc:
+        raise LabelMapError(f"NRRD label map {path}: missing or bad header field ({exc})") from None
+    if len(sizes) != 3:
+        raise LabelMapError(f"NRRD label map {path} must be 3-D, got sizes {sizes}")
+    encoding = fields.get("encoding", "raw").lower()
+    body = raw[end + 2 :]
+    if encoding in ("gzip", "gz"):
+        body = gzip.decompress(body)
+    elif encoding != "raw":
+        raise LabelMapError(f"NRRD label map {path}: encoding {encoding!r} not supported (use raw or gzip)")
+    if dtype.itemsize > 1:
+        dtype = dtype.newbyteorder("<" if fields.get("endian", "little") == "little" else ">")
+    n = int(np.prod(sizes))
+    if len(body) < n * dtype.itemsize:
+        raise LabelMapError(f"NRRD label map {path} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
+    data = np.frombuffer(body[: n * dtype.itemsize], dtype=dtype).reshape(sizes[::-1])  # [k, j, i]
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(directions, dtype=float).T
+    T[:3, 3] = origin
+    return LabelMap(np.round(data).astype(np.int32), space @ T, str(path), {})
+
+
+def read_label_map(path) -> LabelMap:
+    """Read a label map (NIfTI, NRRD or DICOM SEG) with its affine."""
+    path = Path(path)
+    if not path.exists():
+        raise LabelMapError(f"label map {path} does not exist")
+    name = path.name.lower()
+    if name.endswith((".nii", ".nii.gz")):
+        return _read_nifti(path)
+    if name.endswith(".nrrd"):
+        return _read_nrrd(path)
+    from imaging.seg import read_dicom_seg
+
+    try:
+        labels, T, names = read_dicom_seg(path)
+    except ValueError as exc:
+        raise LabelMapError(
+            f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}"
+        ) from None
+    return LabelMap(labels, T, str(path), names)
+
+
+def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int | None = None) -> np.ndarray:
+    """Resample one label of ``label_map`` onto a volume grid (nearest neighbour).
+
+    Parameters
+    ----------
+    label_map : LabelMap
+    shape : (3,) int
+        The volume's ``(n_slices, n_rows, n_cols)``.
+    T_patient_from_voxel : (4, 4) float64
+        The volume's affine.
+    label : int, optional
+        Which label; by default the only non-zero label (several -> error listing them).
+
+    Returns
+    -------
+    (n_slices, n_rows, n_cols) bool
+
+    Raises
+    ------
+    LabelMapError
+        Empty label map, unknown label, several labels without a choice, or no
+        overlap with the volume.
+    """
+    values = np.unique(label_map.labels)
+    values = values[values != 0]
+    if values.size == 0:
+        raise LabelMapError(f"label map {label_map.source} is empty (all zero)")
+    if label is None:
+        if values.size > 1:
+            named = ", ".join(f"{v}{' (' + label_map.names[v] + ')' if v in label_map.names else ''}" for v in values[:20])
+            raise LabelMapError(
+                f"label map {label_map.source} holds several labels ({named}); choose one with --label N"
+            )
+        label = int(values[0])
+    elif label not in values:
+        raise LabelMapError(
+            f"label {label} is not in {label_map.source}; it holds {', '.join(str(v) for v in values[:20])}"
+        )
+    src = label_map.labels == label
+    T_vol = np.asarray(T_patient_from_voxel, dtype=float)
+    # bounding box of the label in the volume's voxel coordinates
+    kji = np.argwhere(src)
+    lo, hi = kji.min(axis=0), kji.max(axis=0)
+    corners = np.array([[i, j, k] for k in (lo[0] - 1, hi[0] + 1) for j in (lo[1] - 1, hi[1] + 1) for i in (lo[2] - 1, hi[2] + 1)], float)
+    patient = corners @ label_map.T_patient_from_voxel[:3, :3].T + label_map.T_patient_from_voxel[:3, 3]
+    ijk = np.linalg.solve(T_vol[:3, :3], (patient - T_vol[:3, 3]).T).T
+    shape = tuple(int(s) for s in shape)
+    box_lo = np.clip(np.floor(ijk.min(axis=0)).astype(int), 0, np.array(shape[::-1]) - 1)
+    box_hi = np.clip(np.ceil(ijk.max(axis=0)).astype(int) + 1, 0, np.array(shape[::-1]))
+    mask = np.zeros(shape, bool)
+    if np.any(box_hi <= box_lo):
+        raise LabelMapError(
+            f"label {label} of {label_map.source} does not overlap the CT volume; "
+            "was it made on another study?"
+        )
+    ii, jj, kk = np.meshgrid(*(np.arange(a, b) for a, b in zip(box_lo, box_hi)), indexing="ij")
+    pts = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(float)
+    T_src_from_vol = np.linalg.inv(label_map.T_patient_from_voxel) @ T_vol
+    src_ijk = pts @ T_src_from_vol[:3, :3].T + T_src_from_vol[:3, 3]
+    values = ndimage.map_coordinates(src.astype(np.uint8), src_ijk[:, ::-1].T, order=0, mode="constant", cval=0)
+    sub = values.reshape(ii.shape).astype(bool).transpose(2, 1, 0)  # (k, j, i)
+    mask[box_lo[2] : box_hi[2], box_lo[1] : box_hi[1], box_lo[0] : box_hi[0]] = sub
+    if not mask.any():
+        raise LabelMapError(
+            f"label {label} of {label_map.source} does not overlap the CT volume; "
+            "was it made on another study?"
+        )
+    return mask
