@@ -1,3 +1,91 @@
-"""modeling package."""
+"""modeling: from a CT volume to a heart model in the heart-centric frame.
 
-__all__: list[str] = []
+Segmentation, chest fiducials, surface mesh, the heart-centric frame from
+ellipses in 10 mm slabs (paper section 2.2.3) and the model folder.
+"""
+
+from modeling.segment import (
+    SegmentationError,
+    HeartSegmentation,
+    segment_heart,
+)
+from modeling.fiducials import (
+    FiducialError,
+    Fiducials,
+    find_fiducials,
+    order_fiducials,
+)
+from modeling.labelmap import (
+    LabelMapError,
+    LabelMap,
+    read_label_map,
+    mask_on_grid,
+)
+from modeling.surface import (
+    Mesh,
+    MeshError,
+    mask_to_mesh,
+    check_mesh,
+    transform_mesh,
+    write_mesh,
+    read_ply,
+)
+from modeling.frame import (
+    FrameError,
+    SlabEllipse,
+    HeartFrame,
+    fit_heart_frame,
+    ANTERIOR_LPS,
+)
+from modeling.model import (
+    ModelError,
+    HeartModel,
+    make_heart_model,
+    write_model,
+    read_model,
+    SOURCE_KEYS,
+    FORMAT,
+    FORMAT_VERSION,
+)
+from modeling.render import (
+    RenderError,
+    offscreen_available,
+    render_model_png,
+)
+
+__all__ = [
+    "ANTERIOR_LPS",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "FiducialError",
+    "Fiducials",
+    "FrameError",
+    "HeartFrame",
+    "HeartModel",
+    "HeartSegmentation",
+    "LabelMap",
+    "LabelMapError",
+    "Mesh",
+    "MeshError",
+    "ModelError",
+    "RenderError",
+    "SOURCE_KEYS",
+    "SegmentationError",
+    "SlabEllipse",
+    "check_mesh",
+    "find_fiducials",
+    "fit_heart_frame",
+    "make_heart_model",
+    "mask_on_grid",
+    "mask_to_mesh",
+    "offscreen_available",
+    "order_fiducials",
+    "read_label_map",
+    "read_model",
+    "read_ply",
+    "render_model_png",
+    "segment_heart",
+    "transform_mesh",
+    "write_mesh",
+    "write_model",
+]

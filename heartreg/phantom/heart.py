@@ -89,16 +89,12 @@ def _contraction_template(phase):
 
 
 def _breathing_template(phase):
-    """Inspiration depth: 1 at the start of expiration (phase 0), passive
-    exponential expiration, end-expiratory pause, then inspiration (I:E = 1:2)."""
+    """Inspiration depth: 1 at the start of expiration (phase 0), a smooth
+    expiration to the end-expiratory position at 2/3, then inspiration (I:E = 1:2)."""
     p = np.mod(phase, 1.0)
-    out = np.empty_like(p)
-    exp_part = p < 2.0 / 3.0
-    out[exp_part] = np.exp(-p[exp_part] / 0.13)
-    insp = ~exp_part
-    x = (p[insp] - 2.0 / 3.0) * 3.0
-    out[insp] = 0.5 - 0.5 * np.cos(np.pi * x)
-    return out
+    expiration = p < 2.0 / 3.0
+    x = np.where(expiration, p * 1.5, (p - 2.0 / 3.0) * 3.0)
+    return np.where(expiration, 0.5 + 0.5 * np.cos(np.pi * x), 0.5 - 0.5 * np.cos(np.pi * x))
 
 
 def _diastasis_weight(phase):
@@ -297,12 +293,16 @@ class AnalyticHeart:
         """
         phase_r = np.asarray(phase_r, dtype=float)
         g = respiratory_waveform(phase_r) - respiratory_waveform(self.image_resp_phase)
+        # anterior-posterior motion lags the superior-inferior one: the heart's
+        # respiratory path is a loop (hysteresis), not a line traced twice
+        lag = self.motion.resp_ap_lag
+        g_ap = respiratory_waveform(phase_r - lag) - respiratory_waveform(self.image_resp_phase - lag)
         m = self.motion
         angle = np.deg2rad(m.resp_rotation_deg) * g
         R = Rotation.from_rotvec(np.stack([angle, 0 * angle, 0 * angle], axis=-1)).as_matrix()
         centre = self.origin_patient_mm
         # inspiration: heart moves inferior (-z in LPS) and anterior (-y)
-        shift = np.stack([0 * g, -m.resp_ap_mm * g, -m.resp_si_mm * g], axis=-1)
+        shift = np.stack([0 * g, -m.resp_ap_mm * g_ap, -m.resp_si_mm * g], axis=-1)
         T = np.zeros(phase_r.shape + (4, 4))
         T[..., :3, :3] = R
         T[..., :3, 3] = centre - np.einsum("...ij,j->...i", R, centre) + shift

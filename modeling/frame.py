@@ -1,0 +1,513 @@
+"""Heart-centric frame from ellipses fitted in slabs (Wood et al. 2018, 2.2.3).
+
+Algorithm of :func:`fit_heart_frame`:
+
+1. z starts along the principal axis of the vertices (largest variance), or
+   along ``initial_axis``.
+2. Repeat until z changes by less than ``tol_deg`` (or ``max_iterations``):
+   cut the vertices into slabs ``slab_mm`` thick along z (a slab grid centred
+   on the vertices' extent), project each slab's vertices on the plane normal
+   to z, fit an ellipse (direct least-squares conic fit, Halir & Flusser 1998)
+   to them, fit a line through the ellipse centres (least squares, every
+   accepted slab weighing the same) and take it as the new z.
+3. x is the eccentricity-weighted mean of the ellipses' minor axes, each first
+   flipped to agree with their common orientation, orthogonalised against z
+   and signed to point anterior; y = z x x.
+
+Slabs are rejected when they hold fewer than ``min_points`` vertices, when the
+conic is not an ellipse, or when they are *caps*: a slab that holds the flat
+base or the apex tip contains vertices spread over the whole cross-section
+rather than a band around its rim. After a first fit, vertices with a
+normalised elliptical radius below :data:`CAP_RADIUS` are counted; more than
+:data:`CAP_FRACTION` of them marks a cap, fewer are dropped and the ellipse refitted.
+
+Sign of z (apex to base): the base is the end whose cross-sections are wider
+near the end. The median distance of the vertices from the axis is measured in
+the band 10-25 % of the length in from each end; the base is the end with the
+larger value (an apex tapers to a point, the base of a segmented heart is
+broad and cut flat). ``base_hint`` (any vector pointing roughly from apex to
+base) overrides the rule.
+
+Sign of x: anterior, ``x . (0, -1, 0) > 0`` in LPS (docs/CONTRACTS.md).
+
+Origin: on the fitted axis (the line through the ellipse centres), halfway
+between the vertices' extreme heights along it (apex tip and top of the base).
+Unlike the centroid of the ellipse centres, this does not jump by half a slab
+when an end slab is accepted or rejected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = ["FrameError", "SlabEllipse", "HeartFrame", "fit_heart_frame", "ANTERIOR_LPS"]
+
+#: Anterior direction in LPS patient coordinates.
+ANTERIOR_LPS = np.array([0.0, -1.0, 0.0])
+#: Vertices with normalised elliptical radius below this are "inside" a slab.
+CAP_RADIUS = 0.7
+#: A slab with more than this fraction of inside vertices is an end cap.
+CAP_FRACTION = 0.2
+#: Largest semi-axis ratio accepted for a slab ellipse.
+MAX_AXIS_RATIO = 6.0
+
+
+class FrameError(ValueError):
+    """The vertices do not allow a heart frame fit."""
+
+
+@dataclass(frozen=True, eq=False)
+class SlabEllipse:
+    """Ellipse fitted to the vertices of one slab.
+
+    Attributes
+    ----------
+    slab_index : int
+        Position of the slab along z, 0 at the apex end.
+    height_mm : float
+        Mean height of the slab's vertices along the final z, relative to the origin.
+    centre_mm : (3,) float64, patient frame
+    semi_major_mm, semi_minor_mm : float
+    minor_axis, major_axis : (3,) float64
+        Unit directions in the patient frame, perpendicular to z; the minor axes
+        are sign-aligned with the frame's x axis, ``major = z x minor``.
+    eccentricity : float
+        ``sqrt(1 - (b / a)^2)``.
+    n_points : int
+        Vertices used in the fit.
+    """
+
+    slab_index: int
+    height_mm: float
+    centre_mm: np.ndarray
+    semi_major_mm: float
+    semi_minor_mm: float
+    minor_axis: np.ndarray
+    major_axis: np.ndarray
+    eccentricity: float
+    n_points: int
+
+    def __eq__(self, other):
+        if not isinstance(other, SlabEllipse):
+            return NotImplemented
+        return all(
+            np.array_equal(getattr(self, f), getattr(other, f))
+            for f in self.__dataclass_fields__
+        )
+
+    __hash__ = None
+
+    def to_dict(self) -> dict:
+        return {
+            "slab_index": int(self.slab_index),
+            "height_mm": float(self.height_mm),
+            "centre_mm": [float(c) for c in self.centre_mm],
+            "semi_major_mm": float(self.semi_major_mm),
+            "semi_minor_mm": float(self.semi_minor_mm),
+            "minor_axis": [float(c) for c in self.minor_axis],
+            "major_axis": [float(c) for c in self.major_axis],
+            "eccentricity": float(self.eccentricity),
+            "n_points": int(self.n_points),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SlabEllipse":
+        return cls(
+            slab_index=int(d["slab_index"]),
+            height_mm=float(d["height_mm"]),
+            centre_mm=np.asarray(d["centre_mm"], dtype=np.float64),
+            semi_major_mm=float(d["semi_major_mm"]),
+            semi_minor_mm=float(d["semi_minor_mm"]),
+            minor_axis=np.asarray(d["minor_axis"], dtype=np.float64),
+            major_axis=np.asarray(d["major_axis"], dtype=np.float64),
+            eccentricity=float(d["eccentricity"]),
+            n_points=int(d["n_points"]),
+        )
+
+    def points(self, n: int = 120) -> np.ndarray:
+        """(n, 3) points on the ellipse, patient frame, for drawing."""
+        t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)[:, None]
+        return (
+            self.centre_mm
+            + self.semi_minor_mm * np.cos(t) * self.minor_axis
+            + self.semi_major_mm * np.sin(t) * self.major_axis
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class HeartFrame:
+    """Result of :func:`fit_heart_frame`.
+
+    Attributes
+    ----------
+    T_heart_from_patient : (4, 4) float64
+    euler_xyz_deg : (3,) float
+        Intrinsic X-Y-Z angles of R = Rx(a) Ry(b) Rz(g), whose columns are the
+        heart axes in patient coordinates (paper's Table 1), in degrees.
+    ellipses : tuple of SlabEllipse
+        Accepted slabs, apex to base, fitted about the final axis.
+    iterations : int
+        Axis updates performed.
+    axis_change_deg : float
+        Angle between the last two axis estimates.
+    converged : bool
+        ``axis_change_deg < tol_deg`` was reached within ``max_iterations``.
+    base_rule : str
+        ``"cross-section"`` or ``"hint"``: how the apex-to-base sign was chosen.
+    n_rejected_slabs : int
+        Slabs dropped (too few vertices, caps, non-elliptical), final fit.
+    """
+
+    T_heart_from_patient: np.ndarray
+    euler_xyz_deg: tuple
+    ellipses: tuple
+    iterations: int
+    axis_change_deg: float
+    converged: bool
+    base_rule: str
+    n_rejected_slabs: int
+
+    def __post_init__(self):
+        T = np.array(self.T_heart_from_patient, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_heart_from_patient must have shape (4, 4), got {T.shape}")
+        T.setflags(write=False)
+        object.__setattr__(self, "T_heart_from_patient", T)
+        object.__setattr__(self, "euler_xyz_deg", tuple(float(a) for a in self.euler_xyz_deg))
+        object.__setattr__(self, "ellipses", tuple(self.ellipses))
+
+    def __eq__(self, other):
+        if not isinstance(other, HeartFrame):
+            return NotImplemented
+        return (
+            np.array_equal(self.T_heart_from_patient, other.T_heart_from_patient)
+            and self.euler_xyz_deg == other.euler_xyz_deg
+            and self.ellipses == other.ellipses
+            and self.iterations == other.iterations
+            and self.axis_change_deg == other.axis_change_deg
+            and self.converged == other.converged
+            and self.base_rule == other.base_rule
+            and self.n_rejected_slabs == other.n_rejected_slabs
+        )
+
+    __hash__ = None
+
+    @property
+    def T_patient_from_heart(self) -> np.ndarray:
+        return _invert_rigid(self.T_heart_from_patient)
+
+    @property
+    def axes_patient(self) -> np.ndarray:
+        """(3, 3) columns x, y, z of the heart frame in patient coordinates."""
+        return self.T_heart_from_patient[:3, :3].T.copy()
+
+    @property
+    def origin_patient_mm(self) -> np.ndarray:
+        return self.T_patient_from_heart[:3, 3]
+
+
+def fit_heart_frame(
+    vertices_patient: np.ndarray,
+    *,
+    slab_mm: float = 10.0,
+    max_iterations: int = 20,
+    tol_deg: float = 0.01,
+    initial_axis=None,
+    base_hint=None,
+    min_points: int = 30,
+) -> HeartFrame:
+    """Fit the heart-centric frame to surface vertices (paper section 2.2.3).
+
+    Parameters
+    ----------
+    vertices_patient : (n, 3) float, mm
+        Vertices of the heart surface in the patient (LPS) frame.
+    slab_mm : float
+        Slab thickness along z.
+    max_iterations : int
+        Upper bound on axis updates.
+    tol_deg : float
+        Stop when the axis moves less than this between iterations (degrees).
+    initial_axis : (3,) float, optional
+        Starting z (sign irrelevant); default the principal axis of the vertices.
+    base_hint : (3,) float, optional
+        A direction pointing roughly from apex to base (patient frame); fixes
+        the sign of z instead of the cross-section rule.
+    min_points : int
+        Fewest vertices a slab needs for an ellipse.
+
+    Returns
+    -------
+    HeartFrame
+
+    Raises
+    ------
+    FrameError
+        Fewer than three slabs give an ellipse (reduce ``slab_mm`` or check the mesh).
+    """
+    v = np.asarray(vertices_patient, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices_patient must have shape (n, 3), got {v.shape}")
+    if len(v) < 100:
+        raise FrameError(f"need at least 100 vertices to fit a heart frame, got {len(v)}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("vertices_patient contains NaN or infinity")
+    if not slab_mm > 0:
+        raise ValueError(f"slab_mm must be positive, got {slab_mm}")
+    if int(max_iterations) < 1:
+        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
+    if not tol_deg > 0:
+        raise ValueError(f"tol_deg must be positive, got {tol_deg}")
+    if int(min_points) < 6:
+        raise ValueError(f"min_points must be >= 6 (a conic has 5 degrees of freedom), got {min_points}")
+
+    mean = v.mean(axis=0)
+    if initial_axis is None:
+        _, _, vt = np.linalg.svd(v - mean, full_matrices=False)
+        z = vt[0]
+    else:
+        z = _unit(initial_axis, "initial_axis")
+
+    iterations = 0
+    change_deg = np.inf
+    while iterations < int(max_iterations):
+        slabs, _ = _fit_slabs(v, z, slab_mm, int(min_points))
+        if len(slabs) < 3:
+            raise FrameError(
+                f"only {len(slabs)} slabs of {slab_mm} mm gave an ellipse (need 3); "
+                "reduce slab_mm or check that the mesh is a whole heart"
+            )
+        _, z_new = _fit_line([s["centre"] for s in slabs])
+        if z_new @ z < 0:
+            z_new = -z_new
+        change_deg = float(np.degrees(np.arccos(np.clip(z_new @ z, -1.0, 1.0))))
+        z = z_new
+        iterations += 1
+        if change_deg < tol_deg:
+            break
+    converged = bool(change_deg < tol_deg)
+
+    # final ellipses about the final axis
+    slabs, n_rejected = _fit_slabs(v, z, slab_mm, int(min_points))
+    if len(slabs) < 3:
+        raise FrameError(
+            f"only {len(slabs)} slabs of {slab_mm} mm gave an ellipse about the final axis"
+        )
+    centres = np.array([s["centre"] for s in slabs])
+    on_axis = centres.mean(axis=0)
+    t = v @ z
+    origin = on_axis + z * (0.5 * (t.min() + t.max()) - on_axis @ z)
+
+    # sign of z: apex to base
+    if base_hint is not None:
+        hint = _unit(base_hint, "base_hint")
+        if abs(hint @ z) < 1e-6:
+            raise ValueError("base_hint is perpendicular to the heart axis; it cannot fix the sign")
+        base_rule = "hint"
+        if hint @ z < 0:
+            z = -z
+    else:
+        base_rule = "cross-section"
+        if _base_score(v, origin, z) < 0:
+            z = -z
+
+    # x: eccentricity-weighted mean of sign-aligned minor axes
+    minors = np.array([s["minor"] for s in slabs])
+    minors -= np.outer(minors @ z, z)
+    minors /= np.linalg.norm(minors, axis=1, keepdims=True)
+    ecc = np.array([s["ecc"] for s in slabs])
+    w = ecc + 1e-9
+    tensor = (minors * w[:, None]).T @ minors
+    ref = np.linalg.eigh(tensor)[1][:, -1]
+    minors[minors @ ref < 0] *= -1
+    x = (minors * w[:, None]).sum(axis=0)
+    x -= (x @ z) * z
+    x /= np.linalg.norm(x)
+    if x @ ANTERIOR_LPS < 0:
+        x = -x
+    y = np.cross(z, x)
+
+    R = np.stack([x, y, z], axis=1)
+    T_heart_from_patient = np.eye(4)
+    T_heart_from_patient[:3, :3] = R.T
+    T_heart_from_patient[:3, 3] = -R.T @ origin
+    euler = Rotation.from_matrix(R).as_euler("XYZ", degrees=True)
+
+    ellipses = []
+    order = np.argsort([(s["centre"] - origin) @ z for s in slabs])
+    for rank, k in enumerate(order):
+        s = slabs[k]
+        minor = minors[k]
+        ellipses.append(
+            SlabEllipse(
+                slab_index=rank,
+                height_mm=float((s["centre"] - origin) @ z),
+                centre_mm=s["centre"],
+                semi_major_mm=s["a"],
+                semi_minor_mm=s["b"],
+                minor_axis=minor,
+                major_axis=np.cross(z, minor),
+                eccentricity=s["ecc"],
+                n_points=s["n"],
+            )
+        )
+    return HeartFrame(
+        T_heart_from_patient=T_heart_from_patient,
+        euler_xyz_deg=tuple(euler),
+        ellipses=tuple(ellipses),
+        iterations=iterations,
+        axis_change_deg=change_deg,
+        converged=converged,
+        base_rule=base_rule,
+        n_rejected_slabs=n_rejected,
+    )
+
+
+# ---------------------------------------------------------------------- helpers
+def _unit(vec, name: str) -> np.ndarray:
+    a = np.asarray(vec, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-12:
+        raise ValueError(f"{name} must be a finite non-zero 3-vector, got {vec!r}")
+    return a / np.linalg.norm(a)
+
+
+def _invert_rigid(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _plane_basis(z: np.ndarray):
+    helper = np.eye(3)[np.argmin(np.abs(z))]
+    e1 = np.cross(z, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(z, e1)
+
+
+def _fit_line(points):
+    """Least-squares line (centroid, unit direction) through 3-D points."""
+    p = np.asarray(points, dtype=np.float64)
+    c = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
+    return c, vt[0]
+
+
+def _fit_slabs(v: np.ndarray, z: np.ndarray, slab_mm: float, min_points: int):
+    """Ellipse per slab about axis z. Returns (list of dicts, n_rejected)."""
+    e1, e2 = _plane_basis(z)
+    t = v @ z
+    u = np.stack([v @ e1, v @ e2], axis=1)
+    length = t.max() - t.min()
+    n_slabs = max(1, int(np.ceil(length / slab_mm)))
+    start = t.min() - 0.5 * (n_slabs * slab_mm - length)
+    idx = np.clip(((t - start) // slab_mm).astype(int), 0, n_slabs - 1)
+    out, rejected = [], 0
+    for k in range(n_slabs):
+        sel = idx == k
+        n = int(sel.sum())
+        if n < min_points:
+            rejected += 1
+            continue
+        pts = u[sel]
+        fit = _fit_ellipse(pts)
+        if fit is None:
+            rejected += 1
+            continue
+        inner = fit["radius"] < CAP_RADIUS
+        if inner.mean() > CAP_FRACTION:
+            rejected += 1
+            continue
+        if inner.any():
+            pts = pts[~inner]
+            fit = _fit_ellipse(pts) if len(pts) >= min_points else None
+            if fit is None:
+                rejected += 1
+                continue
+        c2, minor2 = fit["centre"], fit["minor"]
+        out.append(
+            {
+                "centre": c2[0] * e1 + c2[1] * e2 + t[sel].mean() * z,
+                "minor": minor2[0] * e1 + minor2[1] * e2,
+                "a": fit["a"],
+                "b": fit["b"],
+                "ecc": float(np.sqrt(max(0.0, 1.0 - (fit["b"] / fit["a"]) ** 2))),
+                "n": int(len(pts)),
+            }
+        )
+    return out, rejected
+
+
+def _fit_ellipse(pts: np.ndarray):
+    """Direct least-squares ellipse (Halir & Flusser 1998) to (n, 2) points.
+
+    Returns a dict with centre (2,), semi-axes a >= b, unit minor-axis
+    direction (2,) and the normalised elliptical radius of each point, or None
+    when the conic is not a usable ellipse.
+    """
+    mu = pts.mean(axis=0)
+    scale = np.sqrt(((pts - mu) ** 2).sum(axis=1).mean())
+    if not scale > 0:
+        return None
+    x, y = ((pts - mu) / scale).T
+    D1 = np.stack([x * x, x * y, y * y], axis=1)
+    D2 = np.stack([x, y, np.ones_like(x)], axis=1)
+    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    try:
+        Tm = -np.linalg.solve(S3, S2.T)
+    except np.linalg.LinAlgError:
+        return None
+    M = S1 + S2 @ Tm
+    M = np.stack([M[2] / 2.0, -M[1], M[0] / 2.0])
+    w, vecs = np.linalg.eig(M)
+    vecs = np.real(vecs)
+    cond = 4 * vecs[0] * vecs[2] - vecs[1] ** 2
+    ok = np.nonzero(cond > 0)[0]
+    if ok.size == 0:
+        return None
+    a1 = vecs[:, ok[np.argmin(np.abs(np.real(w[ok])))]]
+    A, B, C = a1
+    Dc, Ec, Fc = Tm @ a1
+    Q = np.array([[A, B / 2.0], [B / 2.0, C]])
+    try:
+        c = np.linalg.solve(2 * Q, -np.array([Dc, Ec]))
+    except np.linalg.LinAlgError:
+        return None
+    F0 = c @ Q @ c + Dc * c[0] + Ec * c[1] + Fc
+    if F0 > 0:  # the conic's overall sign is arbitrary: make Q positive definite
+        Q, F0 = -Q, -F0
+    lam, evec = np.linalg.eigh(Q)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        semi = np.sqrt(-F0 / lam)
+    if not np.all(np.isfinite(semi)) or np.any(semi <= 0):
+        return None
+    # eigh sorts lam ascending: larger lam -> smaller semi-axis (minor)
+    b, a = semi[1], semi[0]
+    if a / b > MAX_AXIS_RATIO:
+        return None
+    d = np.stack([x, y], axis=1) - c
+    radius = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", d, Q, d) / -F0, 0.0))
+    return {
+        "centre": c * scale + mu,
+        "a": float(a * scale),
+        "b": float(b * scale),
+        "minor": evec[:, 1],
+        "radius": radius,
+    }
+
+
+def _base_score(v: np.ndarray, origin: np.ndarray, z: np.ndarray) -> float:
+    """> 0 when the +z end is the broader one (the base), < 0 otherwise."""
+    d = v - origin
+    t = d @ z
+    r = np.linalg.norm(d - np.outer(t, z), axis=1)
+    lo, hi = t.min(), t.max()
+    length = hi - lo
+    near_hi = (t <= hi - 0.10 * length) & (t >= hi - 0.25 * length)
+    near_lo = (t >= lo + 0.10 * length) & (t <= lo + 0.25 * length)
+    if not near_hi.any() or not near_lo.any():
+        return 0.0
+    return float(np.median(r[near_hi]) - np.median(r[near_lo]))

@@ -1,0 +1,396 @@
+"""The heart model: mesh in the heart frame, the frame fit, phase and fiducials.
+
+Folder layout written by :func:`write_model` (format ``heartreg-model`` 1)::
+
+    MODEL_DIR/
+        heart.ply    binary PLY, float64 vertices, heart frame, mm, outward normals
+        heart.stl    binary STL, float32, same surface (header: SPACE=LPS FRAME=heart)
+        model.json   transform, Euler angles, ellipses, phase, fiducials, parameters
+
+The folder carries no patient-identifying data: ``source`` accepts only the
+keys in :data:`SOURCE_KEYS` (series and study instance UIDs, modality,
+geometry), never names, IDs or dates.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Mapping
+
+import numpy as np
+
+from modeling.fiducials import order_fiducials
+from modeling.frame import HeartFrame, SlabEllipse, fit_heart_frame
+from modeling.surface import Mesh, MeshError, check_mesh, read_ply, transform_mesh, write_mesh
+
+__all__ = [
+    "ModelError",
+    "HeartModel",
+    "make_heart_model",
+    "write_model",
+    "read_model",
+    "SOURCE_KEYS",
+    "FORMAT",
+    "FORMAT_VERSION",
+]
+
+FORMAT = "heartreg-model"
+FORMAT_VERSION = 1
+#: Keys allowed in ``HeartModel.source``: series identity without patient data.
+SOURCE_KEYS = frozenset(
+    {
+        "series_instance_uid",
+        "study_instance_uid",
+        "modality",
+        "manufacturer",
+        "n_slices",
+        "shape_kji",
+        "spacing_mm",
+        "kind",
+    }
+)
+MESH_FILES = ("heart.ply", "heart.stl")
+JSON_FILE = "model.json"
+#: Fiducials in model.json must agree with the transform to this tolerance.
+FIDUCIAL_TOL_MM = 1e-6
+
+FRAME_CONVENTIONS = (
+    "Units mm. patient: DICOM LPS (+x left, +y posterior, +z superior). heart: "
+    "z from apex to base along the least-squares line through the centres of "
+    "ellipses fitted to the mesh vertices in slabs along z (recursively, Wood et "
+    "al. 2018 sec. 2.2.3); x the eccentricity-weighted mean of the ellipses' minor "
+    "axes, signed anterior (x . (0,-1,0) > 0); y = z cross x; origin on the axis "
+    "halfway between the vertices' extreme heights. p_heart = T_heart_from_patient "
+    "@ p_patient (4x4, row-major). euler_xyz_deg: intrinsic X-Y-Z angles of "
+    "R = Rx(a) Ry(b) Rz(g) whose columns are the heart axes in patient "
+    "coordinates. Fiducials ordered rows superior to inferior, within a row "
+    "patient right to left (increasing LPS x). Mesh files are in the heart "
+    "frame; their 'SPACE=LPS' token only tells 3D Slicer not to flip axes."
+)
+
+
+class ModelError(ValueError):
+    """A heart model folder is missing, incomplete or inconsistent."""
+
+
+def _default_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("heartreg")
+    except Exception:  # noqa: BLE001 - not installed: still write a model
+        return "0+unknown"
+
+
+def _readonly_mapping(d: Mapping, name: str) -> Mapping:
+    try:
+        text = json.dumps(dict(d), sort_keys=True, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be JSON-serialisable with finite numbers: {exc}") from exc
+    return MappingProxyType(json.loads(text))
+
+
+@dataclass(frozen=True, eq=False)
+class HeartModel:
+    """Heart surface in the heart-centric frame, with what made it.
+
+    Attributes
+    ----------
+    mesh : Mesh
+        Epicardial surface, heart frame, mm, outward normals, watertight.
+    frame : HeartFrame
+        The fit that defines the heart frame (``frame.T_heart_from_patient``).
+    cardiac_phase : float
+        Image cardiac phase phi_C* in [0, 1).
+    cardiac_phase_source : str
+        Where phi_C* came from (e.g. "GE RpeakTimeStamps"); from imaging.
+    fiducials_patient_mm : (n, 3) float64
+        Fiducial centroids, patient frame, in the documented order (may be (0, 3)).
+    source : Mapping
+        Series identity, keys from :data:`SOURCE_KEYS` only.
+    parameters : Mapping
+        Parameters that produced the model (JSON values).
+    version : str
+        heartreg version.
+    """
+
+    mesh: Mesh
+    frame: HeartFrame
+    cardiac_phase: float
+    cardiac_phase_source: str
+    fiducials_patient_mm: np.ndarray
+    source: Mapping = field(default_factory=dict)
+    parameters: Mapping = field(default_factory=dict)
+    version: str = field(default_factory=_default_version)
+
+    def __post_init__(self):
+        if not isinstance(self.mesh, Mesh):
+            raise TypeError(f"mesh must be a Mesh, got {type(self.mesh).__name__}")
+        if not isinstance(self.frame, HeartFrame):
+            raise TypeError(f"frame must be a HeartFrame, got {type(self.frame).__name__}")
+        phase = float(self.cardiac_phase)
+        if not (math.isfinite(phase) and 0.0 <= phase < 1.0):
+            raise ValueError(f"cardiac_phase must be a phase in [0, 1), got {self.cardiac_phase}")
+        if not isinstance(self.cardiac_phase_source, str) or not self.cardiac_phase_source:
+            raise ValueError("cardiac_phase_source must be a non-empty string saying where phi_C came from")
+        fid = np.array(self.fiducials_patient_mm, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(fid)):
+            raise ValueError("fiducials_patient_mm contains NaN or infinity")
+        fid.setflags(write=False)
+        unknown = set(self.source) - SOURCE_KEYS
+        if unknown:
+            raise ValueError(
+                f"source keys {sorted(unknown)} are not allowed (patient data must not enter "
+                f"a model); use only {sorted(SOURCE_KEYS)}"
+            )
+        object.__setattr__(self, "cardiac_phase", phase)
+        object.__setattr__(self, "fiducials_patient_mm", fid)
+        object.__setattr__(self, "source", _readonly_mapping(self.source, "source"))
+        object.__setattr__(self, "parameters", _readonly_mapping(self.parameters, "parameters"))
+
+    def __eq__(self, other):
+        if not isinstance(other, HeartModel):
+            return NotImplemented
+        return (
+            self.mesh == other.mesh
+            and self.frame == other.frame
+            and self.cardiac_phase == other.cardiac_phase
+            and self.cardiac_phase_source == other.cardiac_phase_source
+            and np.array_equal(self.fiducials_patient_mm, other.fiducials_patient_mm)
+            and dict(self.source) == dict(other.source)
+            and dict(self.parameters) == dict(other.parameters)
+            and self.version == other.version
+        )
+
+    __hash__ = None
+
+    @property
+    def T_heart_from_patient(self) -> np.ndarray:
+        return self.frame.T_heart_from_patient
+
+    @property
+    def T_patient_from_heart(self) -> np.ndarray:
+        return self.frame.T_patient_from_heart
+
+    @property
+    def euler_xyz_deg(self) -> tuple:
+        return self.frame.euler_xyz_deg
+
+    @property
+    def fiducials_heart_mm(self) -> np.ndarray:
+        """(n, 3) float64 fiducials in the heart frame, same order."""
+        T = self.T_heart_from_patient
+        return self.fiducials_patient_mm @ T[:3, :3].T + T[:3, 3]
+
+    def mesh_patient(self) -> Mesh:
+        """The surface mapped back to the patient frame."""
+        return transform_mesh(self.T_patient_from_heart, self.mesh)
+
+
+def make_heart_model(
+    mesh_patient: Mesh,
+    *,
+    cardiac_phase: float,
+    cardiac_phase_source: str,
+    fiducials_patient_mm=None,
+    fiducial_rows: int = 3,
+    source: Mapping | None = None,
+    parameters: Mapping | None = None,
+    slab_mm: float = 10.0,
+    base_hint=None,
+) -> HeartModel:
+    """Fit the heart frame to a patient-frame mesh and build the model.
+
+    Parameters
+    ----------
+    mesh_patient : Mesh
+        Surface from :func:`modeling.surface.mask_to_mesh`, patient mm.
+    cardiac_phase, cardiac_phase_source : float, str
+        phi_C* of the volume and its source, from imaging.
+    fiducials_patient_mm : (n, 3) float, optional
+        Fiducial centroids, any order; sorted with :func:`order_fiducials`.
+    fiducial_rows : int
+        Rows of the fiducial grid.
+    source, parameters : Mapping, optional
+    slab_mm, base_hint
+        Passed to :func:`modeling.frame.fit_heart_frame`.
+    """
+    if not isinstance(mesh_patient, Mesh):
+        raise TypeError(f"mesh_patient must be a Mesh, got {type(mesh_patient).__name__}")
+    frame = fit_heart_frame(mesh_patient.vertices, slab_mm=slab_mm, base_hint=base_hint)
+    fid = np.zeros((0, 3))
+    if fiducials_patient_mm is not None and len(fiducials_patient_mm):
+        fid = np.asarray(fiducials_patient_mm, dtype=np.float64)
+        fid = fid[order_fiducials(fid, n_rows=fiducial_rows)]
+    params = {"slab_mm": float(slab_mm)}
+    params.update(dict(parameters or {}))
+    return HeartModel(
+        mesh=transform_mesh(frame.T_heart_from_patient, mesh_patient),
+        frame=frame,
+        cardiac_phase=cardiac_phase,
+        cardiac_phase_source=cardiac_phase_source,
+        fiducials_patient_mm=fid,
+        source=dict(source or {}),
+        parameters=params,
+    )
+
+
+# ------------------------------------------------------------------------- I/O
+def _model_json(model: HeartModel) -> dict:
+    check = check_mesh(model.mesh)
+    fr = model.frame
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "version": model.version,
+        "frame_conventions": FRAME_CONVENTIONS,
+        "T_heart_from_patient": fr.T_heart_from_patient.tolist(),
+        "euler_xyz_deg": list(fr.euler_xyz_deg),
+        "cardiac_phase": model.cardiac_phase,
+        "cardiac_phase_source": model.cardiac_phase_source,
+        "fiducials_heart_mm": model.fiducials_heart_mm.tolist(),
+        "fiducials_patient_mm": model.fiducials_patient_mm.tolist(),
+        "mesh_files": list(MESH_FILES),
+        "n_vertices": model.mesh.n_vertices,
+        "n_faces": model.mesh.n_faces,
+        "watertight": check.watertight,
+        "winding_consistent": check.winding_consistent,
+        "volume_mm3": check.volume_mm3,
+        "area_mm2": model.mesh.area_mm2,
+        "frame_fit": {
+            "iterations": fr.iterations,
+            "axis_change_deg": fr.axis_change_deg,
+            "converged": fr.converged,
+            "base_rule": fr.base_rule,
+            "n_rejected_slabs": fr.n_rejected_slabs,
+        },
+        "ellipses": [e.to_dict() for e in fr.ellipses],
+        "source": dict(model.source),
+        "parameters": dict(model.parameters),
+    }
+
+
+def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
+    """Write ``model`` as a folder (heart.ply, heart.stl, model.json), atomically.
+
+    The files are written into a temporary sibling folder that is renamed into
+    place. An existing empty folder, or one with byte-identical content, is
+    fine; another non-empty folder is refused unless ``overwrite=True``.
+
+    Returns
+    -------
+    Path
+        ``out_dir``.
+    """
+    if not isinstance(model, HeartModel):
+        raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        note = "heart (T_heart_from_patient in model.json)"
+        for name in MESH_FILES:
+            write_mesh(tmp / name, model.mesh, frame_note=note)
+        text = json.dumps(_model_json(model), indent=2, allow_nan=False) + "\n"
+        (tmp / JSON_FILE).write_text(text, encoding="utf-8")
+        if out.exists():
+            existing = sorted(p.name for p in out.iterdir())
+            if not existing:
+                out.rmdir()
+            elif existing == sorted(p.name for p in tmp.iterdir()) and all(
+                (out / n).read_bytes() == (tmp / n).read_bytes() for n in existing
+            ):
+                shutil.rmtree(tmp)
+                return out
+            elif overwrite:
+                old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+                old.rmdir()
+                os.rename(out, old)
+                os.rename(tmp, out)
+                shutil.rmtree(old)
+                return out
+            else:
+                raise FileExistsError(
+                    f"{out} holds other files ({', '.join(existing[:5])}); choose another "
+                    "folder or pass overwrite=True"
+                )
+        os.rename(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return out
+
+
+def read_model(model_dir) -> HeartModel:
+    """Read a folder written by :func:`write_model`.
+
+    Raises
+    ------
+    ModelError
+        Missing folder or files, unreadable JSON, another format, or files
+        that disagree with each other.
+    """
+    d = Path(model_dir)
+    if not d.is_dir():
+        raise ModelError(f"model folder {d} does not exist; run 'heartreg model' to make one")
+    jpath = d / JSON_FILE
+    if not jpath.is_file():
+        raise ModelError(f"{d} has no {JSON_FILE}; is it a heartreg model folder?")
+    try:
+        meta = json.loads(jpath.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelError(f"{jpath} is not readable JSON ({exc}); re-create the model") from exc
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise ModelError(f"{jpath} is not a {FORMAT} file")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ModelError(
+            f"{jpath} has format_version {meta.get('format_version')!r}; this heartreg "
+            f"reads version {FORMAT_VERSION}"
+        )
+    ply = d / MESH_FILES[0]
+    if not ply.is_file():
+        raise ModelError(f"{d} has no {MESH_FILES[0]}; re-create the model")
+    try:
+        mesh = read_ply(ply)
+        fit = meta["frame_fit"]
+        frame = HeartFrame(
+            T_heart_from_patient=np.asarray(meta["T_heart_from_patient"], dtype=np.float64),
+            euler_xyz_deg=tuple(meta["euler_xyz_deg"]),
+            ellipses=tuple(SlabEllipse.from_dict(e) for e in meta["ellipses"]),
+            iterations=int(fit["iterations"]),
+            axis_change_deg=float(fit["axis_change_deg"]),
+            converged=bool(fit["converged"]),
+            base_rule=str(fit["base_rule"]),
+            n_rejected_slabs=int(fit["n_rejected_slabs"]),
+        )
+        model = HeartModel(
+            mesh=mesh,
+            frame=frame,
+            cardiac_phase=meta["cardiac_phase"],
+            cardiac_phase_source=meta["cardiac_phase_source"],
+            fiducials_patient_mm=np.asarray(meta["fiducials_patient_mm"], dtype=np.float64),
+            source=meta["source"],
+            parameters=meta["parameters"],
+            version=str(meta["version"]),
+        )
+    except MeshError as exc:
+        raise ModelError(f"{ply}: {exc}") from exc
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelError(f"{jpath} is incomplete or corrupt ({exc!r}); re-create the model") from exc
+    if mesh.n_faces != meta.get("n_faces"):
+        raise ModelError(f"{ply} has {mesh.n_faces} faces, {jpath} says {meta.get('n_faces')}")
+    fid_heart = np.asarray(meta.get("fiducials_heart_mm", []), dtype=np.float64).reshape(-1, 3)
+    if fid_heart.shape != model.fiducials_heart_mm.shape or not np.allclose(
+        fid_heart, model.fiducials_heart_mm, atol=FIDUCIAL_TOL_MM
+    ):
+        raise ModelError(f"{jpath}: fiducials_heart_mm disagree with T_heart_from_patient")
+    return model

@@ -1,0 +1,421 @@
+"""Rigid transforms: 4x4 homogeneous matrices, rotations and their distances.
+
+Conventions (DESIGN.md section 3): a transform is a (4, 4) float64 matrix named
+``T_<to>_from_<from>``; transforms compose right to left,
+``T_a_from_c = T_a_from_b @ T_b_from_c``.  Rotations go through
+:class:`scipy.spatial.transform.Rotation`.  Angles are radians inside the library;
+the ``*_deg`` functions exist for reports, where Euler angles are intrinsic
+X-Y-Z, ``R = Rx(alpha) Ry(beta) Rz(gamma)`` (scipy sequence ``"XYZ"``), as in
+Table 1 of Wood et al. 2018.
+
+Stacks of transforms, shape ``(..., 4, 4)``, are accepted wherever noted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "TransformError",
+    "make_transform",
+    "check_rigid",
+    "compose",
+    "invert",
+    "apply_to_points",
+    "apply_to_vectors",
+    "matrix_from_euler_xyz_deg",
+    "euler_xyz_deg_from_matrix",
+    "rotation_exp",
+    "rotation_log",
+    "se3_exp",
+    "se3_log",
+    "mean_rotation",
+    "rotation_distance_deg",
+    "translation_distance_mm",
+]
+
+#: Default tolerance on ``R^T R - I`` and ``det R - 1`` for a rotation matrix.
+RIGID_TOL = 1e-6
+
+
+class TransformError(ValueError):
+    """A matrix that should be a rigid transform is not (shape, rotation, last row)."""
+
+
+def _as_transforms(T, name: str = "T") -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.ndim < 2 or T.shape[-2:] != (4, 4):
+        raise ValueError(f"{name} must have shape (..., 4, 4), got {T.shape}")
+    return T
+
+
+def _as_points(points, name: str = "points") -> np.ndarray:
+    points = np.asarray(points, dtype=float)
+    if points.ndim < 1 or points.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (..., 3), got {points.shape}")
+    return points
+
+
+def make_transform(rotation=None, translation_mm=None) -> np.ndarray:
+    """Build a rigid transform from a rotation and a translation.
+
+    Parameters
+    ----------
+    rotation : (3, 3) float or scipy Rotation, optional
+        Rotation matrix (or ``Rotation``); identity when omitted.
+    translation_mm : (3,) float, mm, optional
+        Translation; zero when omitted.
+
+    Returns
+    -------
+    (4, 4) float64
+    """
+    T = np.eye(4)
+    if rotation is not None:
+        if isinstance(rotation, Rotation):
+            R = rotation.as_matrix()
+        else:
+            R = np.asarray(rotation, dtype=float)
+        if R.shape != (3, 3):
+            raise ValueError(f"rotation must have shape (3, 3), got {R.shape}")
+        T[:3, :3] = R
+    if translation_mm is not None:
+        t = np.asarray(translation_mm, dtype=float)
+        if t.shape != (3,):
+            raise ValueError(f"translation_mm must have shape (3,), got {t.shape}")
+        T[:3, 3] = t
+    return T
+
+
+def check_rigid(T, *, tol: float = RIGID_TOL, name: str = "T") -> np.ndarray:
+    """Return ``T`` as float64 after checking it is a proper rigid transform.
+
+    Parameters
+    ----------
+    T : (..., 4, 4) float
+    tol : float
+        Tolerance on the entries of ``R^T R - I``, on ``det R - 1`` and on the
+        last row.
+
+    Raises
+    ------
+    TransformError
+        When the rotation block is not orthonormal with determinant +1 (a
+        reflection), or the last row is not ``(0, 0, 0, 1)``.
+    """
+    T = _as_transforms(T, name)
+    R = T[..., :3, :3]
+    ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() if R.size else 0.0
+    if not np.all(np.isfinite(T)):
+        raise TransformError(f"{name} has non-finite entries")
+    if ortho > tol:
+        raise TransformError(f"{name} rotation block is not orthonormal (max |R^T R - I| = {ortho:.2e})")
+    det = np.linalg.det(R)
+    if np.any(np.abs(det - 1.0) > tol):
+        raise TransformError(
+            f"{name} rotation block has determinant {np.min(det):.6f}: a reflection, not a rotation"
+        )
+    if np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max() > tol:
+        raise TransformError(f"{name} last row must be (0, 0, 0, 1)")
+    return T
+
+
+def compose(*transforms) -> np.ndarray:
+    """Compose transforms right to left: ``compose(A, B, C) = A @ B @ C``.
+
+    Parameters
+    ----------
+    *transforms : (..., 4, 4) float
+        At least one; stacks broadcast.
+
+    Returns
+    -------
+    (..., 4, 4) float64
+    """
+    if not transforms:
+        raise ValueError("compose needs at least one transform")
+    out = _as_transforms(transforms[0], "transforms[0]")
+    for k, T in enumerate(transforms[1:], start=1):
+        out = out @ _as_transforms(T, f"transforms[{k}]")
+    return out
+
+
+def invert(T) -> np.ndarray:
+    """Inverse of rigid transforms, using ``R^T`` (exact for rigid matrices).
+
+    Parameters
+    ----------
+    T : (..., 4, 4) float
+        ``T_a_from_b``.
+
+    Returns
+    -------
+    (..., 4, 4) float64
+        ``T_b_from_a``.
+    """
+    T = _as_transforms(T)
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def apply_to_points(T_to_from_from, points) -> np.ndarray:
+    """Map points through a rigid transform.
+
+    Parameters
+    ----------
+    T_to_from_from : (4, 4) float
+    points : (..., 3) float, mm
+        Points in the source frame.
+
+    Returns
+    -------
+    (..., 3) float64, mm
+        Points in the target frame.
+    """
+    T = _as_transforms(T_to_from_from, "T_to_from_from")
+    if T.shape != (4, 4):
+        raise ValueError(f"T_to_from_from must have shape (4, 4), got {T.shape}")
+    points = _as_points(points)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def apply_to_vectors(T_to_from_from, vectors) -> np.ndarray:
+    """Rotate direction vectors (normals, displacements) by a rigid transform.
+
+    Parameters
+    ----------
+    T_to_from_from : (4, 4) float
+    vectors : (..., 3) float
+
+    Returns
+    -------
+    (..., 3) float64
+        The vectors in the target frame (translation ignored).
+    """
+    T = _as_transforms(T_to_from_from, "T_to_from_from")
+    if T.shape != (4, 4):
+        raise ValueError(f"T_to_from_from must have shape (4, 4), got {T.shape}")
+    vectors = _as_points(vectors, "vectors")
+    return vectors @ T[:3, :3].T
+
+
+def matrix_from_euler_xyz_deg(angles_deg, translation_mm=None) -> np.ndarray:
+    """Rigid transform with rotation ``Rx(alpha) Ry(beta) Rz(gamma)`` (intrinsic X-Y-Z).
+
+    Parameters
+    ----------
+    angles_deg : (..., 3) float, degrees
+        (alpha, beta, gamma).
+    translation_mm : (..., 3) float, mm, optional
+
+    Returns
+    -------
+    (..., 4, 4) float64
+    """
+    angles = _as_points(angles_deg, "angles_deg")
+    flat = angles.reshape(-1, 3)
+    R = Rotation.from_euler("XYZ", flat, degrees=True).as_matrix()
+    T = np.zeros((flat.shape[0], 4, 4))
+    T[:, :3, :3] = R
+    T[:, 3, 3] = 1.0
+    if translation_mm is not None:
+        t = _as_points(translation_mm, "translation_mm")
+        T[:, :3, 3] = np.broadcast_to(t, angles.shape).reshape(-1, 3)
+    return T.reshape(angles.shape[:-1] + (4, 4))
+
+
+def euler_xyz_deg_from_matrix(T) -> np.ndarray:
+    """Intrinsic X-Y-Z Euler angles (degrees) of the rotation of ``T``.
+
+    Parameters
+    ----------
+    T : (..., 4, 4) or (..., 3, 3) float
+
+    Returns
+    -------
+    (..., 3) float64, degrees
+        (alpha, beta, gamma) with ``R = Rx(alpha) Ry(beta) Rz(gamma)``; beta in
+        [-90, 90].  Near beta = +-90 (gimbal lock) alpha and gamma are not unique;
+        scipy then sets gamma = 0 and warns.
+    """
+    M = np.asarray(T, dtype=float)
+    if M.ndim < 2 or M.shape[-2:] not in ((4, 4), (3, 3)):
+        raise ValueError(f"T must have shape (..., 4, 4) or (..., 3, 3), got {M.shape}")
+    R = M[..., :3, :3]
+    flat = R.reshape(-1, 3, 3)
+    angles = Rotation.from_matrix(flat).as_euler("XYZ", degrees=True)
+    return angles.reshape(R.shape[:-2] + (3,))
+
+
+def rotation_exp(rotvec) -> np.ndarray:
+    """Exponential map: rotation vectors (radians, axis * angle) to matrices.
+
+    Parameters
+    ----------
+    rotvec : (..., 3) float, rad
+
+    Returns
+    -------
+    (..., 3, 3) float64
+    """
+    rv = _as_points(rotvec, "rotvec")
+    R = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix()
+    return R.reshape(rv.shape[:-1] + (3, 3))
+
+
+def rotation_log(R) -> np.ndarray:
+    """Logarithm map: rotation matrices to rotation vectors (angle in [0, pi]).
+
+    Parameters
+    ----------
+    R : (..., 3, 3) float
+
+    Returns
+    -------
+    (..., 3) float64, rad
+    """
+    R = np.asarray(R, dtype=float)
+    if R.ndim < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {R.shape}")
+    rv = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
+    return rv.reshape(R.shape[:-2] + (3,))
+
+
+def _so3_left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """Left Jacobian V of SO(3) so that ``t = V rho`` in the SE(3) exponential."""
+    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    K = np.zeros(rotvec.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -rotvec[..., 2], rotvec[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = rotvec[..., 2], -rotvec[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -rotvec[..., 1], rotvec[..., 0]
+    small = theta < 1e-6
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def se3_exp(twist) -> np.ndarray:
+    """Exponential map of SE(3): twists ``(rho, omega)`` to rigid transforms.
+
+    Parameters
+    ----------
+    twist : (..., 6) float
+        ``rho`` (mm) then ``omega`` (rad), the convention of Lie-group robotics
+        texts: ``T = [[exp(omega^), V(omega) rho], [0, 1]]``.
+
+    Returns
+    -------
+    (..., 4, 4) float64
+    """
+    twist = np.asarray(twist, dtype=float)
+    if twist.ndim < 1 or twist.shape[-1] != 6:
+        raise ValueError(f"twist must have shape (..., 6), got {twist.shape}")
+    rho, omega = twist[..., :3], twist[..., 3:]
+    T = np.zeros(twist.shape[:-1] + (4, 4))
+    T[..., :3, :3] = rotation_exp(omega)
+    T[..., :3, 3] = np.einsum("...ij,...j->...i", _so3_left_jacobian(omega), rho)
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def se3_log(T) -> np.ndarray:
+    """Logarithm map of SE(3), inverse of :func:`se3_exp` (rotation angle < pi).
+
+    Parameters
+    ----------
+    T : (..., 4, 4) float
+
+    Returns
+    -------
+    (..., 6) float64
+        ``(rho [mm], omega [rad])``.
+    """
+    T = _as_transforms(T)
+    omega = rotation_log(T[..., :3, :3])
+    V = _so3_left_jacobian(omega)
+    rho = np.linalg.solve(V, T[..., :3, 3][..., None])[..., 0]
+    return np.concatenate([rho, omega], axis=-1)
+
+
+def mean_rotation(R, weights=None) -> np.ndarray:
+    """Chordal L2 mean of rotations (Markley's quaternion average, ``Rotation.mean``).
+
+    Parameters
+    ----------
+    R : (n, 3, 3) float
+        Rotation matrices, n >= 1.
+    weights : (n,) float, optional
+        Non-negative weights.
+
+    Returns
+    -------
+    (3, 3) float64
+        The rotation maximising ``sum w_i (q . q_i)^2``; insensitive to the sign
+        of each quaternion.
+    """
+    R = np.asarray(R, dtype=float)
+    if R.ndim != 3 or R.shape[1:] != (3, 3) or R.shape[0] == 0:
+        raise ValueError(f"R must have shape (n, 3, 3) with n >= 1, got {R.shape}")
+    if weights is not None:
+        weights = np.asarray(weights, dtype=float)
+        if weights.shape != (R.shape[0],):
+            raise ValueError(f"weights must have shape ({R.shape[0]},), got {weights.shape}")
+        if np.any(weights < 0):
+            raise ValueError("weights must be non-negative")
+    return Rotation.from_matrix(R).mean(weights=weights).as_matrix()
+
+
+def rotation_distance_deg(T_a, T_b) -> np.ndarray:
+    """Geodesic distance between the rotations of two transforms, degrees.
+
+    Parameters
+    ----------
+    T_a, T_b : (..., 4, 4) or (..., 3, 3) float
+        Broadcast against each other.
+
+    Returns
+    -------
+    (...) float64, degrees in [0, 180]
+        The angle of ``R_a^T R_b``.
+    """
+    A = np.asarray(T_a, dtype=float)[..., :3, :3]
+    B = np.asarray(T_b, dtype=float)[..., :3, :3]
+    rel = np.swapaxes(A, -1, -2) @ B
+    # angle from the quaternion of rel: robust near 0 and near pi.
+    shape = rel.shape[:-2]
+    q = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_quat()
+    angle = 2.0 * np.arctan2(np.linalg.norm(q[:, :3], axis=1), np.abs(q[:, 3]))
+    return np.degrees(angle).reshape(shape)
+
+
+def translation_distance_mm(T_a, T_b, point_mm=None) -> np.ndarray:
+    """Distance between where two transforms send a point, mm.
+
+    Parameters
+    ----------
+    T_a, T_b : (..., 4, 4) float
+        Transforms with the same source and target frames.
+    point_mm : (3,) float, mm, optional
+        The point in the source frame; the source origin by default, so the
+        result is ``|t_a - t_b|``, the norm of the translation difference.
+
+    Returns
+    -------
+    (...) float64, mm
+    """
+    A = _as_transforms(T_a, "T_a")
+    B = _as_transforms(T_b, "T_b")
+    if point_mm is None:
+        diff = A[..., :3, 3] - B[..., :3, 3]
+    else:
+        p = np.asarray(point_mm, dtype=float)
+        if p.shape != (3,):
+            raise ValueError(f"point_mm must have shape (3,), got {p.shape}")
+        diff = (A[..., :3, :3] - B[..., :3, :3]) @ p + A[..., :3, 3] - B[..., :3, 3]
+    return np.linalg.norm(diff, axis=-1)

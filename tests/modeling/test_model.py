@@ -1,0 +1,161 @@
+"""modeling.model (HeartModel folder round trip) and modeling.render."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from heartreg.phantom import layout
+from modeling.model import (
+    HeartModel,
+    ModelError,
+    make_heart_model,
+    read_model,
+    write_model,
+)
+from modeling.fiducials import order_fiducials
+from modeling.render import RenderError, offscreen_available, render_model_png
+from modeling.surface import check_mesh
+
+from .conftest import heart_of
+
+P = "wood2018-trial1"
+
+
+@pytest.fixture(scope="module")
+def model(phantom_meshes):
+    rng = np.random.default_rng(7)
+    fid = layout.fiducials_patient_mm()
+    return make_heart_model(
+        phantom_meshes[P],
+        cardiac_phase=0.65,
+        cardiac_phase_source="phantom truth",
+        fiducials_patient_mm=fid[rng.permutation(len(fid))],
+        source={"series_instance_uid": "1.2.826.0.1.3680043.8.498.1", "kind": "phantom"},
+        parameters={"target_faces": 20000, "voxel_mm": 1.0},
+    )
+
+
+def test_model_contents(model, phantom_meshes):
+    assert np.array_equal(model.fiducials_patient_mm, layout.fiducials_patient_mm())
+    assert check_mesh(model.mesh).ok
+    # the heart-frame mesh is the patient mesh moved: same volume, centred axis
+    assert model.mesh.volume_mm3 == pytest.approx(phantom_meshes[P].volume_mm3, rel=1e-9)
+    back = model.mesh_patient()
+    assert np.allclose(back.vertices, phantom_meshes[P].vertices, atol=1e-9)
+    assert np.allclose(model.T_heart_from_patient[:3, :3] @ heart_of(P).axes_patient[:, 2], [0, 0, 1], atol=0.01)
+
+
+def test_round_trip(model, tmp_path):
+    out = write_model(model, tmp_path / "m")
+    assert sorted(p.name for p in out.iterdir()) == ["heart.ply", "heart.stl", "model.json"]
+    assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no temporary folder left
+    again = read_model(out)
+    assert again == model
+    meta = json.loads((out / "model.json").read_text())
+    for key in (
+        "T_heart_from_patient", "euler_xyz_deg", "cardiac_phase", "cardiac_phase_source",
+        "fiducials_heart_mm", "fiducials_patient_mm", "n_faces", "watertight", "ellipses",
+        "parameters", "version", "frame_conventions",
+    ):
+        assert key in meta
+    assert meta["watertight"] is True and meta["n_faces"] == model.mesh.n_faces
+    # other tools see the same mesh
+    tm = trimesh.load(out / "heart.ply", process=False)
+    assert np.array_equal(tm.vertices, model.mesh.vertices)
+    assert tm.is_watertight and tm.volume > 0
+    import pyvista as pv
+
+    assert np.allclose(pv.read(out / "heart.ply").points, model.mesh.vertices, atol=0)
+    stl = trimesh.load(out / "heart.stl")
+    assert stl.volume == pytest.approx(model.mesh.volume_mm3, rel=1e-4)
+    # heart-frame points mapped back coincide with the patient-frame fiducials
+    fh = np.asarray(meta["fiducials_heart_mm"])
+    T = np.linalg.inv(np.asarray(meta["T_heart_from_patient"]))
+    assert np.allclose(fh @ T[:3, :3].T + T[:3, 3], model.fiducials_patient_mm, atol=1e-9)
+    # same bytes every time (determinism), and idempotent on an identical folder
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    write_model(model, out)
+    assert before == {p.name: p.read_bytes() for p in out.iterdir()}
+
+
+def test_refuses_to_overwrite_other_folder(model, tmp_path):
+    other = tmp_path / "busy"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        write_model(model, other)
+    assert (other / "notes.txt").read_text() == "mine"
+    write_model(model, other, overwrite=True)
+    assert not (other / "notes.txt").exists() and read_model(other) == model
+    (tmp_path / "empty").mkdir()
+    write_model(model, tmp_path / "empty")
+
+
+def test_read_errors(model, tmp_path):
+    with pytest.raises(ModelError, match="does not exist"):
+        read_model(tmp_path / "nowhere")
+    out = write_model(model, tmp_path / "m")
+    (out / "heart.ply").write_bytes((out / "heart.ply").read_bytes()[:1000])
+    with pytest.raises(ModelError, match="truncated"):
+        read_model(out)
+    out = write_model(model, tmp_path / "m2")
+    (out / "model.json").write_text("{not json")
+    with pytest.raises(ModelError, match="not readable JSON"):
+        read_model(out)
+    out = write_model(model, tmp_path / "m3")
+    meta = json.loads((out / "model.json").read_text())
+    del meta["ellipses"]
+    (out / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="incomplete or corrupt"):
+        read_model(out)
+    out = write_model(model, tmp_path / "m4")
+    (out / "heart.ply").unlink()
+    with pytest.raises(ModelError, match="no heart.ply"):
+        read_model(out)
+
+
+def test_no_patient_data_and_input_checks(model):
+    import dataclasses
+
+    with pytest.raises(ValueError, match="not allowed"):
+        dataclasses.replace(model, source={"PatientName": "Doe^John"})
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        dataclasses.replace(model, cardiac_phase=1.2)
+    with pytest.raises(ValueError, match="cardiac_phase_source"):
+        dataclasses.replace(model, cardiac_phase_source="")
+    assert isinstance(model, HeartModel)
+
+
+def test_order_fiducials():
+    truth = layout.fiducials_patient_mm()
+    shuffled = truth[np.random.default_rng(3).permutation(9)]
+    assert np.array_equal(shuffled[order_fiducials(shuffled)], truth)
+    with pytest.raises(ValueError, match="equal rows"):
+        order_fiducials(truth[:8])
+
+
+@pytest.mark.skipif(not offscreen_available(), reason="no offscreen OpenGL (libosmesa6 or libegl1)")
+def test_render_png(model, tmp_path):
+    from PIL import Image
+
+    path = render_model_png(model, tmp_path / "view.png", size=(600, 400))
+    img = np.asarray(Image.open(path).convert("RGB")).astype(float)
+    assert img.shape == (400, 600, 3)
+    # mesh colour (reddish, blended with white) covers a plausible part of the picture
+    reddish = (img[..., 0] - img[..., 2] > 40) & (img[..., 0] > 150)
+    assert 0.03 < reddish.mean() < 0.6
+    assert img.std() > 10
+    with pytest.raises(ValueError, match=".png"):
+        render_model_png(model, tmp_path / "view.jpg")
+
+
+def test_render_error_is_clear(model, tmp_path, monkeypatch):
+    import modeling.render as render
+
+    monkeypatch.setattr(render, "offscreen_available", lambda: False)
+    with pytest.raises(RenderError, match="libosmesa6"):
+        render.render_model_png(model, tmp_path / "v.png")
