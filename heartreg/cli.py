@@ -106,6 +106,84 @@ def _cmd_phases(args) -> int:
     return 0
 
 
+def _cmd_model(args) -> int:
+    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+
+    if args.list_series:
+        return _print_series(args.study_dir)
+    volume, report = _open_study(args)
+    stages = ["mask", "mesh", "fiducials", "frame", "write"]
+    bar = _progress(len(stages), "model", args.quiet)
+    build = build_heart_model(
+        volume,
+        cardiac_phase=report.volume_cardiac_phase,
+        cardiac_phase_source=report.source,
+        mask_path=args.mask,
+        label=args.label,
+        target_faces=args.faces,
+        expected_fiducials=None if args.fiducials == 0 else args.fiducials,
+        fiducial_floor_hu=args.fiducial_floor_hu,
+        progress=lambda name: bar.set_postfix_str(name) or bar.update(0 if name == "mask" else 1),
+    )
+    bar.set_postfix_str("write")
+    bar.update(1)
+    out = write_model(build.model, args.out_dir, overwrite=args.overwrite)
+    bar.update(1)
+    bar.close()
+    model = build.model
+    picture = "skipped (no offscreen OpenGL: install libosmesa6 or libegl1)"
+    if offscreen_available():
+        picture = str(render_model_png(model, out / "model.png"))
+    e = model.frame.euler_xyz_deg
+    print(f"heart model of series {volume.series.series_instance_uid} written to {out}")
+    print(f"  mask              {build.mask_source}")
+    print(f"  mesh              {model.mesh.faces.shape[0]} faces, watertight, heart frame (mm)")
+    print(f"  image phase       phi_C* = {model.cardiac_phase:.4f} ({report.source})")
+    print(f"  heart frame       Euler XYZ = ({e[0]:.1f}, {e[1]:.1f}, {e[2]:.1f}) deg, "
+          f"{model.frame.iterations} iterations, last change {model.frame.axis_change_deg:.3f} deg")
+    print(f"  fiducials         {len(model.fiducials_patient_mm)}")
+    print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in build.timings_s.items()))
+    print(f"  picture           {picture}")
+    return 0
+
+
+def _progress(total: int, desc: str, quiet: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, disable=quiet, file=sys.stderr, leave=False)
+
+
+def _cmd_register(args) -> int:
+    from modeling.model import read_model
+    from registration.pipeline import register_session
+    from registration.report import write_registration
+    from registration.session import read_session
+
+    model = read_model(args.model_dir)
+    session = read_session(args.session_dir)
+    harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
+    result = register_session(
+        model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
+    )
+    paths = write_registration(result, args.out_dir, model=model, view=not args.no_view)
+    T = result.T_heart_from_probe
+    e = result.euler_xyz_deg
+    print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")
+    print(f"  phases            phi_C* = {result.phase_c:.4f} ({result.phase_c_source}), "
+          f"phi_R* = {result.phase_r:.2f} (eq. 10)")
+    print(f"  T_heart_from_probe translation ({T[0, 3]:.2f}, {T[1, 3]:.2f}, {T[2, 3]:.2f}) mm, "
+          f"Euler XYZ ({e[0]:.2f}, {e[1]:.2f}, {e[2]:.2f}) deg")
+    print(f"  from T0           {result.translation_distance_mm:.2f} mm, {result.rotation_distance_deg:.2f} deg")
+    print(f"  errors            RMS {result.rms_mm:.3f} mm, FRE {result.fre_mm:.2f} mm, "
+          f"static delta mean {result.delta_static_mean_mm:.2f} mm")
+    print(f"  exclusions        {len(result.exclusions)}"
+          + "".join(f"\n    point {i}: {why}" for i, why in result.exclusions))
+    for note in list(result.notes) + list(paths["notes"]):
+        print(f"  note              {note}")
+    print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()))
+    return 0
+
+
 def _add_study_options(p) -> None:
     p.add_argument("study_dir", type=Path, help="folder holding the DICOM study (searched recursively)")
     p.add_argument("--qrs", type=Path, default=None,
@@ -142,6 +220,29 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_study_options(p)
     p.add_argument("-o", "--out-dir", type=Path, default=None, help="folder for phases.csv/json/png")
     p.set_defaults(func=_cmd_phases)
+
+    p = sub.add_parser("model", help="CT study -> heart model in the heart-centric frame")
+    _add_study_options(p)
+    p.add_argument("-o", "--out-dir", type=Path, required=True, help="model folder to write")
+    p.add_argument("--mask", type=Path, default=None,
+                   help="external label map (NIfTI, NRRD or DICOM SEG) instead of the automatic segmentation")
+    p.add_argument("--label", type=int, default=None, help="heart label in --mask")
+    p.add_argument("--faces", type=int, default=20000, help="faces of the decimated mesh")
+    p.add_argument("--fiducials", type=int, default=9, help="skin fiducials expected (0: none)")
+    p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    p.set_defaults(func=_cmd_model)
+
+    p = sub.add_parser("register", help="register a session to a heart model in space and phase")
+    p.add_argument("model_dir", type=Path, help="heart model folder (heartreg model)")
+    p.add_argument("session_dir", type=Path, help="session folder (heartreg-session)")
+    p.add_argument("-o", "--out-dir", type=Path, required=True, help="folder for registration.json, CSVs, PNGs")
+    p.add_argument("--step", type=float, default=0.01, help="phase step of the sweeps (default 0.01)")
+    p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
+                   help="Fourier harmonics of the motion models (default 5 4 2 1)")
+    p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_register)
     return parser
 
 

@@ -9,6 +9,10 @@ from modeling.segment import (
     HeartSegmentation,
     segment_heart,
 )
+from modeling.build import (
+    ModelBuild,
+    build_heart_model,
+)
 from modeling.fiducials import (
     FiducialError,
     Fiducials,
@@ -54,6 +58,8 @@ from modeling.render import (
 )
 
 __all__ = [
+    "ModelBuild",
+    "build_heart_model",
     "ANTERIOR_LPS",
     "FORMAT",
     "FORMAT_VERSION",

@@ -1,10 +1,19 @@
 """Chest fiducials: metal skin staples found in the CT (paper section 2.2.1).
 
-Staples (about 6.5 x 4.7 mm) show as small blobs far above bone HU.  Each blob
-is a connected component of voxels above ``threshold_hu``; its centre is the
-HU-weighted centroid over the blob grown by one voxel (so partial-volume voxels
-count), mapped through ``T_patient_from_voxel``.  Blobs much larger or smaller
-than a staple (wires, dental work, noise) are discarded with a note.
+A staple (about 6.5 x 4.7 x 1.6 mm) is thinner than a voxel of many scans, so
+partial volume can dim it below bone HU and split it across voxels; what is
+conserved is its *excess density*: the sum over voxels of (HU - floor) times the
+voxel volume, ~ staple volume x (metal HU - floor).  So:
+
+1. the *skin shell*: voxels within ``skin_reach_mm`` of the air outside the body
+   (low-HU components reaching the in-plane border), where only skin, fat and
+   markers are, never bone;
+2. excess ``E = HU - floor_hu`` where positive, inside the shell;
+3. blobs: found on a ~2 mm grid of block maxima (connected components after a
+   one-voxel dilation that joins fragments of one staple; staples are
+   centimetres apart), then measured at full resolution in their box;
+4. a blob whose excess mass lies within [min_mass, max_mass] is a staple; its
+   centre is the E-weighted centroid, mapped through ``T_patient_from_voxel``.
 
 Order (docs/CONTRACTS.md): a grid of ``n_rows`` rows, superior to inferior;
 within a row patient right to left (increasing LPS x).
@@ -19,12 +28,16 @@ from scipy import ndimage
 
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
 
-#: HU above which a voxel on the skin is taken for metal.  Partial volume dims a
-#: 1.6 mm thick staple to about 1000 HU at 2 mm voxels; bone is told apart by
-#: where it is (inside the body wall), not by HU alone.
-METAL_HU = 800.0
-#: A staple lies on the skin: its blob must come this close to the air outside.
-SKIN_REACH_MM = 3.0
+#: Excess density is counted above this HU (above any skin or soft tissue).
+FLOOR_HU = 300.0
+#: A staple lies on the skin: voxels this close to the air outside are searched.
+SKIN_REACH_MM = 2.5
+#: Excess mass (HU x mm^3) of one staple: ~25 mm^3 x ~2500 HU = 6e4; accept
+#: from a sixth to ten times that (other metal markers, dimmer reconstructions).
+MIN_MASS = 1.0e4
+#: Grid (mm) on which the body's outline and the candidate blobs are found.
+COARSE_MM = 2.0
+MAX_MASS = 6.0e5
 
 
 class FiducialError(ValueError):
@@ -39,14 +52,14 @@ class Fiducials:
     ----------
     centres_patient_mm : (n, 3) float64
         In the documented order.
-    volumes_mm3 : (n,) float64
-        Volume of each blob above the threshold.
+    masses_hu_mm3 : (n,) float64
+        Excess density of each marker (HU above the floor x mm^3).
     notes : tuple of str
         Blobs discarded and why.
     """
 
     centres_patient_mm: np.ndarray
-    volumes_mm3: np.ndarray
+    masses_hu_mm3: np.ndarray
     notes: tuple[str, ...] = ()
 
 
@@ -86,11 +99,13 @@ def find_fiducials(
     *,
     expected: int | None = 9,
     n_rows: int = 3,
-    threshold_hu: float = METAL_HU,
-    min_volume_mm3: float = 4.0,
-    max_volume_mm3: float = 400.0,
+    floor_hu: float = FLOOR_HU,
+    skin_reach_mm: float = SKIN_REACH_MM,
+    min_mass: float = MIN_MASS,
+    max_mass: float = MAX_MASS,
+    anterior_only: bool = True,
 ) -> Fiducials:
-    """Find metal fiducials in a CT volume.
+    """Find metal skin fiducials in a CT volume.
 
     Parameters
     ----------
@@ -100,13 +115,18 @@ def find_fiducials(
         Maps ``(i, j, k, 1)`` to patient LPS mm.
     expected : int or None
         Number of fiducials expected; a different count is an error naming both.
-        ``None`` accepts any count (then ordered by height, then x).
+        ``None`` accepts any count.
     n_rows : int
         Rows of the grid, for the ordering.
-    threshold_hu : float
-        Voxels above it are metal.
-    min_volume_mm3, max_volume_mm3 : float
-        Blob volumes accepted as staples.
+    floor_hu : float
+        Excess density is counted above this HU.
+    skin_reach_mm : float
+        Depth of the skin shell searched.
+    min_mass, max_mass : float
+        Excess mass (HU x mm^3) accepted as one marker.
+    anterior_only : bool
+        Keep markers on the front of the chest only (in front of the body's
+        centre, LPS y below it), where the paper's grid is placed.
 
     Raises
     ------
@@ -120,50 +140,82 @@ def find_fiducials(
     if T.shape != (4, 4):
         raise ValueError(f"T_patient_from_voxel must have shape (4, 4), got {T.shape}")
     voxel_mm3 = abs(np.linalg.det(T[:3, :3]))
+    spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
 
-    metal = hu > threshold_hu
-    labels, n = ndimage.label(metal, structure=np.ones((3, 3, 3), bool))
+    # coarse grid (~2 mm): block maxima keep every marker, block means find the air
+    step = np.maximum(1, np.round(COARSE_MM / spacing_kji)).astype(int)
+    shape = tuple(int(n) for n in -(-np.array(hu.shape) // step))
+    cmax = np.full(shape, -np.inf, np.float32)
+    csum = np.zeros(shape, np.float32)
+    count = np.zeros(shape, np.float32)
+    for dk in range(step[0]):
+        for dj in range(step[1]):
+            for di in range(step[2]):
+                part = hu[dk :: step[0], dj :: step[1], di :: step[2]]
+                view = (slice(0, part.shape[0]), slice(0, part.shape[1]), slice(0, part.shape[2]))
+                np.maximum(cmax[view], part, out=cmax[view])
+                csum[view] += part
+                count[view] += 1
+    cmean = csum / count
+    del csum, count
+    cspacing = spacing_kji * step
+
     # the air outside the body: low-HU components that reach the in-plane border
     # (not the end slices, where trachea and lungs leave the volume)
-    air_labels, _ = ndimage.label(hu < -500)
+    air_labels, _ = ndimage.label(cmean < -500)
     border = np.unique(np.concatenate([air_labels[:, [0, -1]].ravel(), air_labels[:, :, [0, -1]].ravel()]))
     outside = np.isin(air_labels, border[border > 0])
     del air_labels
-    spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
-    to_air_mm = ndimage.distance_transform_edt(~outside, sampling=spacing_kji) if outside.any() else None
+    if not outside.any():
+        raise FiducialError(
+            "no air around the body in the volume (the field of view cuts the skin?); "
+            "skin fiducials cannot be told from bone: pass --fiducials 0 and give them otherwise"
+        )
+    body = ~outside
+    body_centre_y = (T[:3, :3] @ ((np.argwhere(body[:, ::4, ::4]).mean(axis=0) * [1, 4, 4]) * step)[::-1] + T[:3, 3])[1]
+    reach = skin_reach_mm + 0.5 * float(np.max(cspacing))
+    shell = ndimage.distance_transform_edt(~outside, sampling=cspacing) <= reach
+    candidates = shell & (cmax > floor_hu)
+    labels, _ = ndimage.label(ndimage.binary_dilation(candidates), structure=np.ones((3, 3, 3), bool))
+
     notes = []
-    centres, volumes = [], []
-    slices = ndimage.find_objects(labels)
-    for label, box in enumerate(slices, start=1):
-        volume = float(np.count_nonzero(labels[box] == label)) * voxel_mm3
-        if to_air_mm is not None and to_air_mm[box][labels[box] == label].min() > SKIN_REACH_MM:
-            notes.append(f"dense blob of {volume:.1f} mm3 inside the body ignored (not on the skin)")
+    centres, masses = [], []
+    for cbox in ndimage.find_objects(labels):
+        # the blob's box at full resolution, one coarse voxel wider
+        box = tuple(
+            slice(max((c.start - 1) * st, 0), min((c.stop + 1) * st, n))
+            for c, st, n in zip(cbox, step, hu.shape)
+        )
+        sub = hu[box].astype(np.float32)
+        # keep the skin side only: voxels whose coarse cell is in the shell
+        idx = [np.arange(b.start, b.stop) // st for b, st in zip(box, step)]
+        in_shell = shell[np.ix_(*idx)]
+        weight = np.where(in_shell, np.clip(sub - floor_hu, 0.0, None), 0.0)
+        mass = float(weight.sum()) * voxel_mm3
+        if not (min_mass <= mass <= max_mass):
+            if mass > 0.1 * min_mass:
+                notes.append(f"dense blob of {mass:.3g} HU.mm3 on the skin ignored (accepted {min_mass:.3g}-{max_mass:.3g})")
             continue
-        if not (min_volume_mm3 <= volume <= max_volume_mm3):
-            notes.append(f"metal blob of {volume:.1f} mm3 ignored (staple size {min_volume_mm3}-{max_volume_mm3} mm3)")
-            continue
-        # grow the box by 2 voxels and weight every voxel of the dilated blob by
-        # its HU above soft tissue, so partial-volume voxels pull the centre.
-        grown = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in box)
-        blob = ndimage.binary_dilation(labels[grown] == label, iterations=1)
-        weight = np.clip(hu[grown].astype(float) - 100.0, 0.0, None) * blob
         kji = np.argwhere(weight > 0)
         w = weight[weight > 0]
-        offset = np.array([s.start for s in grown])
+        offset = np.array([b.start for b in box])
         k, j, i = ((kji + offset) * w[:, None]).sum(axis=0) / w.sum()
-        centres.append(T[:3, :3] @ np.array([i, j, k]) + T[:3, 3])
-        volumes.append(volume)
+        centre = T[:3, :3] @ np.array([i, j, k]) + T[:3, 3]
+        if anterior_only and centre[1] > body_centre_y:
+            notes.append(f"metal on the back skin at {np.round(centre, 1).tolist()} mm ignored (anterior_only)")
+            continue
+        centres.append(centre)
+        masses.append(mass)
 
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
-    volumes = np.asarray(volumes, dtype=float)
+    masses = np.asarray(masses, dtype=float)
     if expected is not None and len(centres) != expected:
         raise FiducialError(
-            f"found {len(centres)} fiducial(s) of staple size above {threshold_hu:.0f} HU, "
-            f"expected {expected}; check the scan covers all skin markers, or set the "
-            "expected count (--fiducials N) / threshold (--fiducial-hu)"
+            f"found {len(centres)} metal marker(s) on the skin, expected {expected}; check the scan "
+            "covers all skin markers, or set the expected count (--fiducials N)"
         )
     if len(centres) == 0:
-        return Fiducials(centres, volumes, tuple(notes))
+        return Fiducials(centres, masses, tuple(notes))
     rows = n_rows if len(centres) % n_rows == 0 else 1
     order = order_fiducials(centres, n_rows=rows)
-    return Fiducials(centres[order], volumes[order], tuple(notes))
+    return Fiducials(centres[order], masses[order], tuple(notes))

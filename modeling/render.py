@@ -30,6 +30,22 @@ from modeling.model import HeartModel
 
 __all__ = ["RenderError", "offscreen_available", "render_model_png"]
 
+
+def _choose_offscreen_window() -> None:
+    """Without a display, point VTK at an offscreen OpenGL (OSMesa, else EGL)
+    unless the user chose one, so it does not try (and warn about) X first."""
+    if os.environ.get("DISPLAY") or os.environ.get("VTK_DEFAULT_OPENGL_WINDOW"):
+        return
+    import ctypes.util
+
+    if ctypes.util.find_library("OSMesa"):
+        os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkOSOpenGLRenderWindow"
+    elif ctypes.util.find_library("EGL"):
+        os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkEGLRenderWindow"
+
+
+_choose_offscreen_window()
+
 _PROBE = (
     "import pyvista as pv\n"
     "pv.OFF_SCREEN = True\n"

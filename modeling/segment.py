@@ -60,6 +60,42 @@ def _spacing(T) -> np.ndarray:
     return np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
 
 
+def _block_mean(hu, step) -> np.ndarray:
+    """Mean over blocks of ``step`` voxels (k, j, i), float32; edges padded."""
+    hu = np.asarray(hu)
+    if np.all(step == 1):
+        return hu.astype(np.float32)
+    shape = -(-np.array(hu.shape) // step) * step
+    out = np.zeros(tuple(shape // step), np.float32)
+    count = np.zeros_like(out)
+    for dk in range(step[0]):
+        for dj in range(step[1]):
+            for di in range(step[2]):
+                part = hu[dk :: step[0], dj :: step[1], di :: step[2]]
+                out[: part.shape[0], : part.shape[1], : part.shape[2]] += part
+                count[: part.shape[0], : part.shape[1], : part.shape[2]] += 1
+    return out / count
+
+
+def _fill_holes(mask) -> np.ndarray:
+    """Fill enclosed cavities: background components not touching the border."""
+    labels, n = ndimage.label(~mask)
+    if n == 0:
+        return mask
+    border = np.unique(np.concatenate([
+        labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()
+    ]))
+    return mask | ~np.isin(labels, border)
+
+
+def _largest_component(mask) -> np.ndarray:
+    labels, n = ndimage.label(mask)
+    if n <= 1:
+        return mask
+    sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, n + 1))
+    return labels == int(np.argmax(sizes)) + 1
+
+
 def _opening_mm(mask, spacing_kji, radius_mm):
     """Binary opening by a ball of ``radius_mm`` using Euclidean distance transforms."""
     inside = ndimage.distance_transform_edt(mask, sampling=spacing_kji)
@@ -79,7 +115,7 @@ def segment_heart(
     blood_hu: tuple[float, float] = (200.0, 650.0),
     seed_patient_mm=None,
     vessel_radius_mm: float = 14.0,
-    margin_mm: float = 2.0,
+    margin_mm: float = 1.0,
     smooth_mm: float = 0.6,
     coarse_mm: float = 1.0,
     min_volume_ml: float = 50.0,
@@ -104,9 +140,11 @@ def segment_heart(
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
-        Gaussian sigma applied before thresholding.
+        Gaussian sigma applied on the coarse grid before thresholding.
     coarse_mm : float
-        Grid spacing for the opening (speed); never finer than the volume.
+        Grid spacing of the coarse grid (block means) on which the seed, the
+        region and the opening are found; the boundary is then taken at full
+        resolution within ``margin_mm`` of the opened core.
     min_volume_ml : float
         Smaller results are refused as not heart-like.
 
@@ -123,18 +161,21 @@ def segment_heart(
         raise ValueError(f"T_patient_from_voxel must have shape (4, 4), got {T.shape}")
     if not hu_low < hu_high:
         raise ValueError(f"hu_low ({hu_low}) must be below hu_high ({hu_high})")
-    spacing_ijk = _spacing(T)
-    spacing_kji = spacing_ijk[::-1]
+    spacing_kji = _spacing(T)[::-1]
     voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
     notes: list[str] = []
 
-    sigma = smooth_mm / spacing_kji
-    smooth = ndimage.gaussian_filter(hu.astype(np.float32), sigma=sigma)
-    tissue = (smooth > hu_low) & (smooth < hu_high)
+    # ---- coarse grid (~coarse_mm): block means, which also average the noise
+    step = np.maximum(1, np.round(coarse_mm / spacing_kji)).astype(int)
+    coarse = _block_mean(hu, step)
+    cspacing = spacing_kji * step
+    if smooth_mm > 0:
+        coarse = ndimage.gaussian_filter(coarse, sigma=smooth_mm / cspacing)
+    tissue = (coarse > hu_low) & (coarse < hu_high)
 
     # ---- seed: the contrast blood pool
     if seed_patient_mm is None:
-        blood = (smooth > blood_hu[0]) & (smooth < blood_hu[1])
+        blood = (coarse > blood_hu[0]) & (coarse < blood_hu[1])
         labels, n = ndimage.label(blood)
         if n == 0:
             raise SegmentationError(
@@ -142,23 +183,22 @@ def segment_heart(
                 "is this a contrast CT? give a seed point inside the heart (--seed-mm X Y Z)"
             )
         sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
-        seed_label = int(np.argmax(sizes)) + 1
-        seed_mask = labels == seed_label
-        kji = np.argwhere(seed_mask).mean(axis=0)
+        seed_mask = labels == int(np.argmax(sizes)) + 1
+        kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
         seed_mm = T[:3, :3] @ kji[::-1] + T[:3, 3]
-        notes.append(f"seed: largest blood-pool component ({sizes.max() * voxel_ml:.0f} ml)")
+        notes.append(f"seed: largest blood-pool component ({sizes.max() * voxel_ml * step.prod():.0f} ml)")
     else:
         seed_mm = np.asarray(seed_patient_mm, dtype=float).reshape(3)
         ijk = np.linalg.solve(T[:3, :3], seed_mm - T[:3, 3])
-        kji = np.round(ijk[::-1]).astype(int)
-        if np.any(kji < 0) or np.any(kji >= np.array(hu.shape)):
+        kji = np.floor(ijk[::-1] / step + 0.5 / step).astype(int)
+        if np.any(kji < 0) or np.any(kji >= np.array(coarse.shape)):
             raise SegmentationError(f"seed point {seed_mm.tolist()} mm lies outside the volume")
         if not tissue[tuple(kji)]:
             raise SegmentationError(
                 f"seed point {seed_mm.tolist()} mm is not in heart tissue "
-                f"({smooth[tuple(kji)]:.0f} HU outside {hu_low:.0f}..{hu_high:.0f})"
+                f"({coarse[tuple(kji)]:.0f} HU outside {hu_low:.0f}..{hu_high:.0f})"
             )
-        seed_mask = np.zeros(hu.shape, bool)
+        seed_mask = np.zeros(coarse.shape, bool)
         seed_mask[tuple(kji)] = True
         notes.append("seed: given point")
 
@@ -171,39 +211,39 @@ def segment_heart(
     region = np.isin(labels, touched)
     del labels
 
-    # ---- crop to the region, open on a coarse grid to cut vessels and bridges
+    # ---- open (cut vessels and bridges) on the coarse grid, cropped to the region
     box = ndimage.find_objects(region.astype(np.uint8))[0]
-    pad = [int(np.ceil((vessel_radius_mm + margin_mm) / s)) + 1 for s in spacing_kji]
-    box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, hu.shape))
-    sub = region[box]
-    step = np.maximum(1, np.floor(coarse_mm / spacing_kji).astype(int))
-    coarse = sub[:: step[0], :: step[1], :: step[2]]
-    core = _opening_mm(coarse, spacing_kji * step, vessel_radius_mm)
+    pad = [int(np.ceil((vessel_radius_mm + margin_mm) / s)) + 2 for s in cspacing]
+    box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, coarse.shape))
+    core = _opening_mm(region[box], cspacing, vessel_radius_mm)
     labels, n = ndimage.label(core)
     if n == 0:
         raise SegmentationError(
             f"no heart-sized region: nothing thicker than {2 * vessel_radius_mm:.0f} mm is "
             "connected to the blood pool; lower vessel_radius_mm or give a seed point"
         )
-    seed_sub = seed_mask[box][:: step[0], :: step[1], :: step[2]]
-    counts = ndimage.sum_labels(seed_sub, labels, index=np.arange(1, n + 1))
+    counts = ndimage.sum_labels(seed_mask[box], labels, index=np.arange(1, n + 1))
     sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
-    keep = int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
-    core = labels == keep
-    # back to full resolution: nearest-neighbour upsampling of the core
-    full = np.zeros(sub.shape, bool)
-    idx = [np.minimum(np.arange(s) // st, c - 1) for s, st, c in zip(sub.shape, step, core.shape)]
-    full[:] = core[np.ix_(*idx)]
-    near = ndimage.distance_transform_edt(~full, sampling=spacing_kji) <= margin_mm + 0.5 * float(np.max(spacing_kji * step))
-    heart = ndimage.binary_fill_holes(sub & near)
-    labels, n = ndimage.label(heart)
-    if n > 1:
-        sizes = ndimage.sum_labels(heart, labels, index=np.arange(1, n + 1))
-        heart = labels == (int(np.argmax(sizes)) + 1)
+    core = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+    reach = margin_mm + 0.5 * float(np.max(cspacing))
+    near = ndimage.distance_transform_edt(~core, sampling=cspacing) <= reach
+
+    # ---- full resolution inside the near band's bounding box
+    nbox = ndimage.find_objects(near.astype(np.uint8))[0]
+    cbox = tuple(slice(b.start + o.start, b.stop + o.start) for b, o in zip(nbox, box))
+    full_box = tuple(slice(c.start * st, min(c.stop * st, n)) for c, st, n in zip(cbox, step, hu.shape))
+    idx = [
+        np.minimum((np.arange(f.start, f.stop) // st) - c.start, c.stop - c.start - 1)
+        for f, st, c in zip(full_box, step, cbox)
+    ]
+    near_full = near[nbox][np.ix_(*idx)]
+    sub = hu[full_box]
+    heart = near_full & (sub > hu_low) & (sub < hu_high)
+    heart = _largest_component(_fill_holes(heart))
 
     mask = np.zeros(hu.shape, bool)
-    mask[box] = heart
-    volume_ml = float(mask.sum() * voxel_ml)
+    mask[full_box] = heart
+    volume_ml = float(heart.sum() * voxel_ml)
     if volume_ml < min_volume_ml:
         raise SegmentationError(
             f"segmented region is {volume_ml:.0f} ml, smaller than a heart ({min_volume_ml:.0f} ml); "
