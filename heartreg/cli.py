@@ -52,22 +52,12 @@ def _series_arg(value: str):
 
 def _open_study(args):
     """Load the study's volume and compute its phase report (shared by commands)."""
-    from imaging import compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
-    from imaging.waveform import WaveformError
+    from heartreg.pipeline import open_study
 
-    volume = load_study(args.study_dir, series=args.series, progress=not args.quiet)
-    qrs = read_qrs_file(args.qrs) if args.qrs else None
-    records = []
-    for path in volume.waveform_files:
-        try:
-            records.append(read_ecg_waveform(path))
-        except WaveformError as exc:
-            print(f"note: {exc}", file=sys.stderr)
-    report = compute_phase_report(
-        volume, qrs_s=qrs, qrs_label=f"R-peak file {Path(args.qrs).name}" if args.qrs else "",
-        ecg_records=records,
+    return open_study(
+        args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
+        warn=lambda msg: print(msg, file=sys.stderr),
     )
-    return volume, report
 
 
 def _print_series(study_dir) -> int:
@@ -184,6 +174,36 @@ def _cmd_register(args) -> int:
     return 0
 
 
+def _cmd_pipeline(args) -> int:
+    from heartreg.pipeline import run_pipeline
+
+    run = run_pipeline(
+        args.study_dir, args.session_dir, args.out_dir, series=args.series, qrs=args.qrs, mask=args.mask,
+        label=args.label, faces=args.faces, fiducials=args.fiducials, phase_step=args.step,
+        overwrite=args.overwrite, progress=not args.quiet,
+    )
+    reg = run.registration
+    print(f"pipeline written to {run.out_dir}")
+    print(f"  phi_C* = {run.phase_report.volume_cardiac_phase:.4f} ({run.phase_report.source})")
+    print(f"  phi_R* = {reg.phase_r:.2f}, RMS {reg.rms_mm:.2f} mm, FRE {reg.fre_mm:.2f} mm, "
+          f"mean delta vs static {reg.static.mean_delta_mm:.2f} mm")
+    print(f"  report {run.paths['report']}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from heartreg.demo import format_table, run_demo
+
+    run, rows = run_demo(args.out_dir, sample_dir=args.sample, progress=not args.quiet)
+    print(format_table(rows))
+    missed = [r[0] for r in rows if r[5] is False]
+    print(f"\nall outputs in {run.out_dir}; open {run.paths['report']} in a browser")
+    print("stage times: " + ", ".join(f"{k} {v:.1f} s" for k, v in run.timings_s.items()))
+    if missed:
+        print("outside tolerance: " + "; ".join(missed))
+    return 0
+
+
 def _add_study_options(p) -> None:
     p.add_argument("study_dir", type=Path, help="folder holding the DICOM study (searched recursively)")
     p.add_argument("--qrs", type=Path, default=None,
@@ -232,6 +252,24 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.set_defaults(func=_cmd_model)
+
+    p = sub.add_parser("pipeline", help="study + session -> phases, model, registration, report.html")
+    _add_study_options(p)
+    p.add_argument("session_dir", type=Path, help="intra-operative session folder (docs/formats.md)")
+    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder")
+    p.add_argument("--mask", type=Path, default=None, help="external label map instead of the segmentation")
+    p.add_argument("--label", type=int, default=None, help="heart label in --mask")
+    p.add_argument("--faces", type=int, default=20000, help="faces of the decimated mesh")
+    p.add_argument("--fiducials", type=int, default=9, help="skin fiducials expected")
+    p.add_argument("--step", type=float, default=0.01, help="respiration phase step of the sweep")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    p.set_defaults(func=_cmd_pipeline)
+
+    p = sub.add_parser("demo", help="the whole chain on the bundled sample, recovered vs truth")
+    p.add_argument("-o", "--out-dir", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
+    p.add_argument("--sample", type=Path, default=None, help="phantom case to use instead of sample_dicom/")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("register", help="register a session to a heart model in space and phase")
     p.add_argument("model_dir", type=Path, help="heart model folder (heartreg model)")

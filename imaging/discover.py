@@ -18,12 +18,15 @@ import os
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import pydicom
 from pydicom.dataelem import RawDataElement
+from pydicom.datadict import dictionary_VR, tag_for_keyword
 from pydicom.errors import InvalidDicomError
+from pydicom.tag import Tag
 
 logger = logging.getLogger(__name__)
 
@@ -80,6 +83,9 @@ class _Frame:
     temporal_position: int | None
     acquisition_number: int | None
     rpeak_timestamps_ms: tuple[float, ...] | None = field(default=None, repr=False)
+    # file offset and length of a native little-endian (7FE0,0010) value, else None
+    pixel_offset: int | None = field(default=None, repr=False, compare=False)
+    pixel_length: int | None = field(default=None, repr=False, compare=False)
 
     @property
     def is_localizer(self) -> bool:
@@ -210,6 +216,146 @@ def _dt_to_seconds(value) -> float | None:
     return _tm_to_seconds(time_part)
 
 
+# Fast element values. pydicom converts an element's raw bytes on first access
+# (DSfloat, IS, UID, ... with validation), some 20 us each, which made up most of
+# the header scan. For the few plain kinds read here the raw bytes are parsed
+# directly, but only when the result is certainly the one pydicom would give
+# (printable ASCII text without a value delimiter, finite numbers, the expected
+# VR or implicit VR, one binary value); anything else is converted by pydicom as
+# before, so odd files behave exactly as they used to.
+
+_PYDICOM = object()  # "let pydicom convert this element"
+
+
+def _ascii(raw: bytes) -> str | None:
+    """`raw` as text without trailing padding, when it is printable ASCII."""
+    try:
+        text = raw.decode("ascii").rstrip(" \x00")
+    except UnicodeDecodeError:
+        return None
+    return text if text.isprintable() else None
+
+
+def _parse_text(raw: bytes, little: bool):
+    text = _ascii(raw)
+    return _PYDICOM if text is None or "\\" in text else text
+
+
+def _parse_strings(raw: bytes, little: bool):
+    text = _ascii(raw)
+    if text is None:
+        return _PYDICOM
+    parts = text.split("\\")
+    return parts[0] if len(parts) == 1 else parts
+
+
+def _parse_ds(raw: bytes, little: bool, *, multi: bool = False):
+    text = _ascii(raw)
+    if text is None:
+        return _PYDICOM
+    parts = text.strip().split("\\")
+    if multi != (len(parts) > 1):
+        return _PYDICOM
+    try:
+        out = [float(v) for v in parts if v.strip()]
+    except ValueError:
+        return _PYDICOM
+    if len(out) != len(parts) or not all(np.isfinite(out)):
+        return _PYDICOM
+    return out if multi else out[0]
+
+
+def _parse_ds_multi(raw: bytes, little: bool):
+    return _parse_ds(raw, little, multi=True)
+
+
+def _parse_is(raw: bytes, little: bool):
+    text = _ascii(raw)
+    if text is None or "\\" in text:
+        return _PYDICOM
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        out = float(text)
+    except ValueError:
+        return _PYDICOM
+    return int(out) if np.isfinite(out) and out.is_integer() else _PYDICOM
+
+
+def _binary(code: str, *, single: bool = True):
+    size = struct.calcsize(code)
+
+    def parse(raw: bytes, little: bool):
+        n, rest = divmod(len(raw), size)
+        if rest or n == 0 or (single and n != 1):
+            return _PYDICOM
+        values = struct.unpack(("<" if little else ">") + str(n) + code, raw)
+        return values[0] if n == 1 else list(values)
+
+    return parse
+
+
+_PARSERS = {
+    "UI": _parse_text, "LO": _parse_text, "SH": _parse_text, "CS": _parse_text,
+    "TM": _parse_text, "DT": _parse_text, "DS": _parse_ds, "IS": _parse_is,
+    "US": _binary("H"), "UL": _binary("I"),
+    "FL": _binary("f", single=False), "FD": _binary("d", single=False),
+}
+_MULTI_VALUED = {  # keywords read as several values
+    "ImageType": _parse_strings, "FrameType": _parse_strings,
+    "ImagePositionPatient": _parse_ds_multi, "ImageOrientationPatient": _parse_ds_multi,
+    "PixelSpacing": _parse_ds_multi,
+}
+
+
+@lru_cache(maxsize=None)
+def _fast_spec(keyword: str):
+    """(tag, VR, parser) for a keyword read through `_get`."""
+    tag = Tag(tag_for_keyword(keyword))
+    vr = dictionary_VR(tag)
+    return tag, vr, _MULTI_VALUED.get(keyword) or _PARSERS.get(vr)
+
+
+def _raw_value(elem, vr: str, parse):
+    """Parsed value of a raw element, or _PYDICOM."""
+    if (
+        parse is None
+        or not isinstance(elem, RawDataElement)
+        or (elem.VR is not None and elem.VR != vr)
+        or not elem.value
+    ):
+        return _PYDICOM
+    return parse(elem.value, elem.is_little_endian)
+
+
+def _get(ds, keyword: str, default=None):
+    """``ds.get(keyword, default)``, parsed from the raw bytes where that gives the same value."""
+    tag, vr, parse = _fast_spec(keyword)
+    elem = ds.get_item(tag)
+    if elem is None:
+        return default
+    value = _raw_value(elem, vr, parse)
+    return ds.get(keyword) if value is _PYDICOM else value
+
+
+def _private_creator_element(ds, group: int, creator: str) -> int | None:
+    """Element number (0x10-0xFF) of the private block `creator` in `group`.
+
+    Same rule as pydicom's ``Dataset.private_block``: the first creator element,
+    in tag order, whose value equals `creator`.
+    """
+    block_tags = (t for t in ds.keys() if t >> 16 == group and 0x10 <= t & 0xFFFF <= 0xFF)
+    for tag in sorted(block_tags):
+        value = _raw_value(ds.get_item(tag), "LO", _parse_text)
+        if value is _PYDICOM:
+            value = ds[tag].value
+        if value == creator:
+            return tag & 0xFF
+    return None
+
+
 def _private_value(ds, group: int, creator: str, offset: int):
     """Value of a private element, or None when its block or element is absent.
 
@@ -217,18 +363,18 @@ def _private_value(ds, group: int, creator: str, offset: int):
     pydicom would otherwise apply its private dictionary's VR, which for
     (0049,xx0C) *RpeakTimeStamps* says FL where GE writes FD.
     """
-    try:
-        block = ds.private_block(group, creator)
-    except KeyError:
+    block = _private_creator_element(ds, group, creator)
+    if block is None:
         return None
-    tag = block.get_tag(offset)
-    if tag not in ds:
-        return None
+    tag = Tag((group << 16) | (block << 8) | offset)
     elem = ds.get_item(tag)
+    if elem is None:
+        return None
     if isinstance(elem, RawDataElement):
         if elem.VR in (None, "UN"):
             return None if elem.value is None else bytes(elem.value)
-        return ds[tag].value
+        value = _raw_value(elem, elem.VR, _PARSERS.get(elem.VR))
+        return ds[tag].value if value is _PYDICOM else value
     return elem.value
 
 
@@ -247,38 +393,43 @@ def _first(keyword, *items):
     for item in items:
         if item is None:
             continue
-        value = item.get(keyword)
+        value = _get(item, keyword)
         if value is not None and value != "":
             return value
     return None
 
 
 def _str(ds, keyword) -> str:
-    value = ds.get(keyword)
+    value = _get(ds, keyword)
     return "" if value is None else str(value).strip()
 
 
 # ------------------------------------------------------------------ headers
 
 
-def _check_pixel_extent(fp, ds, size: int) -> str | None:
-    """Return a reason when the pixel data run past the end of the file, else None.
+def _check_pixel_extent(fp, ds, size: int) -> tuple[str | None, tuple[int, int] | None]:
+    """Check that the pixel data fit in the file; find native little-endian data.
 
     `fp` stands right before (7FE0,0010) after ``dcmread(stop_before_pixels=True)``.
     Native data: the element's length must fit. Encapsulated data: the item headers
     are walked (seeking over the fragments) up to the sequence delimiter.
+
+    Returns ``(reason, native)``: `reason` says why the pixel data run past the end
+    of the file (else None); `native` is the file offset and length of a
+    defined-length, little-endian (7FE0,0010) value (else None), which lets
+    :mod:`imaging.volume` read uncompressed frames straight from the file.
     """
     start = fp.tell()
     if start >= size:
-        return None  # no pixel data element at all (header-only file)
+        return None, None  # no pixel data element at all (header-only file)
     implicit, little = ds.original_encoding
     end = "<" if little is not False else ">"
     head = fp.read(8)
     if len(head) < 8:
-        return "file ends inside the (7FE0,0010) Pixel Data header"
+        return "file ends inside the (7FE0,0010) Pixel Data header", None
     group, elem = struct.unpack(end + "HH", head[:4])
     if (group, elem) != _PIXEL_DATA_TAG:
-        return None  # something else (e.g. float pixel data); leave it to the decoder
+        return None, None  # something else (e.g. float pixel data); leave it to the decoder
     if implicit:
         (length,) = struct.unpack(end + "I", head[4:8])
     else:
@@ -286,7 +437,7 @@ def _check_pixel_extent(fp, ds, size: int) -> str | None:
         if vr in (b"OB", b"OW", b"OF", b"OD", b"OL", b"UN", b"OV", b"SQ", b"UT"):
             more = fp.read(4)
             if len(more) < 4:
-                return "file ends inside the (7FE0,0010) Pixel Data header"
+                return "file ends inside the (7FE0,0010) Pixel Data header", None
             (length,) = struct.unpack(end + "I", more)
         else:
             (length,) = struct.unpack(end + "H", head[6:8])
@@ -295,24 +446,28 @@ def _check_pixel_extent(fp, ds, size: int) -> str | None:
             return (
                 f"Pixel Data holds {size - fp.tell()} of {length} bytes "
                 "(file truncated)"
-            )
-        return None
+            ), None
+        return None, ((fp.tell(), length) if little is True else None)
     while True:
         item = fp.read(8)
         if len(item) < 8:
-            return "file ends before the end of the encapsulated Pixel Data (truncated)"
+            return "file ends before the end of the encapsulated Pixel Data (truncated)", None
         group, elem, item_len = struct.unpack(end + "HHI", item)
         if (group, elem) == _SEQ_DELIM_TAG:
-            return None
+            return None, None
         if (group, elem) != _ITEM_TAG:
-            return f"unexpected tag ({group:04X},{elem:04X}) inside encapsulated Pixel Data"
+            return f"unexpected tag ({group:04X},{elem:04X}) inside encapsulated Pixel Data", None
         if fp.tell() + item_len > size:
-            return "a Pixel Data fragment runs past the end of the file (truncated)"
+            return "a Pixel Data fragment runs past the end of the file (truncated)", None
         fp.seek(item_len, os.SEEK_CUR)
 
 
 def _read_header(path: str):
-    """Read one file's header. Returns (dataset, None) or (None, reason/kind)."""
+    """Read one file's header.
+
+    Returns ``(dataset, None, native)`` (`native` as from `_check_pixel_extent`) or
+    ``(None, reason/kind, None)``.
+    """
     size = os.path.getsize(path)
     with open(path, "rb") as fp:
         try:
@@ -323,28 +478,31 @@ def _read_header(path: str):
             try:
                 ds = pydicom.dcmread(fp, stop_before_pixels=True, force=True)
             except Exception:  # noqa: BLE001 - anything unreadable is "not DICOM"
-                return None, "not-dicom"
+                return None, "not-dicom", None
             if "SOPInstanceUID" not in ds or "SeriesInstanceUID" not in ds:
-                return None, "not-dicom"
+                return None, "not-dicom", None
         except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds here
-            return None, f"unreadable header ({type(exc).__name__}: {exc})"
+            return None, f"unreadable header ({type(exc).__name__}: {exc})", None
         try:
-            reason = _check_pixel_extent(fp, ds, size)
+            reason, native = _check_pixel_extent(fp, ds, size)
         except Exception as exc:  # noqa: BLE001
             reason = f"unreadable Pixel Data ({type(exc).__name__}: {exc})"
     if reason is not None:
-        return None, reason
-    return ds, None
+        return None, reason, None
+    return ds, None, native
 
 
-def _frames_from_dataset(ds, path: str) -> list[_Frame]:
-    """One _Frame per image frame of `ds` (header only)."""
+def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -> list[_Frame]:
+    """One _Frame per image frame of `ds` (header only).
+
+    `native`: file offset and length of the native little-endian Pixel Data value.
+    """
     meta = getattr(ds, "file_meta", None)
-    ts = str(meta.get("TransferSyntaxUID", "")) if meta is not None else ""
+    ts = str(_get(meta, "TransferSyntaxUID", "")) if meta is not None else ""
     if not ts:
         implicit, little = ds.original_encoding
         ts = "1.2.840.10008.1.2" if implicit else "1.2.840.10008.1.2.1"
-    n_frames = _as_int(ds.get("NumberOfFrames")) or 1
+    n_frames = _as_int(_get(ds, "NumberOfFrames")) or 1
     shared = _seq_item(ds, "SharedFunctionalGroupsSequence")
     per_frame = ds.get("PerFrameFunctionalGroupsSequence")
     is_enhanced = per_frame is not None or shared is not None
@@ -354,11 +512,11 @@ def _frames_from_dataset(ds, path: str) -> list[_Frame]:
     mid_scan = _as_float(
         _private_value(ds, GE_MID_SCAN_TIME[0], GE_ACQU_CREATOR, GE_MID_SCAN_TIME[1])
     )
-    top_time = _dt_to_seconds(ds.get("AcquisitionDateTime"))
+    top_time = _dt_to_seconds(_get(ds, "AcquisitionDateTime"))
     if top_time is None:
-        top_time = _tm_to_seconds(ds.get("AcquisitionTime"))
+        top_time = _tm_to_seconds(_get(ds, "AcquisitionTime"))
     if top_time is None:
-        top_time = _tm_to_seconds(ds.get("ContentTime"))
+        top_time = _tm_to_seconds(_get(ds, "ContentTime"))
     common = dict(
         path=path,
         n_frames_in_file=n_frames,
@@ -368,23 +526,25 @@ def _frames_from_dataset(ds, path: str) -> list[_Frame]:
         series_instance_uid=_str(ds, "SeriesInstanceUID"),
         study_instance_uid=_str(ds, "StudyInstanceUID"),
         frame_of_reference_uid=_str(ds, "FrameOfReferenceUID"),
-        series_number=_as_int(ds.get("SeriesNumber")),
+        series_number=_as_int(_get(ds, "SeriesNumber")),
         description=_str(ds, "SeriesDescription"),
         modality=_str(ds, "Modality"),
         manufacturer=_str(ds, "Manufacturer"),
         model_name=_str(ds, "ManufacturerModelName"),
-        instance_number=_as_int(ds.get("InstanceNumber")),
-        gantry_tilt_deg=_as_float(ds.get("GantryDetectorTilt")),
-        rows=int(ds.get("Rows", 0) or 0),
-        columns=int(ds.get("Columns", 0) or 0),
-        samples_per_pixel=int(ds.get("SamplesPerPixel", 1) or 1),
-        bits_allocated=int(ds.get("BitsAllocated", 16) or 16),
-        bits_stored=int(ds.get("BitsStored", ds.get("BitsAllocated", 16)) or 16),
-        pixel_representation=int(ds.get("PixelRepresentation", 0) or 0),
+        instance_number=_as_int(_get(ds, "InstanceNumber")),
+        gantry_tilt_deg=_as_float(_get(ds, "GantryDetectorTilt")),
+        rows=int(_get(ds, "Rows", 0) or 0),
+        columns=int(_get(ds, "Columns", 0) or 0),
+        samples_per_pixel=int(_get(ds, "SamplesPerPixel", 1) or 1),
+        bits_allocated=int(_get(ds, "BitsAllocated", 16) or 16),
+        bits_stored=int(_get(ds, "BitsStored", _get(ds, "BitsAllocated", 16)) or 16),
+        pixel_representation=int(_get(ds, "PixelRepresentation", 0) or 0),
         mid_scan_time_s=mid_scan,
         rpeak_timestamps_ms=rpeaks,
+        pixel_offset=None if native is None else native[0],
+        pixel_length=None if native is None else native[1],
     )
-    top_type = tuple(str(v).upper() for v in (ds.get("ImageType") or ()))
+    top_type = tuple(str(v).upper() for v in (_get(ds, "ImageType") or ()))
     frames = []
     for f in range(n_frames):
         pf = per_frame[f] if per_frame is not None and f < len(per_frame) else None
@@ -440,12 +600,12 @@ def _frames_from_dataset(ds, path: str) -> list[_Frame]:
                 temporal_position=_as_int(
                     _first("TemporalPositionIndex", content)
                     if content is not None
-                    else ds.get("TemporalPositionIdentifier")
+                    else _get(ds, "TemporalPositionIdentifier")
                 ),
                 acquisition_number=_as_int(
                     _first("FrameAcquisitionNumber", content)
                     if content is not None
-                    else ds.get("AcquisitionNumber")
+                    else _get(ds, "AcquisitionNumber")
                 ),
                 **common,
             )
@@ -488,7 +648,7 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             dicomdir.append(name)
             continue
         try:
-            ds, why = _read_header(name)
+            ds, why, native = _read_header(name)
         except OSError as exc:
             broken.append((name, f"cannot open ({exc.strerror or exc})"))
             continue
@@ -497,19 +657,19 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             continue
         meta = getattr(ds, "file_meta", None)
         sop_class = _str(ds, "SOPClassUID") or (
-            str(meta.get("MediaStorageSOPClassUID", "")) if meta is not None else ""
+            str(_get(meta, "MediaStorageSOPClassUID", "")) if meta is not None else ""
         )
         if sop_class == _DICOMDIR_SOP_CLASS or "DirectoryRecordSequence" in ds:
             dicomdir.append(name)
             continue
-        has_image = int(ds.get("Rows", 0) or 0) > 0 and int(ds.get("Columns", 0) or 0) > 0
+        has_image = int(_get(ds, "Rows", 0) or 0) > 0 and int(_get(ds, "Columns", 0) or 0) > 0
         if not has_image:
             others.append(
                 _Other(
                     path=name,
                     series_instance_uid=_str(ds, "SeriesInstanceUID"),
                     study_instance_uid=_str(ds, "StudyInstanceUID"),
-                    series_number=_as_int(ds.get("SeriesNumber")),
+                    series_number=_as_int(_get(ds, "SeriesNumber")),
                     description=_str(ds, "SeriesDescription"),
                     modality=_str(ds, "Modality"),
                     sop_class_uid=sop_class,
@@ -517,7 +677,7 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             )
             continue
         try:
-            frames.extend(_frames_from_dataset(ds, name))
+            frames.extend(_frames_from_dataset(ds, name, native))
         except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
             broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
     return _Scan(

@@ -47,6 +47,7 @@ OUTSIDE_HU = -1024.0
 ORIENTATION_TOL = 1e-3
 
 _INT16 = np.iinfo(np.int16)
+_NATIVE_LITTLE_ENDIAN = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1"}
 
 # Transfer syntaxes whose pydicom "pylibjpeg" plugin needs the GPL pylibjpeg-libjpeg:
 # heartreg never decodes these through it.
@@ -419,9 +420,65 @@ def _choose_plugin(ts: str, path: str) -> str:
     return "" if plugins == list(decoder.available_plugins) else plugins[0]
 
 
+def _native_dtype(frame: _Frame) -> np.dtype | None:
+    """Dtype of the stored values when `frame` can be read straight from its file.
+
+    That is uncompressed little-endian grey-level data of 8, 16 or 32 bits whose
+    (7FE0,0010) value, found at discovery, holds every frame of the file; anything
+    else is left to pydicom.
+    """
+    if (
+        frame.pixel_offset is None
+        or frame.transfer_syntax_uid not in _NATIVE_LITTLE_ENDIAN
+        or frame.samples_per_pixel != 1
+        or frame.bits_allocated not in (8, 16, 32)
+        or not 1 <= frame.bits_stored <= frame.bits_allocated
+    ):
+        return None
+    kind = "i" if frame.pixel_representation == 1 else "u"
+    dtype = np.dtype(f"<{kind}{frame.bits_allocated // 8}")
+    frame_bytes = frame.rows * frame.columns * dtype.itemsize
+    if frame.pixel_length < frame.n_frames_in_file * frame_bytes:
+        return None
+    return dtype
+
+
+def _read_native(frame: _Frame, dtype: np.dtype, out: np.ndarray | None = None) -> np.ndarray:
+    """Stored values of one frame read from the file, (rows, cols) of `dtype`.
+
+    Gives what pydicom's native decoder gives (including its shift correction of
+    unused high bits when BitsStored < BitsAllocated), into `out` when given (a
+    C-contiguous (rows, cols) array of `dtype`).
+    """
+    arr = np.empty((frame.rows, frame.columns), dtype) if out is None else out
+    offset = frame.pixel_offset + (frame.frame or 0) * arr.nbytes
+    try:
+        with open(frame.path, "rb") as fp:
+            fp.seek(offset)
+            n_read = fp.readinto(memoryview(arr).cast("B"))
+    except OSError as exc:
+        raise PixelDataError(
+            f"{frame.path}: cannot read pixel data ({exc.strerror or exc})"
+        ) from exc
+    if n_read != arr.nbytes:
+        raise PixelDataError(
+            f"{frame.path}: pixel data end after {n_read} of {arr.nbytes} bytes; the file "
+            "may be truncated or corrupt: remove it or re-export the series"
+        )
+    shift = frame.bits_allocated - frame.bits_stored
+    if shift:
+        np.left_shift(arr, shift, out=arr)
+        np.right_shift(arr, shift, out=arr)
+    return arr
+
+
 def _decode(frame: _Frame, plugin: str) -> np.ndarray:
     """Stored values of one frame, (rows, cols)."""
     from pydicom.pixels import pixel_array
+
+    dtype = _native_dtype(frame)
+    if dtype is not None:
+        return _read_native(frame, dtype)
 
     kwargs = {"index": frame.frame} if frame.frame is not None else {}
     if plugin:
@@ -475,6 +532,32 @@ def _slice_hu_int(arr: np.ndarray, frame: _Frame) -> np.ndarray | None:
     return hu.astype(np.int16)
 
 
+def _wrap16(value: int) -> np.int16:
+    """`value` modulo 2**16, as int16."""
+    return np.int16((value + 32768) % 65536 - 32768)
+
+
+def _read_hu_int16_into(dst: np.ndarray, frame: _Frame, dtype: np.dtype) -> np.ndarray | None:
+    """Read a 16-bit native frame straight into the int16 slice `dst` and rescale it.
+
+    Returns None when done, or the stored values (a copy) when the rescaled values
+    do not fit int16. Integer slope and intercept only (see `_int16_possible`);
+    the arithmetic is done in place modulo 2**16, exact since the result fits.
+    """
+    stored = _read_native(frame, dtype, out=dst.view(dtype))
+    s, b = _rescale(frame)
+    s, b = int(round(s)), int(round(b))
+    lo, hi = int(stored.min()), int(stored.max())
+    ends = (s * lo + b, s * hi + b)
+    if min(ends) < _INT16.min or max(ends) > _INT16.max:
+        return stored.copy()
+    if s != 1:
+        np.multiply(dst, _wrap16(s), out=dst)
+    if b != 0:
+        np.add(dst, _wrap16(b), out=dst)
+    return None
+
+
 def _slice_hu_float(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     s, b = _rescale(frame)
     return arr.astype(np.float32) * np.float32(s) + np.float32(b)
@@ -518,7 +601,15 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
 
     if not resampling:
         for k, f in enumerate(frames):
-            arr = _decode(f, plugins[f.transfer_syntax_uid])
+            dtype = _native_dtype(f)
+            if out.dtype == np.int16 and dtype is not None and dtype.itemsize == 2:
+                arr = _read_hu_int16_into(out[k], f, dtype)
+                if arr is None:
+                    if bar is not None:
+                        bar.update()
+                    continue
+            else:
+                arr = _decode(f, plugins[f.transfer_syntax_uid])
             if out.dtype == np.int16:
                 hu = _slice_hu_int(arr, f)
                 if hu is None:

@@ -1,8 +1,8 @@
 """registration: spatiotemporal registration of an organ-mounted robot to the heart model.
 
 Session reading, AM Fourier motion models (paper section 2.2.5), fiducial
-registration, ICP to the surface and the respiration-phase sweep with the
-paper's empirical metric (section 2.3).
+registration, ICP to the surface, the respiration-phase sweep with the
+paper's empirical metric (section 2.3) and the registration's outputs.
 """
 
 from registration.transforms import (
@@ -62,6 +62,7 @@ from registration.icp import (
     closest_points,
     closest_points_on_triangles,
     icp,
+    icp_sweep,
 )
 from registration.spatiotemporal import (
     PhaseSweep,
@@ -71,6 +72,27 @@ from registration.spatiotemporal import (
     sweep_phase,
     register_spatiotemporal,
     compare_static,
+)
+from registration.pipeline import (
+    RegistrationError,
+    PointFit,
+    IcpReport,
+    RegistrationResult,
+    sweep_phases,
+    point_phases,
+    register_session,
+    MIN_BEATS,
+    MIN_BREATHS,
+)
+from registration.report import (
+    REPORT_FORMAT,
+    REPORT_VERSION,
+    SWEEP_COLUMNS,
+    write_registration,
+    sweep_csv_text,
+)
+from registration.view import (
+    render_registration_png,
 )
 
 __all__ = [
@@ -82,17 +104,26 @@ __all__ = [
     "FiducialRegistration",
     "Harmonics",
     "IcpMethod",
+    "IcpReport",
     "IcpResult",
+    "MIN_BEATS",
+    "MIN_BREATHS",
     "MIN_DURATION_S",
     "MotionModel",
     "MotionModelError",
     "POINT_COLUMNS",
     "PhaseSweep",
+    "PointFit",
     "PointRecord",
     "QUATERNION_TOL",
+    "REPORT_FORMAT",
+    "REPORT_VERSION",
+    "RegistrationError",
+    "RegistrationResult",
     "SESSION_FORMAT",
     "SESSION_UNITS",
     "SUPPORTED_VERSIONS",
+    "SWEEP_COLUMNS",
     "Session",
     "SessionError",
     "SessionNotFoundError",
@@ -112,14 +143,18 @@ __all__ = [
     "fit_motion_model",
     "fit_motion_models",
     "icp",
+    "icp_sweep",
     "invert",
     "make_transform",
     "matrix_from_euler_xyz_deg",
     "mean_rotation",
+    "point_phases",
     "predict_positions",
     "read_session",
     "register_fiducials",
+    "register_session",
     "register_spatiotemporal",
+    "render_registration_png",
     "rigid_fit",
     "rotation_distance_deg",
     "rotation_exp",
@@ -127,6 +162,9 @@ __all__ = [
     "se3_exp",
     "se3_log",
     "surface_centroid",
+    "sweep_csv_text",
     "sweep_phase",
+    "sweep_phases",
     "translation_distance_mm",
+    "write_registration",
 ]

@@ -37,7 +37,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from registration.icp import SurfaceIndex, closest_points, icp
+from registration.icp import IcpMethod, SurfaceIndex, closest_points, icp, icp_sweep
 from registration.motion_model import MotionModel, predict_positions
 from registration.transforms import (
     euler_xyz_deg_from_matrix,
@@ -276,16 +276,21 @@ def sweep_phase(
     options.pop("T_init", None)
 
     m = phases.size
-    Ts = np.empty((m, 4, 4))
-    rms = np.empty(m)
-    iterations = np.empty(m, dtype=np.int64)
-    converged = np.empty(m, dtype=bool)
-    for i in range(m):
-        result = icp(points[i], surface, T_init=T0, **options)
-        Ts[i] = result.T_target_from_source
-        rms[i] = result.rms_mm
-        iterations[i] = result.iterations
-        converged[i] = result.converged
+    if IcpMethod(options.get("method", IcpMethod.POINT_TO_PLANE)) is IcpMethod.POINT_TO_PLANE:
+        # all phases in one batch: one closest-point query per iteration (same ICP)
+        batch = {key: value for key, value in options.items() if key not in ("method", "degeneracy_ratio")}
+        Ts, rms, iterations, converged = icp_sweep(points, surface, T_init=T0, **batch)
+    else:
+        Ts = np.empty((m, 4, 4))
+        rms = np.empty(m)
+        iterations = np.empty(m, dtype=np.int64)
+        converged = np.empty(m, dtype=bool)
+        for i in range(m):
+            result = icp(points[i], surface, T_init=T0, **options)
+            Ts[i] = result.T_target_from_source
+            rms[i] = result.rms_mm
+            iterations[i] = result.iterations
+            converged[i] = result.converged
     dT = Ts @ invert(T0)
     shift = dT[:, :3, :3] @ pivot + dT[:, :3, 3] - pivot
     return PhaseSweep(

@@ -67,8 +67,8 @@ class HeartMotion:
     twist_base_deg: float = -4.0
     resp_modulation: float = 0.2
     resp_si_mm: float = 10.0
-    resp_ap_mm: float = 3.0
-    resp_ap_lag: float = 0.12
+    resp_ap_mm: float = 5.0
+    resp_ap_lag: float = 0.25
     resp_rotation_deg: float = 2.0
 
 

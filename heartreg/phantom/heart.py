@@ -361,3 +361,24 @@ class AnalyticHeart:
         s = self.contraction(phase_c, self.image_resp_phase)
         ref = self.unbeat(h, s)
         return self.implicit_reference(ref, scale=scale)
+
+    def surface_distance(self, points_patient, phase_c, phase_r=None, *, n_u: int = 720, n_v: int = 600):
+        """Signed distance (mm, > 0 outside) of patient points to the epicardium at
+        (phi_C, phi_R), through the tangent plane of the nearest of a dense
+        sampling of the exact surface (accurate to ~h^2 / R, h the sample spacing:
+        < 0.01 mm at the defaults, ~0.4 mm spacing).  ``phase_r`` defaults to the CT breath-hold.
+        """
+        from scipy.spatial import cKDTree
+
+        phase_r = self.image_resp_phase if phase_r is None else phase_r
+        u, v = np.meshgrid(np.arange(n_u) / n_u, np.linspace(0.0, 1.0, n_v), indexing="ij")
+        u, v = u.ravel(), v.ravel()
+        inner = (v > 1e-3) & (v < 1 - 1e-3)
+        p, R = self.surface_frames(u[inner], v[inner], phase_c, phase_r)
+        poles = self.surface_points(np.zeros(2), np.array([0.0, 1.0]), phase_c, phase_r)
+        pole_normals = (self.T_patient_from_heart[:3, :3] @ np.array([[0, 0, -1.0], [0, 0, 1.0]]).T).T
+        pts = np.concatenate([p, poles])
+        normals = np.concatenate([R[..., 2], pole_normals])
+        q = np.asarray(points_patient, dtype=float).reshape(-1, 3)
+        _, idx = cKDTree(pts).query(q, k=1)
+        return np.einsum("ij,ij->i", q - pts[idx], normals[idx])

@@ -1,0 +1,246 @@
+"""Registration outputs: ``registration.json``, sweep CSVs and the paper's plots.
+
+Files written by :func:`write_registration` into ``OUT_DIR`` (all atomically,
+no patient identity, UTF-8, ``\\n`` line ends):
+
+``registration.json``
+    :meth:`RegistrationResult.to_dict` plus ``format`` (``"heartreg-registration"``)
+    and ``format_version`` (1).  Transforms are 4 x 4 row-major lists mapping the
+    reference-probe frame to the model's heart frame (mm); angles in degrees.
+``sweep.csv``
+    One row per swept respiration phase at phi_C* (paper Figs. 2B, 6, 7):
+    ``phase_r, rms_mm, tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg,
+    translation_distance_mm, rotation_distance_deg, iterations``.
+    ``t*`` and ``r*`` are the registration parameters of paper Fig. 6 in the
+    heart frame: the correction ``dT = T inv(T0)`` as the displacement it gives
+    the pivot (the surface centroid, ``pivot_heart_mm`` in the JSON) and its
+    intrinsic X-Y-Z Euler angles.  ``translation_distance_mm`` is the norm of
+    ``(tx, ty, tz)`` and ``rotation_distance_deg`` the geodesic angle of ``dT``
+    (paper Fig. 7, eq. 10).
+``cardiac_sweep.csv``
+    The same columns with ``phase_c`` first, phi_C swept at phi_R* (Fig. 2A);
+    only when the cardiac sweep was run.
+``fig2_rms.png``, ``fig6_parameters.png``, ``fig7_distances.png``, ``fig9_delta.png``
+    The paper's Figs. 2, 6, 7 and 9 for this registration (matplotlib, Agg).
+``fig8_view.png``
+    The 3-D view of :mod:`registration.view` when a model is given and
+    offscreen OpenGL works.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from imaging.files import atomic_path, write_text_atomic
+from registration.pipeline import RegistrationResult
+from registration.spatiotemporal import PhaseSweep
+
+__all__ = ["REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "write_registration", "sweep_csv_text"]
+
+REPORT_FORMAT = "heartreg-registration"
+REPORT_VERSION = 1
+SWEEP_COLUMNS = (
+    "rms_mm",
+    "tx_mm",
+    "ty_mm",
+    "tz_mm",
+    "rx_deg",
+    "ry_deg",
+    "rz_deg",
+    "translation_distance_mm",
+    "rotation_distance_deg",
+    "iterations",
+)
+_DPI = 110
+
+
+def sweep_csv_text(sweep: PhaseSweep) -> str:
+    """The CSV text of one sweep (header ``phase_r`` or ``phase_c``, then SWEEP_COLUMNS)."""
+    first = "phase_r" if sweep.kind == "respiration" else "phase_c"
+    lines = [",".join((first,) + SWEEP_COLUMNS)]
+    t = sweep.correction_translation_mm
+    e = sweep.correction_euler_xyz_deg
+    for i, phase in enumerate(sweep.phases):
+        values = (
+            f"{phase:.4f}",
+            f"{sweep.rms_mm[i]:.6f}",
+            *(f"{x:.6f}" for x in t[i]),
+            *(f"{x:.6f}" for x in e[i]),
+            f"{sweep.translation_distance_mm[i]:.6f}",
+            f"{sweep.rotation_distance_deg[i]:.6f}",
+            str(int(sweep.iterations[i])),
+        )
+        lines.append(",".join(values))
+    return "\n".join(lines) + "\n"
+
+
+def write_registration(result: RegistrationResult, out_dir, *, model=None, view: bool = True) -> dict:
+    """Write the registration's files into ``out_dir`` (see the module docstring).
+
+    Parameters
+    ----------
+    result : RegistrationResult
+    out_dir : str or Path
+        Created if missing; files of the same names are replaced.
+    model : HeartModel, optional
+        The registered model; needed for the 3-D view ``fig8_view.png``.
+    view : bool
+        Draw the 3-D view (when ``model`` is given).
+
+    Returns
+    -------
+    dict
+        ``{name: Path}`` of the files written, and ``"notes"``: a list of
+        reasons for files skipped (e.g. no offscreen OpenGL).
+    """
+    if not isinstance(result, RegistrationResult):
+        raise TypeError(f"result must be a RegistrationResult, got {type(result).__name__}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder; choose an output folder")
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict = {}
+    payload = {"format": REPORT_FORMAT, "format_version": REPORT_VERSION}
+    payload.update(result.to_dict())
+    payload["files"] = {"sweep": "sweep.csv"}
+    if result.cardiac_sweep is not None:
+        payload["files"]["cardiac_sweep"] = "cardiac_sweep.csv"
+    paths["json"] = out / "registration.json"
+    write_text_atomic(paths["json"], json.dumps(payload, indent=1, allow_nan=False) + "\n")
+    paths["sweep"] = out / "sweep.csv"
+    write_text_atomic(paths["sweep"], sweep_csv_text(result.respiration_sweep))
+    if result.cardiac_sweep is not None:
+        paths["cardiac_sweep"] = out / "cardiac_sweep.csv"
+        write_text_atomic(paths["cardiac_sweep"], sweep_csv_text(result.cardiac_sweep))
+    paths.update(write_plots(result, out))
+    notes = []
+    if model is not None and view:
+        from modeling.render import RenderError
+        from registration.view import render_registration_png
+
+        try:
+            paths["fig8"] = render_registration_png(model, result, out / "fig8_view.png")
+        except RenderError as exc:
+            notes.append(f"fig8_view.png skipped: {exc}")
+    paths["notes"] = notes
+    return paths
+
+
+# ------------------------------------------------------------------ plots
+def _figure(ncols, width=11.0, height=4.2):
+    from matplotlib.figure import Figure  # no pyplot: no global backend state
+
+    fig = Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
+    axes = fig.subplots(1, ncols, squeeze=False)[0]
+    return fig, axes
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def _mark(ax, x, label, colour="#c0392b"):
+    ax.axvline(x, color=colour, linestyle="--", linewidth=1.2, label=label)
+
+
+def write_plots(result: RegistrationResult, out_dir) -> dict:
+    """Write fig2_rms, fig6_parameters, fig7_distances and fig9_delta PNGs.
+
+    Returns
+    -------
+    dict of Path by name ("fig2", "fig6", "fig7", "fig9").
+    """
+    out = Path(out_dir)
+    resp = result.respiration_sweep
+    card = result.cardiac_sweep
+    phi_r, phi_c = result.phase_r, result.phase_c
+    paths = {}
+
+    # Fig. 2: RMS vs phase
+    fig, (ax_c, ax_r) = _figure(2)
+    if card is not None:
+        ax_c.plot(card.phases, card.rms_mm, color="#2c3e50", marker=".", markersize=3)
+        _mark(ax_c, phi_c, f"image phase $\\varphi_C^*$ = {phi_c:.2f}")
+        ax_c.legend(loc="upper right", fontsize=8)
+    else:
+        ax_c.text(0.5, 0.5, "cardiac sweep not run", ha="center", va="center", transform=ax_c.transAxes)
+    ax_c.set_title(f"(A) cardiac phase swept at $\\varphi_R$ = {phi_r:.2f}", fontsize=10)
+    ax_c.set_xlabel("cardiac phase $\\varphi_C$")
+    ax_r.plot(resp.phases, resp.rms_mm, color="#2c3e50", marker=".", markersize=3)
+    _mark(ax_r, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f} (eq. 10)")
+    ax_r.legend(loc="upper right", fontsize=8)
+    ax_r.set_title(f"(B) respiration phase swept at $\\varphi_C^*$ = {phi_c:.2f}", fontsize=10)
+    ax_r.set_xlabel("respiration phase $\\varphi_R$")
+    for ax in (ax_c, ax_r):
+        ax.set_ylabel("RMS point-to-surface error (mm)")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    fig.suptitle("Registration error over phase (cf. Wood et al. 2018, Fig. 2)", fontsize=11)
+    paths["fig2"] = _save(fig, out / "fig2_rms.png")
+
+    # Fig. 6: registration parameters vs phi_R
+    fig, (ax_t, ax_e) = _figure(2)
+    colours = ("#c0392b", "#27ae60", "#2980b9")
+    for j, (c, name) in enumerate(zip(colours, "xyz")):
+        ax_t.plot(resp.phases, resp.correction_translation_mm[:, j], color=c, label=f"$t_{name}$")
+        ax_e.plot(resp.phases, resp.correction_euler_xyz_deg[:, j], color=c, label=f"$r_{name}$")
+    for ax, unit, title in ((ax_t, "mm", "(A) translation"), (ax_e, "deg", "(B) rotation, Euler X-Y-Z")):
+        _mark(ax, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f}", colour="#7f8c8d")
+        ax.axhline(0.0, color="black", linewidth=0.6)
+        ax.set_xlabel("respiration phase $\\varphi_R$")
+        ax.set_ylabel(unit)
+        ax.set_xlim(0, 1)
+        ax.set_title(title, fontsize=10)
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(lo, hi + 0.25 * (hi - lo))  # room for the legend
+        ax.legend(fontsize=8, ncol=4, loc="upper right")
+        ax.grid(alpha=0.3)
+    fig.suptitle(
+        "Correction $T\\,T_0^{-1}$ of the fiducial registration, heart frame, at the heart centre "
+        "(cf. Fig. 6)", fontsize=11,
+    )
+    paths["fig6"] = _save(fig, out / "fig6_parameters.png")
+
+    # Fig. 7: distance magnitudes vs phi_R
+    fig, (ax_t, ax_r) = _figure(2)
+    ax_t.plot(resp.phases, resp.translation_distance_mm, color="#2c3e50")
+    ax_r.plot(resp.phases, resp.rotation_distance_deg, color="#2c3e50")
+    i = resp.best_index
+    ax_t.plot([phi_r], [resp.translation_distance_mm[i]], "o", color="#c0392b",
+              label=f"min at $\\varphi_R^*$ = {phi_r:.2f}: {resp.translation_distance_mm[i]:.2f} mm")
+    ax_r.plot([phi_r], [resp.rotation_distance_deg[i]], "o", color="#c0392b",
+              label=f"at $\\varphi_R^*$: {resp.rotation_distance_deg[i]:.2f} deg")
+    for ax, unit, title in ((ax_t, "mm", "(A) translation distance from $T_0$"),
+                            (ax_r, "deg", "(B) rotation distance from $T_0$")):
+        _mark(ax, phi_r, None)
+        ax.set_xlabel("respiration phase $\\varphi_R$")
+        ax.set_ylabel(unit)
+        ax.set_xlim(0, 1)
+        ax.set_ylim(bottom=0)
+        ax.set_title(title, fontsize=10)
+        ax.legend(fontsize=8, loc="upper right")
+        ax.grid(alpha=0.3)
+    fig.suptitle("Distance of the registration from the fiducial seed (cf. Fig. 7, eq. 10)", fontsize=11)
+    paths["fig7"] = _save(fig, out / "fig7_distances.png")
+
+    # Fig. 9: delta per point
+    fig, (ax,) = _figure(1, width=7.5, height=4.2)
+    delta = result.static.delta_mm
+    ax.plot(result.point_ids, delta, "o", color="#2980b9", markersize=4, label="$\\delta_i$ per point")
+    ax.axhline(result.delta_static_mean_mm, color="#c0392b", linewidth=1.5,
+               label=f"mean {result.delta_static_mean_mm:.2f} mm ({delta.size} points)")
+    ax.set_xlabel("point id")
+    ax.set_ylabel("$\\delta_i$ (mm)")
+    ax.set_ylim(0, 1.3 * max(float(delta.max()), 1e-3))  # room for the legend
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left", ncol=2)
+    ax.set_title("Surface distance between spatiotemporal and static registration (cf. Fig. 9)",
+                 fontsize=10)
+    paths["fig9"] = _save(fig, out / "fig9_delta.png")
+    return paths

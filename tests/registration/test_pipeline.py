@@ -1,0 +1,215 @@
+"""The registration pipeline, its files and the ``register`` command, against phantom truth.
+
+The session is the phantom's (trial 1: its fiducial error runs across the
+heart's respiratory path, so eq. 10 recovers phi_R*).  The model is built
+without the CT pipeline, from the phantom's analytic heart at the true image
+phases (``heart_grid_mesh``: vertices exactly on the surface, 20k faces), with
+the true phi_C* and CT fiducials; written and read back as a model folder.
+The truth of the registration is ``T_heart_from_patient @ T*``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from heartreg.cli import main
+from heartreg.phantom import config as phantom_config
+from heartreg.phantom import layout, make_phantom
+from modeling.model import ModelError, make_heart_model, read_model, write_model
+from modeling.surface import Mesh
+from registration.pipeline import RegistrationError, register_session, sweep_phases
+from registration.report import SWEEP_COLUMNS, write_registration
+from registration.session import SessionError, read_session
+from registration.transforms import apply_to_points, invert, rotation_distance_deg, translation_distance_mm
+
+from .conftest import heart_grid_mesh
+
+PRESET = "wood2018-trial1"
+N_POINTS = 30
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pipeline")
+    truth = make_phantom(root / "phantom", preset=PRESET, size="sample", seed=0, n_points=N_POINTS)
+    heart = layout.make_heart(phantom_config.PRESETS[PRESET])
+    vertices, faces = heart_grid_mesh(heart, truth["cardiac_phase"], truth["respiration_phase"])
+    built = make_heart_model(
+        Mesh(vertices, faces),
+        cardiac_phase=truth["cardiac_phase"],
+        cardiac_phase_source="truth",
+        fiducials_patient_mm=truth["fiducials_patient_mm"],
+    )
+    model = read_model(write_model(built, root / "model"))
+    session = read_session(root / "phantom" / "session")
+    result = register_session(model, session, cardiac_phase_step=0.05)
+    paths = write_registration(result, root / "out", model=model)
+    T_true = model.T_heart_from_patient @ np.asarray(truth["T_patient_from_probe"])
+    return dict(root=root, truth=truth, model=model, session=session, result=result, paths=paths,
+                T_true=T_true)
+
+
+def _errors(T, T_true):
+    """Translation error at the heart centre (heart-frame origin, mm) and rotation error (deg)."""
+    centre_probe = apply_to_points(invert(T_true), np.zeros(3))
+    return float(translation_distance_mm(T, T_true, centre_probe)), float(rotation_distance_deg(T, T_true))
+
+
+def test_respiration_phase_is_recovered(case):
+    # paper: eq. 10 finds phi_R* within +-0.05 (trial 1: the fiducial error runs
+    # along the heart's respiratory path)
+    result = case["result"]
+    assert abs(result.phase_r - case["truth"]["respiration_phase"]) <= 0.05
+    assert result.phase_c == pytest.approx(case["truth"]["cardiac_phase"])
+    assert result.respiration_sweep.phases.shape == (101,)
+    assert result.phase_r == result.respiration_sweep.best_phase
+
+
+def test_final_transform_matches_truth_and_beats_static_and_T0(case):
+    result, T_true = case["result"], case["T_true"]
+    t_err, r_err = _errors(result.T_heart_from_probe, T_true)
+    # model noise averages out over 30 x 3000 samples; the residual error is the
+    # phi_R* quantisation and the mesh's chords (well below 2 mm / 2 deg)
+    assert t_err < 2.0 and r_err < 2.0
+    t0_err, r0_err = _errors(result.T0_heart_from_probe, T_true)
+    assert t0_err > 5.0  # the phantom's CT-to-surgery skin shift
+    s_err, s_rot = _errors(result.static.T_static, T_true)
+    assert s_err > t_err and s_rot > r_err
+    assert result.rms_mm < 0.5
+    assert result.fre_mm > 0 and result.fiducial_residuals_mm.shape == (9,)
+    assert not result.fiducials_reordered
+    np.testing.assert_allclose(result.euler_xyz_deg.shape, (3,))
+
+
+def test_delta_and_point_fits_are_reported(case):
+    result = case["result"]
+    n = result.n_points
+    assert n == N_POINTS and not result.exclusions
+    assert result.static.delta_mm.shape == (n,)
+    assert result.delta_static_mean_mm == pytest.approx(result.static.delta_mm.mean())
+    assert result.delta_static_mean_mm > 0.5  # the static registration puts points elsewhere
+    truth_points = {p["id"]: p for p in case["truth"]["session"]["points"]}
+    for fit, record in zip(result.point_fits, case["session"].points):
+        assert fit.point_id == record.point_id
+        assert fit.n_used + fit.n_nan_phase == record.n_samples
+        assert fit.n_nan_phase > 0  # before the first / after the last event: never extrapolated
+        assert fit.n_beats >= 20 and fit.n_breaths >= 4
+        # least squares over ~2900 samples and 27 terms leaves ~ the tracker noise
+        noise = np.linalg.norm(truth_points[fit.point_id]["position_noise_rms_mm"])
+        assert fit.residual_rms_3d_mm <= 1.2 * noise
+    assert result.points_probe_mm.shape == result.normals_probe.shape == (n, 3)
+    np.testing.assert_allclose(np.linalg.norm(result.normals_probe, axis=1), 1.0, atol=1e-9)
+    assert result.icp.hessian_eigenvalues.shape == (6,) and not result.icp.degenerate
+
+
+def test_registration_json_and_sweep_csv_match_the_result(case):
+    result, out = case["result"], case["root"] / "out"
+    data = json.loads((out / "registration.json").read_text())
+    for key in ("respiration_phase", "cardiac_phase", "T_heart_from_probe", "T0_heart_from_probe",
+                "rms_mm", "delta_static_mean_mm", "translation_distance_mm", "rotation_distance_deg",
+                "euler_xyz_deg", "fre_mm", "point_fits", "exclusions", "parameters", "version"):
+        assert key in data, key
+    assert data["respiration_phase"] == result.phase_r
+    np.testing.assert_allclose(data["T_heart_from_probe"], result.T_heart_from_probe)
+    np.testing.assert_allclose(data["euler_xyz_deg"], result.euler_xyz_deg)
+    assert data["parameters"]["harmonics"] == {"cardiac": 5, "respiratory": 4, "coupled_cardiac": 2,
+                                               "coupled_respiratory": 1}
+    assert len(data["point_fits"]) == result.n_points
+    with open(out / "sweep.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["phase_r", *SWEEP_COLUMNS]
+    assert len(rows) == 101
+    sweep = result.respiration_sweep
+    np.testing.assert_allclose([float(r["phase_r"]) for r in rows], sweep.phases, atol=1e-4)
+    np.testing.assert_allclose([float(r["translation_distance_mm"]) for r in rows],
+                               sweep.translation_distance_mm, atol=1e-5)
+    # tx..tz are the correction at the pivot: their norm is the translation distance
+    t = np.array([[float(r[c]) for c in ("tx_mm", "ty_mm", "tz_mm")] for r in rows])
+    np.testing.assert_allclose(np.linalg.norm(t, axis=1), sweep.translation_distance_mm, atol=1e-4)
+    best = int(np.argmin([float(r["translation_distance_mm"]) for r in rows]))
+    assert float(rows[best]["phase_r"]) == pytest.approx(result.phase_r)
+    with open(out / "cardiac_sweep.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 21
+    for name in ("fig2_rms.png", "fig6_parameters.png", "fig7_distances.png", "fig9_delta.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the 3-D view is drawn, or skipped with a reason (no offscreen OpenGL)
+    assert (out / "fig8_view.png").is_file() or any("fig8" in n for n in case["paths"]["notes"])
+    text = (out / "registration.json").read_text()
+    assert str(case["root"]) not in text  # no paths (a folder name can identify a patient)
+
+
+def test_cli_register_end_to_end(case, tmp_path, capsys):
+    out = tmp_path / "reg"
+    rc = main(["register", str(case["root"] / "model"), str(case["root"] / "phantom" / "session"),
+               "-o", str(out), "--step", "0.05", "--no-view", "-q"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "phi_R* =" in text and "FRE" in text and "exclusions" in text
+    data = json.loads((out / "registration.json").read_text())
+    assert data["parameters"]["phase_step"] == 0.05
+    assert len((out / "sweep.csv").read_text().splitlines()) == 1 + 21
+    assert abs(data["respiration_phase"] - case["truth"]["respiration_phase"]) <= 0.05
+
+
+def test_cli_missing_model_folder_is_one_clear_line(case, tmp_path, capsys):
+    rc = main(["register", str(tmp_path / "nope"), str(case["root"] / "phantom" / "session"),
+               "-o", str(tmp_path / "out")])
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "does not exist" in err and "heartreg model" in err
+    with pytest.raises(ModelError, match="does not exist"):
+        read_model(tmp_path / "nope")
+
+
+def test_fiducial_count_mismatch_is_an_error(case, tmp_path):
+    model = dataclasses.replace(case["model"], fiducials_patient_mm=case["model"].fiducials_patient_mm[:8])
+    with pytest.raises(RegistrationError, match="8 fiducials but the session touched 9"):
+        register_session(model, case["session"], cardiac_sweep=False)
+    no_fid = dataclasses.replace(case["model"], fiducials_patient_mm=np.zeros((0, 3)))
+    with pytest.raises(RegistrationError, match="no fiducials"):
+        register_session(no_fid, case["session"], cardiac_sweep=False)
+    # a session folder that lists 8 touched staples is refused by the reader
+    session_dir = tmp_path / "session"
+    shutil.copytree(case["root"] / "phantom" / "session", session_dir)
+    lines = (session_dir / "fiducials.csv").read_text().splitlines()
+    (session_dir / "fiducials.csv").write_text("\n".join(lines[:-1]) + "\n")
+    with pytest.raises(SessionError, match="fiducials.csv"):
+        read_session(session_dir)
+
+
+def _truncate(path: Path, seconds: float, rate_hz: float = 100.0):
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[: 1 + int(seconds * rate_hz)]) + "\n")
+
+
+def test_short_points_are_excluded_with_a_reason(case, tmp_path):
+    session_dir = tmp_path / "session"
+    shutil.copytree(case["root"] / "phantom" / "session", session_dir)
+    _truncate(session_dir / "points" / "point_000.csv", 8.0)   # reader: shorter than 10 s
+    _truncate(session_dir / "points" / "point_001.csv", 12.0)  # at most 2 breaths of 5 s
+    session = read_session(session_dir)
+    result = register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False, min_breaths=4)
+    reasons = dict(result.exclusions)
+    assert set(reasons) == {0, 1}
+    assert "shorter than min_duration_s" in reasons[0]
+    assert "breath" in reasons[1] and "min_breaths = 4" in reasons[1]
+    assert result.n_points == N_POINTS - 2 and 0 not in result.point_ids and 1 not in result.point_ids
+    assert any("excluded" in note for note in result.notes)
+    # too few points left is an error that says what to do
+    with pytest.raises(RegistrationError, match="record more points"):
+        register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False, min_beats=10_000)
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="divide one cycle"):
+        sweep_phases(0.03)
+    assert sweep_phases(0.01).shape == (101,)
+    with pytest.raises(ValueError, match="step must be in"):
+        sweep_phases(0.0)
