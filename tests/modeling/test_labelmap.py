@@ -1,0 +1,146 @@
+"""External label maps: NIfTI, NRRD and DICOM SEG, resampled through both affines.
+
+Truth: a label map whose voxels encode a known patient-space ball; after
+resampling onto another grid, every voxel centre of the result must lie inside
+the ball (up to one source voxel) and the ball's volume must be kept.
+"""
+
+from __future__ import annotations
+
+import gzip
+
+import numpy as np
+import pydicom
+import pytest
+from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+from imaging.seg import SEG_SOP_CLASS
+from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
+
+CENTRE = np.array([10.0, -20.0, 30.0])
+RADIUS = 15.0
+
+
+def _ball_labels(T, shape_kji, value=3):
+    k, j, i = np.indices(shape_kji)
+    ijk = np.stack([i, j, k], axis=-1).reshape(-1, 3).astype(float)
+    p = ijk @ T[:3, :3].T + T[:3, 3]
+    inside = np.linalg.norm(p - CENTRE, axis=1) <= RADIUS
+    return np.where(inside, value, 0).reshape(shape_kji).astype(np.uint8)
+
+
+def _target_grid():
+    """An oblique 1.5 mm grid around the ball (the 'CT')."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [10, 20, -15], degrees=True).as_matrix() * 1.5
+    T[:3, 3] = CENTRE - T[:3, :3] @ np.array([15, 15, 15])
+    return T, (30, 30, 30)
+
+
+def _check(label_map, label=3):
+    T, shape = _target_grid()
+    mask = mask_on_grid(label_map, shape, T, label=label)
+    k, j, i = np.nonzero(mask)
+    p = np.stack([i, j, k], axis=1) @ T[:3, :3].T + T[:3, 3]
+    assert np.linalg.norm(p - CENTRE, axis=1).max() <= RADIUS + 1.0  # one source voxel
+    volume = mask.sum() * abs(np.linalg.det(T[:3, :3]))
+    assert volume == pytest.approx(4 / 3 * np.pi * RADIUS**3, rel=0.08)
+
+
+def _source_T():
+    T = np.diag([0.8, 0.9, 1.1, 1.0])
+    T[:3, 3] = CENTRE - 20.0
+    return T, (40, 46, 52)  # (k, j, i)
+
+
+def test_nrrd_lps_and_ras_gzip(tmp_path):
+    T, shape = _source_T()
+    labels = _ball_labels(T, shape)
+    for space, flip in (("left-posterior-superior", np.eye(3)), ("right-anterior-superior", np.diag([-1.0, -1.0, 1.0]))):
+        M = flip @ T[:3, :3]
+        origin = flip @ T[:3, 3]
+        dirs = " ".join("(" + ",".join(f"{v:.6f}" for v in M[:, c]) + ")" for c in range(3))
+        header = (
+            "NRRD0004\ntype: uint8\ndimension: 3\n"
+            f"space: {space}\nsizes: {shape[2]} {shape[1]} {shape[0]}\n"
+            f"space directions: {dirs}\nencoding: gzip\n"
+            f"space origin: ({origin[0]:.6f},{origin[1]:.6f},{origin[2]:.6f})\n\n"
+        )
+        path = tmp_path / f"ball_{space[:4]}.nrrd"
+        path.write_bytes(header.encode() + gzip.compress(labels.tobytes()))
+        _check(read_label_map(path))
+
+
+def _write_seg(path, T, labels):
+    """A minimal binary DICOM SEG of one segment (number 3) on the grid T."""
+    frames = [k for k in range(labels.shape[0]) if labels[k].any()]
+    ds = Dataset()
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.MediaStorageSOPClassUID = SEG_SOP_CLASS
+    ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.SOPClassUID = SEG_SOP_CLASS
+    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID
+    ds.Modality = "SEG"
+    ds.SegmentationType = "BINARY"
+    ds.Rows, ds.Columns = labels.shape[1], labels.shape[2]
+    ds.NumberOfFrames = len(frames)
+    ds.SamplesPerPixel, ds.BitsAllocated, ds.BitsStored, ds.HighBit = 1, 1, 1, 0
+    ds.PixelRepresentation = 0
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    seg = Dataset()
+    seg.SegmentNumber = 3
+    seg.SegmentLabel = "Heart"
+    ds.SegmentSequence = [seg]
+    shared = Dataset()
+    orient = Dataset()
+    spacing = np.linalg.norm(T[:3, :3], axis=0)
+    orient.ImageOrientationPatient = list(T[:3, 0] / spacing[0]) + list(T[:3, 1] / spacing[1])
+    measures = Dataset()
+    measures.PixelSpacing = [float(spacing[1]), float(spacing[0])]
+    measures.SliceThickness = float(spacing[2])
+    measures.SpacingBetweenSlices = float(spacing[2])
+    shared.PlaneOrientationSequence = [orient]
+    shared.PixelMeasuresSequence = [measures]
+    ds.SharedFunctionalGroupsSequence = [shared]
+    per_frame = []
+    for k in frames:
+        item, pos, ident = Dataset(), Dataset(), Dataset()
+        pos.ImagePositionPatient = [float(v) for v in T[:3, 3] + k * T[:3, 2]]
+        ident.ReferencedSegmentNumber = 3
+        item.PlanePositionSequence = [pos]
+        item.SegmentIdentificationSequence = [ident]
+        per_frame.append(item)
+    ds.PerFrameFunctionalGroupsSequence = per_frame
+    bits = np.packbits((labels[frames] > 0).reshape(-1), bitorder="little")
+    ds.PixelData = bits.tobytes() + (b"\0" if len(bits) % 2 else b"")
+    ds.save_as(path, enforce_file_format=True)
+
+
+def test_dicom_seg(tmp_path):
+    T, shape = _source_T()
+    labels = _ball_labels(T, shape)
+    path = tmp_path / "seg.dcm"
+    _write_seg(path, T, labels)
+    label_map = read_label_map(path)
+    assert label_map.names == {3: "Heart"}
+    _check(label_map)
+
+
+def test_unknown_file_and_label(tmp_path):
+    bad = tmp_path / "mask.txt"
+    bad.write_text("not a label map")
+    with pytest.raises(LabelMapError, match="neither NIfTI"):
+        read_label_map(bad)
+    with pytest.raises(LabelMapError, match="does not exist"):
+        read_label_map(tmp_path / "missing.nii.gz")
+    T, shape = _source_T()
+    from modeling.labelmap import LabelMap
+
+    lm = LabelMap(_ball_labels(T, shape), T, "ball", {})
+    with pytest.raises(LabelMapError, match="label 5 is not in"):
+        mask_on_grid(lm, (10, 10, 10), np.eye(4), label=5)
+    assert pydicom.__version__  # pydicom wrote and read the SEG above
