@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.coarse import block_mean_max, coarse_step
+
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
 
 #: Excess density is counted above this HU (above any skin or soft tissue).
@@ -143,21 +145,8 @@ def find_fiducials(
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
 
     # coarse grid (~2 mm): block maxima keep every marker, block means find the air
-    step = np.maximum(1, np.round(COARSE_MM / spacing_kji)).astype(int)
-    shape = tuple(int(n) for n in -(-np.array(hu.shape) // step))
-    cmax = np.full(shape, -np.inf, np.float32)
-    csum = np.zeros(shape, np.float32)
-    count = np.zeros(shape, np.float32)
-    for dk in range(step[0]):
-        for dj in range(step[1]):
-            for di in range(step[2]):
-                part = hu[dk :: step[0], dj :: step[1], di :: step[2]]
-                view = (slice(0, part.shape[0]), slice(0, part.shape[1]), slice(0, part.shape[2]))
-                np.maximum(cmax[view], part, out=cmax[view])
-                csum[view] += part
-                count[view] += 1
-    cmean = csum / count
-    del csum, count
+    step = coarse_step(spacing_kji, COARSE_MM)
+    cmean, cmax = block_mean_max(hu, step)
     cspacing = spacing_kji * step
 
     # the air outside the body: low-HU components that reach the in-plane border

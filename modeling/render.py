@@ -28,7 +28,7 @@ import numpy as np
 
 from modeling.model import HeartModel
 
-__all__ = ["RenderError", "offscreen_available", "render_model_png"]
+__all__ = ["RenderError", "offscreen_available", "render_model_png", "render_png"]
 
 
 def _choose_offscreen_window() -> None:
@@ -103,6 +103,28 @@ def render_model_png(
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")
+    return render_png(lambda size: _draw(model, ellipses=ellipses, size=size), path, size=size, what="the model")
+
+
+def render_png(draw, path, *, size: tuple[int, int], what: str) -> Path:
+    """Run an offscreen drawing and save its image as a PNG, atomically.
+
+    Parameters
+    ----------
+    draw : callable
+        ``draw((width, height)) -> (h, w, 3) uint8`` image, using pyvista offscreen.
+    path : str or Path
+        Output ``.png``.
+    size : (width, height) int, pixels
+    what : str
+        What is drawn, for error messages.
+
+    Raises
+    ------
+    RenderError
+        No offscreen OpenGL (the message says what to install), VTK failed, or
+        the image came out blank.
+    """
     width, height = (int(s) for s in size)
     if width < 64 or height < 64:
         raise ValueError(f"size must be at least (64, 64) pixels, got {size}")
@@ -116,11 +138,11 @@ def render_model_png(
             "(vtkEGLRenderWindow); skipping the 3-D picture"
         )
     try:
-        img = _draw(model, ellipses=ellipses, size=(width, height))
+        img = draw((width, height))
     except RenderError:
         raise
     except Exception as exc:  # noqa: BLE001 - VTK raises many kinds
-        raise RenderError(f"VTK failed to render the model: {exc}") from exc
+        raise RenderError(f"VTK failed to render {what}: {exc}") from exc
     if img.std() < 1.0:
         raise RenderError("the rendered image is blank; check the offscreen OpenGL setup")
     from PIL import Image

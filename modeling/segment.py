@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.coarse import block_mean_max, coarse_step
+
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
 
@@ -58,23 +60,6 @@ class HeartSegmentation:
 
 def _spacing(T) -> np.ndarray:
     return np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
-
-
-def _block_mean(hu, step) -> np.ndarray:
-    """Mean over blocks of ``step`` voxels (k, j, i), float32; edges padded."""
-    hu = np.asarray(hu)
-    if np.all(step == 1):
-        return hu.astype(np.float32)
-    shape = -(-np.array(hu.shape) // step) * step
-    out = np.zeros(tuple(shape // step), np.float32)
-    count = np.zeros_like(out)
-    for dk in range(step[0]):
-        for dj in range(step[1]):
-            for di in range(step[2]):
-                part = hu[dk :: step[0], dj :: step[1], di :: step[2]]
-                out[: part.shape[0], : part.shape[1], : part.shape[2]] += part
-                count[: part.shape[0], : part.shape[1], : part.shape[2]] += 1
-    return out / count
 
 
 def _fill_holes(mask) -> np.ndarray:
@@ -166,8 +151,8 @@ def segment_heart(
     notes: list[str] = []
 
     # ---- coarse grid (~coarse_mm): block means, which also average the noise
-    step = np.maximum(1, np.round(coarse_mm / spacing_kji)).astype(int)
-    coarse = _block_mean(hu, step)
+    step = coarse_step(spacing_kji, coarse_mm)
+    coarse, _ = block_mean_max(hu, step)
     cspacing = spacing_kji * step
     if smooth_mm > 0:
         coarse = ndimage.gaussian_filter(coarse, sigma=smooth_mm / cspacing)

@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 
 from imaging.files import atomic_path, write_text_atomic
 from registration.pipeline import RegistrationResult

@@ -13,14 +13,12 @@ and the caller skips the picture.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from modeling.model import HeartModel
-from modeling.render import RenderError, offscreen_available
+from modeling.render import render_png
 from registration.icp import SurfaceIndex, closest_points
 from registration.pipeline import RegistrationResult
 
@@ -67,38 +65,7 @@ def render_registration_png(
             f"the model has {model.mesh.n_faces} faces but the result was registered to a "
             f"mesh of {result.n_faces}: pass the model the session was registered to"
         )
-    width, height = (int(s) for s in size)
-    if width < 64 or height < 64:
-        raise ValueError(f"size must be at least (64, 64) pixels, got {size}")
-    path = Path(path)
-    if path.suffix.lower() != ".png":
-        raise ValueError(f"path must end in .png, got {path.name}")
-    if not offscreen_available():
-        raise RenderError(
-            "offscreen OpenGL is not available: install Debian's libosmesa6 (and set "
-            "VTK_DEFAULT_OPENGL_WINDOW=vtkOSOpenGLRenderWindow) or libegl1 libgl1 "
-            "(vtkEGLRenderWindow); skipping the 3-D picture"
-        )
-    try:
-        img = _draw(model, result, size=(width, height))
-    except RenderError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - VTK raises many kinds
-        raise RenderError(f"VTK failed to render the registration: {exc}") from exc
-    if img.std() < 1.0:
-        raise RenderError("the rendered image is blank; check the offscreen OpenGL setup")
-    from PIL import Image
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(img).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return render_png(lambda size: _draw(model, result, size=size), path, size=size, what="the registration")
 
 
 def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
