@@ -113,6 +113,7 @@ def _cmd_model(args) -> int:
         target_faces=args.faces,
         expected_fiducials=None if args.fiducials == 0 else args.fiducials,
         fiducial_floor_hu=args.fiducial_floor_hu,
+        trim_vessels=not args.keep_vessels,
         progress=lambda name: bar.set_postfix_str(name) or bar.update(0 if name == "mask" else 1),
     )
     bar.set_postfix_str("write")
@@ -204,6 +205,31 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _cmd_reproduce(args) -> int:
+    from heartreg.reproduce import reproduce
+
+    argv = ["heartreg", "reproduce", "-o", str(args.out_dir), "--size", args.size, "--seed", str(args.seed),
+            "--trials", *map(str, args.trials)]
+    if args.points is not None:
+        argv += ["--points", str(args.points)]
+    if args.step != 0.01:
+        argv += ["--step", str(args.step)]
+    if args.report_only:
+        argv += ["--report-only"]
+    result = reproduce(
+        args.out_dir, size=args.size, seed=args.seed, trials=args.trials, n_points=args.points,
+        phase_step=args.step, command=" ".join(argv), rerun=not args.report_only, progress=not args.quiet,
+        log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
+    )
+    print((result.out_dir / "reproduction.md").read_text())
+    s = result.summary
+    print(f"phi_R* within 0.05 of the truth in {s['phi_r_within']} of {s['n_trials']} trial(s)"
+          + (f"; misses: {', '.join(f'trial {k}' for k in s['misses'])}" if s["misses"] else ""))
+    print(f"all outputs in {result.out_dir}; open {result.paths['html']} in a browser")
+    print("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.timings_s.items()))
+    return 0
+
+
 def _add_study_options(p) -> None:
     p.add_argument("study_dir", type=Path, help="folder holding the DICOM study (searched recursively)")
     p.add_argument("--qrs", type=Path, default=None,
@@ -250,6 +276,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--faces", type=int, default=20000, help="faces of the decimated mesh")
     p.add_argument("--fiducials", type=int, default=9, help="skin fiducials expected (0: none)")
     p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
+    p.add_argument("--keep-vessels", action="store_true",
+                   help="keep the great-vessel stubs (do not trim them off the base)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.set_defaults(func=_cmd_model)
 
@@ -281,6 +309,19 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_register)
+
+    p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")
+    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (phantom cases reused)")
+    p.add_argument("--size", default="full", choices=sorted(SIZES), help="phantom CT grid (default full)")
+    p.add_argument("--seed", type=int, default=0, help="phantom seed of every trial")
+    p.add_argument("--trials", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], metavar="N",
+                   help="trials of Table 1 to run (default all six)")
+    p.add_argument("--points", type=int, default=None, help="attachment points per session instead of Table 1's")
+    p.add_argument("--step", type=float, default=0.01, help="phase step of the sweeps (default 0.01)")
+    p.add_argument("--report-only", action="store_true",
+                   help="re-draw the tables, figures and page from an earlier run in OUT_DIR; run nothing")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_cmd_reproduce)
     return parser
 
 

@@ -1,12 +1,13 @@
 """Find DICOM files under a folder and read the headers needed to group them.
 
 Only headers are read here (``stop_before_pixels=True``); pixel data are decoded
-later, one slice at a time, by :mod:`imaging.volume`. Every image frame becomes one
-private :class:`_Frame` record (a classic single-frame file gives one record, an
-Enhanced CT multi-frame file one per frame, with its per-frame functional groups
-resolved and the shared groups as fallback). Files that carry no image (ECG
-waveforms, structured reports, ...) become :class:`_Other` records so that
-``list_series`` can show them.
+later, one slice at a time, by :mod:`imaging.volume`, which reads uncompressed
+little-endian frames straight from the file offset recorded here. Every image
+frame becomes one private :class:`_Frame` record (a classic single-frame file
+gives one record, an Enhanced CT multi-frame file one per frame, with its
+per-frame functional groups resolved and the shared groups as fallback). Files
+that carry no image (ECG waveforms, structured reports, ...) become
+:class:`_Other` records so that ``list_series`` can show them.
 
 Nothing identifying a patient is copied out of the datasets.
 """
@@ -222,7 +223,10 @@ def _dt_to_seconds(value) -> float | None:
 # directly, but only when the result is certainly the one pydicom would give
 # (printable ASCII text without a value delimiter, finite numbers, the expected
 # VR or implicit VR, one binary value); anything else is converted by pydicom as
-# before, so odd files behave exactly as they used to.
+# before, so odd files behave exactly as they used to. pydicom's validation
+# warnings about such values are not emitted; when a caller asked pydicom to
+# raise on invalid values (``reading_validation_mode = RAISE``) everything goes
+# through pydicom.
 
 _PYDICOM = object()  # "let pydicom convert this element"
 
@@ -323,6 +327,7 @@ def _raw_value(elem, vr: str, parse):
     if (
         parse is None
         or not isinstance(elem, RawDataElement)
+        or pydicom.config.settings.reading_validation_mode == pydicom.config.RAISE
         or (elem.VR is not None and elem.VR != vr)
         or not elem.value
     ):

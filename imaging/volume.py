@@ -473,7 +473,11 @@ def _read_native(frame: _Frame, dtype: np.dtype, out: np.ndarray | None = None) 
 
 
 def _decode(frame: _Frame, plugin: str) -> np.ndarray:
-    """Stored values of one frame, (rows, cols)."""
+    """Stored values of one frame, (rows, cols).
+
+    Native little-endian data are read straight from the file (`_read_native`);
+    everything else is decoded by pydicom.
+    """
     from pydicom.pixels import pixel_array
 
     dtype = _native_dtype(frame)
@@ -537,25 +541,29 @@ def _wrap16(value: int) -> np.int16:
     return np.int16((value + 32768) % 65536 - 32768)
 
 
-def _read_hu_int16_into(dst: np.ndarray, frame: _Frame, dtype: np.dtype) -> np.ndarray | None:
-    """Read a 16-bit native frame straight into the int16 slice `dst` and rescale it.
+def _read_hu_int16_into(dst: np.ndarray, frame: _Frame) -> bool:
+    """Read a 16-bit native frame straight into the int16 slice `dst`, as HU.
 
-    Returns None when done, or the stored values (a copy) when the rescaled values
-    do not fit int16. Integer slope and intercept only (see `_int16_possible`);
-    the arithmetic is done in place modulo 2**16, exact since the result fits.
+    Returns False, `dst` then holding nothing useful, when the frame is not
+    16-bit native data (see `_native_dtype`) or its rescaled values do not fit
+    int16. Integer slope and intercept only (see `_int16_possible`): the rescale
+    is done in place modulo 2**16, which is exact since the result fits int16.
     """
+    dtype = _native_dtype(frame)
+    if dtype is None or dtype.itemsize != 2:
+        return False
     stored = _read_native(frame, dtype, out=dst.view(dtype))
     s, b = _rescale(frame)
     s, b = int(round(s)), int(round(b))
     lo, hi = int(stored.min()), int(stored.max())
     ends = (s * lo + b, s * hi + b)
     if min(ends) < _INT16.min or max(ends) > _INT16.max:
-        return stored.copy()
+        return False
     if s != 1:
         np.multiply(dst, _wrap16(s), out=dst)
     if b != 0:
         np.add(dst, _wrap16(b), out=dst)
-    return None
+    return True
 
 
 def _slice_hu_float(arr: np.ndarray, frame: _Frame) -> np.ndarray:
@@ -567,7 +575,9 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
     """Decode and place every slice; returns (hu, notes).
 
     The output array is allocated once and filled one slice at a time; resampling
-    keeps at most two decoded input slices alive.
+    keeps at most two decoded input slices alive. Uncompressed little-endian
+    16-bit slices are read from their files straight into the output and rescaled
+    in place; other data go through pydicom (see `_decode`).
     """
     frames = plan.frames
     rows, cols = frames[0].rows, frames[0].columns
@@ -601,16 +611,10 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
 
     if not resampling:
         for k, f in enumerate(frames):
-            dtype = _native_dtype(f)
-            if out.dtype == np.int16 and dtype is not None and dtype.itemsize == 2:
-                arr = _read_hu_int16_into(out[k], f, dtype)
-                if arr is None:
-                    if bar is not None:
-                        bar.update()
-                    continue
-            else:
+            if out.dtype == np.int16 and _read_hu_int16_into(out[k], f):
+                pass  # read and rescaled in place, the common case
+            elif out.dtype == np.int16:
                 arr = _decode(f, plugins[f.transfer_syntax_uid])
-            if out.dtype == np.int16:
                 hu = _slice_hu_int(arr, f)
                 if hu is None:
                     notes.append(
@@ -621,7 +625,7 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
                 else:
                     out[k] = hu
             else:
-                out[k] = _slice_hu_float(arr, f)
+                out[k] = _slice_hu_float(_decode(f, plugins[f.transfer_syntax_uid]), f)
             if bar is not None:
                 bar.update()
     else:

@@ -28,6 +28,7 @@ from modeling.labelmap import (
 from modeling.surface import (
     Mesh,
     MeshError,
+    decimate,
     mask_to_mesh,
     check_mesh,
     transform_mesh,
@@ -40,6 +41,10 @@ from modeling.frame import (
     HeartFrame,
     fit_heart_frame,
     ANTERIOR_LPS,
+)
+from modeling.vessels import (
+    VesselTrim,
+    trim_vessel_stubs,
 )
 from modeling.model import (
     ModelError,
@@ -58,6 +63,8 @@ from modeling.render import (
 )
 
 __all__ = [
+    "VesselTrim",
+    "trim_vessel_stubs",
     "ModelBuild",
     "build_heart_model",
     "ANTERIOR_LPS",
@@ -83,6 +90,7 @@ __all__ = [
     "fit_heart_frame",
     "make_heart_model",
     "mask_on_grid",
+    "decimate",
     "mask_to_mesh",
     "offscreen_available",
     "order_fiducials",

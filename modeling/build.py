@@ -19,7 +19,8 @@ from modeling.fiducials import Fiducials, find_fiducials
 from modeling.labelmap import mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
 from modeling.segment import segment_heart
-from modeling.surface import mask_to_mesh
+from modeling.surface import decimate, mask_to_mesh
+from modeling.vessels import trim_vessel_stubs
 
 __all__ = ["ModelBuild", "build_heart_model"]
 
@@ -58,6 +59,7 @@ def build_heart_model(
     fiducial_rows: int = 3,
     fiducial_floor_hu: float | None = None,
     segmentation: dict | None = None,
+    trim_vessels: bool = True,
     progress=None,
 ) -> ModelBuild:
     """Build the heart model of ``volume``.
@@ -82,6 +84,9 @@ def build_heart_model(
         HU above which fiducial excess density counts (default: modeling.fiducials.FLOOR_HU).
     segmentation : dict, optional
         Keyword arguments of :func:`modeling.segment.segment_heart`.
+    trim_vessels : bool
+        Remove the great-vessel stubs the segmentation leaves over the vessels'
+        mouths and close the surface across them (:mod:`modeling.vessels`).
     progress : callable, optional
         Called with a stage name as each stage starts (e.g. to advance a bar).
     """
@@ -114,7 +119,18 @@ def build_heart_model(
     done("mask")
 
     stage("mesh")
-    mesh = mask_to_mesh(mask, T, target_faces=target_faces)
+    if trim_vessels:
+        # trim at full resolution, then decimate: the patches get fine faces too
+        dense = mask_to_mesh(mask, T, target_faces=max(int(target_faces), 400_000))
+        trim = trim_vessel_stubs(dense, volume.hu, T)
+        mesh = decimate(trim.mesh, target_faces)
+        if trim.n_removed_faces:
+            notes.append(
+                f"vessel stubs trimmed: {trim.n_removed_faces} of {len(dense.faces)} faces over "
+                f"contrast lumen removed, mouths closed with {trim.n_patch_faces} faces"
+            )
+    else:
+        mesh = mask_to_mesh(mask, T, target_faces=target_faces)
     done("mesh")
 
     stage("fiducials")
@@ -143,6 +159,7 @@ def build_heart_model(
         "expected_fiducials": expected_fiducials,
         "fiducial_rows": int(fiducial_rows),
         "segmentation": seg_params,
+        "trim_vessels": bool(trim_vessels),
     }
     model = make_heart_model(
         mesh,

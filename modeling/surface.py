@@ -39,6 +39,7 @@ __all__ = [
     "Mesh",
     "MeshError",
     "mask_to_mesh",
+    "decimate",
     "check_mesh",
     "transform_mesh",
     "write_mesh",
@@ -308,17 +309,7 @@ def mask_to_mesh(
 
     # 7. decimation ---------------------------------------------------------------
     steps.next("decimation")
-    if len(faces) > target_faces:
-        import fast_simplification
-
-        reduction = 1.0 - float(target_faces) / len(faces)
-        verts, faces = fast_simplification.simplify(
-            np.ascontiguousarray(verts, dtype=np.float64),
-            np.ascontiguousarray(faces, dtype=np.int64),
-            target_reduction=reduction,
-        )
-        verts, faces = _repair(np.asarray(verts, np.float64), np.asarray(faces), smooth_iterations=0)
-        verts, faces = _largest_component(verts, faces)
+    verts, faces = _decimate(verts, faces, target_faces)
 
     # 8. verify -----------------------------------------------------------------------
     steps.next("verify")
@@ -366,6 +357,40 @@ class _Steps:
         if self._bar is not None:
             self._bar.update(1)
             self._bar.close()
+
+
+def _decimate(verts, faces, target_faces: int):
+    """Quadric decimation to ``target_faces`` (fast_simplification), then repair."""
+    if len(faces) <= target_faces:
+        return verts, faces
+    import fast_simplification
+
+    reduction = 1.0 - float(target_faces) / len(faces)
+    verts, faces = fast_simplification.simplify(
+        np.ascontiguousarray(verts, dtype=np.float64),
+        np.ascontiguousarray(faces, dtype=np.int64),
+        target_reduction=reduction,
+    )
+    verts, faces = _repair(np.asarray(verts, np.float64), np.asarray(faces), smooth_iterations=0)
+    return _largest_component(verts, faces)
+
+
+def decimate(mesh: Mesh, target_faces: int) -> Mesh:
+    """Decimate a closed mesh to about ``target_faces`` faces (quadric, then repair).
+
+    Raises
+    ------
+    MeshError
+        If the result is not a single closed, outward-oriented surface.
+    """
+    if target_faces < 100:
+        raise ValueError(f"target_faces must be at least 100, got {target_faces}")
+    verts, faces = _decimate(np.asarray(mesh.vertices), np.asarray(mesh.faces), int(target_faces))
+    out = Mesh(verts, faces)
+    check = check_mesh(out)
+    if not check.ok:
+        raise MeshError(f"decimation to {target_faces} faces broke the surface ({check}); raise target_faces")
+    return out
 
 
 def _check_affine(T, name: str) -> np.ndarray:

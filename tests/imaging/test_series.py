@@ -450,3 +450,105 @@ def test_pydicom_ct_small_loads_as_one_slice():
     assert isinstance(vol.slices[0], SliceInfo)
     assert vol.slices[0].mid_scan_time_s is not None  # GE private (0019,xx24)
     assert vol.series.manufacturer == "GE MEDICAL SYSTEMS"
+
+
+# ------------------------------------------------ pixel layouts and header values
+
+
+def _garbage_high_bits(bits_stored, pixel_representation):
+    """BitsStored < BitsAllocated, with random values in the unused high bits."""
+    rng = np.random.default_rng(7)
+
+    def edit(ds, k):
+        arr = np.frombuffer(ds.PixelData, "<u2") & ((1 << bits_stored) - 1)
+        noise = rng.integers(0, 1 << (16 - bits_stored), arr.shape, dtype=np.uint16)
+        ds.BitsStored, ds.HighBit = bits_stored, bits_stored - 1
+        ds.PixelRepresentation = pixel_representation
+        ds.PixelData = (arr | (noise << bits_stored)).astype("<u2").tobytes()
+
+    return edit
+
+
+def _eight_bit(pixel_representation):
+    def edit(ds, k):
+        arr = (np.frombuffer(ds.PixelData, "<u2") % 256).astype(np.uint8)
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
+        ds.PixelRepresentation = pixel_representation
+        ds.PixelData = arr.tobytes()
+
+    return edit
+
+
+def _thirty_two_bit(ds, k):
+    arr = np.frombuffer(ds.PixelData, "<u2").astype("<u4") * 3
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 32, 32, 31
+    ds.PixelData = arr.tobytes()
+
+
+def _overflow_slice_2(ds, k):
+    if k == 2:
+        arr = np.frombuffer(ds.PixelData, "<u2").copy()
+        arr[0] = 65000  # 65000 - 1024 HU does not fit int16
+        ds.PixelData = arr.tobytes()
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(extra=_garbage_high_bits(12, 1)),
+        dict(extra=_garbage_high_bits(12, 0)),
+        dict(extra=_eight_bit(0)),
+        dict(extra=_eight_bit(1)),
+        dict(extra=_thirty_two_bit),
+        dict(rescale=(2.0, -2048.0)),
+        dict(rescale=(-1.0, 1024.0)),
+        dict(rescale=None),
+        dict(extra=_overflow_slice_2),
+    ],
+    ids=["12bit-signed", "12bit-unsigned", "8bit", "8bit-signed", "32bit", "slope2",
+         "slope-neg", "no-rescale", "int16-overflow"],
+)
+def test_uncompressed_layouts_equal_pydicom_decoding(tmp_path, kwargs):
+    """Uncompressed slices are read straight from the files: same HU as pydicom gives."""
+    files = fac.write_ct_series(tmp_path, n_slices=5, **kwargs)
+    vol = quiet_load(tmp_path)
+    expected = []
+    for f in files:
+        ds = pydicom.dcmread(f)
+        slope, intercept = float(ds.get("RescaleSlope", 1)), float(ds.get("RescaleIntercept", 0))
+        expected.append(ds.pixel_array.astype(np.float64) * slope + intercept)
+    np.testing.assert_array_equal(vol.hu, np.stack(expected))
+    overflow = kwargs.get("extra") is _overflow_slice_2
+    assert vol.hu.dtype == (np.float32 if overflow else np.int16)
+    assert any("exceed int16" in n for n in vol.notes) == overflow
+
+
+def test_big_endian_slices_are_decoded_by_pydicom(tmp_path):
+    files = fac.write_ct_series(tmp_path, n_slices=3)
+    for f in files:
+        ds = pydicom.dcmread(f)
+        ds.PixelData = ds.pixel_array.astype(">u2").tobytes()
+        ds.file_meta.TransferSyntaxUID = pydicom.uid.ExplicitVRBigEndian
+        pydicom.dcmwrite(f, ds, little_endian=False, implicit_vr=False)
+    vol = load_study(tmp_path)
+    assert pattern_error(vol) == 0
+
+
+def test_header_values_beyond_plain_ascii(tmp_path):
+    """Latin-1 text, and the GE block behind another vendor's private block."""
+
+    def edit(ds, k):
+        ds.SpecificCharacterSet = "ISO_IR 100"
+        ds.SeriesDescription = "Cardiaque gaté"
+        for tag in [t for t in ds.keys() if t.group == 0x0019]:
+            del ds[tag]
+        ds.private_block(0x0019, "OTHER_VENDOR", create=True).add_new(0x24, "DS", "99")
+        acq = ds.private_block(0x0019, "GEMS_ACQU_01", create=True)
+        acq.add_new(0x24, "DS", f"{0.5 + k * fac.SLICE_DT_S:.6f}")
+
+    fac.write_ct_series(tmp_path, n_slices=3, extra=edit)
+    vol = load_study(tmp_path)
+    assert vol.series.description == "Cardiaque gaté"
+    assert [s.mid_scan_time_s for s in vol.slices] == pytest.approx(
+        [0.5 + k * fac.SLICE_DT_S for k in range(3)]
+    )

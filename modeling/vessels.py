@@ -1,0 +1,118 @@
+"""Trim the great-vessel stubs off a whole-heart surface.
+
+The segmentation cuts the aorta and pulmonary arteries with a morphological
+opening, which leaves a stub of a few millimetres over each vessel's mouth.  The
+epicardium is everywhere a *myocardium* boundary: just inside it the CT shows
+muscle (~100 HU).  Just inside a stub's surface it shows the vessel's
+contrast-filled lumen.  So:
+
+1. sample the HU ``depth_mm`` inside every vertex along its inward normal;
+2. vertices over contrast blood (> ``blood_hu``), grown by ``grow_rings`` rings
+   of neighbours, are the stubs: their faces are removed;
+3. the holes left at the vessels' mouths are closed with new faces spanning
+   each mouth's rim (the epicardium across a mouth is nearly flat: the base);
+   decimating afterwards (as :func:`modeling.build.build_heart_model` does)
+   blends the patches into the surface.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from modeling.surface import Mesh, MeshError, check_mesh
+
+__all__ = ["VesselTrim", "trim_vessel_stubs"]
+
+
+@dataclass(frozen=True)
+class VesselTrim:
+    """The trimmed mesh and what was removed."""
+
+    mesh: Mesh
+    n_removed_faces: int
+    n_patch_faces: int
+
+
+def _vertex_normals(vertices, faces) -> np.ndarray:
+    v = vertices
+    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+    normals = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(normals, faces[:, c], fn)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
+def trim_vessel_stubs(
+    mesh: Mesh,
+    hu,
+    T_patient_from_voxel,
+    *,
+    depth_mm: float = 1.5,
+    blood_hu: float = 225.0,
+    grow_rings: int = 2,
+) -> VesselTrim:
+    """Remove the parts of ``mesh`` that cover contrast-filled vessel lumen.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Closed surface in the patient frame (from :func:`modeling.surface.mask_to_mesh`).
+    hu : (n_slices, n_rows, n_cols) array
+        The CT volume, indexed ``[k, j, i]``.
+    T_patient_from_voxel : (4, 4) float64
+    depth_mm : float
+        How far inside each vertex the HU is sampled (less than the myocardium's
+        thickness).
+    blood_hu : float
+        HU above which the sample is contrast blood.
+    grow_rings : int
+        Rings of neighbouring vertices removed with each stub vertex.
+
+    Returns
+    -------
+    VesselTrim
+        The input mesh unchanged when nothing covers blood.
+
+    Raises
+    ------
+    MeshError
+        If the trimmed and closed surface is not watertight.
+    """
+    import pymeshlab
+
+    v = np.asarray(mesh.vertices, dtype=float)
+    f = np.asarray(mesh.faces)
+    normals = _vertex_normals(v, f)
+    inside = v - depth_mm * normals
+    T = np.asarray(T_patient_from_voxel, dtype=float)
+    ijk = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)  # (3, n)
+    samples = ndimage.map_coordinates(np.asarray(hu, dtype=np.float32), ijk[::-1], order=1, mode="nearest")
+    flagged = samples > blood_hu
+    if not flagged.any():
+        return VesselTrim(mesh, 0, 0)
+    for _ in range(grow_rings):
+        touched = flagged[f].any(axis=1)
+        flagged[f[touched].ravel()] = True
+    keep = ~flagged[f].any(axis=1)
+    n_removed = int((~keep).sum())
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f[keep].astype(np.int32)))
+    ms.meshing_remove_unreferenced_vertices()
+    ms.meshing_remove_connected_component_by_face_number(mincomponentsize=max(10, int(0.05 * keep.sum())))
+    n_before = ms.current_mesh().face_number()
+    # no hole refinement: it costs tens of seconds on a full-resolution mesh
+    ms.meshing_close_holes(maxholesize=100000, selfintersection=False)
+    n_patch = ms.current_mesh().face_number() - n_before
+    m = ms.current_mesh()
+    trimmed = Mesh(m.vertex_matrix(), m.face_matrix().astype(np.int64))
+    check = check_mesh(trimmed)
+    if not check.ok:
+        raise MeshError(
+            f"trimming {n_removed} faces over vessel lumen left an open surface ({check}); "
+            "pass trim_vessels=False (--keep-vessels) to keep the stubs"
+        )
+    return VesselTrim(trimmed, n_removed, int(n_patch))
