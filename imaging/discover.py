@@ -497,6 +497,15 @@ def _read_header(path: str):
     return ds, None, native
 
 
+def _upper_values(value) -> tuple[str, ...]:
+    """A code string's values, upper case; a single value (a str) stays whole."""
+    if value is None:
+        return ()
+    if isinstance(value, (str, bytes)):
+        value = [value.decode("ascii", "replace") if isinstance(value, bytes) else value]
+    return tuple(str(v).upper() for v in value)
+
+
 def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -> list[_Frame]:
     """One _Frame per image frame of `ds` (header only).
 
@@ -549,7 +558,7 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
         pixel_offset=None if native is None else native[0],
         pixel_length=None if native is None else native[1],
     )
-    top_type = tuple(str(v).upper() for v in (_get(ds, "ImageType") or ()))
+    top_type = _upper_values(_get(ds, "ImageType"))
     frames = []
     for f in range(n_frames):
         pf = per_frame[f] if per_frame is not None and f < len(per_frame) else None
@@ -573,7 +582,7 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
         iop = _first("ImageOrientationPatient", plane_ori, ds)
         spacing = _first("PixelSpacing", measures, ds)
         frame_type = _first("FrameType", frame_type_item)
-        image_type = top_type + tuple(str(v).upper() for v in (frame_type or ()))
+        image_type = top_type + _upper_values(frame_type)
         t = _dt_to_seconds(_first("FrameAcquisitionDateTime", content))
         trigger = _as_float(_first("TriggerTime", cardiac, ds))
         if trigger is None:

@@ -552,3 +552,14 @@ def test_header_values_beyond_plain_ascii(tmp_path):
     assert [s.mid_scan_time_s for s in vol.slices] == pytest.approx(
         [0.5 + k * fac.SLICE_DT_S for k in range(3)]
     )
+
+
+def test_single_valued_image_type_localizer_is_recognised(tmp_path):
+    """ImageType with one value ('LOCALIZER') must not be split into letters."""
+    import pydicom
+
+    from imaging.discover import _upper_values
+
+    assert _upper_values("LOCALIZER") == ("LOCALIZER",)
+    assert _upper_values(pydicom.multival.MultiValue(str, ["ORIGINAL", "primary"])) == ("ORIGINAL", "PRIMARY")
+    assert _upper_values(None) == ()
