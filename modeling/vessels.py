@@ -88,8 +88,14 @@ def trim_vessel_stubs(
     normals = _vertex_normals(v, f)
     inside = v - depth_mm * normals
     T = np.asarray(T_patient_from_voxel, dtype=float)
-    ijk = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)  # (3, n)
-    samples = ndimage.map_coordinates(np.asarray(hu, dtype=np.float32), ijk[::-1], order=1, mode="nearest")
+    kji = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)[::-1]  # (3, n)
+    # sample a crop around the surface only (the whole volume as float would
+    # double the memory of the model stage)
+    hu = np.asarray(hu)
+    lo = np.clip(np.floor(kji.min(axis=1)).astype(int) - 1, 0, np.array(hu.shape) - 1)
+    hi = np.clip(np.ceil(kji.max(axis=1)).astype(int) + 2, 1, np.array(hu.shape))
+    crop = hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
+    samples = ndimage.map_coordinates(crop, kji - lo[:, None], order=1, mode="nearest")
     flagged = samples > blood_hu
     if not flagged.any():
         return VesselTrim(mesh, 0, 0)
