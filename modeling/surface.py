@@ -171,14 +171,27 @@ def check_mesh(mesh: Mesh) -> MeshCheck:
     traverse the edge in opposite directions; outward orientation means the
     signed volume is positive.
     """
-    tm = mesh.to_trimesh()
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    n = max(int(mesh.n_vertices), 1)
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    directed = a * n + b
+    undirected = np.minimum(a, b) * n + np.maximum(a, b)
+    _, counts = np.unique(undirected, return_counts=True)
+    watertight = bool(len(faces)) and bool(np.all(counts == 2))
+    # consistent winding: no directed edge twice, and every edge's reverse present
+    directed_sorted = np.sort(directed)
+    unique_directed = directed_sorted.size == 0 or bool(np.all(np.diff(directed_sorted) > 0))
+    reverse = np.sort(b * n + a)
+    winding = unique_directed and bool(np.array_equal(directed_sorted, reverse))
     labels = _vertex_components(mesh.faces, mesh.n_vertices)
     used = np.unique(labels[mesh.faces.ravel()]) if mesh.n_faces else np.array([])
+    n_used_vertices = int(np.unique(a).size)
     return MeshCheck(
-        watertight=bool(tm.is_watertight),
-        winding_consistent=bool(tm.is_winding_consistent),
+        watertight=watertight,
+        winding_consistent=winding,
         volume_mm3=mesh.volume_mm3,
-        euler_number=int(tm.euler_number),
+        euler_number=n_used_vertices - int(counts.size) + int(len(faces)),
         n_components=int(len(used)),
     )
 

@@ -326,7 +326,7 @@ def closest_points(surface, points, *, k: int = 16) -> ClosestPoints:
     n_sites = surface._site_face.shape[0]
     r = surface.site_radius_mm
     kc = int(min(k, n_sites))
-    dist_s, idx = surface.tree.query(q, k=kc)
+    dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
     dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
     cp, d, face = _best_pruned(surface, q, idx, dist_s)
     # Faces without a site among the kc nearest are at least (kc-th site
@@ -335,7 +335,7 @@ def closest_points(surface, points, *, k: int = 16) -> ClosestPoints:
     while unproven.size:
         k_old, kc = kc, min(4 * kc, n_sites)
         qu = q[unproven]
-        dist_s, idx = surface.tree.query(qu, k=kc)
+        dist_s, idx = surface.tree.query(qu, k=kc, workers=-1)
         dist_s, idx = dist_s.reshape(-1, kc), idx.reshape(-1, kc)
         cp2, d2, f2 = _best_pruned(surface, qu, idx[:, k_old:], dist_s[:, k_old:])
         better = d2 < d[unproven]
