@@ -38,6 +38,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from heartreg.phantom.config import PAPER_TABLE1
 from imaging.files import write_text_atomic
 
 __all__ = [
@@ -58,18 +59,8 @@ TRIALS = (1, 2, 3, 4, 5, 6)
 #: |phi_R* - truth| within this counts as "near the image phase" (cycles).
 TOL_PHASE_R = 0.05
 
-#: Wood et al. 2018, Table 1: points, heart rate (Hz), respiration rate (Hz),
-#: image phase phi_C*, X-Y-Z intrinsic Euler angles of the map frame (deg).
-#: Kept here, from the paper, independently of the phantom's presets.
-PAPER_TABLE1 = {
-    1: (101, 1.08, 0.20, 0.66, (-22.9, 2.2, -43.8)),
-    2: (108, 1.36, 0.20, 0.61, (-14.6, 5.1, -63.5)),
-    3: (98, 1.59, 0.17, 0.64, (-19.5, 11.2, -59.0)),
-    4: (44, 1.42, 0.17, 0.66, (-26.0, 12.7, -86.0)),
-    5: (84, 1.37, 0.17, 0.64, (-27.6, 14.0, -55.6)),
-    6: (95, 1.03, 0.17, 0.67, (-25.7, 16.1, -78.4)),
-}
-
+#: Wood et al. 2018, Table 1 (points, heart rate, respiration rate, image phase,
+#: Euler angles), as the phantom's presets carry it.
 #: The paper's results over the six trials (sections 2.2.2, 2.3, 3).
 PAPER = {
     "image_phase_range": (0.61, 0.67),

@@ -414,6 +414,22 @@ def _plane_system(q, c, normals, w, centre, scale):
     return Jw.T @ J, Jw.T @ r
 
 
+def _check_options(src, T_init, trim_fraction, huber_mm, max_iterations) -> np.ndarray:
+    """Validate the options shared by :func:`icp` and :func:`icp_sweep`; return T_init."""
+    if not np.all(np.isfinite(src)):
+        raise ValueError("points must be finite")
+    T = np.eye(4) if T_init is None else np.array(T_init, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"T_init must have shape (4, 4), got {T.shape}")
+    if not 0.0 <= trim_fraction < 0.5:
+        raise ValueError(f"trim_fraction must be in [0, 0.5), got {trim_fraction}")
+    if huber_mm is not None and not huber_mm > 0:
+        raise ValueError(f"huber_mm must be positive, got {huber_mm}")
+    if max_iterations < 1:
+        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
+    return T
+
+
 def icp(
     points,
     surface,
@@ -464,18 +480,8 @@ def icp(
         raise ValueError(f"points must have shape (n, 3), got {src.shape}")
     if src.shape[0] < 3:
         raise ValueError(f"ICP needs at least 3 points, got {src.shape[0]}")
-    if not np.all(np.isfinite(src)):
-        raise ValueError("points must be finite")
     method = IcpMethod(method)
-    T = np.eye(4) if T_init is None else np.array(T_init, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_init must have shape (4, 4), got {T.shape}")
-    if not 0.0 <= trim_fraction < 0.5:
-        raise ValueError(f"trim_fraction must be in [0, 0.5), got {trim_fraction}")
-    if huber_mm is not None and not huber_mm > 0:
-        raise ValueError(f"huber_mm must be positive, got {huber_mm}")
-    if max_iterations < 1:
-        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
+    T = _check_options(src, T_init, trim_fraction, huber_mm, max_iterations)
     n = src.shape[0]
     n_keep = max(3, int(np.ceil((1.0 - trim_fraction) * n)))
     centre_src = src.mean(axis=0)
@@ -591,17 +597,7 @@ def icp_sweep(
         raise ValueError(f"points must have shape (m, n, 3), got {src.shape}")
     if src.shape[1] < 3:
         raise ValueError(f"ICP needs at least 3 points, got {src.shape[1]}")
-    if not np.all(np.isfinite(src)):
-        raise ValueError("points must be finite")
-    T0 = np.eye(4) if T_init is None else np.array(T_init, dtype=float)
-    if T0.shape != (4, 4):
-        raise ValueError(f"T_init must have shape (4, 4), got {T0.shape}")
-    if not 0.0 <= trim_fraction < 0.5:
-        raise ValueError(f"trim_fraction must be in [0, 0.5), got {trim_fraction}")
-    if huber_mm is not None and not huber_mm > 0:
-        raise ValueError(f"huber_mm must be positive, got {huber_mm}")
-    if max_iterations < 1:
-        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
+    T0 = _check_options(src, T_init, trim_fraction, huber_mm, max_iterations)
     m, n, _ = src.shape
     n_keep = max(3, int(np.ceil((1.0 - trim_fraction) * n)))
     centre_src = src.mean(axis=1)  # (m, 3)

@@ -18,6 +18,7 @@ __all__ = [
     "CTGeometry",
     "NoiseModel",
     "PhantomConfig",
+    "PAPER_TABLE1",
     "PRESETS",
     "SIZES",
     "make_config",
@@ -165,10 +166,10 @@ def _check_positive(name: str, value: float) -> None:
         raise ValueError(f"{name} must be positive, got {value!r}")
 
 
-# Wood et al. 2018, Table 1: points, heart rate (Hz), respiration rate (Hz),
-# image phase (informative: the phantom's image phase comes out of its own gated
-# acquisition), and the map frame's X-Y-Z intrinsic Euler angles (deg).
-_TABLE1 = {
+#: Wood et al. 2018, Table 1: points, heart rate (Hz), respiration rate (Hz),
+#: image phase (informative: the phantom's image phase comes out of its own gated
+#: acquisition), and the map frame's X-Y-Z intrinsic Euler angles (deg).
+PAPER_TABLE1 = {
     1: (101, 1.08, 0.20, 0.66, (-22.9, 2.2, -43.8)),
     2: (108, 1.36, 0.20, 0.61, (-14.6, 5.1, -63.5)),
     3: (98, 1.59, 0.17, 0.64, (-19.5, 11.2, -59.0)),
@@ -195,7 +196,7 @@ _SHIFTS = {
 
 
 def _preset(trial: int) -> PhantomConfig:
-    points, hr, rr, _, euler = _TABLE1[trial]
+    points, hr, rr, _, euler = PAPER_TABLE1[trial]
     shift_mm, shift_deg = _SHIFTS[trial]
     return PhantomConfig(
         name=f"wood2018-trial{trial}",
@@ -209,10 +210,10 @@ def _preset(trial: int) -> PhantomConfig:
 
 
 PRESETS: dict[str, PhantomConfig] = {"default": PhantomConfig()}
-PRESETS.update({f"wood2018-trial{k}": _preset(k) for k in _TABLE1})
+PRESETS.update({f"wood2018-trial{k}": _preset(k) for k in PAPER_TABLE1})
 
 #: Table 1's image phases, for reports that set the phantom beside the paper.
-PAPER_IMAGE_PHASE = {f"wood2018-trial{k}": v[3] for k, v in _TABLE1.items()}
+PAPER_IMAGE_PHASE = {f"wood2018-trial{k}": v[3] for k, v in PAPER_TABLE1.items()}
 
 
 def make_config(preset: str = "default", **overrides) -> PhantomConfig:
