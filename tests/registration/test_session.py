@@ -380,3 +380,17 @@ def test_bad_arguments(phantom):
         read_session(phantom[0], min_duration_s=-1)
     with pytest.raises(ValueError, match="quaternion_tol must be in"):
         read_session(phantom[0], quaternion_tol=0)
+
+
+def test_writer_and_reader_agree_on_the_format():
+    """The phantom writes the session without importing the reader (it is the
+    independent truth), so the two copies of the format's constants must agree."""
+    from heartreg.phantom import session as writer
+    from registration import session as reader
+
+    assert writer.SESSION_FORMAT == reader.SESSION_FORMAT
+    assert writer.SESSION_VERSION in reader.SUPPORTED_VERSIONS
+    assert writer.SESSION_UNITS == reader.SESSION_UNITS
+    assert writer.POINT_COLUMNS == reader.POINT_COLUMNS
+    assert writer.FIDUCIAL_COLUMNS == reader.FIDUCIAL_COLUMNS
+    assert writer.FIDUCIAL_ORDER == reader.FIDUCIAL_ORDER
