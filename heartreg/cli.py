@@ -325,8 +325,15 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    return f"warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status."""
+    import warnings
+
+    warnings.formatwarning = _one_line_warning
     parser = _build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -334,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return args.func(args)
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:
         if args.debug:
             raise
         print(f"heartreg {args.command}: error: {exc}", file=sys.stderr)
