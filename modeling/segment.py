@@ -102,7 +102,7 @@ def segment_heart(
     vessel_radius_mm: float = 14.0,
     margin_mm: float = 1.0,
     smooth_mm: float = 0.6,
-    coarse_mm: float = 1.5,
+    coarse_mm: float = 2.0,
     min_volume_ml: float = 50.0,
 ) -> HeartSegmentation:
     """Segment the whole heart (epicardial surface inward) in a contrast CT.
