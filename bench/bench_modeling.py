@@ -284,7 +284,7 @@ def main(argv=None) -> int:
         "load": "imaging.load_study (scan, sort, decode 288 slices)",
         "phases": "ECG waveform + imaging.compute_phase_report (as pipeline.open_study)",
         "mask": "segment_heart (automatic segmentation)",
-        "mesh": "mask_to_mesh (marching cubes, repair, Taubin, decimation to 20k faces)",
+        "mesh": "mask_to_mesh (marching cubes, repair, Taubin), vessel-stub trim, decimation to 20k faces",
         "fiducials": "find_fiducials (9 skin staples)",
         "frame": "make_heart_model (heart-centric frame from slab ellipses)",
         "write": "write_model (PLY, STL, model.json)",
