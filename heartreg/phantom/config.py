@@ -124,6 +124,8 @@ class PhantomConfig:
     gating_target_phase: float = 0.7
     image_resp_phase: float = 0.3
     hrv_fraction: float = 0.04
+    #: fractional lengthening of RR during the CT breath-hold (vagal slowing)
+    breath_hold_slowing: float = 0.08
     ectopic_probability: float = 0.06
     #: CT-to-surgery systematic shift (fiducials vs heart), patient frame, mm / deg.
     fiducial_shift_mm: tuple[float, float, float] = (9.0, 0.5, -0.4)
