@@ -62,23 +62,36 @@ def _spacing(T) -> np.ndarray:
     return np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
 
 
+def _label(mask):
+    """Connected components with 16-bit labels when they fit (half the memory)."""
+    out = np.empty(mask.shape, np.uint16)
+    try:
+        n = ndimage.label(mask, output=out)
+    except RuntimeError:  # more than 65535 components
+        return ndimage.label(mask)
+    return out, n
+
+
 def _fill_holes(mask) -> np.ndarray:
     """Fill enclosed cavities: background components not touching the border."""
-    labels, n = ndimage.label(~mask)
+    labels, n = _label(~mask)
     if n == 0:
         return mask
     border = np.unique(np.concatenate([
         labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()
     ]))
-    return mask | ~np.isin(labels, border)
+    inside = np.ones(n + 1, bool)
+    inside[border] = False
+    return mask | inside[labels]
 
 
 def _largest_component(mask) -> np.ndarray:
-    labels, n = ndimage.label(mask)
+    labels, n = _label(mask)
     if n <= 1:
         return mask
-    sizes = ndimage.sum_labels(mask, labels, index=np.arange(1, n + 1))
-    return labels == int(np.argmax(sizes)) + 1
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    sizes[0] = 0
+    return labels == int(np.argmax(sizes))
 
 
 def _opening_mm(mask, spacing_kji, radius_mm):

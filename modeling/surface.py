@@ -292,8 +292,9 @@ def mask_to_mesh(
     if fill_cavities:
         sub = ndimage.binary_fill_holes(sub)
     field = np.pad(sub.astype(np.float32), pad, mode="constant")
+    del sub
     if sigma_vox > 0:
-        field = ndimage.gaussian_filter(field, sigma_vox, mode="constant")
+        ndimage.gaussian_filter(field, sigma_vox, mode="constant", output=field)  # in place
 
     # 2. isosurface -------------------------------------------------------------
     steps.next("marching cubes")
