@@ -73,11 +73,13 @@ from registration.spatiotemporal import (
     register_spatiotemporal,
     compare_static,
 )
-from registration.pipeline import (
-    RegistrationError,
+from registration.result import (
     PointFit,
     IcpReport,
     RegistrationResult,
+)
+from registration.pipeline import (
+    RegistrationError,
     sweep_phases,
     point_phases,
     register_session,

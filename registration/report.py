@@ -34,7 +34,7 @@ from pathlib import Path
 
 
 from imaging.files import atomic_path, write_text_atomic
-from registration.pipeline import RegistrationResult
+from registration.result import RegistrationResult
 from registration.spatiotemporal import PhaseSweep
 
 __all__ = ["REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "write_registration", "sweep_csv_text"]

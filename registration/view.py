@@ -20,7 +20,7 @@ import numpy as np
 from modeling.model import HeartModel
 from modeling.render import render_png
 from registration.icp import SurfaceIndex, closest_points
-from registration.pipeline import RegistrationResult
+from registration.result import RegistrationResult
 
 __all__ = ["render_registration_png"]
 
