@@ -149,6 +149,33 @@ def _split_duplicates(frames: list[_Frame]) -> tuple[list[tuple[str, list[_Frame
     return [("", frames)], ""
 
 
+#: Below this share of images at a repeated position, the repeats are strays
+#: (a resent or duplicated file), not a multi-phase series to split.
+STRAY_REPEAT_SHARE = 0.25
+
+
+def _drop_stray_duplicates(frames: list[_Frame]) -> tuple[list[_Frame], list[tuple[str, str]]]:
+    """Drop the few images that repeat another's position, keeping the first by
+    InstanceNumber; returns (kept, [(dropped file, kept file)]).  Nothing is
+    dropped when many images repeat (a multi-phase series: split it instead)."""
+    n = _normal(frames[0].iop)
+    pos = np.round(np.array([f.ipp for f in frames]) @ n / SAME_POSITION_MM).astype(np.int64)
+    _, inverse, counts = np.unique(pos, return_inverse=True, return_counts=True)
+    if np.mean(counts[inverse] > 1) >= STRAY_REPEAT_SHARE:
+        return frames, []
+    order = sorted(range(len(frames)), key=lambda i: (frames[i].instance_number is None, frames[i].instance_number or 0, frames[i].path))
+    first: dict[int, int] = {}
+    dropped = []
+    for i in order:
+        key = int(pos[i])
+        if key in first:
+            dropped.append((frames[i].path, frames[first[key]].path))
+        else:
+            first[key] = i
+    kept = [frames[i] for i in sorted(first.values())]
+    return kept, dropped
+
+
 def _dedupe(frames: list[_Frame]) -> tuple[list[_Frame], list[str]]:
     seen: dict[tuple[str, int | None], _Frame] = {}
     dropped = []
@@ -217,6 +244,16 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
         for (_, rows, cols), members in subsets.items():
             for cluster in _cluster_orientation(members):
                 if cluster[0].is_localizer or not _has_duplicates(cluster):
+                    raw.append(_summarise(cluster, "", ""))
+                    continue
+                cluster, repeated = _drop_stray_duplicates(cluster)
+                if repeated:
+                    message = (
+                        f"series {uid}: {len(repeated)} image(s) repeat the position of another and "
+                        f"were ignored: " + "; ".join(f"{a} repeats {b}" for a, b in repeated[:4])
+                    )
+                    notes.append(message)
+                    warnings.warn(message, StudyWarning, stacklevel=3)
                     raw.append(_summarise(cluster, "", ""))
                     continue
                 parts, reason = _split_duplicates(cluster)

@@ -566,3 +566,20 @@ def test_single_valued_image_type_localizer_is_recognised(tmp_path):
     assert _upper_values("LOCALIZER") == ("LOCALIZER",)
     assert _upper_values(pydicom.multival.MultiValue(str, ["ORIGINAL", "primary"])) == ("ORIGINAL", "PRIMARY")
     assert _upper_values(None) == ()
+
+
+def test_a_stray_repeated_position_is_dropped_not_split(tmp_path):
+    """One image resent at another's position (with its own AcquisitionNumber) must
+    not split the series into fragments: the repeat is dropped with a warning that
+    names both files, and the hole it leaves is resampled."""
+    z = 2.0 * np.arange(20)
+    z[11] = z[10]
+
+    def acquisition_number(ds, k):
+        ds.AcquisitionNumber = 1 + k // 4  # step-and-shoot: one number per stack
+
+    fac.write_ct_series(tmp_path, positions=[(-16.0, -16.0, -20.0 + v) for v in z], extra=acquisition_number)
+    with pytest.warns(StudyWarning, match=r"repeat the position of another.*slice_011.dcm repeats .*slice_010.dcm"):
+        vol = load_study(tmp_path)
+    assert vol.hu.shape[0] == 20 and len(vol.slices) == 19
+    assert vol.resampled
