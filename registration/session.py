@@ -349,6 +349,13 @@ def _read_header(file: Path, rel: str, required) -> list[int]:
 
 
 def _load_table(file: Path, rel: str, usecols: list[int], names) -> np.ndarray:
+    # every row must have the header's number of fields: np.loadtxt with usecols
+    # would read a row with an extra field shifted, without a word
+    lines = [line for line in file.read_bytes().splitlines() if line.strip()]
+    if lines:
+        width = lines[0].count(b",")
+        if any(line.count(b",") != width for line in lines[1:]):
+            raise SessionError(_locate_bad_cell(file, rel, usecols, names) or f"{rel}: rows differ in field count")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "Empty input file"

@@ -394,3 +394,17 @@ def test_writer_and_reader_agree_on_the_format():
     assert writer.POINT_COLUMNS == reader.POINT_COLUMNS
     assert writer.FIDUCIAL_COLUMNS == reader.FIDUCIAL_COLUMNS
     assert writer.FIDUCIAL_ORDER == reader.FIDUCIAL_ORDER
+
+
+def test_a_row_with_an_extra_field_is_refused(tmp_path):
+    """np.loadtxt with usecols would read such a row with its columns shifted."""
+    from heartreg.phantom import make_config, write_session
+
+    write_session(tmp_path, make_config("default"), seed=2, n_points=3, duration_s=25.0)
+    f = tmp_path / "session" / "points" / "point_001.csv"
+    lines = f.read_text().splitlines()
+    cells = lines[49].split(",")
+    lines[49] = ",".join(cells[:15] + ["0.5"] + cells[15:])
+    f.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SessionError, match=r"point_001.csv: line 50 has 19 fields, the header has 18"):
+        read_session(tmp_path / "session")
