@@ -11,7 +11,18 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_path", "write_text_atomic"]
+__all__ = ["atomic_path", "write_text_atomic", "umask_mode"]
+
+
+def umask_mode(*, directory: bool = False) -> int:
+    """The permission bits a new file (or folder) gets under the current umask.
+
+    Temporary files and folders are created private (0600 / 0700); outputs are
+    given these bits before they are renamed into place.
+    """
+    mask = os.umask(0)
+    os.umask(mask)
+    return (0o777 if directory else 0o666) & ~mask
 
 
 @contextlib.contextmanager
@@ -28,6 +39,7 @@ def atomic_path(path):
     tmp = Path(tmp)
     try:
         yield tmp
+        os.chmod(tmp, umask_mode())
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -26,6 +26,8 @@ from typing import Mapping
 
 import numpy as np
 
+from imaging.files import umask_mode
+
 from modeling.fiducials import order_fiducials
 from modeling.frame import HeartFrame, SlabEllipse, fit_heart_frame
 from modeling.surface import Mesh, MeshError, check_mesh, read_ply, transform_mesh, write_mesh
@@ -296,6 +298,7 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
         raise FileExistsError(f"{out} exists and is not a folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    os.chmod(tmp, umask_mode(directory=True))
     try:
         note = "heart (T_heart_from_patient in model.json)"
         for name in MESH_FILES:

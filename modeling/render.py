@@ -21,10 +21,11 @@ import functools
 import os
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from imaging.files import atomic_path
 
 from modeling.model import HeartModel
 
@@ -147,15 +148,8 @@ def render_png(draw, path, *, size: tuple[int, int], what: str) -> Path:
         raise RenderError("the rendered image is blank; check the offscreen OpenGL setup")
     from PIL import Image
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         Image.fromarray(img).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

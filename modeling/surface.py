@@ -25,13 +25,13 @@ closed, decimated"):
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+
+from imaging.files import atomic_path
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
@@ -512,16 +512,8 @@ def write_mesh(path, mesh: Mesh, *, frame_note: str, space: str = "LPS") -> Path
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def _ply_bytes(mesh: Mesh, *, frame_note: str, space: str) -> bytes:

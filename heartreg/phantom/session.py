@@ -32,6 +32,7 @@ Physics and frames:
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -468,6 +469,9 @@ def write_session(
         )
     out_dir.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".session-", dir=out_dir))
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o777 & ~mask)  # mkdtemp makes it private; the output is not
     try:
         tmp.chmod(0o755)  # mkdtemp makes it private; a session is an ordinary folder
         truth = _write(tmp, config, seed, progress, n_points, duration_s)

@@ -135,6 +135,10 @@ def test_cli_phases_outputs_match_truth(sample_case, tmp_path, capsys):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     text = " ".join(p.read_text() for p in (out / "phases.json", out / "phases.csv"))
     assert "PHANTOM" not in text  # no patient identity in outputs
+    from imaging.files import umask_mode
+
+    for name in ("phases.csv", "phases.json", "phases.png"):  # not private temporary files
+        assert (out / name).stat().st_mode & 0o777 == umask_mode()
 
 
 def test_cli_phases_errors(tmp_path, capsys):
