@@ -74,16 +74,15 @@ def _print_series(study_dir) -> int:
 def _cmd_phases(args) -> int:
     from imaging import write_phase_report
 
+    from heartreg.pipeline import check_out_dir, phase_report_extra
+
     if args.list_series:
         return _print_series(args.study_dir)
     if args.out_dir is None:
         raise ValueError("give an output folder with -o OUT_DIR (or --list-series)")
+    check_out_dir(args.out_dir)
     volume, report = _open_study(args)
-    extra = {
-        "series_instance_uid": volume.series.series_instance_uid,
-        "series_description": volume.series.description,
-        "volume_notes": list(volume.notes),
-    }
+    extra = phase_report_extra(volume, args.study_dir)
     paths = write_phase_report(report, args.out_dir, extra=extra)
     lo, hi = 0.6, 0.8
     print(f"{report.n_slices} slices of series {volume.series.series_instance_uid}")
@@ -101,6 +100,11 @@ def _cmd_model(args) -> int:
 
     if args.list_series:
         return _print_series(args.study_dir)
+    from heartreg.pipeline import check_out_dir
+
+    if args.label is not None and args.mask is None:
+        raise ValueError("--label chooses a label of --mask; give the label map with --mask FILE")
+    check_out_dir(args.out_dir, what="model folder", must_be_empty=not args.overwrite)
     volume, report = _open_study(args)
     stages = ["mask", "mesh", "fiducials", "frame", "write"]
     bar = _progress(len(stages), "model", args.quiet)
@@ -150,8 +154,13 @@ def _cmd_register(args) -> int:
     from registration.report import write_registration
     from registration.session import read_session
 
+    from heartreg.pipeline import check_out_dir
+
+    out = check_out_dir(args.out_dir, must_be_empty=not args.overwrite)
     model = read_model(args.model_dir)
     session = read_session(args.session_dir)
+    for stale in [*out.glob("fig*.png"), *out.glob("*sweep.csv"), out / "registration.json"]:
+        stale.unlink(missing_ok=True)  # --overwrite: no file of an earlier run stays beside the new ones
     harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
     result = register_session(
         model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
@@ -308,6 +317,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="Fourier harmonics of the motion models (default 5 4 2 1)")
     p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier registration in OUT_DIR")
     p.set_defaults(func=_cmd_register)
 
     p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")
@@ -333,12 +343,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status."""
     import warnings
 
-    warnings.formatwarning = _one_line_warning
     parser = _build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
+    format_warning = warnings.formatwarning
+    warnings.formatwarning = _one_line_warning
     try:
         return args.func(args)
     except (ValueError, OSError, RuntimeError) as exc:
@@ -349,6 +360,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("heartreg: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = format_warning
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -116,20 +116,36 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     from heartreg.phantom import make_config, make_phantom, write_session
     from heartreg.pipeline import run_pipeline
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    sample = Path(sample_dir) if sample_dir is not None else SAMPLE_DIR
-    if not (sample / "truth.json").exists():
-        sample = out_dir / "sample"
+    from heartreg.pipeline import check_out_dir
+
+    out_dir = check_out_dir(out_dir, what="demo folder")
+    if any(out_dir.iterdir()) and not (out_dir / "demo.json").exists() and not (out_dir / "session_case").exists():
+        raise ValueError(f"demo folder {out_dir} holds other files; choose an empty folder or an earlier demo's")
+    if sample_dir is not None:
+        sample = Path(sample_dir)
+        if not (sample / "truth.json").exists() or not (sample / "ct").is_dir():
+            raise ValueError(
+                f"--sample {sample} is not a phantom case (needs ct/ and truth.json, "
+                "as 'heartreg phantom OUT --no-session' writes)"
+            )
+    else:
+        sample = SAMPLE_DIR
         if not (sample / "truth.json").exists():
-            print(f"bundled sample not found; writing it with the phantom into {sample}", file=sys.stderr)
-            make_phantom(sample, preset="wood2018-trial1", seed=0, session=False, progress=progress)
+            sample = out_dir / "sample"
+            if not (sample / "truth.json").exists():
+                print(f"bundled sample not found; writing it with the phantom into {sample}", file=sys.stderr)
+                make_phantom(sample, preset="wood2018-trial1", seed=0, session=False, progress=progress)
     truth = json.loads((sample / "truth.json").read_text())
     session_root = out_dir / "session_case"
-    if not (session_root / "session" / "session.json").exists():
+    recipe = {"preset": truth["preset"], "seed": int(truth["seed"])}
+    marker = session_root / "recipe.json"
+    if not (session_root / "session" / "session.json").exists() or (
+        not marker.exists() or json.loads(marker.read_text()) != recipe
+    ):
         if progress:
             print("writing the intra-operative session with the phantom (same preset and seed)", file=sys.stderr)
         write_session(session_root, make_config(truth["preset"]), seed=int(truth["seed"]), progress=progress)
+        marker.write_text(json.dumps(recipe) + "\n")
 
     run = run_pipeline(
         sample / "ct", session_root / "session", out_dir, overwrite=True, progress=progress,

@@ -10,12 +10,46 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["PipelineResult", "open_study", "run_pipeline"]
+__all__ = ["PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "run_pipeline"]
+
+
+def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = False) -> Path:
+    """Check an output folder before any work: a folder (or nothing) that can be
+    written; with ``must_be_empty``, no earlier contents.  Creates it."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{what} {path} exists and is not a folder; choose a folder")
+    if must_be_empty and path.is_dir() and any(path.iterdir()):
+        raise ValueError(f"{what} {path} is not empty; choose an empty folder or pass --overwrite")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"cannot create {what} {path}: {exc.strerror or exc}") from None
+    if not os.access(path, os.W_OK):
+        raise OSError(f"{what} {path} is not writable")
+    return path
+
+
+def phase_report_extra(volume, study_dir) -> dict:
+    """Series identity and the volume's notes for ``phases.json``, with file paths
+    made relative to the study folder (a folder name can identify a patient)."""
+    root = str(Path(study_dir).resolve())
+    notes = []
+    for note in volume.notes:
+        for prefix in (root + os.sep, str(study_dir).rstrip(os.sep) + os.sep):
+            note = note.replace(prefix, "")
+        notes.append(note)
+    return {
+        "series_instance_uid": volume.series.series_instance_uid,
+        "series_description": volume.series.description,
+        "volume_notes": notes,
+    }
 
 
 def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None):
@@ -97,7 +131,9 @@ def run_pipeline(
 
     from heartreg.report_html import write_html_report
 
-    out_dir = Path(out_dir)
+    out_dir = check_out_dir(out_dir)
+    for part in ("phases", "model", "registration"):
+        check_out_dir(out_dir / part, what=f"{part} folder", must_be_empty=not overwrite)
     timings = {}
     log = (lambda msg: print(msg, file=sys.stderr)) if progress else (lambda msg: None)
 
@@ -105,7 +141,7 @@ def run_pipeline(
     log("[1/3] cardiac phase of every CT slice")
     volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
     session = read_session(session_dir)  # fail early on a bad session, before the slow work
-    paths = {"phases": write_phase_report(report, out_dir / "phases")}
+    paths = {"phases": write_phase_report(report, out_dir / "phases", extra=phase_report_extra(volume, study_dir))}
     timings["phases"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -6,7 +6,7 @@ affines and frozen dataclasses.
 
 from imaging.ecg import RPeaks, cardiac_phase, detect_r_peaks
 from imaging.events import SignalError, phase_from_events
-from imaging.phase import GatingError, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
+from imaging.phase import GatingError, GatingWarning, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
 from imaging.phase_io import plot_phases, write_phase_report
 from imaging.respiration import expiration_onsets, respiration_phase
 from imaging.series import SeriesSummary, StudyError, StudyWarning, list_series, load_study
@@ -24,6 +24,7 @@ __all__ = [
     "DecoderUnavailableError",
     "EcgRecord",
     "GatingError",
+    "GatingWarning",
     "PhaseReport",
     "PixelDataError",
     "RPeaks",

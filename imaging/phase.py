@@ -22,6 +22,7 @@ the clocks were aligned.
 from __future__ import annotations
 
 import csv
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from imaging.ecg import cardiac_phase, detect_r_peaks
 
 __all__ = [
     "GatingError",
+    "GatingWarning",
     "SlicePhase",
     "PhaseReport",
     "MOTION_FREE_WINDOW",
@@ -47,6 +49,10 @@ JUMP_THRESHOLD = 0.1
 
 class GatingError(ValueError):
     """No usable cardiac gating information for the slices."""
+
+
+class GatingWarning(UserWarning):
+    """A gating source the user gave could not be used."""
 
 
 @dataclass(frozen=True)
@@ -129,7 +135,7 @@ def read_qrs_file(path) -> np.ndarray:
     """
     path = Path(path)
     try:
-        with path.open(newline="") as fh:
+        with path.open(newline="", encoding="utf-8") as fh:
             reader = csv.DictReader(fh)
             if reader.fieldnames is None or "time_s" not in reader.fieldnames:
                 raise GatingError(
@@ -144,6 +150,8 @@ def read_qrs_file(path) -> np.ndarray:
                     raise GatingError(
                         f"QRS file {path}, line {row_number}: time_s {row['time_s']!r} is not a number"
                     ) from None
+    except UnicodeDecodeError:
+        raise GatingError(f"QRS file {path} is not a UTF-8 text CSV (column time_s)") from None
     except OSError as exc:
         raise GatingError(f"cannot read QRS file {path}: {exc.strerror or exc}") from None
     times = np.asarray(values, dtype=float)
@@ -241,6 +249,12 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
                     r, notes,
                 )
             notes.append(why)
+        warnings.warn(
+            f"the R-peak times given ({qrs_label}) were not used: {notes[-1]}; falling back to the "
+            "study's own gating information",
+            GatingWarning,
+            stacklevel=2,
+        )
 
     # 2. GE RpeakTimeStamps on the Mid Scan Time clock
     rpeaks_ms = getattr(volume.series, "rpeak_timestamps_ms", None)

@@ -397,6 +397,18 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
             + (f", {best.subset}" if best.subset else "")
             + f"): {best.orientation} CT, {best.n_slices} image(s)"
         )
+        rivals = [
+            g.summary for g in ranked[1:]
+            if g.summary.orientation == best.orientation and g.summary.n_slices == best.n_slices
+        ]
+        if rivals:
+            warnings.warn(
+                f"{len(rivals) + 1} CT series are equally good candidates ([{best.index}]"
+                + "".join(f", [{r.index}]" for r in rivals)
+                + f"); used [{best.index}] {best.uid}: choose with --series (see --list-series)",
+                StudyWarning,
+                stacklevel=3,
+            )
         if len(ranked) > 1:
             why += (
                 f"; {len(ranked) - 1} other CT candidate(s) "
@@ -404,7 +416,7 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
                     f"[{g.summary.index}] {g.summary.orientation} {g.summary.n_slices}"
                     for g in ranked[1:6]
                 )
-                + " (pass series=... to choose)"
+                + " (pass series=... / --series to choose)"
             )
         skipped = [g.summary for g in groups if g.summary.kind == "localizer"]
         if skipped:
@@ -429,7 +441,7 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
             matches = usable
         else:
             raise SeriesError(
-                f"series {series!r} was split into {len(matches)} groups; pass series=<index> "
+                f"series {series!r} was split into {len(matches)} groups; pass series=<index> (--series) "
                 "for one of:\n" + _choices(matches)
             )
     chosen = matches[0]

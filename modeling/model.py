@@ -324,7 +324,7 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
             else:
                 raise FileExistsError(
                     f"{out} holds other files ({', '.join(existing[:5])}); choose another "
-                    "folder or pass overwrite=True"
+                    "folder or pass overwrite=True (--overwrite)"
                 )
         os.rename(tmp, out)
     finally:

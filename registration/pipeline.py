@@ -97,13 +97,21 @@ def sweep_phases(step: float) -> np.ndarray:
 
 
 def _as_harmonics(harmonics) -> Harmonics:
-    if isinstance(harmonics, Harmonics):
-        return harmonics
-    values = tuple(harmonics)
-    if len(values) != 4:
-        raise ValueError(f"harmonics must be a Harmonics or (Hc, Hr, Hmc, Hmr), got {harmonics!r}")
-    hc, hr, hmc, hmr = values
-    return Harmonics(cardiac=hc, respiratory=hr, coupled_cardiac=hmc, coupled_respiratory=hmr)
+    if not isinstance(harmonics, Harmonics):
+        values = tuple(harmonics)
+        if len(values) != 4:
+            raise ValueError(f"harmonics must be a Harmonics or (Hc, Hr, Hmc, Hmr), got {harmonics!r}")
+        hc, hr, hmc, hmr = values
+        try:
+            harmonics = Harmonics(cardiac=hc, respiratory=hr, coupled_cardiac=hmc, coupled_respiratory=hmr)
+        except ValueError as exc:
+            raise ValueError(f"harmonics (--harmonics HC HR HMC HMR): {exc}") from None
+    if harmonics.respiratory < 1 or harmonics.cardiac < 1:
+        raise ValueError(
+            "harmonics (--harmonics HC HR HMC HMR): the sweeps need at least one cardiac and one "
+            f"respiratory harmonic, got Hc={harmonics.cardiac}, Hr={harmonics.respiratory}"
+        )
+    return harmonics
 
 
 def point_phases(record: PointRecord):

@@ -139,6 +139,8 @@ class PhantomConfig:
 
     def __post_init__(self):
         _check_positive("n_points", self.n_points)
+        if self.n_points < 3:
+            raise ValueError(f"n_points must be at least 3 (a rigid registration needs 3 points), got {self.n_points}")
         _check_positive("heart_rate_hz", self.heart_rate_hz)
         _check_positive("resp_rate_hz", self.resp_rate_hz)
         _check_positive("session_duration_s", self.session_duration_s)

@@ -10,7 +10,7 @@ import pydicom
 import pytest
 
 from heartreg.cli import main
-from imaging import GatingError, compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
+from imaging import GatingError, GatingWarning, compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
 
 #: the slice clocks are written with microsecond resolution: phases agree to 1e-5;
 #: the issue's tolerances (1e-3 per slice, 0.005 for the volume) leave room for
@@ -98,7 +98,8 @@ def test_qrs_outside_scan_is_not_extrapolated(sample_case, tmp_path):
     case, truth = sample_case
     bad = tmp_path / "late.csv"
     bad.write_text("time_s\n" + "\n".join(str(t + 3600) for t in truth["r_peaks_s"]) + "\n")
-    report = compute_phase_report(load_study(case / "ct"), qrs_s=read_qrs_file(bad), qrs_label="late.csv")
+    with pytest.warns(GatingWarning, match=r"late.csv.*not used.*not extrapolated"):
+        report = compute_phase_report(load_study(case / "ct"), qrs_s=read_qrs_file(bad), qrs_label="late.csv")
     assert report.source.startswith("GE")  # fell through to the next source
     assert any("not extrapolated" in n for n in report.notes)
 
@@ -106,11 +107,11 @@ def test_qrs_outside_scan_is_not_extrapolated(sample_case, tmp_path):
 @pytest.mark.parametrize(
     "text, match",
     [("t\n1\n2\n", "time_s"), ("time_s\n1\n", "at least 2"), ("time_s\n2\n1\n", "increasing"),
-     ("time_s\nabc\n", "not a number")],
+     ("time_s\nabc\n", "not a number"), (b"\xce\xff\x00binary", "not a UTF-8 text CSV")],
 )
 def test_bad_qrs_file(tmp_path, text, match):
     path = tmp_path / "qrs.csv"
-    path.write_text(text)
+    path.write_bytes(text if isinstance(text, bytes) else text.encode())
     with pytest.raises(GatingError, match=match):
         read_qrs_file(path)
 
