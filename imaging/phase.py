@@ -57,12 +57,19 @@ class GatingWarning(UserWarning):
 
 @dataclass(frozen=True)
 class SlicePhase:
-    """Cardiac phase of one slice."""
+    """Cardiac phase of one acquired slice.
+
+    ``index`` counts the acquired images in order along the slice normal;
+    ``volume_k`` is the image's (possibly fractional) slice index in the volume,
+    which differs from ``index`` when the volume was resampled (a missing slice,
+    uneven spacing).
+    """
 
     index: int
     position_mm: float
     time_s: float
     cardiac_phase: float
+    volume_k: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -175,6 +182,7 @@ def _report(volume, times_s, phases, source, clock, r_peaks, notes) -> PhaseRepo
             position_mm=float(s.position_mm),
             time_s=float(t) if t is not None and np.isfinite(t) else float("nan"),
             cardiac_phase=float(p),
+            volume_k=float(getattr(s, "k", s.index)),
         )
         for s, t, p in zip(volume.slices, times_s, phases)
     )

@@ -16,10 +16,10 @@ __all__ = ["write_phase_report", "plot_phases"]
 
 def _csv_text(report: PhaseReport) -> str:
     out = io.StringIO()
-    out.write("slice_index,position_mm,time_s,cardiac_phase\n")
+    out.write("slice_index,position_mm,time_s,cardiac_phase,volume_k\n")
     for s in report.slices:
         time = "" if not np.isfinite(s.time_s) else f"{s.time_s:.6f}"
-        out.write(f"{s.index},{s.position_mm:.4f},{time},{s.cardiac_phase:.6f}\n")
+        out.write(f"{s.index},{s.position_mm:.4f},{time},{s.cardiac_phase:.6f},{s.volume_k:.4f}\n")
     return out.getvalue()
 
 
