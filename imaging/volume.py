@@ -509,6 +509,11 @@ def _decode(frame: _Frame, plugin: str) -> np.ndarray:
 def _rescale(frame: _Frame) -> tuple[float, float]:
     slope = 1.0 if frame.slope is None else frame.slope
     intercept = 0.0 if frame.intercept is None else frame.intercept
+    if slope == 0 or not np.isfinite(slope) or not np.isfinite(intercept):
+        raise PixelDataError(
+            f"{frame.path}: (0028,1053) Rescale Slope {slope!r} / (0028,1052) Rescale Intercept "
+            f"{intercept!r} cannot map stored values to HU; the file is corrupt"
+        )
     return slope, intercept
 
 

@@ -391,7 +391,10 @@ def read_model(model_dir) -> HeartModel:
         raise ModelError(f"{jpath} is incomplete or corrupt ({exc!r}); re-create the model") from exc
     if mesh.n_faces != meta.get("n_faces"):
         raise ModelError(f"{ply} has {mesh.n_faces} faces, {jpath} says {meta.get('n_faces')}")
-    fid_heart = np.asarray(meta.get("fiducials_heart_mm", []), dtype=np.float64).reshape(-1, 3)
+    try:
+        fid_heart = np.asarray(meta.get("fiducials_heart_mm", []), dtype=np.float64).reshape(-1, 3)
+    except (TypeError, ValueError) as exc:
+        raise ModelError(f"{jpath}: fiducials_heart_mm must be a list of [x, y, z] mm ({exc})") from None
     if fid_heart.shape != model.fiducials_heart_mm.shape or not np.allclose(
         fid_heart, model.fiducials_heart_mm, atol=FIDUCIAL_TOL_MM
     ):

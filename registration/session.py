@@ -301,6 +301,7 @@ def _read_meta(folder: Path) -> dict:
     if not isinstance(points, list):
         raise SessionError(f"{file}: 'points' must be a list of point records, got {type(points).__name__}")
     seen: set[int] = set()
+    files: dict[str, int] = {}
     for k, entry in enumerate(points):
         where = f"{file}: points[{k}]"
         if not isinstance(entry, dict):
@@ -315,6 +316,12 @@ def _read_meta(folder: Path) -> dict:
         if entry["id"] in seen:
             raise SessionError(f"{where}: point id {entry['id']} is used twice")
         seen.add(entry["id"])
+        if entry["file"] in files:
+            raise SessionError(
+                f"{where}: file {entry['file']!r} is also the record of point {files[entry['file']]}; "
+                "each point needs its own CSV file"
+            )
+        files[entry["file"]] = entry["id"]
     return meta
 
 

@@ -591,3 +591,12 @@ def test_a_stray_repeated_position_is_dropped_not_split(tmp_path):
     assert any("1 missing slice(s)" in m for m in messages)  # the hole it leaves
     assert vol.hu.shape[0] == 20 and len(vol.slices) == 19
     assert vol.resampled
+
+
+def test_zero_rescale_slope_is_a_clear_error(tmp_path):
+    from imaging import PixelDataError
+
+    with np.errstate(divide="ignore", invalid="ignore"):  # the factory divides by the slope
+        fac.write_ct_series(tmp_path, rescale=(0.0, -1024.0))
+    with pytest.raises(PixelDataError, match=r"slice_0\d\d.dcm: \(0028,1053\) Rescale Slope 0.0"):
+        load_study(tmp_path)

@@ -408,3 +408,15 @@ def test_a_row_with_an_extra_field_is_refused(tmp_path):
     f.write_text("\n".join(lines) + "\n")
     with pytest.raises(SessionError, match=r"point_001.csv: line 50 has 19 fields, the header has 18"):
         read_session(tmp_path / "session")
+
+
+def test_two_points_sharing_one_file_are_refused(tmp_path):
+    from heartreg.phantom import make_config, write_session
+
+    write_session(tmp_path, make_config("default"), seed=2, n_points=3, duration_s=25.0)
+    meta_path = tmp_path / "session" / "session.json"
+    meta = json.loads(meta_path.read_text())
+    meta["points"][2]["file"] = meta["points"][1]["file"]
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(SessionError, match=r"points\[2\]: file .* is also the record of point"):
+        read_session(tmp_path / "session")
