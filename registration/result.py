@@ -193,7 +193,8 @@ class RegistrationResult:
     parameters : dict
         Everything that shaped the result (JSON values; treat as read-only).
     timings_s : dict
-        Seconds per stage (treat as read-only).
+        Seconds per stage; printed by the CLI, kept out of ``to_dict`` (and so out
+        of ``registration.json``) so that the same inputs give the same bytes.
     notes : tuple of str
         Warnings worth a user's attention.
     n_faces : int
@@ -285,7 +286,6 @@ class RegistrationResult:
                 "cardiac_phases": 0 if self.cardiac_sweep is None else len(self.cardiac_sweep.phases),
             },
             "parameters": dict(self.parameters),
-            "timings_s": dict(self.timings_s),
             "notes": list(self.notes),
         }
 
