@@ -156,6 +156,13 @@ def test_cli_register_end_to_end(case, tmp_path, capsys):
     assert data["parameters"]["phase_step"] == 0.05
     assert len((out / "sweep.csv").read_text().splitlines()) == 1 + 21
     assert abs(data["respiration_phase"] - case["truth"]["respiration_phase"]) <= 0.05
+    # the same inputs give the same bytes; a second run into the folder needs --overwrite
+    first = {p.name: p.read_bytes() for p in out.iterdir() if p.suffix in (".json", ".csv")}
+    args = ["register", str(case["root"] / "model"), str(case["root"] / "phantom" / "session"),
+            "-o", str(out), "--step", "0.05", "--no-view", "-q"]
+    assert main(args) == 1 and "--overwrite" in capsys.readouterr().err
+    assert main(args + ["--overwrite"]) == 0
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.suffix in (".json", ".csv")} == first
 
 
 def test_cli_missing_model_folder_is_one_clear_line(case, tmp_path, capsys):
