@@ -10,8 +10,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import shutil
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -136,46 +139,70 @@ def run_pipeline(
         check_out_dir(out_dir / part, what=f"{part} folder", must_be_empty=not overwrite)
     timings = {}
     log = (lambda msg: print(msg, file=sys.stderr)) if progress else (lambda msg: None)
+    # everything is written into a staging folder and moved into place at the end:
+    # a failure at any stage leaves OUT_DIR as it was
+    staging = Path(tempfile.mkdtemp(prefix=".pipeline-", dir=out_dir))
+    try:
+        t = time.perf_counter()
+        log("[1/3] cardiac phase of every CT slice")
+        volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
+        session = read_session(session_dir)  # fail early on a bad session, before the slow work
+        extra = phase_report_extra(volume, study_dir)
+        paths = {"phases": write_phase_report(report, staging / "phases", extra=extra)}
+        timings["phases"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    log("[1/3] cardiac phase of every CT slice")
-    volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
-    session = read_session(session_dir)  # fail early on a bad session, before the slow work
-    paths = {"phases": write_phase_report(report, out_dir / "phases", extra=phase_report_extra(volume, study_dir))}
-    timings["phases"] = time.perf_counter() - t
+        t = time.perf_counter()
+        log("[2/3] heart model")
+        build = build_heart_model(
+            volume,
+            cardiac_phase=report.volume_cardiac_phase,
+            cardiac_phase_source=report.source,
+            mask_path=mask,
+            label=label,
+            target_faces=faces,
+            expected_fiducials=None if fiducials == 0 else fiducials,
+        )
+        model_dir = write_model(build.model, staging / "model")
+        paths["model"] = model_dir
+        if offscreen_available():
+            paths["model_png"] = render_model_png(build.model, model_dir / "model.png")
+        timings["model"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    log("[2/3] heart model")
-    build = build_heart_model(
-        volume,
-        cardiac_phase=report.volume_cardiac_phase,
-        cardiac_phase_source=report.source,
-        mask_path=mask,
-        label=label,
-        target_faces=faces,
-        expected_fiducials=None if fiducials == 0 else fiducials,
-    )
-    model_dir = write_model(build.model, out_dir / "model", overwrite=overwrite)
-    paths["model"] = model_dir
-    if offscreen_available():
-        paths["model_png"] = render_model_png(build.model, model_dir / "model.png")
-    timings["model"] = time.perf_counter() - t
+        t = time.perf_counter()
+        log("[3/3] spatiotemporal registration")
+        result = register_session(build.model, session, phase_step=phase_step, progress=progress)
+        paths["registration"] = write_registration(result, staging / "registration", model=build.model)
+        timings["registration"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    log("[3/3] spatiotemporal registration")
-    result = register_session(build.model, session, phase_step=phase_step, progress=progress)
-    paths["registration"] = write_registration(result, out_dir / "registration", model=build.model)
-    timings["registration"] = time.perf_counter() - t
+        run = PipelineResult(
+            volume_series_uid=volume.series.series_instance_uid,
+            phase_report=report,
+            model_build=build,
+            registration=result,
+            out_dir=staging,
+            paths=paths,
+            timings_s=timings,
+        )
+        rows = truth_rows(run) if truth_rows is not None else None
+        paths["report"] = write_html_report(run, staging / "report.html", truth_rows=rows)
+        for name in ("phases", "model", "registration", "report.html"):
+            target = out_dir / name
+            if target.is_dir():
+                shutil.rmtree(target)
+            elif target.exists():
+                target.unlink()
+            os.replace(staging / name, target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return dataclasses.replace(run, out_dir=out_dir, paths=_moved(paths, staging, out_dir))
 
-    run = PipelineResult(
-        volume_series_uid=volume.series.series_instance_uid,
-        phase_report=report,
-        model_build=build,
-        registration=result,
-        out_dir=out_dir,
-        paths=paths,
-        timings_s=timings,
-    )
-    rows = truth_rows(run) if truth_rows is not None else None
-    paths["report"] = write_html_report(run, out_dir / "report.html", truth_rows=rows)
-    return run
+
+def _moved(value, old: Path, new: Path):
+    """``value`` (paths, possibly nested in dicts and lists) with ``old`` replaced by ``new``."""
+    if isinstance(value, dict):
+        return {k: _moved(v, old, new) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_moved(v, old, new) for v in value)
+    if isinstance(value, Path) and value.is_relative_to(old):
+        return new / value.relative_to(old)
+    return value

@@ -75,3 +75,15 @@ def test_cli_pipeline_bad_session(tmp_path, capsys):
     assert main(["pipeline", str(SAMPLE_DIR / "ct"), str(tmp_path / "nope"), "-o", str(tmp_path / "o"), "-q"]) == 1
     err = capsys.readouterr().err
     assert "session" in err and "Traceback" not in err
+
+
+def test_cli_pipeline_failure_leaves_no_partial_outputs(demo, tmp_path, capsys):
+    """The model stage fails (8 staples expected, 9 found) after the phases were
+    computed: nothing of the run may stay in OUT_DIR."""
+    out, _, _ = demo
+    dest = tmp_path / "run"
+    code = main(["pipeline", str(SAMPLE_DIR / "ct"), str(out / "session_case" / "session"), "-o", str(dest),
+                 "-q", "--fiducials", "8"])
+    assert code == 1
+    assert "expected 8" in capsys.readouterr().err
+    assert list(dest.iterdir()) == []
