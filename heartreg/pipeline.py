@@ -22,14 +22,17 @@ from pathlib import Path
 __all__ = ["PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "run_pipeline"]
 
 
-def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = False) -> Path:
+def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = False, create: bool = True) -> Path:
     """Check an output folder before any work: a folder (or nothing) that can be
-    written; with ``must_be_empty``, no earlier contents.  Creates it."""
+    written; with ``must_be_empty``, no earlier contents.  Creates it unless
+    ``create`` is false."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{what} {path} exists and is not a folder; choose a folder")
     if must_be_empty and path.is_dir() and any(path.iterdir()):
         raise ValueError(f"{what} {path} is not empty; choose an empty folder or pass --overwrite")
+    if not create:
+        return path
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -136,7 +139,7 @@ def run_pipeline(
 
     out_dir = check_out_dir(out_dir)
     for part in ("phases", "model", "registration"):
-        check_out_dir(out_dir / part, what=f"{part} folder", must_be_empty=not overwrite)
+        check_out_dir(out_dir / part, what=f"{part} folder", must_be_empty=not overwrite, create=False)
     timings = {}
     log = (lambda msg: print(msg, file=sys.stderr)) if progress else (lambda msg: None)
     # everything is written into a staging folder and moved into place at the end:
