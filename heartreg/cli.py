@@ -106,8 +106,15 @@ def _cmd_model(args) -> int:
         raise ValueError("--label chooses a label of --mask; give the label map with --mask FILE")
     check_out_dir(args.out_dir, what="model folder", must_be_empty=not args.overwrite)
     volume, report = _open_study(args)
-    stages = ["mask", "mesh", "fiducials", "frame", "write"]
-    bar = _progress(len(stages), "model", args.quiet)
+    from tqdm import tqdm
+
+    # the stages of build_heart_model (mask, mesh, fiducials, frame), then the write
+    bar = tqdm(total=5, desc="model", disable=args.quiet, file=sys.stderr, leave=False)
+
+    def stage(name: str) -> None:  # a stage starts: the one before it is done
+        bar.update(0 if name == "mask" else 1)
+        bar.set_postfix_str(name)
+
     build = build_heart_model(
         volume,
         cardiac_phase=report.volume_cardiac_phase,
@@ -118,10 +125,9 @@ def _cmd_model(args) -> int:
         expected_fiducials=None if args.fiducials == 0 else args.fiducials,
         fiducial_floor_hu=args.fiducial_floor_hu,
         trim_vessels=not args.keep_vessels,
-        progress=lambda name: bar.set_postfix_str(name) or bar.update(0 if name == "mask" else 1),
+        progress=stage,
     )
-    bar.set_postfix_str("write")
-    bar.update(1)
+    stage("write")
     out = write_model(build.model, args.out_dir, overwrite=args.overwrite)
     bar.update(1)
     bar.close()
@@ -140,12 +146,6 @@ def _cmd_model(args) -> int:
     print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in build.timings_s.items()))
     print(f"  picture           {picture}")
     return 0
-
-
-def _progress(total: int, desc: str, quiet: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, disable=quiet, file=sys.stderr, leave=False)
 
 
 def _cmd_register(args) -> int:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SAMPLE_DIR", "format_table", "run_demo", "truth_rows"]
+__all__ = ["SAMPLE_DIR", "format_table", "pose_error", "run_demo", "truth_rows"]
 
 #: the committed sample, beside the package in a source checkout
 SAMPLE_DIR = Path(__file__).resolve().parents[1] / "sample_dicom"
@@ -34,12 +34,28 @@ def _angle_deg(a, b) -> float:
     return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1.0, 1.0))))
 
 
+def pose_error(T, T_true, point_probe):
+    """Error of ``T`` against ``T_true`` at a probe-frame point.
+
+    Returns
+    -------
+    vector : (3,) float64, mm
+        ``T p - T_true p``, heart frame.
+    distance_mm, rotation_deg : float
+        Its norm and the geodesic rotation between the two.
+    """
+    from registration import rotation_distance_deg
+
+    p = np.append(point_probe, 1.0)
+    vec = (T @ p - T_true @ p)[:3]
+    return vec, float(np.linalg.norm(vec)), float(rotation_distance_deg(T, T_true))
+
+
 def _rigid_error(T, T_true):
     """Translation error at the heart frame's origin (mm) and rotation error (deg)."""
-    from registration import rotation_distance_deg, translation_distance_mm
-
     pivot = np.linalg.inv(T_true)[:3, 3]  # the heart origin in the probe frame
-    return float(translation_distance_mm(T, T_true, pivot)), float(rotation_distance_deg(T, T_true))
+    _, distance_mm, rotation_deg = pose_error(T, T_true, pivot)
+    return distance_mm, rotation_deg
 
 
 def truth_rows(run, truth: dict) -> list[tuple]:

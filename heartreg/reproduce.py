@@ -38,6 +38,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from heartreg.demo import pose_error
 from heartreg.phantom.config import PAPER_TABLE1
 from imaging.files import write_text_atomic
 
@@ -220,15 +221,6 @@ def _ensure_case(case_dir: Path, preset: str, size: str, seed: int, n_points, pr
     return truth, False
 
 
-def _pose_error(T, T_true, point_probe):
-    """Error of ``T`` against ``T_true`` at a probe-frame point: (vector mm, norm mm, angle deg)."""
-    from registration import rotation_distance_deg
-
-    p = np.append(point_probe, 1.0)
-    vec = (T @ p - T_true @ p)[:3]
-    return vec, float(np.linalg.norm(vec)), float(rotation_distance_deg(T, T_true))
-
-
 def _path_axis(locus_mm):
     """Main axis (unit (3,)) and peak-to-peak extent (mm) of a (m, 3) locus."""
     centred = locus_mm - locus_mm.mean(axis=0)
@@ -271,10 +263,10 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
     T_probe_from_heart = np.linalg.inv(T_true)
     origin_probe = T_probe_from_heart[:3, 3]  # the fitted heart origin, probe frame
     centroid_probe = (T_probe_from_heart @ np.append(reg["pivot_heart_mm"], 1.0))[:3]
-    _, final_mm, final_deg = _pose_error(T["final"], T_true, origin_probe)
-    _, static_mm, static_deg = _pose_error(T["static"], T_true, origin_probe)
+    _, final_mm, final_deg = pose_error(T["final"], T_true, origin_probe)
+    _, static_mm, static_deg = pose_error(T["static"], T_true, origin_probe)
     # T0's error at the sweep's pivot, heart frame: the quantity eq. 10 measures
-    t0_vec, t0_mm, t0_deg = _pose_error(T["T0"], T_true, centroid_probe)
+    t0_vec, t0_mm, t0_deg = pose_error(T["T0"], T_true, centroid_probe)
     locus = np.stack([sweep["tx_mm"], sweep["ty_mm"], sweep["tz_mm"]], axis=1)
     axis, path_mm = _path_axis(locus)
     along = float(abs(t0_vec @ axis) / t0_mm) if t0_mm > 0 else 0.0

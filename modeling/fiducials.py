@@ -160,8 +160,8 @@ def find_fiducials(
             "no air around the body in the volume (the field of view cuts the skin?); "
             "skin fiducials cannot be told from bone: pass --fiducials 0 and give them otherwise"
         )
-    body = ~outside
-    body_centre_y = (T[:3, :3] @ ((np.argwhere(body[:, ::4, ::4]).mean(axis=0) * [1, 4, 4]) * step)[::-1] + T[:3, 3])[1]
+    body_kji = np.array(ndimage.center_of_mass(~outside)) * step  # full-resolution voxel indices
+    body_centre_y = (T[:3, :3] @ body_kji[::-1] + T[:3, 3])[1]
     reach = skin_reach_mm + 0.5 * float(np.max(cspacing))
     shell = ndimage.distance_transform_edt(~outside, sampling=cspacing) <= reach
     candidates = shell & (cmax > floor_hu)
