@@ -40,6 +40,7 @@ import numpy as np
 
 from heartreg.demo import pose_error
 from heartreg.phantom.config import PAPER_TABLE1
+from hrcore.errors import HeartregError
 from imaging.files import write_text_atomic
 
 __all__ = [
@@ -75,7 +76,7 @@ PAPER = {
 }
 
 
-class ReproduceError(ValueError):
+class ReproduceError(HeartregError, ValueError):
     """The reproduction cannot run as asked (bad trial list, a foreign case in the way)."""
 
 
@@ -525,9 +526,14 @@ def reproduce(
         Unknown or repeated trials, a different phantom case in the way, or
         (``rerun=False``) no earlier run to read.
     """
-    from heartreg.reproduce_report import csv_text, figure_data, markdown, page_html, plot_figures
-
     from heartreg.phantom.config import SIZES
+    from heartreg.reproduce_report import (
+        csv_text,
+        figure_data,
+        markdown,
+        page_html,
+        plot_figures,
+    )
 
     trials = [int(k) for k in trials]
     if not trials:

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from hrcore.errors import HeartregError
+
 __all__ = ["SignalError", "phase_from_events"]
 
 
-class SignalError(ValueError):
+class SignalError(HeartregError, ValueError):
     """A physiological signal or event list that cannot give what was asked."""
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.errors import HeartregError
 from imaging.ecg import cardiac_phase, detect_r_peaks
 
 __all__ = [
@@ -47,7 +48,7 @@ MOTION_FREE_WINDOW = (0.6, 0.8)
 JUMP_THRESHOLD = 0.1
 
 
-class GatingError(ValueError):
+class GatingError(HeartregError, ValueError):
     """No usable cardiac gating information for the slices."""
 
 

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from hrcore.errors import HeartregError
+
 from .discover import _Frame, _Other, _Scan, _scan
 from .volume import (
     SeriesError,
@@ -50,7 +52,7 @@ _SPLIT_KEYS = (
 )
 
 
-class StudyError(ValueError):
+class StudyError(HeartregError, ValueError):
     """A study path holds nothing that can be loaded."""
 
 

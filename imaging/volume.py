@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydicom.errors import InvalidDicomError
 
+from hrcore.errors import HeartregError
+
 from .discover import _Frame
 
 logger = logging.getLogger(__name__)
@@ -75,15 +77,15 @@ _INSTALL_HINT = {
 }
 
 
-class SeriesError(ValueError):
+class SeriesError(HeartregError, ValueError):
     """A series cannot be turned into a volume (geometry, selection, content)."""
 
 
-class PixelDataError(ValueError):
+class PixelDataError(HeartregError, ValueError):
     """A file's pixel data cannot be read (truncated or corrupt)."""
 
 
-class DecoderUnavailableError(RuntimeError):
+class DecoderUnavailableError(HeartregError, RuntimeError):
     """No installed pixel-data decoder handles a file's transfer syntax."""
 
 

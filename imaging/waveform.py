@@ -33,6 +33,8 @@ import pydicom
 from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
 
+from hrcore.errors import HeartregError
+
 __all__ = ["EcgRecord", "WaveformError", "read_ecg_waveform", "ECG_SOP_CLASSES"]
 
 #: SOP classes of ECG waveforms: 12-lead, General, Ambulatory.
@@ -53,7 +55,7 @@ _TO_MV = {"uV": 1e-3, "mV": 1.0, "V": 1e3, "nV": 1e-6}
 _MIN_RR_S = 0.2
 
 
-class WaveformError(ValueError):
+class WaveformError(HeartregError, ValueError):
     """A DICOM file that is not a readable ECG waveform."""
 
 

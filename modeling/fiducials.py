@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from hrcore.errors import HeartregError
 from modeling.coarse import block_mean_max, coarse_step
 
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
@@ -42,7 +43,7 @@ COARSE_MM = 2.0
 MAX_MASS = 6.0e5
 
 
-class FiducialError(ValueError):
+class FiducialError(HeartregError, ValueError):
     """The fiducials found do not match what was expected."""
 
 

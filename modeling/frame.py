@@ -43,6 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hrcore.errors import HeartregError
+
 __all__ = ["FrameError", "SlabEllipse", "HeartFrame", "fit_heart_frame", "ANTERIOR_LPS"]
 
 #: Anterior direction in LPS patient coordinates.
@@ -55,7 +57,7 @@ CAP_FRACTION = 0.2
 MAX_AXIS_RATIO = 6.0
 
 
-class FrameError(ValueError):
+class FrameError(HeartregError, ValueError):
     """The vertices do not allow a heart frame fit."""
 
 

@@ -16,12 +16,14 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from hrcore.errors import HeartregError
+
 __all__ = ["LabelMapError", "LabelMap", "read_label_map", "mask_on_grid"]
 
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
-class LabelMapError(ValueError):
+class LabelMapError(HeartregError, ValueError):
     """A label map that cannot be read or used."""
 
 

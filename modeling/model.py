@@ -26,11 +26,18 @@ from typing import Mapping
 
 import numpy as np
 
+from hrcore.errors import HeartregError
 from imaging.files import umask_mode
-
 from modeling.fiducials import order_fiducials
 from modeling.frame import HeartFrame, SlabEllipse, fit_heart_frame
-from modeling.surface import Mesh, MeshError, check_mesh, read_ply, transform_mesh, write_mesh
+from modeling.surface import (
+    Mesh,
+    MeshError,
+    check_mesh,
+    read_ply,
+    transform_mesh,
+    write_mesh,
+)
 
 __all__ = [
     "ModelError",
@@ -78,7 +85,7 @@ FRAME_CONVENTIONS = (
 )
 
 
-class ModelError(ValueError):
+class ModelError(HeartregError, ValueError):
     """A heart model folder is missing, incomplete or inconsistent."""
 
 

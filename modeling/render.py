@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.errors import HeartregError
 from imaging.files import atomic_path
-
 from modeling.model import HeartModel
 
 __all__ = ["RenderError", "offscreen_available", "render_model_png", "render_png"]
@@ -58,7 +58,7 @@ _PROBE = (
 )
 
 
-class RenderError(RuntimeError):
+class RenderError(HeartregError, RuntimeError):
     """No offscreen OpenGL, or VTK failed to draw: skip the picture."""
 
 

@@ -25,12 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from hrcore.errors import HeartregError
 from modeling.coarse import block_mean_max, coarse_step
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
 
-class SegmentationError(ValueError):
+class SegmentationError(HeartregError, ValueError):
     """No heart-like region could be segmented."""
 
 

@@ -30,10 +30,11 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-
-from imaging.files import atomic_path
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
+
+from hrcore.errors import HeartregError
+from imaging.files import atomic_path
 
 __all__ = [
     "Mesh",
@@ -55,7 +56,7 @@ TAUBIN_MU = -0.53
 MAX_HOLE_EDGES = 1000
 
 
-class MeshError(ValueError):
+class MeshError(HeartregError, ValueError):
     """The mask or the mesh cannot make a closed, manifold, outward-oriented surface."""
 
 

@@ -25,6 +25,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
+from hrcore.errors import HeartregError
+
 __all__ = [
     "FiducialError",
     "FiducialRegistration",
@@ -38,7 +40,7 @@ __all__ = [
 COLLINEAR_RATIO = 1e-3
 
 
-class FiducialError(ValueError):
+class FiducialError(HeartregError, ValueError):
     """Fiducial sets that cannot be registered (count mismatch, degenerate layout)."""
 
 

@@ -31,6 +31,8 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hrcore.errors import HeartregError
+
 __all__ = [
     "Harmonics",
     "MotionModel",
@@ -45,7 +47,7 @@ __all__ = [
 TWO_PI = 2.0 * np.pi
 
 
-class MotionModelError(ValueError):
+class MotionModelError(HeartregError, ValueError):
     """Too few (valid) samples to fit the motion model."""
 
 

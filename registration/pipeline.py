@@ -31,6 +31,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from hrcore.errors import HeartregError
 from imaging.ecg import cardiac_phase, detect_r_peaks
 from imaging.events import SignalError
 from imaging.respiration import expiration_onsets, respiration_phase
@@ -71,7 +72,7 @@ MIN_BREATHS = 2
 DEFAULT_STEP = 0.01
 
 
-class RegistrationError(ValueError):
+class RegistrationError(HeartregError, ValueError):
     """The model and the session cannot be registered (no usable point, no fiducials)."""
 
 

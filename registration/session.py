@@ -25,6 +25,8 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hrcore.errors import HeartregError
+
 __all__ = [
     "SESSION_FORMAT",
     "SUPPORTED_VERSIONS",
@@ -64,7 +66,7 @@ QUATERNION_TOL = 1e-3
 RATE_TOL = 0.05
 
 
-class SessionError(ValueError):
+class SessionError(HeartregError, ValueError):
     """A session folder that does not follow the ``heartreg-session`` format."""
 
 

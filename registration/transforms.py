@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hrcore.errors import HeartregError
+
 __all__ = [
     "TransformError",
     "make_transform",
@@ -39,7 +41,7 @@ __all__ = [
 RIGID_TOL = 1e-6
 
 
-class TransformError(ValueError):
+class TransformError(HeartregError, ValueError):
     """A matrix that should be a rigid transform is not (shape, rotation, last row)."""
 
 

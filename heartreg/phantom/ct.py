@@ -51,6 +51,7 @@ from heartreg.phantom.config import SIZES, CTGeometry, PhantomConfig
 from heartreg.phantom.dicom_ct import ct_slice_dataset, derive_uid, ecg_dataset
 from heartreg.phantom.layout import fiducials_patient_mm, make_heart
 from heartreg.phantom.signals import phase_from_events, r_peak_times, synthesize_ecg
+from hrcore.errors import HeartregError
 
 __all__ = [
     "AcquisitionPlan",
@@ -78,7 +79,7 @@ ECG_START_AFTER_ORIGIN_S = 0.050
 ECG_TAIL_S = 0.4
 
 
-class CTStudyExistsError(FileExistsError):
+class CTStudyExistsError(HeartregError, FileExistsError):
     """The output folder already holds a CT series."""
 
 

@@ -25,6 +25,7 @@ from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, make_config
 from heartreg.phantom.ct import write_ct_study
 from heartreg.phantom.layout import T_patient_from_probe, make_heart
 from heartreg.phantom.session import write_session
+from hrcore.errors import HeartregError
 
 __all__ = ["make_phantom", "PhantomError", "TRUTH_FORMAT_VERSION"]
 
@@ -32,7 +33,7 @@ TRUTH_FORMAT_VERSION = 1
 _OUTPUTS = ("ct", "qrs.csv", "session", "truth.json")
 
 
-class PhantomError(ValueError):
+class PhantomError(HeartregError, ValueError):
     """Invalid phantom request (bad argument or an output folder in the way)."""
 
 
