@@ -159,13 +159,15 @@ def _cmd_register(args) -> int:
     out = check_out_dir(args.out_dir, must_be_empty=not args.overwrite)
     model = read_model(args.model_dir)
     session = read_session(args.session_dir)
-    for stale in [*out.glob("fig*.png"), *out.glob("*sweep.csv"), out / "registration.json"]:
+    for stale in [*out.glob("fig*.png"), *out.glob("*sweep.csv"), out / "registration.json",
+                  *out.glob("ProbeTo*.tfm"), *out.glob("*.mrk.json")]:
         stale.unlink(missing_ok=True)  # --overwrite: no file of an earlier run stays beside the new ones
     harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
     result = register_session(
         model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
     )
-    paths = write_registration(result, args.out_dir, model=model, view=not args.no_view)
+    paths = write_registration(result, args.out_dir, model=model, view=not args.no_view,
+                               fiducials_probe_mm=session.fiducials_probe_mm)
     T = result.T_heart_from_probe
     e = result.euler_xyz_deg
     print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")

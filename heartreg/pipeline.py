@@ -174,7 +174,9 @@ def run_pipeline(
         t = time.perf_counter()
         log("[3/3] spatiotemporal registration")
         result = register_session(build.model, session, phase_step=phase_step, progress=progress)
-        paths["registration"] = write_registration(result, staging / "registration", model=build.model)
+        paths["registration"] = write_registration(
+            result, staging / "registration", model=build.model, fiducials_probe_mm=session.fiducials_probe_mm
+        )
         timings["registration"] = time.perf_counter() - t
 
         run = PipelineResult(
