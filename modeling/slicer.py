@@ -31,13 +31,13 @@ from hrcore.errors import HeartregError
 from imaging.files import write_text_atomic
 
 __all__ = [
-    "SlicerFileError",
-    "Markups",
     "MARKUPS_SCHEMA",
-    "write_markups",
+    "Markups",
+    "SlicerFileError",
+    "read_itk_transform",
     "read_markups",
     "write_itk_transform",
-    "read_itk_transform",
+    "write_markups",
 ]
 
 MARKUPS_SCHEMA = (

@@ -32,7 +32,7 @@ import numpy as np
 from modeling.slicer import write_itk_transform, write_markups
 from registration.result import RegistrationResult
 
-__all__ = ["write_slicer_files", "TOUCHED_FIDUCIALS_FILE", "POINTS_FILE"]
+__all__ = ["POINTS_FILE", "TOUCHED_FIDUCIALS_FILE", "write_slicer_files"]
 
 TOUCHED_FIDUCIALS_FILE = "fiducials_touched.mrk.json"
 POINTS_FILE = "points_registered.mrk.json"

@@ -17,7 +17,13 @@ import pytest
 from heartreg.phantom import config as phantom_config
 from heartreg.phantom import layout
 from modeling.model import make_heart_model, read_model, write_model
-from modeling.slicer import SlicerFileError, read_itk_transform, read_markups, write_itk_transform, write_markups
+from modeling.slicer import (
+    SlicerFileError,
+    read_itk_transform,
+    read_markups,
+    write_itk_transform,
+    write_markups,
+)
 from modeling.surface import Mesh
 from registration.pipeline import register_session
 from registration.report import write_registration
@@ -45,7 +51,8 @@ def registered(sample_case, tmp_path_factory):
     result = register_session(model, session, phase_step=0.02)
     out = root / "registration"
     paths = write_registration(result, out, model=model, view=False, fiducials_probe_mm=session.fiducials_probe_mm)
-    return dict(model_dir=model_dir, model=model, session=session, result=result, out=out, paths=paths)
+    return {"model_dir": model_dir, "model": model, "session": session, "result": result, "out": out,
+            "paths": paths}
 
 
 def _sitk_map(path, points):
