@@ -33,6 +33,7 @@ def _cmd_phantom(args) -> int:
         session=not args.no_session,
         progress=not args.quiet,
         overwrite=args.overwrite,
+        plus=args.plus,
         **overrides,
     )
     out = Path(args.out_dir)
@@ -41,6 +42,8 @@ def _cmd_phantom(args) -> int:
     print(f"  image phase      phi_C* = {truth['cardiac_phase']:.4f}, phi_R* = {truth['respiration_phase']:.2f}")
     if "session" in truth:
         print(f"  session points   {len(truth['session']['points'])} in {out / 'session'}")
+        if args.plus:
+            print(f"  PLUS session     {out / 'session_plus'} (poses in tracking.seq.mha)")
     print(f"  truth            {out / 'truth.json'}")
     return 0
 
@@ -269,6 +272,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--points", type=int, default=None, help="number of robot attachment points")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
+    p.add_argument("--plus", action="store_true",
+                   help="also write the session with its poses in a PLUS sequence file (session_plus/)")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)

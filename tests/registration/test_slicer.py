@@ -9,6 +9,7 @@ folder, so every file here is the one ``heartreg register`` writes.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,24 @@ SCHEMA = Path("/work/shared/slicer/markups-schema-v1.0.3.json")
 EXAMPLE_TFM = Path("/work/shared/slicer/example-affine.tfm")
 
 
+#: a part of the shared sample session and a coarse sweep keep the two registrations
+#: (CSV and PLUS) quick; the files' checks do not depend on the registration's accuracy.
+N_POINTS = 12
+PHASE_STEP = 0.05
+
+
+def _first_points(src: Path, dst: Path, n: int) -> Path:
+    """A copy of session ``src`` with its first ``n`` point records only."""
+    meta = json.loads((src / "session.json").read_text())
+    meta["points"] = meta["points"][:n]
+    (dst / "points").mkdir(parents=True)
+    for entry in meta["points"]:
+        shutil.copyfile(src / entry["file"], dst / entry["file"])
+    shutil.copyfile(src / meta["fiducials_file"], dst / meta["fiducials_file"])
+    (dst / "session.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return dst
+
+
 @pytest.fixture(scope="module")
 def registered(sample_case, tmp_path_factory):
     case, truth = sample_case
@@ -47,8 +66,8 @@ def registered(sample_case, tmp_path_factory):
     )
     model_dir = write_model(built, root / "model")
     model = read_model(model_dir)
-    session = read_session(case / "session")
-    result = register_session(model, session, phase_step=0.02)
+    session = read_session(_first_points(case / "session", root / "session", N_POINTS))
+    result = register_session(model, session, phase_step=PHASE_STEP)
     out = root / "registration"
     paths = write_registration(result, out, model=model, view=False, fiducials_probe_mm=session.fiducials_probe_mm)
     return {"model_dir": model_dir, "model": model, "session": session, "result": result, "out": out,
@@ -170,3 +189,22 @@ def test_bad_slicer_files(tmp_path):
     g.write_text('{"markups": [{"type": "Line"}]}')
     with pytest.raises(SlicerFileError, match="no fiducial list"):
         read_markups(g)
+
+
+def test_plus_session_gives_the_same_registration_as_the_csv_session(registered, tmp_path):
+    """The phantom's PLUS sequence file, read back, gives registration.json byte for
+    byte as the CSV session, apart from the line that names the pose source."""
+    from heartreg.phantom.plus import write_plus_session
+
+    plus_dir = write_plus_session(registered["session"].path, tmp_path / "session_plus")
+    session = read_session(plus_dir)
+    assert session.pose_source == "PLUS sequence (tracking.seq.mha)" and not session.notes
+    for a, b in zip(registered["session"].points, session.points):
+        np.testing.assert_array_equal(a.T_probe_from_robot, b.T_probe_from_robot)  # to the last bit
+    result = register_session(registered["model"], session, phase_step=PHASE_STEP)
+    write_registration(result, tmp_path / "reg", model=registered["model"], view=False)
+    csv_lines = (registered["out"] / "registration.json").read_text().splitlines()
+    plus_lines = (tmp_path / "reg" / "registration.json").read_text().splitlines()
+    differ = [(a, b) for a, b in zip(csv_lines, plus_lines) if a != b]
+    assert len(csv_lines) == len(plus_lines)
+    assert differ == [('  "session_pose_source": "csv"', '  "session_pose_source": "PLUS sequence (tracking.seq.mha)"')]
