@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import itertools
 import html
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from imaging.files import write_text_atomic
 
-__all__ = ["write_html_report", "html_table", "registration_view_html"]
+__all__ = ["html_table", "registration_view_html", "write_html_report"]
 
 _STYLE = """
 body { font-family: -apple-system, Segoe UI, Helvetica, Arial, sans-serif; margin: 2em auto;
@@ -90,7 +91,7 @@ def _on_surface(vertices, points, steps: int = 16):
     if len(points) < 2:
         return points
     t = np.linspace(0.0, 1.0, steps, endpoint=False)[:, None]
-    cuts = np.concatenate([a + t * (b - a) for a, b in zip(points[:-1], points[1:])] + [points[-1:]])
+    cuts = np.concatenate([a + t * (b - a) for a, b in itertools.pairwise(points)] + [points[-1:]])
     _, nearest = cKDTree(vertices).query(cuts)
     path = vertices[nearest]
     path[::steps] = points  # the points themselves stay where they are
