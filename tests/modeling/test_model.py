@@ -51,7 +51,9 @@ def test_model_contents(model, phantom_meshes):
 
 def test_round_trip(model, tmp_path):
     out = write_model(model, tmp_path / "m")
-    assert sorted(p.name for p in out.iterdir()) == ["heart.ply", "heart.stl", "model.json"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["heart.ply", "heart.stl", "model.json", "heart_lps.stl", "HeartToPatient.tfm", "fiducials_ct.mrk.json"]
+    )
     assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no temporary folder left
     again = read_model(out)
     assert again == model
