@@ -8,14 +8,15 @@ export VTK_DEFAULT_OPENGL_WINDOW ?= vtkOSOpenGLRenderWindow
 
 .PHONY: demo test bench sysdeps clean
 
-# Offscreen rendering needs Debian's OSMesa/EGL/GL libraries; install them when
-# missing and we are allowed to (root), otherwise say what to install.
+# Offscreen rendering needs Debian's OSMesa/EGL/GL libraries, and the test of the
+# report's interactive 3-D view a headless chromium; install them when missing and
+# we are allowed to (root), otherwise say what to install.
 sysdeps:
-	@if ! ldconfig -p | grep -q libOSMesa; then \
+	@if ! ldconfig -p | grep -q libOSMesa || ! command -v chromium >/dev/null; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 libegl1 libgl1 libxrender1 >/dev/null) \
-	      || echo "warning: could not install libosmesa6 libegl1 libgl1; 3-D pictures will be skipped" >&2; \
-	  else echo "note: install libosmesa6 libegl1 libgl1 for offscreen 3-D pictures" >&2; fi; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 libegl1 libgl1 libxrender1 chromium >/dev/null) \
+	      || echo "warning: could not install libosmesa6 libegl1 libgl1 chromium; 3-D pictures and the browser test will be skipped" >&2; \
+	  else echo "note: install libosmesa6 libegl1 libgl1 for offscreen 3-D pictures and chromium for the report's browser test" >&2; fi; \
 	fi
 
 $(STAMP): pyproject.toml

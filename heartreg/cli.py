@@ -33,6 +33,7 @@ def _cmd_phantom(args) -> int:
         session=not args.no_session,
         progress=not args.quiet,
         overwrite=args.overwrite,
+        plus=args.plus,
         **overrides,
     )
     out = Path(args.out_dir)
@@ -41,6 +42,8 @@ def _cmd_phantom(args) -> int:
     print(f"  image phase      phi_C* = {truth['cardiac_phase']:.4f}, phi_R* = {truth['respiration_phase']:.2f}")
     if "session" in truth:
         print(f"  session points   {len(truth['session']['points'])} in {out / 'session'}")
+        if args.plus:
+            print(f"  PLUS session     {out / 'session_plus'} (poses in tracking.seq.mha)")
     print(f"  truth            {out / 'truth.json'}")
     return 0
 
@@ -159,13 +162,15 @@ def _cmd_register(args) -> int:
     out = check_out_dir(args.out_dir, must_be_empty=not args.overwrite)
     model = read_model(args.model_dir)
     session = read_session(args.session_dir)
-    for stale in [*out.glob("fig*.png"), *out.glob("*sweep.csv"), out / "registration.json"]:
+    for stale in [*out.glob("fig*.png"), *out.glob("*sweep.csv"), out / "registration.json",
+                  *out.glob("ProbeTo*.tfm"), *out.glob("*.mrk.json")]:
         stale.unlink(missing_ok=True)  # --overwrite: no file of an earlier run stays beside the new ones
     harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
     result = register_session(
         model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
     )
-    paths = write_registration(result, args.out_dir, model=model, view=not args.no_view)
+    paths = write_registration(result, args.out_dir, model=model, view=not args.no_view,
+                               fiducials_probe_mm=session.fiducials_probe_mm)
     T = result.T_heart_from_probe
     e = result.euler_xyz_deg
     print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")
@@ -178,7 +183,7 @@ def _cmd_register(args) -> int:
           f"static delta mean {result.delta_static_mean_mm:.2f} mm")
     print(f"  exclusions        {len(result.exclusions)}"
           + "".join(f"\n    point {i}: {why}" for i, why in result.exclusions))
-    for note in list(result.notes) + list(paths["notes"]):
+    for note in list(session.notes) + list(result.notes) + list(paths["notes"]):
         print(f"  note              {note}")
     print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()))
     return 0
@@ -267,6 +272,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--points", type=int, default=None, help="number of robot attachment points")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
+    p.add_argument("--plus", action="store_true",
+                   help="also write the session with its poses in a PLUS sequence file (session_plus/)")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)

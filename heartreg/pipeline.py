@@ -4,8 +4,10 @@
 
     OUT_DIR/phases/         phases.csv, phases.json, phases.png    (imaging)
     OUT_DIR/model/          heart.ply, heart.stl, model.json, model.png  (modeling)
+                            + heart_lps.stl, HeartToPatient.tfm, fiducials_ct.mrk.json (3D Slicer)
     OUT_DIR/registration/   registration.json, sweep.csv, figures   (registration)
-    OUT_DIR/report.html     one self-contained page with all of it
+                            + ProbeTo*.tfm, *.mrk.json (3D Slicer)
+    OUT_DIR/report.html     one self-contained page with all of it, an interactive 3-D view first
 """
 
 from __future__ import annotations
@@ -174,7 +176,9 @@ def run_pipeline(
         t = time.perf_counter()
         log("[3/3] spatiotemporal registration")
         result = register_session(build.model, session, phase_step=phase_step, progress=progress)
-        paths["registration"] = write_registration(result, staging / "registration", model=build.model)
+        paths["registration"] = write_registration(
+            result, staging / "registration", model=build.model, fiducials_probe_mm=session.fiducials_probe_mm
+        )
         timings["registration"] = time.perf_counter() - t
 
         run = PipelineResult(

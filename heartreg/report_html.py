@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import itertools
 import html
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import numpy as np
 
 from imaging.files import write_text_atomic
 
-__all__ = ["write_html_report", "html_table"]
+__all__ = ["html_table", "registration_view_html", "write_html_report"]
 
 _STYLE = """
 body { font-family: -apple-system, Segoe UI, Helvetica, Arial, sans-serif; margin: 2em auto;
@@ -52,6 +53,51 @@ def _image(path, caption: str) -> str:
     return f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{data}"><figcaption class="note">{html.escape(caption)}</figcaption></figure>'
 
 
+def registration_view_html(model, reg, *, element_id: str = "view3d") -> str:
+    """The interactive 3-D view of a registration: the model's surface (heart frame),
+    the registered points by the final and by the fiducial registration, and the
+    robot's track (its attachment points in recording order)."""
+    from heartreg.view3d import Layer, viewer_html
+
+    def mapped(T, pts):
+        return pts @ T[:3, :3].T + T[:3, 3]
+
+    final = mapped(reg.T_heart_from_probe, reg.points_probe_mm)
+    seed = mapped(reg.T0_heart_from_probe, reg.points_probe_mm)
+    centre = model.mesh.vertices.mean(axis=0)
+    towards = final.mean(axis=0) - centre
+    towards[2] *= 0.35  # mostly from the side, a little from the points' end
+    layers = [
+        Layer("robot's track (attachment points in recording order)", _on_surface(model.mesh.vertices, final),
+              "#3b3b9a", kind="line", size_px=2.5),
+        Layer("registered points, fiducial registration T0", seed, "#f2a93b", size_px=7.0, visible=False),
+        Layer(f"registered points, spatiotemporal registration (phi_R* = {reg.phase_r:.2f})", final, "#22a35a",
+              size_px=10.0),
+    ]
+    return viewer_html(
+        model.mesh.vertices, model.mesh.faces, layers=layers, element_id=element_id,
+        surface_label=f"heart model at phi_C* = {model.cardiac_phase:.2f} ({model.mesh.n_faces} faces)",
+        frame_note="Heart frame (mm): x anterior, z from apex to base. Points: motion-model positions at the "
+                   "image phases (phi_C*, phi_R*), mapped by each registration.",
+        view_from=towards,
+    )
+
+
+def _on_surface(vertices, points, steps: int = 16):
+    """A polyline through ``points`` that follows the surface: each segment cut in
+    ``steps`` and every cut moved to the nearest surface vertex."""
+    from scipy.spatial import cKDTree
+
+    if len(points) < 2:
+        return points
+    t = np.linspace(0.0, 1.0, steps, endpoint=False)[:, None]
+    cuts = np.concatenate([a + t * (b - a) for a, b in itertools.pairwise(points)] + [points[-1:]])
+    _, nearest = cKDTree(vertices).query(cuts)
+    path = vertices[nearest]
+    path[::steps] = points  # the points themselves stay where they are
+    return path
+
+
 def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run") -> Path:
     """Write the run's report page.
 
@@ -72,6 +118,8 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
         "gated CT, heart model in the heart-centric frame, and spatiotemporal registration of the robot's "
         "points. Frames: patient = DICOM LPS, heart = fitted heart-centric frame; mm, phases in [0, 1).</p>"
     )
+    parts.append("<h2>Overview: the registration in 3-D</h2>")
+    parts.append(registration_view_html(model, reg))
     if truth_rows:
         parts.append("<h2>Recovered against the phantom's truth</h2>")
         parts.append(html_table(["quantity", "recovered", "truth", "error", "tolerance", "within"], truth_rows))

@@ -61,6 +61,14 @@ from modeling.render import (
     offscreen_available,
     render_model_png,
 )
+from modeling.slicer import (
+    Markups,
+    SlicerFileError,
+    read_itk_transform,
+    read_markups,
+    write_itk_transform,
+    write_markups,
+)
 
 __all__ = [
     "VesselTrim",
@@ -102,4 +110,11 @@ __all__ = [
     "transform_mesh",
     "write_mesh",
     "write_model",
+    # 3D Slicer's files (modeling.slicer)
+    "Markups",
+    "SlicerFileError",
+    "read_itk_transform",
+    "read_markups",
+    "write_itk_transform",
+    "write_markups",
 ]

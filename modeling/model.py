@@ -7,6 +7,12 @@ Folder layout written by :func:`write_model` (format ``heartreg-model`` 1)::
         heart.stl    binary STL, float32, same surface (header: SPACE=LPS FRAME=heart)
         model.json   transform, Euler angles, ellipses, phase, fiducials, parameters
 
+and, for 3D Slicer (:mod:`modeling.slicer`; ``docs/slicer.md``)::
+
+        heart_lps.stl          the surface in the patient frame (LPS, SPACE=LPS header)
+        HeartToPatient.tfm     ITK transform; its Slicer node moves heart.stl onto heart_lps.stl
+        fiducials_ct.mrk.json  the CT's fiducials, patient LPS (when any were found)
+
 The folder carries no patient-identifying data: ``source`` accepts only the
 keys in :data:`SOURCE_KEYS` (series and study instance UIDs, modality,
 geometry), never names, IDs or dates.
@@ -30,6 +36,7 @@ from hrcore.errors import HeartregError
 from imaging.files import umask_mode
 from modeling.fiducials import order_fiducials
 from modeling.frame import HeartFrame, SlabEllipse, fit_heart_frame
+from modeling.slicer import write_itk_transform, write_markups
 from modeling.surface import (
     Mesh,
     MeshError,
@@ -44,6 +51,7 @@ __all__ = [
     "HeartModel",
     "make_heart_model",
     "write_model",
+    "write_slicer_files",
     "read_model",
     "SOURCE_KEYS",
     "FORMAT",
@@ -67,6 +75,10 @@ SOURCE_KEYS = frozenset(
 )
 MESH_FILES = ("heart.ply", "heart.stl")
 JSON_FILE = "model.json"
+#: 3D Slicer's files (see :func:`write_slicer_files`).
+SLICER_MESH_FILE = "heart_lps.stl"
+SLICER_TRANSFORM_FILE = "HeartToPatient.tfm"
+SLICER_FIDUCIALS_FILE = "fiducials_ct.mrk.json"
 #: Fiducials in model.json must agree with the transform to this tolerance.
 FIDUCIAL_TOL_MM = 1e-6
 
@@ -312,6 +324,7 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
             write_mesh(tmp / name, model.mesh, frame_note=note)
         text = json.dumps(_model_json(model), indent=2, allow_nan=False) + "\n"
         (tmp / JSON_FILE).write_text(text, encoding="utf-8")
+        write_slicer_files(model, tmp)
         if out.exists():
             existing = sorted(p.name for p in out.iterdir())
             if not existing:
@@ -338,6 +351,42 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
         if tmp.exists():
             shutil.rmtree(tmp)
     return out
+
+
+def write_slicer_files(model: HeartModel, out_dir) -> dict:
+    """Write the model's files for 3D Slicer into ``out_dir`` (called by :func:`write_model`).
+
+    - ``heart_lps.stl``: the surface in the patient frame, LPS, mm (header
+      ``SPACE=LPS``: Slicer flips it into its RAS scene, where the CT is);
+    - ``HeartToPatient.tfm``: the ITK file whose Slicer node has the to-parent
+      ``T_patient_from_heart`` (the file holds ``T_heart_from_patient``, ITK's
+      resampling direction); ``heart.stl`` under it lands on ``heart_lps.stl``;
+    - ``fiducials_ct.mrk.json``: the CT's fiducials, patient LPS, labelled
+      ``CT-1`` .. in the documented order (only when the model has fiducials).
+
+    Returns
+    -------
+    dict of Path by name ("mesh", "transform", and "fiducials" when written).
+    """
+    out = Path(out_dir)
+    paths = {
+        "mesh": write_mesh(out / SLICER_MESH_FILE, model.mesh_patient(), frame_note="patient (DICOM LPS)"),
+        "transform": write_itk_transform(
+            out / SLICER_TRANSFORM_FILE, model.T_patient_from_heart,
+            note="Slicer node HeartToPatient: to-parent T_patient_from_heart, LPS, mm",
+        ),
+    }
+    fid = model.fiducials_patient_mm
+    if len(fid):
+        paths["fiducials"] = write_markups(
+            out / SLICER_FIDUCIALS_FILE, fid, labels=[f"CT-{k}" for k in range(1, len(fid) + 1)],
+            name="CT fiducials", color=(0.95, 0.75, 0.1),
+            descriptions=["CT fiducial, patient frame (LPS); " + ORDER_NOTE] * len(fid),
+        )
+    return paths
+
+
+ORDER_NOTE = "rows superior to inferior, within a row patient right to left"
 
 
 def read_model(model_dir) -> HeartModel:

@@ -1,10 +1,12 @@
 """Offscreen PNG of a heart model, like Fig. 5 of Wood et al. 2018.
 
-Two views of the patient frame side by side: approximately coronal (seen from
-the front, patient's left on the picture's right) and approximately sagittal
-(seen from the patient's left). The mesh is drawn semi-opaque, the slab ellipses
-as yellow lines, the heart frame's x, y, z as red, green, blue arrows, the
-fiducials as grey spheres.
+Two views of the patient frame side by side: coronal (seen from the front,
+patient's left on the picture's right) and sagittal (seen from the patient's
+left). The mesh is drawn semi-opaque, the slab ellipses as yellow lines, the
+heart frame's x, y, z as red, green, blue arrows, the fiducials as grey
+spheres.  Each view is rendered by pyvista in parallel projection, cut to what
+it shows and laid out by matplotlib (:func:`compose_figure`) with titles, a
+legend for every colour and marker, and a scale bar per view.
 
 Offscreen OpenGL: VTK picks its window from ``VTK_DEFAULT_OPENGL_WINDOW``
 (``vtkOSOpenGLRenderWindow`` needs Debian's ``libosmesa6``;
@@ -29,7 +31,7 @@ from hrcore.errors import HeartregError
 from imaging.files import atomic_path
 from modeling.model import HeartModel
 
-__all__ = ["RenderError", "offscreen_available", "render_model_png", "render_png"]
+__all__ = ["RenderError", "compose_figure", "offscreen_available", "render_model_png", "render_panel", "render_png"]
 
 
 def _choose_offscreen_window() -> None:
@@ -83,7 +85,7 @@ def render_model_png(
     path,
     *,
     ellipses: bool = True,
-    size: tuple[int, int] = (900, 700),
+    size: tuple[int, int] = (1300, 760),
 ) -> Path:
     """Draw the model in the patient frame to a PNG (written atomically).
 
@@ -153,53 +155,192 @@ def render_png(draw, path, *, size: tuple[int, int], what: str) -> Path:
     return path
 
 
-def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
+#: colours of the model picture, shared with its legend.
+MESH_COLOUR = "#d46a6a"
+ELLIPSE_COLOUR = "#e0b000"
+FIDUCIAL_COLOUR = "#505050"
+AXIS_COLOURS = ("#d62728", "#2ca02c", "#1f4fd6")
+
+
+def render_panel(add_actors, *, size, towards_camera, up, focus, extent_mm) -> tuple[np.ndarray, float]:
+    """One offscreen pyvista view in parallel projection, and its scale.
+
+    Parameters
+    ----------
+    add_actors : callable
+        ``add_actors(plotter)`` adds the meshes.
+    size : (width, height) int, pixels
+    towards_camera, up : (3,) float
+        Direction from ``focus`` to the camera, and the picture's up.
+    focus : (3,) float, mm
+    extent_mm : float
+        Size of the scene (sets the camera distance).
+
+    Returns
+    -------
+    image : (h, w, 3) uint8
+    px_per_mm : float
+        Pixels per millimetre in the picture (parallel projection: the same everywhere).
+    """
     import pyvista as pv
 
     pv.OFF_SCREEN = True
+    plotter = pv.Plotter(off_screen=True, window_size=tuple(int(v) for v in size), border=False)
+    try:
+        plotter.set_background("white")
+        add_actors(plotter)
+        plotter.enable_parallel_projection()
+        focus = np.asarray(focus, dtype=float)
+        camera = focus + np.asarray(towards_camera, dtype=float) * 4.0 * extent_mm
+        plotter.camera_position = [tuple(camera), tuple(focus), tuple(up)]
+        plotter.reset_camera()
+        img = np.asarray(plotter.screenshot(return_img=True))[..., :3]
+        px_per_mm = (size[1] / 2.0) / plotter.camera.parallel_scale
+    finally:
+        plotter.close()
+    return img, float(px_per_mm)
+
+
+def _crop(img: np.ndarray, margin: int = 10) -> np.ndarray:
+    """The picture cut to what is drawn on it (non-white), with a margin."""
+    ink = np.any(img < 245, axis=2)
+    if not ink.any():
+        return img
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
+    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, img.shape[0])
+    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, img.shape[1])
+    return img[r0:r1, c0:c1]
+
+
+def _scale_length_mm(px_per_mm: float, width_px: int) -> float:
+    """A round length whose bar is about a fifth of the panel's width."""
+    target = 0.2 * width_px / px_per_mm
+    for mm in (1, 2, 5, 10, 20, 25, 50, 100, 200):
+        if mm >= 0.6 * target:
+            return float(mm)
+    return 200.0
+
+
+def compose_figure(panels, *, size, titles, handles, suptitle, orientation=None, colorbar=None) -> np.ndarray:
+    """Panels side by side with titles, a scale bar each, one legend and a colour bar.
+
+    Parameters
+    ----------
+    panels : list of (image, px_per_mm)
+        From :func:`render_panel`; each is cut to its content.
+    size : (width, height) int, pixels of the result
+    titles : list of str
+    handles : list of matplotlib artists
+        Legend entries (one per colour and marker drawn).
+    suptitle : str
+    orientation : list of (str, str), optional
+        Per panel, the picture's right and up directions in words.
+    colorbar : (cmap, vmin, vmax, label), optional
+
+    Returns
+    -------
+    (height, width, 3) uint8
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.font_manager import FontProperties
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    width, height = size
+    dpi = 100
+    pt = min(1.0, width / 1250.0)  # text shrinks with a small picture, never grows
+    fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi, layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for k, (ax, (img, px_per_mm), title) in enumerate(zip(axes, panels, titles)):
+        img = _crop(img)
+        band = np.full((max(int(0.1 * img.shape[0]), 24), img.shape[1], 3), 255, dtype=img.dtype)
+        img = np.concatenate([img, band])  # white room under the drawing for the scale bar
+        ax.imshow(img, interpolation="antialiased")
+        ax.set_title(title, fontsize=13 * pt)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for spine in ax.spines.values():
+            spine.set_visible(False)
+        if orientation is not None:
+            right, up = orientation[k]
+            ax.set_xlabel(f"{right} \u2192", fontsize=11 * pt, loc="right")
+            ax.set_ylabel(f"{up} \u2192", fontsize=11 * pt, loc="top")
+        mm = _scale_length_mm(px_per_mm, img.shape[1])
+        ax.add_artist(AnchoredSizeBar(
+            ax.transData, mm * px_per_mm, f"{mm:g} mm", "lower left", pad=0.3, frameon=False,
+            size_vertical=max(2.0, 0.006 * img.shape[0]), fontproperties=FontProperties(size=12 * pt),
+        ))
+    if colorbar is not None:
+        from matplotlib.cm import ScalarMappable
+        from matplotlib.colors import Normalize
+
+        cmap, vmin, vmax, label = colorbar
+        bar = fig.colorbar(ScalarMappable(Normalize(vmin, vmax), cmap), ax=list(axes), shrink=0.75, pad=0.01)
+        bar.set_label(label, fontsize=12 * pt)
+        bar.ax.tick_params(labelsize=11 * pt)
+    # as many columns as the longest label allows (about 7 px per character at 12 pt)
+    longest = max(len(h.get_label()) for h in handles)
+    ncol = max(1, min(len(handles), 3, int(width / (7.2 * pt * longest + 70))))
+    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=12 * pt, frameon=False)
+    fig.suptitle(suptitle, fontsize=14 * pt)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
+    import pyvista as pv
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     mesh = model.mesh_patient()
     faces = np.hstack([np.full((mesh.n_faces, 1), 3), mesh.faces]).ravel()
     surf = pv.PolyData(np.asarray(mesh.vertices), faces)
     frame = model.frame
     origin = frame.origin_patient_mm
     axes = frame.axes_patient
-    extent = np.ptp(mesh.vertices, axis=0).max()
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
     arrow_mm = 0.75 * extent
+    fid = model.fiducials_patient_mm
 
-    plotter = pv.Plotter(off_screen=True, window_size=size, shape=(1, 2), border=False)
-    try:
-        views = (
-            ("coronal (from anterior)", (0.0, -1.0, 0.0)),
-            ("sagittal (from patient left)", (1.0, 0.0, 0.0)),
-        )
-        for col, (title, towards_camera) in enumerate(views):
-            plotter.subplot(0, col)
-            plotter.set_background("white")
-            plotter.add_mesh(surf, color="#d46a6a", opacity=0.55, smooth_shading=True)
-            if ellipses:
-                for e in frame.ellipses:
-                    ring = e.points(96)
-                    line = pv.lines_from_points(np.vstack([ring, ring[:1]]))
-                    plotter.add_mesh(line, color="#e0b000", line_width=3)
-                    plotter.add_mesh(pv.Sphere(radius=1.2, center=e.centre_mm), color="#e0b000")
-            for axis, colour in zip(axes.T, ("red", "green", "blue")):
-                arrow = pv.Arrow(
-                    start=origin, direction=axis, scale=arrow_mm,
-                    tip_length=0.12, tip_radius=0.04, shaft_radius=0.015,
-                )
-                plotter.add_mesh(arrow, color=colour)
-            for f in model.fiducials_patient_mm:
-                plotter.add_mesh(pv.Sphere(radius=2.5, center=f), color="#606060")
-            plotter.add_text(
-                f"{title}\nphi_C = {model.cardiac_phase:.2f}  "
-                "x red, y green, z blue",
-                font_size=9, color="black",
-            )
-            centre = origin
-            cam = np.asarray(towards_camera) * 4.0 * extent + centre
-            plotter.camera_position = [tuple(cam), tuple(centre), (0.0, 0.0, 1.0)]
-            plotter.reset_camera()
-        img = plotter.screenshot(return_img=True)
-    finally:
-        plotter.close()
-    return np.asarray(img)
+    def add(plotter):
+        plotter.add_mesh(surf, color=MESH_COLOUR, opacity=0.55, smooth_shading=True)
+        if ellipses:
+            for e in frame.ellipses:
+                ring = e.points(96)
+                plotter.add_mesh(pv.lines_from_points(np.vstack([ring, ring[:1]])), color=ELLIPSE_COLOUR,
+                                 line_width=3)
+                plotter.add_mesh(pv.Sphere(radius=1.2, center=e.centre_mm), color=ELLIPSE_COLOUR)
+        for axis, colour in zip(axes.T, AXIS_COLOURS):
+            plotter.add_mesh(pv.Arrow(start=origin, direction=axis, scale=arrow_mm, tip_length=0.12,
+                                      tip_radius=0.04, shaft_radius=0.015), color=colour)
+        for f in fid:
+            plotter.add_mesh(pv.Sphere(radius=2.5, center=f), color=FIDUCIAL_COLOUR)
+
+    scene = np.vstack([mesh.vertices, fid]) if len(fid) else mesh.vertices
+    focus = 0.5 * (scene.min(axis=0) + scene.max(axis=0))
+    panel = (max(size[0] // 2, 64) * 2, max(size[1], 64) * 2)  # rendered at twice the size, then cut
+    views = [
+        ("coronal, seen from anterior", (0.0, -1.0, 0.0), ("patient's left", "superior")),
+        ("sagittal, seen from the patient's left", (1.0, 0.0, 0.0), ("posterior", "superior")),
+    ]
+    panels = [render_panel(add, size=panel, towards_camera=towards, up=(0.0, 0.0, 1.0), focus=focus,
+                           extent_mm=float(np.ptp(scene, axis=0).max())) for _, towards, _ in views]
+    handles = [
+        Patch(facecolor=MESH_COLOUR, alpha=0.6, edgecolor="none", label="epicardial surface (heart model)"),
+        Line2D([], [], color=AXIS_COLOURS[0], lw=3, label="heart x (anterior)"),
+        Line2D([], [], color=AXIS_COLOURS[1], lw=3, label="heart y = z \u00d7 x"),
+        Line2D([], [], color=AXIS_COLOURS[2], lw=3, label="heart z (apex \u2192 base)"),
+    ]
+    if ellipses:
+        handles.insert(1, Line2D([], [], color=ELLIPSE_COLOUR, lw=3, marker="o", markersize=6,
+                                 label="ellipse fit per 10 mm slab, centre dot"))
+    if len(fid):
+        handles.append(Line2D([], [], color=FIDUCIAL_COLOUR, marker="o", linestyle="none", markersize=9,
+                              label=f"CT fiducials ({len(fid)} skin staples)"))
+    return compose_figure(
+        panels, size=size, titles=[title for title, _, _ in views], handles=handles,
+        orientation=[o for _, _, o in views],
+        suptitle=f"Heart model and heart frame in the patient frame, \u03c6C* = {model.cardiac_phase:.2f} "
+                 "(cf. Wood et al. 2018, Fig. 5)",
+    )

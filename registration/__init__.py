@@ -96,6 +96,11 @@ from registration.report import (
 from registration.view import (
     render_registration_png,
 )
+from registration.plus import (
+    PlusFileError,
+    PlusSequence,
+    read_plus_sequence,
+)
 
 __all__ = [
     "ClosestPoints",
@@ -169,4 +174,8 @@ __all__ = [
     "sweep_phases",
     "translation_distance_mm",
     "write_registration",
+    # PLUS sequence files (registration.plus)
+    "PlusFileError",
+    "PlusSequence",
+    "read_plus_sequence",
 ]

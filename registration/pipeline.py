@@ -409,6 +409,7 @@ def register_session(
         "max_fre_mm": float(max_fre_mm),
         "session_format_version": int(session.format_version),
         "session_sample_rate_hz": float(session.sample_rate_hz),
+        "session_pose_source": session.pose_source,
     }
     return RegistrationResult(
         phase_c=float(model.cardiac_phase),

@@ -25,6 +25,9 @@ no patient identity, UTF-8, ``\\n`` line ends):
 ``fig8_view.png``
     The 3-D view of :mod:`registration.view` when a model is given and
     offscreen OpenGL works.
+``ProbeTo*.tfm``, ``points_registered.mrk.json``, ``fiducials_touched.mrk.json``
+    The same registration for 3D Slicer (:mod:`registration.slicer`,
+    ``docs/slicer.md``).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from pathlib import Path
 
 from imaging.files import atomic_path, write_text_atomic
 from registration.result import RegistrationResult
+from registration.slicer import write_slicer_files
 from registration.spatiotemporal import PhaseSweep
 
 __all__ = ["REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "write_registration", "sweep_csv_text"]
@@ -76,7 +80,9 @@ def sweep_csv_text(sweep: PhaseSweep) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_registration(result: RegistrationResult, out_dir, *, model=None, view: bool = True) -> dict:
+def write_registration(
+    result: RegistrationResult, out_dir, *, model=None, view: bool = True, fiducials_probe_mm=None
+) -> dict:
     """Write the registration's files into ``out_dir`` (see the module docstring).
 
     Parameters
@@ -88,6 +94,8 @@ def write_registration(result: RegistrationResult, out_dir, *, model=None, view:
         The registered model; needed for the 3-D view ``fig8_view.png``.
     view : bool
         Draw the 3-D view (when ``model`` is given).
+    fiducials_probe_mm : (n, 3) float, mm, optional
+        The session's touched fiducials, written for 3D Slicer.
 
     Returns
     -------
@@ -115,6 +123,10 @@ def write_registration(result: RegistrationResult, out_dir, *, model=None, view:
         paths["cardiac_sweep"] = out / "cardiac_sweep.csv"
         write_text_atomic(paths["cardiac_sweep"], sweep_csv_text(result.cardiac_sweep))
     paths.update(write_plots(result, out))
+    paths["slicer"] = write_slicer_files(
+        result, out, fiducials_probe_mm=fiducials_probe_mm,
+        T_patient_from_heart=None if model is None else model.T_patient_from_heart,
+    )
     notes = []
     if model is not None and view:
         from modeling.render import RenderError

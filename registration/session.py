@@ -13,6 +13,13 @@ T_tracker_from_robot``.  A record too short to cover two breaths is not
 dropped silently: it is listed in :attr:`Session.exclusions` with the reason.
 Anything else that is wrong stops the reading with a :class:`SessionError`
 naming the file, the column and the row.
+
+The poses may instead come from a PLUS sequence file (``.seq.mha``,
+``.igs.nrrd``; :mod:`registration.plus`): a point entry with a ``poses`` key
+names it, and the record's CSV then needs only :data:`SIGNAL_COLUMNS`; each
+sample takes the frame with the same timestamp (``RobotToTracker`` and
+``ProbeToTracker`` transforms), and samples whose pose the tracker marked
+invalid are dropped (said in :attr:`Session.notes`).
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.errors import HeartregError
+from registration.plus import PlusFileError, read_plus_sequence
 
 __all__ = [
     "SESSION_FORMAT",
@@ -33,6 +41,8 @@ __all__ = [
     "SESSION_UNITS",
     "POINT_COLUMNS",
     "FIDUCIAL_COLUMNS",
+    "SIGNAL_COLUMNS",
+    "PLUS_TRANSFORMS",
     "FIDUCIAL_ORDER",
     "MIN_DURATION_S",
     "QUATERNION_TOL",
@@ -56,6 +66,12 @@ POINT_COLUMNS = (
     "ecg_mv", "flow_insp_lpm", "flow_exp_lpm",
 )  # fmt: skip
 FIDUCIAL_COLUMNS = ("fiducial", "x_mm", "y_mm", "z_mm")
+#: the columns of a record whose poses are in a PLUS sequence file (entry key ``poses``).
+SIGNAL_COLUMNS = ("time_s", "ecg_mv", "flow_insp_lpm", "flow_exp_lpm")
+#: the PLUS transforms of the robot sensor and the reference probe (``<From>To<To>``).
+PLUS_TRANSFORMS = ("RobotToTracker", "ProbeToTracker")
+#: a PLUS frame matches a sample when their times differ by at most this share of a step.
+PLUS_TIME_TOL = 0.25
 FIDUCIAL_ORDER = "rows superior to inferior, within a row patient right to left"
 N_FIDUCIALS = 9
 #: a record shorter than this (two breaths at 12/min) cannot fit a respiratory model.
@@ -135,6 +151,11 @@ class Session:
         ``(point id, reason)`` of every record that was read but not used.
     generator : str
         The writing software, as recorded (may be empty).
+    pose_source : str
+        Where the poses came from: ``"csv"``, or ``"PLUS sequence (NAME)"``.
+    notes : tuple of str
+        What the reader did that a user should know (e.g. samples dropped for
+        an invalid PLUS pose).
     """
 
     path: Path
@@ -144,6 +165,8 @@ class Session:
     fiducials_probe_mm: np.ndarray
     exclusions: tuple[tuple[int, str], ...]
     generator: str = ""
+    pose_source: str = "csv"
+    notes: tuple[str, ...] = ()
 
     def point(self, point_id: int) -> PointRecord:
         """The usable record with id ``point_id``."""
@@ -197,9 +220,12 @@ def read_session(
     meta = _read_meta(folder)
     rate_hz = float(meta["sample_rate_hz"])
 
-    points, exclusions = [], []
+    points, exclusions, notes, plus_files = [], [], [], {}
     for entry in meta["points"]:
-        record = _read_point(folder, entry, rate_hz, quaternion_tol)
+        if "poses" in entry:
+            record = _read_plus_point(folder, entry, rate_hz, meta, plus_files, notes)
+        else:
+            record = _read_point(folder, entry, rate_hz, quaternion_tol)
         if record.n_samples < 2 or record.duration_s < min_duration_s:
             duration = record.duration_s if record.n_samples >= 2 else 0.0
             exclusions.append(
@@ -226,6 +252,8 @@ def read_session(
         fiducials_probe_mm=fiducials,
         exclusions=tuple(exclusions),
         generator=str(meta.get("generator", "")),
+        pose_source=f"PLUS sequence ({', '.join(sorted(plus_files))})" if plus_files else "csv",
+        notes=tuple(notes),
     )
 
 
@@ -315,6 +343,10 @@ def _read_meta(folder: Path) -> dict:
         if not isinstance(entry.get("file"), str) or not entry["file"]:
             raise SessionError(f"{where}: 'file' must name the record's CSV file")
         _check_relative(file, f"points[{k}].file", entry["file"])
+        if "poses" in entry:
+            if not isinstance(entry["poses"], str) or not entry["poses"]:
+                raise SessionError(f"{where}: 'poses' must name a PLUS sequence file (.seq.mha, .igs.nrrd)")
+            _check_relative(file, f"points[{k}].poses", entry["poses"])
         if entry["id"] in seen:
             raise SessionError(f"{where}: point id {entry['id']} is used twice")
         seen.add(entry["id"])
@@ -416,6 +448,24 @@ def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float
     data = data.reshape(-1, len(POINT_COLUMNS))
     _check_finite(data, rel, POINT_COLUMNS)
     time_s = data[:, 0]
+    _check_clock(time_s, rel, rate_hz)
+    q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
+    q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
+    T = _probe_from_robot(_matrices(q_robot), data[:, 1:4], _matrices(q_probe), data[:, 8:11])
+    return PointRecord(
+        point_id=int(entry["id"]),
+        surface_point=int(entry["surface_point"]),
+        file=rel,
+        time_s=_frozen(time_s),
+        T_probe_from_robot=_frozen(T),
+        ecg_mv=_frozen(data[:, 15]),
+        flow_insp_lpm=_frozen(data[:, 16]),
+        flow_exp_lpm=_frozen(data[:, 17]),
+        rate_hz=rate_hz,
+    )
+
+
+def _check_clock(time_s: np.ndarray, rel: str, rate_hz: float) -> None:
     steps = np.diff(time_s)
     if (steps <= 0).any():
         row = int(np.argmax(steps <= 0)) + 1
@@ -430,23 +480,77 @@ def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float
                 f"{rel}: column 'time_s' has a median step of {median:.6g} s but session.json "
                 f"declares sample_rate_hz = {rate_hz:g}"
             )
-    q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
-    q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
-    R_robot = _matrices(q_robot)
-    R_probe_T = np.swapaxes(_matrices(q_probe), 1, 2)
-    T = np.zeros((data.shape[0], 4, 4))
+
+
+def _probe_from_robot(R_robot, t_robot, R_probe, t_probe) -> np.ndarray:
+    """(n, 4, 4) ``inv(T_tracker_from_probe) @ T_tracker_from_robot`` from rotations and translations.
+
+    One computation for every pose source, so that the same poses give the same
+    bits whether they were read from CSV quaternions or PLUS matrices.
+    """
+    R_robot = np.ascontiguousarray(R_robot, dtype=np.float64)
+    R_probe_T = np.ascontiguousarray(np.swapaxes(R_probe, 1, 2), dtype=np.float64)
+    d = np.ascontiguousarray(np.asarray(t_robot, dtype=np.float64) - np.asarray(t_probe, dtype=np.float64))
+    T = np.zeros((R_robot.shape[0], 4, 4))
     T[:, :3, :3] = R_probe_T @ R_robot
-    T[:, :3, 3] = np.einsum("nij,nj->ni", R_probe_T, data[:, 1:4] - data[:, 8:11])
+    T[:, :3, 3] = np.einsum("nij,nj->ni", R_probe_T, d)
     T[:, 3, 3] = 1.0
+    return T
+
+
+def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cache: dict, notes: list) -> PointRecord:
+    """A record whose ECG and flow are in a CSV file and poses in a PLUS sequence file."""
+    rel, poses_rel = entry["file"], entry["poses"]
+    file = folder / rel
+    cols = _read_header(file, rel, SIGNAL_COLUMNS)
+    data = _load_table(file, rel, cols, SIGNAL_COLUMNS).reshape(-1, len(SIGNAL_COLUMNS))
+    _check_finite(data, rel, SIGNAL_COLUMNS)
+    _check_clock(data[:, 0], rel, rate_hz)
+    if poses_rel not in cache:
+        if not (folder / poses_rel).is_file():
+            raise SessionNotFoundError(f"{poses_rel} is listed in session.json but missing from the folder")
+        try:
+            cache[poses_rel] = read_plus_sequence(folder / poses_rel)
+        except PlusFileError as exc:
+            raise SessionError(str(exc)) from None
+    seq = cache[poses_rel]
+    offset = meta.get("poses_time_offset_s", 0.0)
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
+        raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
+    try:
+        T_robot, T_probe = (seq.transform(name) for name in PLUS_TRANSFORMS)
+    except PlusFileError as exc:
+        raise SessionError(str(exc)) from None
+    # each sample takes the frame nearest in time, which must be within a quarter step
+    t_frames = seq.time_s + float(offset)
+    t, n = data[:, 0], len(t_frames)
+    after = np.searchsorted(t_frames, t)
+    lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
+    k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
+    far = np.abs(t_frames[k] - data[:, 0]) > PLUS_TIME_TOL / rate_hz
+    if far.any():
+        row = int(np.argmax(far))
+        raise SessionError(
+            f"{rel}: row {row + 1} (time_s {float(data[row, 0]):.3f}) has no frame in {poses_rel} within "
+            f"{PLUS_TIME_TOL / rate_hz:g} s ({int(far.sum())} such rows); check the PLUS clock "
+            "(session.json 'poses_time_offset_s')"
+        )
+    ok = seq.valid[PLUS_TRANSFORMS[0]][k] & seq.valid[PLUS_TRANSFORMS[1]][k]
+    if not ok.all():
+        notes.append(f"point {entry['id']}: {int((~ok).sum())} of {len(ok)} samples dropped, "
+                     f"the tracker marked the pose invalid in {poses_rel}")
+        data, k = data[ok], k[ok]
+    Tr, Tp = T_robot[k], T_probe[k]
+    T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
     return PointRecord(
         point_id=int(entry["id"]),
         surface_point=int(entry["surface_point"]),
         file=rel,
-        time_s=_frozen(time_s),
+        time_s=_frozen(data[:, 0]),
         T_probe_from_robot=_frozen(T),
-        ecg_mv=_frozen(data[:, 15]),
-        flow_insp_lpm=_frozen(data[:, 16]),
-        flow_exp_lpm=_frozen(data[:, 17]),
+        ecg_mv=_frozen(data[:, 1]),
+        flow_insp_lpm=_frozen(data[:, 2]),
+        flow_exp_lpm=_frozen(data[:, 3]),
         rate_hz=rate_hz,
     )
 

@@ -34,7 +34,7 @@ def render_registration_png(
     result: RegistrationResult,
     path,
     *,
-    size: tuple[int, int] = (1300, 650),
+    size: tuple[int, int] = (1400, 720),
 ) -> Path:
     """Draw the fiducial and the final registration side by side to a PNG.
 
@@ -68,10 +68,19 @@ def render_registration_png(
     return render_png(lambda size: _draw(model, result, size=size), path, size=size, what="the registration")
 
 
+POINT_CMAP = "viridis"
+ARROW_COLOUR = "#1f4e9c"
+SURFACE_COLOUR = "#d9a38f"
+
+
 def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
     import pyvista as pv
+    from matplotlib import colormaps
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
-    pv.OFF_SCREEN = True
+    from modeling.render import compose_figure, render_panel
+
     mesh = model.mesh
     faces = np.hstack([np.full((mesh.n_faces, 1), 3), mesh.faces]).ravel()
     surf = pv.PolyData(np.asarray(mesh.vertices), faces)
@@ -79,44 +88,47 @@ def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
     extent = float(np.ptp(mesh.vertices, axis=0).max())
     arrow_mm = 0.12 * extent
     centre = mesh.vertices.mean(axis=0)
-    panels = (
-        ("(A) fiducial registration T0", result.T0_heart_from_probe),
-        (f"(B) spatiotemporal registration, phi_R* = {result.phase_r:.2f}", result.T_heart_from_probe),
-    )
-    # the heart frame's x points anterior: look from there, z (base) up
-    cam = centre + np.array([1.0, 0.35, 0.25]) * 3.2 * extent
-    plotter = pv.Plotter(off_screen=True, window_size=size, shape=(1, 2), border=False)
-    try:
-        for col, (title, T) in enumerate(panels):
-            plotter.subplot(0, col)
-            plotter.set_background("white")
-            plotter.add_mesh(surf, color="#d9a38f", opacity=0.6, smooth_shading=True)
-            pts, nrm = _mapped(T, result.points_probe_mm, result.normals_probe)
-            dist = closest_points(index, pts).distances_mm
+    transforms = (result.T0_heart_from_probe, result.T_heart_from_probe)
+    mapped = [_mapped(T, result.points_probe_mm, result.normals_probe) for T in transforms]
+    dists = [closest_points(index, pts).distances_mm for pts, _ in mapped]
+    vmax = max(5.0, float(np.ceil(max(d.max() for d in dists))))
+    # the heart frame's x points anterior: look from the side of the points, z (base) up
+    towards = mapped[1][0].mean(axis=0) - centre
+    towards[2] = 0.35 * towards[2]
+    towards = towards / np.linalg.norm(towards) if np.linalg.norm(towards) > 0 else np.array([1.0, 0.0, 0.0])
+
+    def actors(pts, nrm, dist):
+        def add(plotter):
+            plotter.add_mesh(surf, color=SURFACE_COLOUR, opacity=0.6, smooth_shading=True)
             cloud = pv.PolyData(pts)
             cloud["distance (mm)"] = dist
             cloud["normal"] = nrm
             arrows = cloud.glyph(orient="normal", scale=False, factor=arrow_mm,
                                  geom=pv.Arrow(tip_length=0.3, tip_radius=0.12, shaft_radius=0.04))
-            plotter.add_mesh(arrows, color="#1f4e9c")
-            plotter.add_mesh(
-                cloud, scalars="distance (mm)", render_points_as_spheres=True, point_size=11,
-                cmap="viridis", clim=(0.0, max(5.0, float(np.ceil(dist.max())))),
-                show_scalar_bar=col == 1,
-                scalar_bar_args={"title": "to surface (mm)", "color": "black", "vertical": True,
-                                 "position_x": 0.84, "position_y": 0.15, "width": 0.05,
-                                 "height": 0.6, "title_font_size": 14, "label_font_size": 12},
-            )
-            rms = float(np.sqrt(np.mean(dist**2)))
-            plotter.add_text(
-                f"{title}\nRMS distance {rms:.2f} mm, {pts.shape[0]} points at phi_C* = "
-                f"{result.phase_c:.2f}\narrows: predicted surface normals",
-                font_size=9, color="black",
-            )
-            plotter.camera_position = [tuple(cam), tuple(centre), (0.0, 0.0, 1.0)]
-            plotter.reset_camera()
-        plotter.link_views()
-        img = plotter.screenshot(return_img=True)
-    finally:
-        plotter.close()
-    return np.asarray(img)
+            plotter.add_mesh(arrows, color=ARROW_COLOUR)
+            plotter.add_mesh(cloud, scalars="distance (mm)", render_points_as_spheres=True, point_size=16,
+                             cmap=POINT_CMAP, clim=(0.0, vmax), show_scalar_bar=False)
+        return add
+
+    panel = (max(size[0] // 2, 64) * 2, max(size[1], 64) * 2)
+    panels = [render_panel(actors(p, n, d), size=panel, towards_camera=towards, up=(0.0, 0.0, 1.0),
+                           focus=centre, extent_mm=extent) for (p, n), d in zip(mapped, dists)]
+    rms = [float(np.sqrt(np.mean(d**2))) for d in dists]
+    titles = [
+        f"(A) fiducial registration $T_0$: RMS {rms[0]:.2f} mm",
+        f"(B) spatiotemporal registration, $\\varphi_R^*$ = {result.phase_r:.2f}: RMS {rms[1]:.2f} mm",
+    ]
+    cmap = colormaps[POINT_CMAP]
+    handles = [
+        Patch(facecolor=SURFACE_COLOUR, alpha=0.7, edgecolor="none", label="heart model surface (heart frame)"),
+        Line2D([], [], color=cmap(0.5), marker="o", linestyle="none", markersize=10, markeredgecolor="#333",
+               label=f"registered point at ($\\varphi_C^*$, $\\varphi_R^*$), {len(dists[0])} points; "
+                     "colour: distance to the surface"),
+        Line2D([], [], color=ARROW_COLOUR, lw=3, label="arrow: predicted surface normal (robot z)"),
+    ]
+    return compose_figure(
+        panels, size=size, titles=titles, handles=handles,
+        suptitle=f"Registered points on the heart model at $\\varphi_C^*$ = {result.phase_c:.2f} "
+                 "(cf. Wood et al. 2018, Fig. 8)",
+        colorbar=(cmap, 0.0, vmax, "distance to the surface (mm)"),
+    )

@@ -12,6 +12,7 @@ from heartreg.phantom.ct import AcquisitionPlan, CTStudyExistsError, CTTruth, pl
 from heartreg.phantom.generate import PhantomError, make_phantom
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import make_heart
+from heartreg.phantom.plus import write_plus_sequence, write_plus_session
 from heartreg.phantom.session import SessionPointTruth, SessionTruth, write_session
 
 __all__ = [
@@ -33,5 +34,7 @@ __all__ = [
     "plan_acquisition",
     "render_slice",
     "write_ct_study",
+    "write_plus_sequence",
+    "write_plus_session",
     "write_session",
 ]

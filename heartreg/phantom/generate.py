@@ -6,6 +6,8 @@
     OUT_DIR/qrs.csv      R-peak times of the CT, column time_s (AcquisitionTime clock)
     OUT_DIR/session/     the intra-operative session (docs/formats.md)
     OUT_DIR/truth.json   every true value, the configuration and the seed
+    OUT_DIR/session_plus/  with ``plus=True``: the same session, poses in a PLUS
+                         sequence file (:mod:`heartreg.phantom.plus`)
 
 Everything is written under a temporary name inside ``OUT_DIR`` first and moved
 into place at the end, so a failure never leaves a half-written case.
@@ -24,13 +26,14 @@ from heartreg import __version__
 from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, make_config
 from heartreg.phantom.ct import write_ct_study
 from heartreg.phantom.layout import T_patient_from_probe, make_heart
+from heartreg.phantom.plus import write_plus_session
 from heartreg.phantom.session import write_session
 from hrcore.errors import HeartregError
 
 __all__ = ["make_phantom", "PhantomError", "TRUTH_FORMAT_VERSION"]
 
 TRUTH_FORMAT_VERSION = 1
-_OUTPUTS = ("ct", "qrs.csv", "session", "truth.json")
+_OUTPUTS = ("ct", "qrs.csv", "session", "session_plus", "truth.json")
 
 
 class PhantomError(HeartregError, ValueError):
@@ -60,6 +63,7 @@ def make_phantom(
     session: bool = True,
     progress: bool = False,
     overwrite: bool = False,
+    plus: bool = False,
     **overrides,
 ) -> dict:
     """Write a complete phantom case to ``out_dir`` and return its truth.
@@ -77,6 +81,9 @@ def make_phantom(
         Non-negative seed: the same seed gives the same bytes.
     session : bool
         Also write the intra-operative session.
+    plus : bool
+        Also write the session with its poses in a PLUS sequence file
+        (``session_plus/``).
     **overrides
         Fields of :class:`~heartreg.phantom.config.PhantomConfig` to replace
         (e.g. ``n_points=20``).
@@ -134,6 +141,8 @@ def make_phantom(
         if session:
             session_truth = write_session(staging, config, seed=int(seed), progress=progress)
             truth["session"] = session_truth.to_dict()
+            if plus:
+                write_plus_session(staging / "session", staging / "session_plus")
         truth["config"] = config.to_dict()
         truth = _jsonable(truth)
         (staging / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n")

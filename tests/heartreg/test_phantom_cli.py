@@ -29,8 +29,10 @@ def _digest(folder):
 
 def test_cli_writes_a_complete_case(tmp_path, capsys):
     out = tmp_path / "case"
-    assert main(["phantom", str(out), "--preset", "wood2018-trial2", "--seed", "3", "--points", "6", "-q"]) == 0
-    assert "wood2018-trial2" in capsys.readouterr().out
+    argv = ["phantom", str(out), "--preset", "wood2018-trial2", "--seed", "3", "--points", "6", "--plus", "-q"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "wood2018-trial2" in printed and "session_plus" in printed
     truth = json.loads((out / "truth.json").read_text())
     for key in REQUIRED_TRUTH:
         assert key in truth, key
@@ -46,6 +48,15 @@ def test_cli_writes_a_complete_case(tmp_path, capsys):
     qrs = np.genfromtxt(out / "qrs.csv", delimiter=",", names=True)
     np.testing.assert_allclose(qrs["time_s"], truth["r_peaks_s"], atol=1e-6)
     assert not list(out.glob(".phantom-*"))  # no staging left behind
+    # --plus: the same session with its poses in a PLUS sequence file, read back to the same bits
+    from registration.session import read_session
+
+    csv, plus = read_session(out / "session"), read_session(out / "session_plus")
+    assert plus.pose_source == "PLUS sequence (tracking.seq.mha)" and len(plus.points) == 6
+    for a, b in zip(csv.points, plus.points):
+        np.testing.assert_array_equal(a.T_probe_from_robot, b.T_probe_from_robot)
+        np.testing.assert_array_equal(a.ecg_mv, b.ecg_mv)
+    np.testing.assert_array_equal(csv.fiducials_probe_mm, plus.fiducials_probe_mm)
 
 
 def test_same_seed_same_bytes(tmp_path):

@@ -51,7 +51,9 @@ def test_model_contents(model, phantom_meshes):
 
 def test_round_trip(model, tmp_path):
     out = write_model(model, tmp_path / "m")
-    assert sorted(p.name for p in out.iterdir()) == ["heart.ply", "heart.stl", "model.json"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["heart.ply", "heart.stl", "model.json", "heart_lps.stl", "HeartToPatient.tfm", "fiducials_ct.mrk.json"]
+    )
     assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no temporary folder left
     again = read_model(out)
     assert again == model
@@ -149,6 +151,13 @@ def test_render_png(model, tmp_path):
     reddish = (img[..., 0] - img[..., 2] > 40) & (img[..., 0] > 150)
     assert 0.03 < reddish.mean() < 0.6
     assert img.std() > 10
+    # no wasted half: the two views are cut to what they show, so each quarter of the
+    # width and the upper and lower halves all carry drawing or text
+    ink = np.any(img < 200, axis=2)
+    assert all(ink[:, k * 150:(k + 1) * 150].mean() > 0.03 for k in range(4))
+    assert ink[:200].mean() > 0.03 and ink[200:].mean() > 0.03
+    rows = np.flatnonzero(reddish.any(axis=1))
+    assert rows[-1] - rows[0] > 0.5 * img.shape[0]  # the heart fills most of the height
     with pytest.raises(ValueError, match=".png"):
         render_model_png(model, tmp_path / "view.jpg")
 

@@ -1,0 +1,146 @@
+"""PLUS sequence files (tracking only): the phantom's writer against the reader,
+invalid poses, the clock match with the signals' CSV, and bad files.
+
+The registration through a PLUS session is checked against the CSV session in
+``test_slicer.py`` (same bytes of registration.json).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from heartreg.phantom.plus import write_plus_sequence
+from registration.plus import PlusFileError, read_plus_sequence
+from registration.session import SessionError, read_session
+
+
+def _poses(rng, n):
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.random(n, random_state=rng).as_matrix()
+    T[:, :3, 3] = rng.uniform(-300, 300, (n, 3))
+    return T
+
+
+@pytest.mark.parametrize("name", ["rec.seq.mha", "rec.igs.nrrd"])
+def test_sequence_round_trip_with_invalid_poses(tmp_path, name):
+    rng = np.random.default_rng(3)
+    n = 50
+    time_s = 36000.0 + np.arange(n) / 100.0
+    robot, probe = _poses(rng, n), _poses(rng, n)
+    seen = np.ones(n, bool)
+    seen[[4, 17, 18]] = False
+    path = write_plus_sequence(tmp_path / name, time_s, {"RobotToTracker": robot, "ProbeToTracker": probe},
+                               valid={"RobotToTracker": seen})
+    seq = read_plus_sequence(path)
+    np.testing.assert_array_equal(seq.time_s, time_s)
+    # repr-written floats read back to the same bits
+    np.testing.assert_array_equal(seq.transform("RobotToTracker")[seen], robot[seen])
+    np.testing.assert_array_equal(seq.transform("ProbeToTracker"), probe)
+    np.testing.assert_array_equal(seq.valid["RobotToTracker"], seen)
+    assert np.isnan(seq.transform("RobotToTracker")[~seen]).all()
+    with pytest.raises(PlusFileError, match="has no transform 'StylusToTracker'"):
+        seq.transform("StylusToTracker")
+    # a MetaImage / NRRD reader (ITK's) opens the file as the 1 x 1 x n image PLUS writes
+    sitk = pytest.importorskip("SimpleITK")
+    assert np.prod(sitk.ReadImage(str(path)).GetSize()) * sitk.ReadImage(str(path)).GetNumberOfComponentsPerPixel() == n
+
+
+def _plus_session(tmp_path, n=1500, rate=100.0, invalid=(), shift_s=0.0):
+    """A small PLUS session: one point of n samples, robot fixed in the probe frame."""
+    rng = np.random.default_rng(5)
+    folder = tmp_path / "plus"
+    (folder / "points").mkdir(parents=True)
+    time_s = np.round(30000.0 + np.arange(n) / rate, 3)
+    probe = _poses(rng, n)
+    T_probe_from_robot = _poses(rng, 1)[0]
+    robot = probe @ T_probe_from_robot
+    seen = np.ones(n, bool)
+    seen[list(invalid)] = False
+    write_plus_sequence(folder / "track.igs.nrrd", time_s + shift_s, {"RobotToTracker": robot, "ProbeToTracker": probe},
+                        valid={"ProbeToTracker": seen})
+    rows = ["time_s,ecg_mv,flow_insp_lpm,flow_exp_lpm"] + [f"{t:.3f},0.1,1.0,0.0" for t in time_s]
+    (folder / "points" / "p0.csv").write_text("\n".join(rows) + "\n")
+    (folder / "fiducials.csv").write_text("fiducial,x_mm,y_mm,z_mm\n" + "".join(
+        f"{k},{k}.0,{2 * k}.0,{k * k}.0\n" for k in range(1, 10)))
+    meta = {
+        "format": "heartreg-session", "version": 1,
+        "units": {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"},
+        "quaternion_order": "wxyz", "frames": {"poses": "tracker"}, "sample_rate_hz": rate,
+        "points": [{"id": 0, "file": "points/p0.csv", "poses": "track.igs.nrrd", "surface_point": 7}],
+        "fiducials_file": "fiducials.csv",
+        "fiducial_order": "rows superior to inferior, within a row patient right to left",
+    }
+    (folder / "session.json").write_text(json.dumps(meta))
+    return folder, T_probe_from_robot, time_s
+
+
+def test_session_poses_from_plus_drop_invalid_samples(tmp_path):
+    folder, T_true, time_s = _plus_session(tmp_path, invalid=(10, 11, 500))
+    session = read_session(folder)
+    rec = session.points[0]
+    assert rec.n_samples == len(time_s) - 3 and rec.surface_point == 7
+    np.testing.assert_array_equal(rec.time_s, np.delete(time_s, [10, 11, 500]))
+    # inv(ProbeToTracker) @ RobotToTracker is the fixed pose, to rounding (1e-9 mm at 300 mm)
+    np.testing.assert_allclose(rec.T_probe_from_robot, np.broadcast_to(T_true, rec.T_probe_from_robot.shape),
+                               atol=1e-9)
+    note = "point 0: 3 of 1500 samples dropped, the tracker marked the pose invalid in track.igs.nrrd"
+    assert session.notes == (note,)
+    assert session.pose_source == "PLUS sequence (track.igs.nrrd)"
+
+
+def test_plus_clock_must_match_the_signals(tmp_path):
+    folder, _, _ = _plus_session(tmp_path, shift_s=0.002)  # within a quarter step (2.5 ms): same frames
+    assert read_session(folder).points[0].n_samples == 1500
+    shutil.rmtree(folder)
+    folder, _, _ = _plus_session(tmp_path, shift_s=2.0)
+    with pytest.raises(SessionError, match=r"points/p0.csv: row 1 .* has no frame in track.igs.nrrd within 0.0025 s"):
+        read_session(folder)
+    meta = json.loads((folder / "session.json").read_text())
+    meta["poses_time_offset_s"] = -2.0  # the documented fix: the PLUS clock's offset
+    (folder / "session.json").write_text(json.dumps(meta))
+    assert read_session(folder).points[0].n_samples == 1500
+
+
+def test_bad_plus_files(tmp_path):
+    f = tmp_path / "a.seq.mha"
+    f.write_text("ObjectType = Image\nNDims = 3\nElementDataFile = LOCAL\n")
+    with pytest.raises(PlusFileError, match="no Seq_Frame####_Timestamp"):
+        read_plus_sequence(f)
+    eye = "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"
+    f.write_text(f"Seq_Frame0000_Timestamp = 1.0\nSeq_Frame0000_XToYTransform = {eye}\n"
+                 f"Seq_Frame0001_Timestamp = 1.0\nSeq_Frame0001_XToYTransform = {eye}\nElementDataFile = LOCAL\n")
+    with pytest.raises(PlusFileError, match="share the Timestamp 1.0"):
+        read_plus_sequence(f)
+    f.write_text("Seq_Frame0000_Timestamp = 1.0\nSeq_Frame0000_XToYTransform = 2 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n"
+                 "ElementDataFile = LOCAL\n")
+    with pytest.raises(PlusFileError, match="Seq_Frame0000_XToYTransform is not a rigid pose"):
+        read_plus_sequence(f)
+    f.write_text("Seq_Frame0000_Timestamp = 1.0\nSeq_Frame0000_XToYTransform = 1 0 0\nElementDataFile = LOCAL\n")
+    with pytest.raises(PlusFileError, match="XToYTransform must be 16 numbers"):
+        read_plus_sequence(f)
+    f.write_text(f"Seq_Frame0000_Timestamp = 1.0\nSeq_Frame0000_XToYTransform = {eye}\n"
+                 "Seq_Frame0001_Timestamp = 2.0\nElementDataFile = LOCAL\n")
+    with pytest.raises(PlusFileError, match="frame 1 has no XToYTransform"):
+        read_plus_sequence(f)
+    with pytest.raises(PlusFileError, match="ends in"):
+        read_plus_sequence(tmp_path / "a.csv")
+    with pytest.raises(PlusFileError, match="does not exist"):
+        read_plus_sequence(tmp_path / "none.seq.mha")
+
+
+def test_session_names_missing_plus_parts(tmp_path):
+    folder, _, _ = _plus_session(tmp_path)
+    (folder / "track.igs.nrrd").unlink()
+    with pytest.raises(SessionError, match="track.igs.nrrd is listed in session.json but missing"):
+        read_session(folder)
+    shutil.rmtree(folder)
+    folder, _, _ = _plus_session(tmp_path)
+    text = (folder / "track.igs.nrrd").read_bytes().replace(b"ProbeToTracker", b"StylusToTracker")
+    (folder / "track.igs.nrrd").write_bytes(text)
+    with pytest.raises(SessionError, match="has no transform 'ProbeToTracker'"):
+        read_session(folder)
