@@ -110,7 +110,7 @@ def check_output_path(
     return out
 
 
-def _check_inputs(out: Path, inputs: Iterable, what: str) -> None:
+def _check_inputs(out: Path, inputs: Iterable, what: str, *, contains: bool = True) -> None:
     target = _resolved(out)
     for inp in inputs:
         if inp is None:
@@ -120,7 +120,7 @@ def _check_inputs(out: Path, inputs: Iterable, what: str) -> None:
             raise OutputError(f"{what} {out} is the input {inp}; choose another output path")
         if target.is_relative_to(source):
             raise OutputError(f"{what} {out} lies inside the input {inp}; choose an output path outside it")
-        if source.is_relative_to(target):
+        if contains and source.is_relative_to(target):
             raise OutputError(f"{what} {out} contains the input {inp}; choose an output path that does not")
 
 
@@ -254,6 +254,7 @@ def _size_mb(path: Path) -> float:
 def _check_parts(out: Path, parts, inputs, what: str, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
+    _check_inputs(out, inputs, what, contains=False)  # inputs beside the parts are fine
     for name in parts:
         target = out / name
         _check_inputs(target, inputs, what)

@@ -685,7 +685,7 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             continue
         try:
             if not stat.S_ISREG(os.stat(name).st_mode):  # a named pipe would block open()
-                broken.append((name, "not a regular file (named pipe, socket or device); skipped"))
+                broken.append((name, "not a regular file (named pipe, socket or device)"))
                 continue
             ds, why, native = _read_header(name)
         except OSError as exc:
