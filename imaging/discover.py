@@ -528,6 +528,43 @@ def _upper_values(value) -> tuple[str, ...]:
     return tuple(str(v).upper() for v in value)
 
 
+#: largest plausible |coordinate| of (0020,0032) *Image Position (Patient)*, mm.
+MAX_POSITION_MM = 1e5
+#: largest plausible (0028,0030) *Pixel Spacing*, mm.
+MAX_SPACING_MM = 1e3
+
+
+class _BadGeometry(ValueError):
+    """A header whose geometry is not numbers a scanner writes (NaN, inf, 1e30)."""
+
+
+def _floats_or_none(values):
+    try:
+        return [float(v) for v in values]
+    except (TypeError, ValueError):
+        return None
+
+
+def _geometry_problem(ipp, iop, spacing) -> str | None:
+    """Why a frame's geometry cannot be used, or None (absent values are left to the caller)."""
+    checks = (
+        ("(0020,0032) Image Position (Patient)", ipp, lambda a: abs(a).max() <= MAX_POSITION_MM, "mm"),
+        ("(0020,0037) Image Orientation (Patient)", iop, lambda a: abs(a).max() <= 1.0 + 1e-3, ""),
+        ("(0028,0030) Pixel Spacing", spacing, lambda a: (a > 0).all() and a.max() <= MAX_SPACING_MM, "mm"),
+    )
+    for name, value, plausible, unit in checks:
+        if value is None:
+            continue
+        numbers = _floats_or_none(value)
+        if numbers is None:
+            return f"{name} is not numeric: {' / '.join(str(v) for v in value)[:60]}"
+        arr = np.asarray(numbers, dtype=float)
+        if arr.size and (not np.all(np.isfinite(arr)) or not plausible(arr)):
+            shown = ", ".join(f"{v:g}" for v in arr)
+            return f"{name} is ({shown}){' ' + unit if unit else ''}, not a plausible value; fix or remove the file"
+    return None
+
+
 def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -> list[_Frame]:
     """One _Frame per image frame of `ds` (header only).
 
@@ -612,6 +649,9 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
         interval = _as_float(_first("NominalInterval", cardiac, ds))
         if interval is None:
             interval = _as_float(_first("RRIntervalTimeNominal", cardiac))
+        problem = _geometry_problem(ipp, iop, spacing)
+        if problem:
+            raise _BadGeometry(problem + (f" (frame {f + 1})" if n_frames > 1 else ""))
         frames.append(
             _Frame(
                 frame=f if (n_frames > 1 or is_enhanced) else None,
@@ -717,6 +757,8 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             continue
         try:
             frames.extend(_frames_from_dataset(ds, name, native))
+        except _BadGeometry as exc:
+            broken.append((name, str(exc)))
         except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
             broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
     return _Scan(

@@ -396,7 +396,7 @@ def _load_table(file: Path, rel: str, usecols: list[int], names) -> np.ndarray:
 
 def _locate_bad_cell(file: Path, rel: str, usecols: list[int], names) -> str | None:
     """Slow path after a parse failure: the first line that does not parse."""
-    with open(file, encoding="utf-8", newline="") as fh:
+    with open(file, encoding="utf-8-sig", errors="replace", newline="") as fh:  # bad bytes: a bad cell
         width = len(fh.readline().split(","))
         for line_no, line in enumerate(fh, start=2):
             if not line.strip():
