@@ -286,3 +286,79 @@ def test_outlier_samples_are_found_and_smooth_motion_is_not(case):
     glitch = [100, 1234, 2000]
     p[glitch] += [25.0, -10.0, 5.0]  # tracker glitches of ~27 mm on 3 samples
     assert np.flatnonzero(outlier_samples(p, record.rate_hz)).tolist() == glitch
+
+
+# ------------------------------------------------------------------ gating sources said as they are
+def _ct_with_stamps(case, tmp_path, change):
+    """A copy of the CT whose GE RpeakTimeStamps went through ``change(list) -> list``."""
+    import pydicom
+
+    out = tmp_path / "ct"
+    out.mkdir()
+    for f in sorted(case["ct"].iterdir()):
+        ds = pydicom.dcmread(f)
+        if ds.Modality == "CT":
+            block = ds.private_block(0x0049, "GEMS_CT_CARDIAC_001")
+            block[0x0C].value = change(list(block[0x0C].value))
+        ds.save_as(out / f.name)
+    return out
+
+
+@pytest.mark.parametrize("where", ["ends", "inside", "all"])
+def test_nan_ge_rpeak_stamps_are_reported_as_such(case, tmp_path, where):
+    from imaging import compute_phase_report, load_study
+
+    def change(stamps):
+        n = len(stamps)
+        nan = {"ends": [0, n - 1], "inside": [n // 2], "all": list(range(n))}[where]
+        return [float("nan") if i in nan else v for i, v in enumerate(stamps)]
+
+    report = compute_phase_report(load_study(_ct_with_stamps(case, tmp_path, change)))
+    notes = " | ".join(report.notes)
+    assert "no GE RpeakTimeStamps" not in notes and "NaN" in notes
+    if where == "ends":  # the stamps around every slice are there: the same phases as without NaN
+        assert report.source.startswith("GE RpeakTimeStamps")
+        truth = np.asarray(case["truth"]["slice_cardiac_phase"])
+        # 0.005: the slice-phase tolerance of tests/imaging/test_phase.py
+        np.testing.assert_allclose(report.phases, truth, atol=0.005)
+        assert "2 of" in notes and "left out" in notes
+    else:  # a slice would need a missing stamp: not used, and said so
+        assert not report.source.startswith("GE RpeakTimeStamps")
+        assert ("all" in notes) if where == "all" else ("lies among the slice times" in notes)
+
+
+def test_trigger_time_phases_are_said_to_be_nominal(case, tmp_path):
+    import pydicom
+
+    from imaging import compute_phase_report, load_study
+
+    out = tmp_path / "ct"
+    out.mkdir()
+    for f in sorted(case["ct"].iterdir()):
+        ds = pydicom.dcmread(f)
+        if ds.Modality == "CT":
+            ds.remove_private_tags()
+            ds.save_as(out / f.name)
+    report = compute_phase_report(load_study(out))
+    assert report.source.startswith("TriggerTime")
+    assert any("nominal phases" in n and "--qrs" in n for n in report.notes)
+
+
+def test_a_mask_far_smaller_than_a_heart_is_refused_with_its_volume(case, tmp_path):
+    import nibabel as nib
+
+    from imaging import load_study
+    from modeling import build_heart_model
+    from modeling.labelmap import LabelMapError
+
+    volume = load_study(case["ct"])
+    T = volume.T_patient_from_voxel
+    labels = np.zeros(volume.shape[::-1], np.uint8)  # (i, j, k)
+    ci, cj, ck = (s // 2 for s in labels.shape)
+    labels[ci - 5:ci + 5, cj - 5:cj + 5, ck - 3:ck + 3] = 1  # 10 x 10 x 6 voxels: a few ml
+    voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T  # LPS -> RAS for NIfTI
+    nib.save(nib.Nifti1Image(labels, ras), str(tmp_path / "tiny.nii.gz"))
+    with pytest.raises(LabelMapError, match=rf"holds {600 * voxel_ml:.1f} ml, far less than a heart \(100 ml"):
+        build_heart_model(volume, cardiac_phase=0.7, cardiac_phase_source="test",
+                          mask_path=tmp_path / "tiny.nii.gz")
