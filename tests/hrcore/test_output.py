@@ -6,6 +6,8 @@ import errno
 import os
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -125,3 +127,45 @@ def test_disk_full_is_one_line_naming_the_file_and_nothing_is_kept(tmp_path):
 def test_os_error_message_is_one_line_with_a_hint():
     msg = os_error_message(PermissionError(errno.EACCES, "Permission denied", "/x/model.json"))
     assert msg == "/x/model.json: Permission denied; check the permissions or choose another path"
+
+
+_WRITER = """
+import sys, time
+from pathlib import Path
+from hrcore.output import staged_output
+out = Path(sys.argv[1])
+with staged_output(out, overwrite=True) as stage:
+    for k in range(40):
+        (stage / f"part{k:02d}.txt").write_text(sys.argv[2] * 1000)
+        time.sleep(0.01)
+print("done", flush=True)
+"""
+
+
+def _state(out):
+    names = sorted(p.name for p in out.iterdir())
+    texts = {(out / n).read_text()[:1] for n in names}
+    return len(names), texts
+
+
+def test_kill_9_at_many_moments_leaves_old_or_complete_new(tmp_path):
+    """A writer staged by hrcore.output, killed with SIGKILL at 8 moments from
+    its start to its end: OUT holds the 40 old files or the 40 new ones, never
+    a mix or a part; the next run removes what the killed ones left."""
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    subprocess.run([sys.executable, "-c", _WRITER, str(out), "a"], env=env, check=True, timeout=60)
+    assert _state(out) == (40, {"a"})
+    for k, delay in enumerate((0.05, 0.15, 0.25, 0.35, 0.45, 0.55, 0.7, 1.0)):
+        letter = "bcdefghi"[k]
+        proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(out), letter], env=env,
+                                stdout=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.kill()
+        finished = proc.communicate()[0].strip() == "done"
+        n, texts = _state(out)
+        assert n == 40 and len(texts) == 1, (delay, n, texts)
+        if finished:
+            assert texts == {letter}
+    subprocess.run([sys.executable, "-c", _WRITER, str(out), "z"], env=env, check=True, timeout=60)
+    assert [p.name for p in tmp_path.iterdir()] == ["out"] and _state(out) == (40, {"z"})
