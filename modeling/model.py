@@ -375,8 +375,11 @@ def read_model(model_dir) -> HeartModel:
         )
     except MeshError as exc:
         raise ModelError(f"{ply}: {exc}") from exc
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ModelError(f"{jpath} is incomplete or corrupt ({exc!r}); re-create the model") from exc
+    except KeyError as exc:
+        raise ModelError(f"{jpath} is incomplete or corrupt (no field {exc.args[0]!r}); re-create the model") from exc
+    except (TypeError, ValueError) as exc:
+        detail = " ".join(str(exc).split())[:120]
+        raise ModelError(f"{jpath} is incomplete or corrupt ({detail}); re-create the model") from exc
     if mesh.n_faces != meta.get("n_faces"):
         raise ModelError(f"{ply} has {mesh.n_faces} faces, {jpath} says {meta.get('n_faces')}")
     try:
