@@ -361,3 +361,20 @@ def test_a_mask_far_smaller_than_a_heart_is_refused_with_its_volume(case, tmp_pa
     with pytest.raises(LabelMapError, match=rf"holds {600 * voxel_ml:.1f} ml, far less than a heart \(100 ml"):
         build_heart_model(volume, cardiac_phase=0.7, cardiac_phase_source="test",
                           mask_path=tmp_path / "tiny.nii.gz")
+
+
+def test_disk_full_during_phases_leaves_nothing_and_names_the_file(case, tmp_path, monkeypatch, capsys):
+    """A full disk while the picture is written: no phases.csv/json without the
+    picture, one line naming the file and the space written so far."""
+    import imaging.phase_io
+
+    def full(report, path, **kw):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(imaging.phase_io, "plot_phases", full)
+    out = tmp_path / "phases"
+    assert main(["phases", str(case["ct"]), "-o", str(out), "-q"]) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith("heartreg phases: error: disk full writing") and "phases.png" in line
+    assert "MB written before the disk ran out" in line
+    assert list(tmp_path.iterdir()) == []
