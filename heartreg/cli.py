@@ -77,16 +77,21 @@ def _print_series(study_dir) -> int:
 def _cmd_phases(args) -> int:
     from imaging import write_phase_report
 
-    from heartreg.pipeline import check_out_dir, phase_report_extra
+    from hrcore.output import check_output_path, staged_output
+
+    from heartreg.pipeline import phase_report_extra
 
     if args.list_series:
         return _print_series(args.study_dir)
     if args.out_dir is None:
         raise ValueError("give an output folder with -o OUT_DIR (or --list-series)")
-    check_out_dir(args.out_dir)
+    inputs = (args.study_dir, args.qrs)
+    check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite)
     volume, report = _open_study(args)
     extra = phase_report_extra(volume, args.study_dir)
-    paths = write_phase_report(report, args.out_dir, extra=extra)
+    with staged_output(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite) as stage:
+        written = write_phase_report(report, stage, extra=extra)
+    paths = {k: args.out_dir / p.name for k, p in written.items()}
     lo, hi = 0.6, 0.8
     print(f"{report.n_slices} slices of series {volume.series.series_instance_uid}")
     print(f"  R-peak source     {report.source}")
@@ -98,16 +103,23 @@ def _cmd_phases(args) -> int:
     return 0
 
 
+def _check_fiducials(count: int) -> None:
+    if count < 0:
+        raise ValueError(f"--fiducials {count}: give the number of skin fiducials expected (0 for none)")
+
+
 def _cmd_model(args) -> int:
     from modeling import build_heart_model, offscreen_available, render_model_png, write_model
 
     if args.list_series:
         return _print_series(args.study_dir)
-    from heartreg.pipeline import check_out_dir
+    from hrcore.output import check_output_path, staged_output
 
     if args.label is not None and args.mask is None:
         raise ValueError("--label chooses a label of --mask; give the label map with --mask FILE")
-    check_out_dir(args.out_dir, what="model folder", must_be_empty=not args.overwrite)
+    _check_fiducials(args.fiducials)
+    inputs = (args.study_dir, args.qrs, args.mask)
+    check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
     volume, report = _open_study(args)
     from tqdm import tqdm
 
@@ -131,13 +143,17 @@ def _cmd_model(args) -> int:
         progress=stage,
     )
     stage("write")
-    out = write_model(build.model, args.out_dir, overwrite=args.overwrite)
+    model = build.model
+    out = Path(args.out_dir)
+    picture = "skipped (no offscreen OpenGL: install libosmesa6 or libegl1)"
+    # the picture is drawn inside the staging folder: the model appears complete or not at all
+    with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite) as staging:
+        write_model(model, staging, overwrite=True)
+        if offscreen_available():
+            render_model_png(model, staging / "model.png")
+            picture = str(out / "model.png")
     bar.update(1)
     bar.close()
-    model = build.model
-    picture = "skipped (no offscreen OpenGL: install libosmesa6 or libegl1)"
-    if offscreen_available():
-        picture = str(render_model_png(model, out / "model.png"))
     e = model.frame.euler_xyz_deg
     print(f"heart model of series {volume.series.series_instance_uid} written to {out}")
     print(f"  mask              {build.mask_source}")
@@ -157,20 +173,20 @@ def _cmd_register(args) -> int:
     from registration.report import write_registration
     from registration.session import read_session
 
-    from heartreg.pipeline import check_out_dir
+    from hrcore.output import check_output_path, staged_output
 
-    out = check_out_dir(args.out_dir, must_be_empty=not args.overwrite)
+    inputs = (args.model_dir, args.session_dir)
+    check_output_path(args.out_dir, inputs=inputs, overwrite=args.overwrite)
     model = read_model(args.model_dir)
     session = read_session(args.session_dir)
-    for stale in [*out.glob("fig*.png"), *out.glob("*sweep.csv"), out / "registration.json",
-                  *out.glob("ProbeTo*.tfm"), *out.glob("*.mrk.json")]:
-        stale.unlink(missing_ok=True)  # --overwrite: no file of an earlier run stays beside the new ones
     harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
     result = register_session(
         model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
     )
-    paths = write_registration(result, args.out_dir, model=model, view=not args.no_view,
-                               fiducials_probe_mm=session.fiducials_probe_mm)
+    # staged, then one rename: a failure or a signal leaves OUT_DIR as it was
+    with staged_output(args.out_dir, inputs=inputs, overwrite=args.overwrite) as staging:
+        paths = write_registration(result, staging, model=model, view=not args.no_view,
+                                   fiducials_probe_mm=session.fiducials_probe_mm)
     T = result.T_heart_from_probe
     e = result.euler_xyz_deg
     print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")
@@ -192,6 +208,7 @@ def _cmd_register(args) -> int:
 def _cmd_pipeline(args) -> int:
     from heartreg.pipeline import run_pipeline
 
+    _check_fiducials(args.fiducials)
     run = run_pipeline(
         args.study_dir, args.session_dir, args.out_dir, series=args.series, qrs=args.qrs, mask=args.mask,
         label=args.label, faces=args.faces, fiducials=args.fiducials, phase_step=args.step,
@@ -281,6 +298,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("phases", help="cardiac phase of every CT slice (paper Fig. 4)")
     _add_study_options(p)
     p.add_argument("-o", "--out-dir", type=Path, default=None, help="folder for phases.csv/json/png")
+    p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_phases)
 
     p = sub.add_parser("model", help="CT study -> heart model in the heart-centric frame")
@@ -324,7 +342,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="Fourier harmonics of the motion models (default 5 4 2 1)")
     p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier registration in OUT_DIR")
+    p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_register)
 
     p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")
@@ -346,8 +364,32 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     return f"warning: {message}\n"
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, turned into an exception so that every staging folder is removed."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated
+
+
+def _error_line(exc: BaseException) -> str:
+    """One line for an error: OS errors translated (file, reason, what to do)."""
+    from hrcore.output import os_error_message
+
+    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
+        return os_error_message(exc)
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; return the exit status."""
+    """Run the command line; return the exit status.
+
+    Errors are one line on stderr and status 1; SIGINT (Ctrl-C) gives 130 and
+    SIGTERM 143, after every staged output has been removed.
+    """
+    import signal
+    import threading
     import warnings
 
     parser = _build_parser()
@@ -357,18 +399,27 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     format_warning = warnings.formatwarning
     warnings.formatwarning = _one_line_warning
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
+    from hrcore.errors import HeartregError
+
     try:
         return args.func(args)
-    except (ValueError, OSError, RuntimeError) as exc:
+    except (HeartregError, ValueError, OSError, RuntimeError) as exc:
         if args.debug:
             raise
-        print(f"heartreg {args.command}: error: {exc}", file=sys.stderr)
+        print(f"heartreg {args.command}: error: {_error_line(exc)}", file=sys.stderr)
         return 1
+    except Terminated:
+        print("heartreg: terminated (SIGTERM); nothing was written", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
-        print("heartreg: interrupted", file=sys.stderr)
+        print("heartreg: interrupted; nothing was written", file=sys.stderr)
         return 130
     finally:
         warnings.formatwarning = format_warning
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

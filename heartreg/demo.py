@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from imaging.files import write_text_atomic
+
 __all__ = ["SAMPLE_DIR", "format_table", "pose_error", "run_demo", "truth_rows"]
 
 #: the committed sample, beside the package in a source checkout
@@ -134,17 +136,19 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
 
     from heartreg.pipeline import check_out_dir
 
-    out_dir = check_out_dir(out_dir, what="demo folder")
-    if any(out_dir.iterdir()) and not (out_dir / "demo.json").exists() and not (out_dir / "session_case").exists():
-        raise ValueError(f"demo folder {out_dir} holds other files; choose an empty folder or an earlier demo's")
-    if sample_dir is not None:
+    if sample_dir is not None:  # checked before anything is created
         sample = Path(sample_dir)
         if not (sample / "truth.json").exists() or not (sample / "ct").is_dir():
             raise ValueError(
                 f"--sample {sample} is not a phantom case (needs ct/ and truth.json, "
                 "as 'heartreg phantom OUT --no-session' writes)"
             )
-    else:
+    out_path = Path(out_dir)
+    if out_path.is_dir() and any(out_path.iterdir()) and not (out_path / "demo.json").exists() \
+            and not (out_path / "session_case").exists():
+        raise ValueError(f"demo folder {out_path} holds other files; choose an empty folder or an earlier demo's")
+    out_dir = check_out_dir(out_dir, what="demo folder")
+    if sample_dir is None:
         sample = SAMPLE_DIR
         if not (sample / "truth.json").exists():
             sample = out_dir / "sample"
@@ -161,7 +165,7 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
         if progress:
             print("writing the intra-operative session with the phantom (same preset and seed)", file=sys.stderr)
         write_session(session_root, make_config(truth["preset"]), seed=int(truth["seed"]), progress=progress)
-        marker.write_text(json.dumps(recipe) + "\n")
+        write_text_atomic(marker, json.dumps(recipe) + "\n")
 
     run = run_pipeline(
         sample / "ct", session_root / "session", out_dir, overwrite=True, progress=progress,
@@ -169,8 +173,8 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     )
     rows = truth_rows(run, truth)
     text = format_table(rows)
-    (out_dir / "demo_table.txt").write_text(text + "\n")
-    (out_dir / "demo.json").write_text(json.dumps(
+    write_text_atomic(out_dir / "demo_table.txt", text + "\n")
+    write_text_atomic(out_dir / "demo.json", json.dumps(
         {"rows": [[r[0]] + [v if not isinstance(v, (np.floating, np.bool_)) else v.item() for v in r[1:]]
                   for r in rows], "timings_s": run.timings_s}, indent=1, default=float) + "\n")
     return run, rows

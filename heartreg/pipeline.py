@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "run_pipeline"]
+__all__ = ["PARTS", "PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "run_pipeline"]
+
+#: what a run writes into OUT_DIR (anything else there is left alone).
+PARTS = ("phases", "model", "registration", "report.html")
 
 
 def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = False, create: bool = True) -> Path:
@@ -139,15 +140,16 @@ def run_pipeline(
 
     from heartreg.report_html import write_html_report
 
-    out_dir = check_out_dir(out_dir)
-    for part in ("phases", "model", "registration"):
-        check_out_dir(out_dir / part, what=f"{part} folder", must_be_empty=not overwrite, create=False)
+    from hrcore.output import staged_output
+
+    out_dir = Path(out_dir)
     timings = {}
     log = (lambda msg: print(msg, file=sys.stderr)) if progress else (lambda msg: None)
-    # everything is written into a staging folder and moved into place at the end:
-    # a failure at any stage leaves OUT_DIR as it was
-    staging = Path(tempfile.mkdtemp(prefix=".pipeline-", dir=out_dir))
-    try:
+    # everything is written into a staging folder and moved into place at the end
+    # (one rename when OUT_DIR is new): a failure or a signal leaves OUT_DIR as it was
+    with staged_output(
+        out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS,
+    ) as staging:
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")
         volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
@@ -192,15 +194,6 @@ def run_pipeline(
         )
         rows = truth_rows(run) if truth_rows is not None else None
         paths["report"] = write_html_report(run, staging / "report.html", truth_rows=rows)
-        for name in ("phases", "model", "registration", "report.html"):
-            target = out_dir / name
-            if target.is_dir():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
-            os.replace(staging / name, target)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return dataclasses.replace(run, out_dir=out_dir, paths=_moved(paths, staging, out_dir))
 
 

@@ -2,9 +2,11 @@
 
 ``hrcore`` imports nothing from ``imaging``, ``modeling``, ``registration`` or
 ``heartreg``; they all import from it. It holds the error family
-(:class:`HeartregError`).
+(:class:`HeartregError`) and the output contract (:mod:`hrcore.output`: stage,
+one rename, nothing left behind, never into an input).
 """
 
 from hrcore.errors import HeartregError
+from hrcore.output import OutputError, check_output_path, staged_output
 
-__all__ = ["HeartregError"]
+__all__ = ["HeartregError", "OutputError", "check_output_path", "staged_output"]

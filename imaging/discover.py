@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -148,11 +149,13 @@ def _as_float(value) -> float | None:
     return out if np.isfinite(out) else None
 
 
-def _plausible_times(arr: np.ndarray) -> bool:
-    return bool(
-        arr.size and np.all(np.isfinite(arr)) and np.all(np.abs(arr) < 1e9)
-        and np.all(np.diff(arr) >= 0)
-    )
+def _plausible_times(arr: np.ndarray, *, allow_nan: bool = False) -> bool:
+    """Finite (or NaN, with ``allow_nan``: a scanner's missing stamp), below 1e9
+    and non-decreasing over the finite values."""
+    if np.isinf(arr).any() or (not allow_nan and np.isnan(arr).any()):
+        return False
+    fin = arr[np.isfinite(arr)]
+    return bool(arr.size and np.all(np.abs(fin) < 1e9) and np.all(np.diff(fin) >= 0))
 
 
 def _as_floats(value) -> tuple[float, ...] | None:
@@ -168,7 +171,7 @@ def _as_floats(value) -> tuple[float, ...] | None:
         for dtype, width in (("<f8", 8), ("<f4", 4)):
             if raw and len(raw) % width == 0:
                 arr = np.frombuffer(raw, dtype=dtype)
-                if _plausible_times(arr):
+                if _plausible_times(arr, allow_nan=width == 8):  # NaN stamps are kept, and reported
                     return tuple(float(v) for v in arr)
         try:
             text = raw.replace(b"\x00", b" ").decode("ascii").strip()
@@ -176,8 +179,11 @@ def _as_floats(value) -> tuple[float, ...] | None:
         except (UnicodeDecodeError, ValueError):
             return None
     if isinstance(value, (list, tuple, pydicom.multival.MultiValue)):
-        out = [_as_float(v) for v in value]
+        # a NaN stamp stays NaN (imaging.phase reports it); anything else unreadable drops the tag
+        out = [float(v) if isinstance(v, (float, int)) and not np.isinf(v) else _as_float(v) for v in value]
         return None if any(v is None for v in out) else tuple(out)
+    if isinstance(value, float) and np.isnan(value):
+        return (value,)
     single = _as_float(value)
     return None if single is None else (single,)
 
@@ -467,6 +473,19 @@ def _check_pixel_extent(fp, ds, size: int) -> tuple[str | None, tuple[int, int] 
         fp.seek(item_len, os.SEEK_CUR)
 
 
+def _looks_like_bare_dicom(head: bytes) -> bool:
+    """Whether a file without the preamble starts like a DICOM data set.
+
+    Such files (e.g. old ACR-NEMA style exports) start with an element of group
+    (0002) or (0008) in little-endian order; anything else (zeros, text, another
+    format) is not parsed at all.
+    """
+    if len(head) < 8:
+        return False
+    group, _ = struct.unpack("<HH", head[:4])
+    return group in (0x0002, 0x0008)
+
+
 def _read_header(path: str):
     """Read one file's header.
 
@@ -479,6 +498,9 @@ def _read_header(path: str):
             ds = pydicom.dcmread(fp, stop_before_pixels=True)
         except InvalidDicomError:
             # Files without the 128-byte preamble: accept only if they look like images.
+            fp.seek(0)
+            if not _looks_like_bare_dicom(fp.read(8)):
+                return None, "not-dicom", None  # cheap: never parse megabytes of zeros or text
             fp.seek(0)
             try:
                 ds = pydicom.dcmread(fp, stop_before_pixels=True, force=True)
@@ -504,6 +526,43 @@ def _upper_values(value) -> tuple[str, ...]:
     if isinstance(value, (str, bytes)):
         value = [value.decode("ascii", "replace") if isinstance(value, bytes) else value]
     return tuple(str(v).upper() for v in value)
+
+
+#: largest plausible |coordinate| of (0020,0032) *Image Position (Patient)*, mm.
+MAX_POSITION_MM = 1e5
+#: largest plausible (0028,0030) *Pixel Spacing*, mm.
+MAX_SPACING_MM = 1e3
+
+
+class _BadGeometry(ValueError):
+    """A header whose geometry is not numbers a scanner writes (NaN, inf, 1e30)."""
+
+
+def _floats_or_none(values):
+    try:
+        return [float(v) for v in values]
+    except (TypeError, ValueError):
+        return None
+
+
+def _geometry_problem(ipp, iop, spacing) -> str | None:
+    """Why a frame's geometry cannot be used, or None (absent values are left to the caller)."""
+    checks = (
+        ("(0020,0032) Image Position (Patient)", ipp, lambda a: abs(a).max() <= MAX_POSITION_MM, "mm"),
+        ("(0020,0037) Image Orientation (Patient)", iop, lambda a: abs(a).max() <= 1.0 + 1e-3, ""),
+        ("(0028,0030) Pixel Spacing", spacing, lambda a: (a > 0).all() and a.max() <= MAX_SPACING_MM, "mm"),
+    )
+    for name, value, plausible, unit in checks:
+        if value is None:
+            continue
+        numbers = _floats_or_none(value)
+        if numbers is None:
+            return f"{name} is not numeric: {' / '.join(str(v) for v in value)[:60]}"
+        arr = np.asarray(numbers, dtype=float)
+        if arr.size and (not np.all(np.isfinite(arr)) or not plausible(arr)):
+            shown = ", ".join(f"{v:g}" for v in arr)
+            return f"{name} is ({shown}){' ' + unit if unit else ''}, not a plausible value; fix or remove the file"
+    return None
 
 
 def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -> list[_Frame]:
@@ -590,6 +649,9 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
         interval = _as_float(_first("NominalInterval", cardiac, ds))
         if interval is None:
             interval = _as_float(_first("RRIntervalTimeNominal", cardiac))
+        problem = _geometry_problem(ipp, iop, spacing)
+        if problem:
+            raise _BadGeometry(problem + (f" (frame {f + 1})" if n_frames > 1 else ""))
         frames.append(
             _Frame(
                 frame=f if (n_frames > 1 or is_enhanced) else None,
@@ -662,6 +724,9 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             dicomdir.append(name)
             continue
         try:
+            if not stat.S_ISREG(os.stat(name).st_mode):  # a named pipe would block open()
+                broken.append((name, "not a regular file (named pipe, socket or device)"))
+                continue
             ds, why, native = _read_header(name)
         except OSError as exc:
             broken.append((name, f"cannot open ({exc.strerror or exc})"))
@@ -692,6 +757,8 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             continue
         try:
             frames.extend(_frames_from_dataset(ds, name, native))
+        except _BadGeometry as exc:
+            broken.append((name, str(exc)))
         except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
             broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
     return _Scan(

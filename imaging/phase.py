@@ -46,6 +46,10 @@ __all__ = [
 MOTION_FREE_WINDOW = (0.6, 0.8)
 #: Consecutive slices whose phases differ by more than this (circularly) are a jump.
 JUMP_THRESHOLD = 0.1
+#: largest accepted R-peak file (a list of times: a few kB).
+QRS_MAX_BYTES = 50_000_000
+#: largest plausible R-peak time, s (seconds after midnight, a day or two).
+QRS_MAX_ABS_S = 1e6
 
 
 class GatingError(HeartregError, ValueError):
@@ -142,31 +146,50 @@ def read_qrs_file(path) -> np.ndarray:
     (n,) float64, s, strictly increasing
     """
     path = Path(path)
+    if not path.exists():
+        raise GatingError(f"QRS file {path} does not exist; give the R-peak times CSV (column time_s)")
+    if not path.is_file():
+        raise GatingError(f"QRS file {path} is not a regular file (a folder, named pipe or device)")
+    if path.stat().st_size > QRS_MAX_BYTES:
+        raise GatingError(
+            f"QRS file {path} holds {path.stat().st_size / 1e6:.0f} MB; an R-peak list is a few kB: "
+            "check that it is the right file"
+        )
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
+        # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark
+        with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             if reader.fieldnames is None or "time_s" not in reader.fieldnames:
+                found = ", ".join(reader.fieldnames or []) or "nothing"
                 raise GatingError(
-                    f"QRS file {path} needs a header with a 'time_s' column "
-                    f"(found {reader.fieldnames})"
+                    f"QRS file {path} needs a header with a 'time_s' column (found {found[:80]})"
                 )
             values = []
             for row_number, row in enumerate(reader, start=2):
                 try:
-                    values.append(float(row["time_s"]))
+                    value = float(row["time_s"])
                 except (TypeError, ValueError):
                     raise GatingError(
-                        f"QRS file {path}, line {row_number}: time_s {row['time_s']!r} is not a number"
+                        f"QRS file {path}, line {row_number}: time_s {str(row['time_s'])[:40]!r} is not a number"
                     ) from None
+                if not np.isfinite(value) or abs(value) > QRS_MAX_ABS_S:
+                    raise GatingError(
+                        f"QRS file {path}, line {row_number}: time_s {value!r} is not a time in seconds "
+                        "after midnight; fix or remove the row"
+                    )
+                values.append(value)
     except UnicodeDecodeError:
         raise GatingError(f"QRS file {path} is not a UTF-8 text CSV (column time_s)") from None
+    except csv.Error as exc:
+        raise GatingError(f"QRS file {path} is not a readable CSV ({exc}); one column time_s") from None
     except OSError as exc:
         raise GatingError(f"cannot read QRS file {path}: {exc.strerror or exc}") from None
     times = np.asarray(values, dtype=float)
     if len(times) < 2:
         raise GatingError(f"QRS file {path} holds {len(times)} R-peak(s); at least 2 are needed")
-    if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
-        raise GatingError(f"QRS file {path}: time_s must be finite and strictly increasing")
+    if np.any(np.diff(times) <= 0):
+        line = int(np.argmax(np.diff(times) <= 0)) + 3
+        raise GatingError(f"QRS file {path}, line {line}: time_s must be strictly increasing")
     return times
 
 
@@ -218,6 +241,29 @@ def _from_r_peaks(times_s, r_peaks_s, what):
             f"({r_peaks_s[0]:.3f}..{r_peaks_s[-1]:.3f} s); not extrapolated"
         )
     return phases, None
+
+
+def _finite_stamps(r_s: np.ndarray, times_s: np.ndarray, notes: list):
+    """GE stamps without their NaN values, when no slice needs a missing one.
+
+    Returns ``(r_peaks_s, None)`` or ``(None, why)``; a note counts the NaN stamps.
+    """
+    nan = ~np.isfinite(r_s)
+    if not nan.any():
+        return r_s, None
+    what = "GE RpeakTimeStamps (0049,xx0C)"
+    if nan.all():
+        return None, f"{what}: all {nan.size} stamps are NaN; not used"
+    notes.append(f"{what}: {int(nan.sum())} of {nan.size} stamps are NaN and were left out")
+    index = np.flatnonzero(~nan)
+    gaps = [(r_s[a], r_s[b]) for a, b in zip(index[:-1], index[1:]) if b > a + 1]
+    inside = [t for t in times_s for lo, hi in gaps if lo <= t < hi]
+    if inside:
+        return None, (
+            f"{what}: a NaN stamp lies among the slice times ({len(inside)} slice(s) between "
+            "the stamps around it); not used"
+        )
+    return r_s[~nan], None
 
 
 def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_records=()) -> PhaseReport:
@@ -272,8 +318,10 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         if not np.all(np.isfinite(mid)):
             notes.append("GE RpeakTimeStamps present but some slices lack GE Mid Scan Time")
         else:
-            r = np.asarray(rpeaks_ms, dtype=float) / 1000.0
-            phases, why = _from_r_peaks(mid, r, "GE RpeakTimeStamps")
+            r, why = _finite_stamps(np.asarray(rpeaks_ms, dtype=float) / 1000.0, mid, notes)
+            phases = None
+            if r is not None:
+                phases, why = _from_r_peaks(mid, r, "GE RpeakTimeStamps")
             if phases is not None:
                 clock = "GE Mid Scan Time and RpeakTimeStamps share the scan's origin"
                 times = mid
@@ -320,6 +368,10 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     rr_ms = np.where(np.isfinite(interval) & (interval > 0), interval, 60000.0 / np.where(rate > 0, rate, np.nan))
     if np.all(np.isfinite(trigger)) and np.all(np.isfinite(rr_ms)):
         phases = np.mod(trigger / rr_ms, 1.0)
+        notes.append(
+            "TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
+            "last the nominal interval; give R-peak times (--qrs) for measured phases"
+        )
         return _report(
             volume, acq if has_acq else np.full(len(acq), np.nan), phases,
             "TriggerTime / nominal RR interval", "phases relative to each slice's own trigger R-peak",

@@ -371,12 +371,12 @@ def _choices(groups: list[_Group]) -> str:
     for g in groups:
         s = g.summary
         lines.append(
-            f"  [{s.index}] {s.uid} #{s.series_number} {s.description!r} {s.modality} "
+            f"[{s.index}] {s.uid} #{s.series_number} {s.description!r} {s.modality} "
             f"{s.kind} {s.orientation} {s.n_slices} image(s)"
             + (f" {s.subset}" if s.subset else "")
             + (f" ({s.reason})" if s.reason and s.kind != "volume" else "")
         )
-    return "\n".join(lines)
+    return "; ".join(lines)  # one line: the CLI prints one line per error
 
 
 def _select(groups: list[_Group], series) -> tuple[_Group, str]:
@@ -388,7 +388,7 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
         if not ranked:
             raise SeriesError(
                 "no CT image stack found automatically; choose one with series=<index or "
-                "SeriesInstanceUID> among:\n" + _choices(groups)
+                "SeriesInstanceUID> among: " + _choices(groups)
             )
         ranked.sort(
             key=lambda g: (g.summary.orientation != "axial", -g.summary.n_slices, g.summary.index)
@@ -436,7 +436,7 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
     else:
         matches = [g for g in groups if g.summary.uid == series.strip()]
     if not matches:
-        raise SeriesError(f"series {series!r} not found; the study holds:\n" + _choices(groups))
+        raise SeriesError(f"series {series!r} not found; the study holds: " + _choices(groups))
     if len(matches) > 1:
         usable = [g for g in matches if g.summary.kind in _LOADABLE]
         if len(usable) == 1:
@@ -444,13 +444,13 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
         else:
             raise SeriesError(
                 f"series {series!r} was split into {len(matches)} groups; pass series=<index> (--series) "
-                "for one of:\n" + _choices(matches)
+                "for one of: " + _choices(matches)
             )
     chosen = matches[0]
     if chosen.summary.kind not in _LOADABLE:
         raise SeriesError(
             f"series [{chosen.summary.index}] {chosen.summary.uid} cannot be loaded as a "
-            f"volume: {chosen.summary.reason}. Choose another among:\n" + _choices(groups)
+            f"volume: {chosen.summary.reason}. Choose another among: " + _choices(groups)
         )
     return chosen, f"series [{chosen.summary.index}] {chosen.summary.uid} chosen by the caller"
 

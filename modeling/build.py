@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from modeling.fiducials import Fiducials, find_fiducials
-from modeling.labelmap import mask_on_grid, read_label_map
+from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
-from modeling.segment import segment_heart
+from modeling.segment import SegmentationError, segment_heart
 from modeling.surface import decimate, mask_to_mesh
 from modeling.vessels import trim_vessel_stubs
 
@@ -47,6 +47,32 @@ class ModelBuild:
     notes: tuple[str, ...] = ()
 
 
+#: an adult heart (epicardial surface) holds some 300-1000 ml; a mask below this is not one.
+MIN_HEART_ML = 100.0
+#: the share of an external label that may lie outside the CT before a note says so.
+OUTSIDE_NOTE_FRACTION = 0.05
+
+
+def _label_ml(label_map, label) -> float:
+    values = label_map.labels
+    chosen = values == label if label is not None else values != 0
+    return float(chosen.sum()) * abs(float(np.linalg.det(label_map.T_patient_from_voxel[:3, :3]))) / 1000.0
+
+
+def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, notes: list, source_ml=None):
+    """Refuse a mask far smaller than a heart; note a label map partly outside the CT."""
+    ml = float(mask.sum()) * abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
+    if ml < min_ml:
+        error = LabelMapError if external else SegmentationError
+        hint = "check --label or the label map" if external else "give a heart mask with --mask"
+        raise error(f"{source}: the mask holds {ml:.1f} ml, far less than a heart ({min_ml:g} ml or more); {hint}")
+    if source_ml and ml < (1.0 - OUTSIDE_NOTE_FRACTION) * source_ml:
+        notes.append(
+            f"{source}: {100 * (1 - ml / source_ml):.0f} % of the label ({source_ml:.0f} ml) lies outside "
+            f"the CT; the model covers {ml:.0f} ml"
+        )
+
+
 def build_heart_model(
     volume,
     *,
@@ -60,6 +86,7 @@ def build_heart_model(
     fiducial_floor_hu: float | None = None,
     segmentation: dict | None = None,
     trim_vessels: bool = True,
+    min_heart_ml: float = MIN_HEART_ML,
     progress=None,
 ) -> ModelBuild:
     """Build the heart model of ``volume``.
@@ -87,8 +114,16 @@ def build_heart_model(
     trim_vessels : bool
         Remove the great-vessel stubs the segmentation leaves over the vessels'
         mouths and close the surface across them (:mod:`modeling.vessels`).
+    min_heart_ml : float, ml
+        A mask smaller than this is refused: it is not a heart (see
+        :data:`MIN_HEART_ML`).
     progress : callable, optional
         Called with a stage name as each stage starts (e.g. to advance a bar).
+
+    Raises
+    ------
+    LabelMapError, SegmentationError
+        A mask far smaller than a heart (the message gives its volume in ml).
     """
     if target_faces < 100:
         raise ValueError(f"target_faces must be at least 100, got {target_faces}")
@@ -116,6 +151,8 @@ def build_heart_model(
         mask_source = "automatic segmentation"
         seg_params = seg.parameters
         notes.extend(seg.notes)
+    _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path is not None, notes=notes,
+                       source_ml=_label_ml(label_map, label) if mask_path is not None else None)
     done("mask")
 
     stage("mesh")

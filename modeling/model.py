@@ -23,8 +23,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -33,6 +31,7 @@ from typing import Mapping
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.output import staged_output
 from imaging.files import umask_mode
 from modeling.fiducials import order_fiducials
 from modeling.frame import HeartFrame, SlabEllipse, fit_heart_frame
@@ -301,8 +300,8 @@ def _model_json(model: HeartModel) -> dict:
 def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
     """Write ``model`` as a folder (heart.ply, heart.stl, model.json), atomically.
 
-    The files are written into a temporary sibling folder that is renamed into
-    place. An existing empty folder, or one with byte-identical content, is
+    The files are written into a staging folder beside ``out_dir`` that is
+    renamed into place (:func:`hrcore.output.staged_output`). An existing empty folder, or one with byte-identical content, is
     fine; another non-empty folder is refused unless ``overwrite=True``.
 
     Returns
@@ -315,41 +314,23 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    os.chmod(tmp, umask_mode(directory=True))
-    try:
+    existing = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    with staged_output(out, what="model folder", overwrite=True) as tmp:
+        os.chmod(tmp, umask_mode(directory=True))
         note = "heart (T_heart_from_patient in model.json)"
         for name in MESH_FILES:
             write_mesh(tmp / name, model.mesh, frame_note=note)
         text = json.dumps(_model_json(model), indent=2, allow_nan=False) + "\n"
         (tmp / JSON_FILE).write_text(text, encoding="utf-8")
         write_slicer_files(model, tmp)
-        if out.exists():
-            existing = sorted(p.name for p in out.iterdir())
-            if not existing:
-                out.rmdir()
-            elif existing == sorted(p.name for p in tmp.iterdir()) and all(
-                (out / n).read_bytes() == (tmp / n).read_bytes() for n in existing
-            ):
-                shutil.rmtree(tmp)
-                return out
-            elif overwrite:
-                old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-                old.rmdir()
-                os.rename(out, old)
-                os.rename(tmp, out)
-                shutil.rmtree(old)
-                return out
-            else:
-                raise FileExistsError(
-                    f"{out} holds other files ({', '.join(existing[:5])}); choose another "
-                    "folder or pass overwrite=True (--overwrite)"
-                )
-        os.rename(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+        same = existing == sorted(p.name for p in tmp.iterdir()) and all(
+            (out / n).read_bytes() == (tmp / n).read_bytes() for n in existing
+        )
+        if existing and not overwrite and not same:
+            raise FileExistsError(
+                f"{out} holds other files ({', '.join(existing[:5])}); choose another "
+                "folder or pass overwrite=True (--overwrite)"
+            )
     return out
 
 
@@ -443,8 +424,11 @@ def read_model(model_dir) -> HeartModel:
         )
     except MeshError as exc:
         raise ModelError(f"{ply}: {exc}") from exc
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ModelError(f"{jpath} is incomplete or corrupt ({exc!r}); re-create the model") from exc
+    except KeyError as exc:
+        raise ModelError(f"{jpath} is incomplete or corrupt (no field {exc.args[0]!r}); re-create the model") from exc
+    except (TypeError, ValueError) as exc:
+        detail = " ".join(str(exc).split())[:120]
+        raise ModelError(f"{jpath} is incomplete or corrupt ({detail}); re-create the model") from exc
     if mesh.n_faces != meta.get("n_faces"):
         raise ModelError(f"{ply} has {mesh.n_faces} faces, {jpath} says {meta.get('n_faces')}")
     try:

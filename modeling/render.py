@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -77,6 +78,9 @@ def offscreen_available(timeout_s: float = 60.0) -> bool:
         )
     except (OSError, subprocess.SubprocessError):
         return False
+    if res.returncode in (-signal.SIGINT, -signal.SIGTERM):
+        # Ctrl-C or a SIGTERM reached the probe too: stop, do not report "no OpenGL" and exit 0
+        raise KeyboardInterrupt
     return res.returncode == 0 and res.stdout.strip().endswith("ok")
 
 

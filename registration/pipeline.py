@@ -45,6 +45,7 @@ from registration.motion_model import (
     MotionModelError,
     fit_motion_model,
 )
+from registration.plausibility import assess_coverage, outlier_samples
 from registration.result import IcpReport, PointFit, RegistrationResult, _frozen
 from registration.session import PointRecord, Session
 from registration.spatiotemporal import (
@@ -163,6 +164,13 @@ def _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins):
             f"min_breaths = {min_breaths}; record at least {min_breaths + 1} starts of expiration"
         )
     notes = []
+    outliers = outlier_samples(record.T_probe_from_robot[:, :3, 3], record.rate_hz)
+    if outliers.any():  # tracker glitches: a NaN phase leaves the sample out of the fit
+        phase_c = np.where(outliers, np.nan, phase_c)
+        notes.append(
+            f"point {record.point_id}: {int(outliers.sum())} outlier sample(s) (robot position far from "
+            f"its running median, first at t = {float(record.time_s[outliers][0]):.2f} s) left out of its motion model"
+        )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CoverageWarning)
         try:
@@ -339,6 +347,8 @@ def register_session(
         )
     if exclusions:
         notes.append(f"{len(exclusions)} point(s) excluded (see exclusions)")
+    means = np.stack([m.mean_position_mm for m in models])
+    notes.extend(assess_coverage(means @ T0[:3, :3].T + T0[:3, 3], model.mesh.vertices).notes)
 
     # ---- sweeps
     t = time.perf_counter()

@@ -78,6 +78,13 @@ N_FIDUCIALS = 9
 MIN_DURATION_S = 10.0
 #: quaternions whose norm is off by at most this are renormalised; more is refused.
 QUATERNION_TOL = 1e-3
+#: largest accepted session.json (it holds metadata only).
+MAX_JSON_BYTES = 16_000_000
+#: largest accepted record or fiducials CSV (hours of 100 Hz samples).
+MAX_CSV_BYTES = 500_000_000
+#: largest plausible magnitude per unit of a record's columns: a tracker works
+#: within a metre or two, times are seconds after midnight, an ECG is millivolts.
+MAX_ABS = {"mm": 1e4, "s": 1e6, "mV": 1e3, "L/min": 1e3, "": 1e6}
 #: the median sample interval must match ``sample_rate_hz`` within this fraction.
 RATE_TOL = 0.05
 
@@ -274,10 +281,15 @@ def _find_folder(path: Path) -> Path:
 
 def _read_meta(folder: Path) -> dict:
     file = folder / "session.json"
+    if file.stat().st_size > MAX_JSON_BYTES:
+        raise SessionError(
+            f"{file} holds {file.stat().st_size / 1e6:.0f} MB; a session.json is a few kB: "
+            "check that it is the session's metadata file"
+        )
     try:
-        meta = json.loads(file.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise SessionError(f"{file} is not valid JSON: {exc}") from None
+        meta = json.loads(file.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is accepted
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise SessionError(f"{file} is not valid JSON: {' '.join(str(exc).split())}") from None
     if not isinstance(meta, dict):
         raise SessionError(f"{file} must hold a JSON object, got {type(meta).__name__}")
     if meta.get("format") != SESSION_FORMAT:
@@ -369,9 +381,11 @@ def _check_relative(file: Path, key: str, name: str) -> None:
 
 
 def _read_header(file: Path, rel: str, required) -> list[int]:
+    if file.exists() and not file.is_file():
+        raise SessionError(f"{rel} is not a regular file (a folder, named pipe or device); give the CSV file")
     try:
-        with open(file, encoding="utf-8", newline="") as fh:
-            header = fh.readline()
+        with open(file, encoding="utf-8-sig", newline="") as fh:  # -sig: Excel's "CSV UTF-8" BOM
+            header = fh.readline(1 << 16)
     except FileNotFoundError:
         raise SessionNotFoundError(f"{rel} is listed in session.json but missing from the folder") from None
     except UnicodeDecodeError:
@@ -392,6 +406,12 @@ def _read_header(file: Path, rel: str, required) -> list[int]:
 def _load_table(file: Path, rel: str, usecols: list[int], names) -> np.ndarray:
     # every row must have the header's number of fields: np.loadtxt with usecols
     # would read a row with an extra field shifted, without a word
+    size = file.stat().st_size
+    if size > MAX_CSV_BYTES:
+        raise SessionError(
+            f"{rel} holds {size / 1e6:.0f} MB, more than the {MAX_CSV_BYTES / 1e6:.0f} MB of hours of "
+            "samples; split the record or check that it is the right file"
+        )
     lines = [line for line in file.read_bytes().splitlines() if line.strip()]
     if lines:
         width = lines[0].count(b",")
@@ -408,7 +428,7 @@ def _load_table(file: Path, rel: str, usecols: list[int], names) -> np.ndarray:
 
 def _locate_bad_cell(file: Path, rel: str, usecols: list[int], names) -> str | None:
     """Slow path after a parse failure: the first line that does not parse."""
-    with open(file, encoding="utf-8", newline="") as fh:
+    with open(file, encoding="utf-8-sig", errors="replace", newline="") as fh:  # bad bytes: a bad cell
         width = len(fh.readline().split(","))
         for line_no, line in enumerate(fh, start=2):
             if not line.strip():
@@ -433,8 +453,30 @@ def _check_finite(data: np.ndarray, rel: str, columns) -> None:
         row, col = np.argwhere(bad)[0]
         raise SessionError(
             f"{rel}: column {columns[col]!r}, row {row + 1} (line {row + 2}): value "
-            f"{data[row, col]!r} is not finite ({int(bad.sum())} such values in the file); "
+            f"{float(data[row, col])!r} is not finite ({int(bad.sum())} such values in the file); "
             "remove or re-record the point"
+        )
+
+
+def _unit_of(column: str) -> str:
+    for suffix, unit in (("_mm", "mm"), ("_s", "s"), ("_mv", "mV"), ("_lpm", "L/min")):
+        if column.endswith(suffix):
+            return unit
+    return ""
+
+
+def _check_magnitude(data: np.ndarray, rel: str, columns) -> None:
+    """Refuse values no tracker, clock or amplifier gives (e.g. a pose of 1e30 mm)."""
+    limits = np.array([MAX_ABS[_unit_of(c)] for c in columns])
+    bad = np.abs(data) > limits
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        unit = _unit_of(columns[col])
+        raise SessionError(
+            f"{rel}: column {columns[col]!r}, row {row + 1} (line {row + 2}): value "
+            f"{float(data[row, col]):.6g}{' ' + unit if unit else ''} is beyond the plausible "
+            f"{limits[col]:g}{' ' + unit if unit else ''} ({int(bad.sum())} such values in the file); "
+            "check the logger's units or remove the point"
         )
 
 
@@ -447,6 +489,7 @@ def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float
         raise SessionError(f"{rel}: expected {len(POINT_COLUMNS)} columns, read {data.shape[1]}")
     data = data.reshape(-1, len(POINT_COLUMNS))
     _check_finite(data, rel, POINT_COLUMNS)
+    _check_magnitude(data, rel, POINT_COLUMNS)
     time_s = data[:, 0]
     _check_clock(time_s, rel, rate_hz)
     q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
@@ -471,7 +514,7 @@ def _check_clock(time_s: np.ndarray, rel: str, rate_hz: float) -> None:
         row = int(np.argmax(steps <= 0)) + 1
         raise SessionError(
             f"{rel}: column 'time_s' is not strictly increasing at row {row + 1} "
-            f"(line {row + 2}): {time_s[row - 1]!r} then {time_s[row]!r}"
+            f"(line {row + 2}): {float(time_s[row - 1])!r} then {float(time_s[row])!r}"
         )
     if steps.size:
         median = float(np.median(steps))
@@ -584,6 +627,7 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
             f"got {data.shape[0]} row(s); touch all 9 staples in the documented order"
         )
     _check_finite(data, rel, FIDUCIAL_COLUMNS)
+    _check_magnitude(data, rel, FIDUCIAL_COLUMNS)
     labels = data[:, 0]
     if not np.array_equal(labels, np.arange(1, N_FIDUCIALS + 1)):
         raise SessionError(

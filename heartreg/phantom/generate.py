@@ -16,8 +16,6 @@ into place at the end, so a failure never leaves a half-written case.
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +27,7 @@ from heartreg.phantom.layout import T_patient_from_probe, make_heart
 from heartreg.phantom.plus import write_plus_session
 from heartreg.phantom.session import write_session
 from hrcore.errors import HeartregError
+from hrcore.output import staged_output
 
 __all__ = ["make_phantom", "PhantomError", "TRUTH_FORMAT_VERSION"]
 
@@ -111,10 +110,9 @@ def make_phantom(
             f"{out_dir} already holds phantom outputs ({', '.join(present)}); "
             "choose an empty folder or pass overwrite=True (--overwrite)"
         )
-    out_dir.mkdir(parents=True, exist_ok=True)
-
-    staging = Path(tempfile.mkdtemp(prefix=".phantom-", dir=out_dir))
-    try:
+    # staged beside (or, when out_dir holds other things, inside) out_dir and renamed
+    # into place at the end: a failure, a signal or kill -9 leaves out_dir as it was
+    with staged_output(out_dir, parts=_OUTPUTS, overwrite=True, what="phantom folder") as staging:
         ct_truth = write_ct_study(staging, config, size=size, seed=int(seed), progress=progress)
         truth = {
             "format": "heartreg-phantom-truth",
@@ -146,16 +144,4 @@ def make_phantom(
         truth["config"] = config.to_dict()
         truth = _jsonable(truth)
         (staging / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n")
-        for name in _OUTPUTS:
-            src = staging / name
-            if not src.exists():
-                continue
-            dst = out_dir / name
-            if dst.is_dir():
-                shutil.rmtree(dst)
-            elif dst.exists():
-                dst.unlink()
-            src.rename(dst)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return truth

@@ -143,8 +143,11 @@ def test_cli_phases_outputs_match_truth(sample_case, tmp_path, capsys):
 
 
 def test_cli_phases_errors(tmp_path, capsys):
-    assert main(["phases", str(tmp_path), "-o", str(tmp_path / "o")]) == 1
+    study = tmp_path / "study"
+    study.mkdir()
+    assert main(["phases", str(study), "-o", str(tmp_path / "o")]) == 1
     assert "no DICOM images" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["study"]  # no empty -o folder left
     assert main(["phases", str(tmp_path)]) == 1
     assert "-o OUT_DIR" in capsys.readouterr().err
 

@@ -1,0 +1,369 @@
+"""One output contract for every writer and command.
+
+An output (a folder, or a single file) is written into a *staging* path beside
+its target and becomes visible in one rename at the very end.  A failure, an
+exception or a signal before that rename leaves the target exactly as it was:
+no empty folder, no half-written file, no stray staging path (and a later run
+removes the staging paths of processes that were killed with ``kill -9``).
+
+An output path that is, contains or lies inside one of the command's inputs is
+refused before any work.
+
+Examples
+--------
+>>> import tempfile, pathlib
+>>> root = pathlib.Path(tempfile.mkdtemp())
+>>> with staged_output(root / "out") as stage:
+...     _ = (stage / "a.txt").write_text("done")
+>>> sorted(p.name for p in root.iterdir())
+['out']
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import errno
+import os
+import re
+import secrets
+import shutil
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from hrcore.errors import HeartregError
+
+__all__ = [
+    "OutputError",
+    "check_output_path",
+    "clean_stale_staging",
+    "os_error_message",
+    "staged_output",
+]
+
+_MARK = "heartreg"
+#: ``.<name>.heartreg-<pid>-<token>.tmp`` (staging) and ``.old`` (a replaced target).
+_STAGING_RE = re.compile(r"^\..*\.heartreg-(\d+)-[0-9a-f]+\.(tmp|old)$")
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+class OutputError(HeartregError, ValueError):
+    """An output path that cannot be used (an input, a file, not empty, ...) or
+    a write that failed (disk full, no permission)."""
+
+
+# ------------------------------------------------------------------ checks
+def _resolved(path) -> Path:
+    return Path(os.path.abspath(Path(path).expanduser())).resolve()
+
+
+def check_output_path(
+    out,
+    *,
+    inputs: Iterable = (),
+    what: str = "output folder",
+    overwrite: bool = False,
+    folder: bool = True,
+) -> Path:
+    """Check an output path before any work; create nothing.
+
+    Parameters
+    ----------
+    out : str or Path
+        The output folder (``folder=True``) or file.
+    inputs : iterable of str or Path
+        The command's inputs (folders or files; ``None`` entries are ignored).
+        ``out`` may not be one of them, lie inside one or contain one.
+    what : str
+        How messages name ``out`` (e.g. ``"model folder"``, ``"-o"``).
+    overwrite : bool
+        Accept an existing non-empty folder (or an existing file).
+    folder : bool
+        ``out`` is a folder (else a single file).
+
+    Returns
+    -------
+    Path
+        ``out`` as given.
+
+    Raises
+    ------
+    OutputError
+        With one line naming ``out`` and what to do.
+    """
+    out = Path(out)
+    _check_inputs(out, inputs, what)
+    if folder:
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
+        if out.is_dir() and not overwrite and any(out.iterdir()):
+            raise OutputError(f"{what} {out} is not empty; choose an empty folder or pass --overwrite")
+    else:
+        if out.is_dir():
+            raise OutputError(f"{what} {out} is a folder; give a file name")
+        if out.exists() and not overwrite:
+            raise OutputError(f"{what} {out} exists; choose another name or pass --overwrite")
+    parent = _existing_parent(_resolved(out))
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {out}: folder {parent} is not writable; choose another output path")
+    return out
+
+
+def _check_inputs(out: Path, inputs: Iterable, what: str, *, contains: bool = True) -> None:
+    target = _resolved(out)
+    for inp in inputs:
+        if inp is None:
+            continue
+        source = _resolved(inp)
+        if target == source:
+            raise OutputError(f"{what} {out} is the input {inp}; choose another output path")
+        if target.is_relative_to(source):
+            raise OutputError(f"{what} {out} lies inside the input {inp}; choose an output path outside it")
+        if contains and source.is_relative_to(target):
+            raise OutputError(f"{what} {out} contains the input {inp}; choose an output path that does not")
+
+
+def _existing_parent(path: Path) -> Path:
+    parent = path.parent
+    while not parent.exists():
+        parent = parent.parent
+    return parent
+
+
+# ------------------------------------------------------------------ stale staging
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def clean_stale_staging(folder) -> list[Path]:
+    """Remove the staging paths that killed heartreg processes left in ``folder``.
+
+    A ``.old`` path (a target moved aside just before its replacement) whose
+    target is missing is moved back: the previous state is restored.
+
+    Returns
+    -------
+    list of Path
+        The paths removed or restored.
+    """
+    folder = Path(folder)
+    done = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return done
+    for entry in entries:
+        m = _STAGING_RE.match(entry.name)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        path = Path(entry.path)
+        if m.group(2) == "old":
+            target = folder / entry.name[1:].rsplit(f".{_MARK}-", 1)[0]
+            if not os.path.lexists(target):
+                with contextlib.suppress(OSError):
+                    os.rename(path, target)
+                    done.append(path)
+                    continue
+        _remove(path)
+        done.append(path)
+    return done
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+
+
+# ------------------------------------------------------------------ atomic swap
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two existing paths atomically (Linux ``renameat2(RENAME_EXCHANGE)``).
+
+    Returns False when the system cannot (the caller falls back to two renames).
+    """
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    rc = fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    if rc == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _commit(stage: Path, out: Path) -> None:
+    """Make ``stage`` visible as ``out`` in one step; remove what ``out`` held."""
+    if not os.path.lexists(out):
+        os.rename(stage, out)
+        return
+    if _exchange(stage, out):
+        _remove(stage)  # now holds the previous output
+        return
+    old = out.parent / f".{out.name}.{_MARK}-{os.getpid()}-{secrets.token_hex(4)}.old"
+    os.rename(out, old)  # a kill here: clean_stale_staging moves it back
+    os.rename(stage, out)
+    _remove(old)
+
+
+# ------------------------------------------------------------------ messages
+def os_error_message(exc: OSError, *, what: str = "") -> str:
+    """One line for an OS error: the file, the reason in words, what to do."""
+    name = exc.filename or what or "a file"
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    hint = {
+        errno.ENOSPC: "free disk space or choose an output on another disk",
+        errno.EDQUOT: "free space within your quota or choose another disk",
+        errno.EACCES: "check the permissions or choose another path",
+        errno.EPERM: "check the permissions or choose another path",
+        errno.EROFS: "choose an output on a writable disk",
+        errno.ENOENT: "check the path",
+    }.get(exc.errno, "check the path and rerun")
+    return f"{name}: {reason}; {hint}"
+
+
+def _size_mb(path: Path) -> float:
+    total = 0
+    for dirpath, _, files in os.walk(path):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(dirpath, f)).st_size
+    if path.is_file():
+        total = path.stat().st_size
+    return total / 1e6
+
+
+# ------------------------------------------------------------------ staging
+def _check_parts(out: Path, parts, inputs, what: str, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
+    _check_inputs(out, inputs, what, contains=False)  # inputs beside the parts are fine
+    for name in parts:
+        target = out / name
+        _check_inputs(target, inputs, what)
+        if overwrite or not target.exists():
+            continue
+        if not target.is_dir() or any(target.iterdir()):
+            raise OutputError(f"{what} {out} already holds {name}; choose another folder or pass --overwrite")
+    parent = _existing_parent(_resolved(out) / "x")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {out}: folder {parent} is not writable; choose another output path")
+
+
+@contextlib.contextmanager
+def staged_output(
+    out,
+    *,
+    inputs: Iterable = (),
+    what: str = "output folder",
+    overwrite: bool = False,
+    folder: bool = True,
+    parts: Iterable[str] | None = None,
+) -> Iterator[Path]:
+    """Stage an output beside its target; rename it into place on success.
+
+    Parameters
+    ----------
+    out : str or Path
+        Target folder (or file, with ``folder=False``).
+    inputs, what, overwrite, folder
+        As for :func:`check_output_path` (called first).
+    parts : iterable of str, optional
+        Names of the entries this output owns inside an ``out`` folder that
+        may hold other things (the pipeline's ``phases/``, ``model/``, ...).
+        When ``out`` does not exist or is empty, the whole folder is still
+        staged and renamed once; otherwise each part is swapped into place
+        atomically, one after the other, and nothing else in ``out`` is
+        touched.  ``overwrite`` then applies to the parts.
+
+    Yields
+    ------
+    Path
+        The staging folder (created, empty) or the staging file name (not
+        created).  Write everything there, under the same names as in ``out``.
+
+    Raises
+    ------
+    OutputError
+        A refused output path, or a write that failed for lack of space (the
+        message names the file and how much had been written).
+
+    Notes
+    -----
+    On any exception (``KeyboardInterrupt`` and signals turned into
+    exceptions included) the staging path is removed, the folders created for
+    it are removed again, and ``out`` is untouched.  Missing parent folders of
+    ``out`` are created only for the staging path.  A kill -9 leaves at most a
+    staging path named ``.<name>.heartreg-<pid>-<token>.tmp`` beside ``out``,
+    which the next run that writes there removes.
+    """
+    out = Path(out)
+    parts = tuple(parts) if parts is not None else None
+    whole = parts is None or not out.exists() or (out.is_dir() and not any(out.iterdir()))
+    if parts is not None:
+        _check_parts(out, parts, inputs, what, overwrite)
+        if whole:
+            _check_inputs(out, inputs, what)
+    else:
+        check_output_path(out, inputs=inputs, what=what, overwrite=overwrite, folder=folder)
+    absolute = Path(os.path.abspath(out))
+    home = absolute.parent if whole else absolute
+    created = []
+    probe = home
+    while not probe.exists():
+        created.append(probe)
+        probe = probe.parent
+    stage = home / f".{absolute.name}.{_MARK}-{os.getpid()}-{secrets.token_hex(4)}.tmp"
+    try:
+        for d in reversed(created):
+            os.mkdir(d)
+        clean_stale_staging(home)
+        if folder or parts is not None:
+            os.mkdir(stage)
+        yield stage
+        if whole:
+            _commit(stage, absolute)
+        else:
+            for name in parts:
+                if os.path.lexists(stage / name):
+                    _commit(stage / name, absolute / name)
+            _remove(stage)
+    except OSError as exc:
+        written = _size_mb(stage) if os.path.lexists(stage) else 0.0
+        _cleanup(stage, created)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            free = shutil.disk_usage(_existing_parent(absolute)).free / 1e6
+            raise OutputError(
+                f"disk full writing {exc.filename or out}: {what} {out} needed more than the "
+                f"{written:.1f} MB written before the disk ran out ({free:.1f} MB free now, nothing "
+                "was kept); free space or choose another output path"
+            ) from None
+        raise
+    except BaseException:
+        _cleanup(stage, created)
+        raise
+
+
+def _cleanup(stage: Path, created: list) -> None:
+    if os.path.lexists(stage):
+        _remove(stage)
+    for d in created:  # deepest first
+        with contextlib.suppress(OSError):
+            os.rmdir(d)

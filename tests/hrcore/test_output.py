@@ -1,0 +1,171 @@
+"""The output contract (hrcore.output): stage, one rename, nothing left behind."""
+
+from __future__ import annotations
+
+import errno
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hrcore.output import OutputError, check_output_path, clean_stale_staging, os_error_message, staged_output
+
+
+def _listing(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_new_folder_appears_whole(tmp_path):
+    out = tmp_path / "a" / "b" / "out"
+    with staged_output(out) as stage:
+        (stage / "x.txt").write_text("1")
+        assert not out.exists()  # nothing visible before the end
+    assert _listing(tmp_path) == ["a", "a/b", "a/b/out", "a/b/out/x.txt"]
+
+
+@pytest.mark.parametrize("error", [ValueError("bad"), KeyboardInterrupt(), SystemExit(3)])
+def test_failure_leaves_nothing_not_even_parents(tmp_path, error):
+    out = tmp_path / "new" / "out"
+    with pytest.raises(type(error)), staged_output(out) as stage:
+        (stage / "half.txt").write_text("half")
+        raise error
+    assert _listing(tmp_path) == []
+
+
+def test_failure_leaves_previous_output_untouched(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    with pytest.raises(RuntimeError), staged_output(out, overwrite=True) as stage:
+        (stage / "new.txt").write_text("new")
+        raise RuntimeError("stop")
+    assert _listing(tmp_path) == ["out", "out/old.txt"]
+    with staged_output(out, overwrite=True) as stage:
+        (stage / "new.txt").write_text("new")
+    assert _listing(tmp_path) == ["out", "out/new.txt"]  # replaced whole, no stray staging
+
+
+def test_non_empty_needs_overwrite_and_a_file_is_refused(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "x").write_text("x")
+    with pytest.raises(OutputError, match=r"out is not empty; choose an empty folder or pass --overwrite"):
+        with staged_output(out):
+            pass
+    with pytest.raises(OutputError, match="exists and is not a folder"):
+        check_output_path(out / "x")
+
+
+@pytest.mark.parametrize("where", ["same", "inside", "contains"])
+def test_output_overlapping_an_input_is_refused(tmp_path, where):
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "img.dcm").write_bytes(b"x")
+    out = {"same": study, "inside": study / "out", "contains": tmp_path}[where]
+    word = {"same": "is the input", "inside": "lies inside the input", "contains": "contains the input"}[where]
+    with pytest.raises(OutputError, match=word):
+        with staged_output(out, inputs=[study], overwrite=True):
+            pass
+    assert _listing(study) == ["img.dcm"]
+    # a file input (e.g. --mask) inside the output folder too
+    with pytest.raises(OutputError, match="contains the input"):
+        check_output_path(tmp_path, inputs=[study / "img.dcm"], overwrite=True)
+
+
+def test_parts_replace_only_their_entries(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    (out / "model").mkdir()
+    (out / "model" / "old").write_text("old")
+    with pytest.raises(OutputError, match="already holds model"):
+        with staged_output(out, parts=("model", "report.html")):
+            pass
+    with staged_output(out, parts=("model", "report.html"), overwrite=True) as stage:
+        (stage / "model").mkdir()
+        (stage / "model" / "new").write_text("new")
+        (stage / "report.html").write_text("<p>")
+    assert _listing(tmp_path) == ["run", "run/keep.txt", "run/model", "run/model/new", "run/report.html"]
+
+
+def test_stale_staging_of_dead_processes_is_removed_and_moved_aside_output_restored(tmp_path):
+    pid = _dead_pid()
+    stale = tmp_path / f".out.heartreg-{pid}-abcd1234.tmp"
+    stale.mkdir()
+    (stale / "heart.ply").write_text("half")
+    aside = tmp_path / f".prev.heartreg-{pid}-abcd1234.old"  # killed between the two renames
+    aside.mkdir()
+    (aside / "model.json").write_text("{}")
+    alive = tmp_path / f".mine.heartreg-{os.getpid()}-abcd1234.tmp"  # a live process's staging stays
+    alive.mkdir()
+    with staged_output(tmp_path / "out") as stage:
+        (stage / "x").write_text("1")
+    assert _listing(tmp_path) == [alive.name, "out", "out/x", "prev", "prev/model.json"]
+    assert clean_stale_staging(tmp_path) == []
+
+
+def test_disk_full_is_one_line_naming_the_file_and_nothing_is_kept(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(OutputError) as info, staged_output(out) as stage:
+        (stage / "heart.ply").write_bytes(b"\0" * 2_000_000)
+        raise OSError(errno.ENOSPC, "No space left on device", str(stage / "heart.stl"))
+    msg = str(info.value)
+    assert "\n" not in msg and "heart.stl" in msg and "2.0 MB written" in msg and "free space" in msg
+    assert "Errno" not in msg
+    assert _listing(tmp_path) == []
+
+
+def test_os_error_message_is_one_line_with_a_hint():
+    msg = os_error_message(PermissionError(errno.EACCES, "Permission denied", "/x/model.json"))
+    assert msg == "/x/model.json: Permission denied; check the permissions or choose another path"
+
+
+_WRITER = """
+import sys, time
+from pathlib import Path
+from hrcore.output import staged_output
+out = Path(sys.argv[1])
+with staged_output(out, overwrite=True) as stage:
+    for k in range(40):
+        (stage / f"part{k:02d}.txt").write_text(sys.argv[2] * 1000)
+        time.sleep(0.01)
+print("done", flush=True)
+"""
+
+
+def _state(out):
+    names = sorted(p.name for p in out.iterdir())
+    texts = {(out / n).read_text()[:1] for n in names}
+    return len(names), texts
+
+
+def test_kill_9_at_many_moments_leaves_old_or_complete_new(tmp_path):
+    """A writer staged by hrcore.output, killed with SIGKILL at 8 moments from
+    its start to its end: OUT holds the 40 old files or the 40 new ones, never
+    a mix or a part; the next run removes what the killed ones left."""
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    subprocess.run([sys.executable, "-c", _WRITER, str(out), "a"], env=env, check=True, timeout=60)
+    assert _state(out) == (40, {"a"})
+    for k, delay in enumerate((0.05, 0.15, 0.25, 0.35, 0.45, 0.55, 0.7, 1.0)):
+        letter = "bcdefghi"[k]
+        proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(out), letter], env=env,
+                                stdout=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.kill()
+        finished = proc.communicate()[0].strip() == "done"
+        n, texts = _state(out)
+        assert n == 40 and len(texts) == 1, (delay, n, texts)
+        if finished:
+            assert texts == {letter}
+    subprocess.run([sys.executable, "-c", _WRITER, str(out), "z"], env=env, check=True, timeout=60)
+    assert [p.name for p in tmp_path.iterdir()] == ["out"] and _state(out) == (40, {"z"})
