@@ -191,7 +191,7 @@ def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
             for f in model.fiducials_patient_mm:
                 plotter.add_mesh(pv.Sphere(radius=2.5, center=f), color="#606060")
             plotter.add_text(
-                f"{title}\nphi_C = {model.cardiac_phase:.2f}  "
+                f"{title}\nphi_C = {'unknown' if model.cardiac_phase is None else format(model.cardiac_phase, '.2f')}  "
                 "x red, y green, z blue",
                 font_size=9, color="black",
             )
