@@ -235,7 +235,7 @@ def build_heart_model(
         base_hint=base_hint,
     )
     apex = -model.frame.axes_patient[:, 2]
-    if apex @ APEX_LAI_LPS < 0:
+    if apex[0] <= 0 or apex @ APEX_LAI_LPS <= 0:  # to the patient's right, or away from left-anterior-inferior
         fallback(
             f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
             "as usual: check the model (dextrocardia, or a segmentation error)"
