@@ -95,9 +95,10 @@ def read_nifti_volume(path) -> Volume:
         flip[2, 2], flip[2, 3] = -1.0, hu.shape[0] - 1
         T = T @ flip
         notes.append("NIfTI input: slice order reversed to make the voxel frame right-handed")
-    if np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16:
-        hu = hu.astype(np.int16)
-    elif np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767:
+    fits_int16 = (np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16) or (
+        np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767
+    )
+    if fits_int16:
         hu = hu.astype(np.int16)
     else:
         hu = hu.astype(np.float32)

@@ -29,6 +29,8 @@ __all__ = ["ModelingWarning", "ModelBuild", "build_heart_model"]
 
 #: ``expected_fiducials`` value: take the markers found on the skin, however many (none: a warning).
 AUTO = "auto"
+#: Whole-heart volumes (ml) of adults; an automatic segmentation outside this range is flagged.
+HEART_ML = (250.0, 1500.0)
 #: The vessels' mouths must lie this far along the long axis (|cosine|) to say which end is the base.
 BASE_HINT_MIN_COSINE = 0.2
 
@@ -148,6 +150,11 @@ def build_heart_model(
         for note in seg.notes:
             if note.startswith("vessel cut skipped"):
                 fallback(note)
+        if not HEART_ML[0] <= seg.volume_ml <= HEART_ML[1]:
+            fallback(
+                f"the segmented heart is {seg.volume_ml:.0f} ml, outside the usual {HEART_ML[0]:.0f}-"
+                f"{HEART_ML[1]:.0f} ml: check the model (a CT without contrast? give --mask or a seed point)"
+            )
     if trim_vessels is None:
         trim_vessels = mask_path is None
     done("mask")

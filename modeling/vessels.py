@@ -174,8 +174,7 @@ def base_direction(mask, hu, T_patient_from_voxel, *, blood_hu: float = MOUTH_BL
     voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
     if mouths.sum() * voxel_ml < min_ml:
         return None
-    offset = np.array([b.start for b in box], dtype=float)
-    to_patient = lambda kji: T[:3, :3] @ (kji + offset)[::-1] + T[:3, 3]  # noqa: E731
-    d = to_patient(np.argwhere(mouths).mean(axis=0)) - to_patient(np.argwhere(sub).mean(axis=0))
+    kji_delta = np.argwhere(mouths).mean(axis=0) - np.argwhere(sub).mean(axis=0)
+    d = T[:3, :3] @ kji_delta[::-1]
     n = np.linalg.norm(d)
     return None if n < 1e-6 else d / n
