@@ -51,7 +51,7 @@ MAX_EXTENT_MM = 15.0
 MARKER_CONTEXT_MM = 8.0
 #: Soft tissue (skin) is above this HU.
 BODY_HU = -300.0
-#: A marker's dense voxels lie this close to the skin's soft tissue.
+#: A marker's dense voxels lie this close to the skin's soft tissue (or in the next voxel).
 SKIN_CONTACT_MM = 1.6
 #: Fraction of a candidate's connected dense voxels allowed outside the skin shell.
 MAX_BENEATH_FRACTION = 0.3
@@ -143,7 +143,9 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji) -> str:
         return "cut by the edge of the field of view"
     sub = np.asarray(hu[big])
     body = (sub > BODY_HU) & ~dense
-    near = ndimage.distance_transform_edt(~part, sampling=spacing_kji) <= SKIN_CONTACT_MM
+    near = (ndimage.distance_transform_edt(~part, sampling=spacing_kji) <= SKIN_CONTACT_MM) | ndimage.binary_dilation(
+        part, structure=np.ones((3, 3, 3), bool)
+    )  # the neighbouring voxels at least, however coarse the grid
     if not (near & body).any():
         return "not touching the body (it lies in the air)"
     return ""

@@ -13,7 +13,7 @@ import pytest
 
 import modeling.build
 from imaging import load_study
-from modeling import FiducialError, MeshError, segment_heart
+from modeling import FiducialError, MeshError, find_fiducials, segment_heart
 from modeling.build import ModelingWarning, build_heart_model
 
 
@@ -53,3 +53,22 @@ def test_vessel_cut_skipped_when_nothing_is_heart_thick():
     seg = segment_heart(hu, T, heart_radius_mm=30.0, min_volume_ml=10.0)
     assert any(n.startswith("vessel cut skipped: no part of the heart region is thicker than 60 mm") for n in seg.notes)
     assert seg.volume_ml == pytest.approx(4 / 3 * np.pi * 25**3 / 1000, rel=0.1)  # the ball, kept whole
+
+
+def test_only_markers_on_the_skin_are_fiducials():
+    """A synthetic chest (a 30 mm radius cylinder of soft tissue, 1 mm voxels):
+    a staple on the skin is found; metal floating 5 mm above the skin and a
+    bone-like rod reaching the skin from inside are not."""
+    k, j, i = np.mgrid[:60, :80, :80]
+    hu = np.where((j - 40) ** 2 + (i - 40) ** 2 < 30**2, 40, -1000).astype(np.int16)
+    hu[30, 10:12, 38:44] = 3000  # staple: 6 x 2 x 1 mm on the anterior skin (LPS y = j: low j is anterior)
+    hu[45, 4:6, 38:44] = 3000  # the same metal 5 mm above the skin, in the air
+    hu[14:17, 10:35, 39:42] = 1200  # a rod from the skin 25 mm into the body
+    T = np.eye(4)
+    found = find_fiducials(hu, T, expected=None)
+    np.testing.assert_allclose(found.centres_patient_mm, [[40.5, 10.5, 30.0]], atol=0.5)  # the staple's centroid
+    notes = " ".join(found.notes)
+    assert "not touching the body (it lies in the air)" in notes
+    assert "dense tissue continues beneath the skin" in notes
+    with pytest.raises(FiducialError, match=r"found 1 metal marker\(s\) on the skin, expected 9"):
+        find_fiducials(hu, T, expected=9)
