@@ -9,6 +9,7 @@ here and printed as one line on stderr with a non-zero exit status
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -46,6 +47,11 @@ def _cmd_phantom(args) -> int:
             print(f"  PLUS session     {out / 'session_plus'} (poses in tracking.seq.mha)")
     print(f"  truth            {out / 'truth.json'}")
     return 0
+
+
+def _label_arg(value: str):
+    """``--label``: a label value, or its name in the label map (TotalSegmentator, DICOM SEG)."""
+    return int(value) if value.lstrip("-").isdigit() else value
 
 
 def _series_arg(value: str):
@@ -103,9 +109,32 @@ def _cmd_phases(args) -> int:
     return 0
 
 
-def _check_fiducials(count: int) -> None:
-    if count < 0:
+def _check_fiducials(count: int | None) -> None:
+    if count is not None and count < 0:
         raise ValueError(f"--fiducials {count}: give the number of skin fiducials expected (0 for none)")
+
+
+def _open_model_input(args):
+    """The model command's CT (a DICOM study folder or a NIfTI file) and its phase.
+
+    Returns ``(volume, phase, source)``; ``phase`` is None when the CT has no
+    ECG gating (a model needs none: its phase is then recorded as unknown).
+    """
+    from imaging.nifti import is_nifti_path, read_nifti_volume
+
+    from heartreg.pipeline import open_study
+
+    if is_nifti_path(args.study_dir):
+        if args.qrs is not None or args.series is not None:
+            raise ValueError(f"--qrs and --series apply to DICOM studies, not to the NIfTI file {args.study_dir}")
+        return read_nifti_volume(args.study_dir), None, "a NIfTI volume has no slice clock"
+    volume, report = open_study(
+        args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
+        warn=lambda msg: print(msg, file=sys.stderr), phase_required=False,
+    )
+    if isinstance(report, str):
+        return volume, None, report
+    return volume, report.volume_cardiac_phase, report.source
 
 
 def _cmd_model(args) -> int:
@@ -120,7 +149,7 @@ def _cmd_model(args) -> int:
     _check_fiducials(args.fiducials)
     inputs = (args.study_dir, args.qrs, args.mask)
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
-    volume, report = _open_study(args)
+    volume, phase, phase_source = _open_model_input(args)
     from tqdm import tqdm
 
     # the stages of build_heart_model (mask, mesh, fiducials, frame), then the write
@@ -132,14 +161,14 @@ def _cmd_model(args) -> int:
 
     build = build_heart_model(
         volume,
-        cardiac_phase=report.volume_cardiac_phase,
-        cardiac_phase_source=report.source,
+        cardiac_phase=phase,
+        cardiac_phase_source=phase_source,
         mask_path=args.mask,
         label=args.label,
         target_faces=args.faces,
-        expected_fiducials=None if args.fiducials == 0 else args.fiducials,
+        expected_fiducials="auto" if args.fiducials is None else (None if args.fiducials == 0 else args.fiducials),
         fiducial_floor_hu=args.fiducial_floor_hu,
-        trim_vessels=not args.keep_vessels,
+        trim_vessels=False if args.keep_vessels else (True if args.trim_vessels else None),
         progress=stage,
     )
     stage("write")
@@ -158,12 +187,15 @@ def _cmd_model(args) -> int:
     print(f"heart model of series {volume.series.series_instance_uid} written to {out}")
     print(f"  mask              {build.mask_source}")
     print(f"  mesh              {model.mesh.faces.shape[0]} faces, watertight, heart frame (mm)")
-    print(f"  image phase       phi_C* = {model.cardiac_phase:.4f} ({report.source})")
+    shown = "unknown" if model.cardiac_phase is None else f"{model.cardiac_phase:.4f}"
+    print(f"  image phase       phi_C* = {shown} ({phase_source})")
     print(f"  heart frame       Euler XYZ = ({e[0]:.1f}, {e[1]:.1f}, {e[2]:.1f}) deg, "
           f"{model.frame.iterations} iterations, last change {model.frame.axis_change_deg:.3f} deg")
     print(f"  fiducials         {len(model.fiducials_patient_mm)}")
     print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in build.timings_s.items()))
     print(f"  picture           {picture}")
+    for note in build.notes:
+        print(f"  note              {note}")
     return 0
 
 
@@ -178,6 +210,15 @@ def _cmd_register(args) -> int:
     inputs = (args.model_dir, args.session_dir)
     check_output_path(args.out_dir, inputs=inputs, overwrite=args.overwrite)
     model = read_model(args.model_dir)
+    if args.cardiac_phase is not None:
+        if not 0.0 <= args.cardiac_phase < 1.0:
+            raise ValueError(f"--cardiac-phase must be a phase in [0, 1), got {args.cardiac_phase}")
+        model = dataclasses.replace(model, cardiac_phase=args.cardiac_phase, cardiac_phase_source="--cardiac-phase")
+    elif model.cardiac_phase is None:
+        raise ValueError(
+            f"the cardiac phase of model {args.model_dir} is unknown (its CT was not ECG-gated); "
+            "give the CT's phase with --cardiac-phase P (0..1, e.g. 0.7 for mid-diastole)"
+        )
     session = read_session(args.session_dir)
     harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
     result = register_session(
@@ -301,17 +342,20 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_phases)
 
-    p = sub.add_parser("model", help="CT study -> heart model in the heart-centric frame")
+    p = sub.add_parser("model", help="CT study (DICOM folder or NIfTI file) -> heart model in the heart-centric frame")
     _add_study_options(p)
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="model folder to write")
     p.add_argument("--mask", type=Path, default=None,
                    help="external label map (NIfTI, NRRD or DICOM SEG) instead of the automatic segmentation")
-    p.add_argument("--label", type=int, default=None, help="heart label in --mask")
+    p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart)")
     p.add_argument("--faces", type=int, default=20000, help="faces of the decimated mesh")
-    p.add_argument("--fiducials", type=int, default=9, help="skin fiducials expected (0: none)")
+    p.add_argument("--fiducials", type=int, default=None,
+                   help="skin fiducials expected, insisted on (default: those found on the skin; 0: none)")
     p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
     p.add_argument("--keep-vessels", action="store_true",
                    help="keep the great-vessel stubs (do not trim them off the base)")
+    p.add_argument("--trim-vessels", action="store_true",
+                   help="trim vessel stubs off a --mask too (by default a given mask is meshed as it is)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.set_defaults(func=_cmd_model)
 
@@ -341,6 +385,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
                    help="Fourier harmonics of the motion models (default 5 4 2 1)")
     p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
+    p.add_argument("--cardiac-phase", type=float, default=None, metavar="P",
+                   help="the CT's cardiac phase (0..1), needed when the model's is unknown; replaces it otherwise")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_register)

@@ -61,7 +61,7 @@ def phase_report_extra(volume, study_dir) -> dict:
     }
 
 
-def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None):
+def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None, phase_required: bool = True):
     """Load a study's volume and its cardiac phase report.
 
     Parameters
@@ -74,11 +74,16 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
         R-peak times file (CSV, column ``time_s``, AcquisitionTime clock).
     warn : callable, optional
         Receives notes about unreadable ECG waveforms.
+    phase_required : bool
+        When false, a CT without gating gives ``report`` None and the reason
+        instead of a ``GatingError`` (a heart model needs no phase).
 
     Returns
     -------
     volume : imaging.Volume
-    report : imaging.PhaseReport
+    report : imaging.PhaseReport, or str
+        The reason the phase is unknown, when ``phase_required`` is false and
+        no R-peak source times the slices.
     """
     from imaging import compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
     from imaging.waveform import WaveformError
@@ -92,9 +97,16 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
         except WaveformError as exc:
             if warn is not None:
                 warn(f"note: {exc}")
-    report = compute_phase_report(
-        volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else "", ecg_records=records
-    )
+    from imaging import GatingError
+
+    try:
+        report = compute_phase_report(
+            volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else "", ecg_records=records
+        )
+    except GatingError as exc:
+        if phase_required or qrs:
+            raise
+        return volume, f"no ECG gating ({str(exc).split(';')[0]})"
     return volume, report
 
 

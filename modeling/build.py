@@ -10,19 +10,33 @@ sees where the time goes.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from modeling.fiducials import Fiducials, find_fiducials
+from modeling.fiducials import FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
 from modeling.segment import SegmentationError, segment_heart
-from modeling.surface import decimate, mask_to_mesh
-from modeling.vessels import trim_vessel_stubs
+from modeling.surface import MeshError, decimate, mask_to_mesh
+from modeling.vessels import APEX_LAI_LPS, base_direction, trim_vessel_stubs
 
-__all__ = ["ModelBuild", "build_heart_model"]
+__all__ = ["ModelingWarning", "ModelBuild", "build_heart_model"]
+
+#: ``expected_fiducials`` value: take the markers found on the skin, however many (none: a warning).
+AUTO = "auto"
+#: Whole-heart volumes (ml) of adults; an automatic segmentation outside this range is flagged.
+HEART_ML = (250.0, 1500.0)
+#: The vessels' mouths must lie this far along the long axis (|cosine|) to say which end is the base.
+BASE_HINT_MIN_COSINE = 0.2
+
+
+class ModelingWarning(UserWarning):
+    """A modeling step fell back (no markers, trim skipped, unusual anatomy); the model is still made."""
 
 
 @dataclass(frozen=True)
@@ -38,6 +52,8 @@ class ModelBuild:
     timings_s : dict of str to float
         Wall time per stage.
     notes : tuple of str
+        What each step did, fallbacks included (also in ``model.json``,
+        ``parameters.notes``; fallbacks also in ``parameters.warnings``).
     """
 
     model: HeartModel
@@ -76,16 +92,16 @@ def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, n
 def build_heart_model(
     volume,
     *,
-    cardiac_phase: float,
+    cardiac_phase: float | None,
     cardiac_phase_source: str,
     mask_path=None,
-    label: int | None = None,
+    label: int | str | None = None,
     target_faces: int = 20000,
-    expected_fiducials: int | None = 9,
+    expected_fiducials: int | str | None = 9,
     fiducial_rows: int = 3,
     fiducial_floor_hu: float | None = None,
     segmentation: dict | None = None,
-    trim_vessels: bool = True,
+    trim_vessels: bool | None = None,
     min_heart_ml: float = MIN_HEART_ML,
     progress=None,
 ) -> ModelBuild:
@@ -94,26 +110,35 @@ def build_heart_model(
     Parameters
     ----------
     volume : imaging.Volume
-    cardiac_phase, cardiac_phase_source : float, str
-        The volume's phase phi_C* and where it came from (imaging's PhaseReport).
+    cardiac_phase, cardiac_phase_source : float or None, str
+        The volume's phase phi_C* and where it came from (imaging's PhaseReport);
+        None with the reason when the CT is not gated (the phase is then unknown
+        and registration asks for it).
     mask_path : path, optional
-        An external label map (NIfTI, NRRD or DICOM SEG) instead of the automatic
-        segmentation; resampled onto the volume's grid through both affines.
-    label : int, optional
-        The label of the heart in ``mask_path`` (needed if it holds several).
+        An external label map (NIfTI, NRRD, DICOM SEG, or a TotalSegmentator
+        output folder) instead of the automatic segmentation; resampled onto the
+        volume's grid through both affines and meshed as given.
+    label : int or str, optional
+        The label of the heart in ``mask_path``, by value or by name (needed if
+        it holds several).
     target_faces : int
         Faces of the decimated mesh.
-    expected_fiducials : int or None
-        Skin fiducials expected (None: no fiducials are looked for).
+    expected_fiducials : int, "auto" or None
+        Skin fiducials expected (a different count is an error); ``"auto"``:
+        the markers found on the skin, however many (none: a warning); None: no
+        fiducials are looked for.
     fiducial_rows : int
         Rows of the fiducial grid (for their order).
     fiducial_floor_hu : float, optional
         HU above which fiducial excess density counts (default: modeling.fiducials.FLOOR_HU).
     segmentation : dict, optional
         Keyword arguments of :func:`modeling.segment.segment_heart`.
-    trim_vessels : bool
+    trim_vessels : bool, optional
         Remove the great-vessel stubs the segmentation leaves over the vessels'
         mouths and close the surface across them (:mod:`modeling.vessels`).
+        Default: for the automatic segmentation only (an external mask is
+        trusted as given). A trim that fails falls back to the untrimmed surface
+        with a warning.
     min_heart_ml : float, ml
         A mask smaller than this is refused: it is not a heart (see
         :data:`MIN_HEART_ML`).
@@ -139,11 +164,17 @@ def build_heart_model(
     def done(name):
         timings[name] = time.perf_counter() - timings[name]
 
+    def fallback(message: str) -> None:
+        warnings.warn(message, ModelingWarning, stacklevel=3)
+        fallbacks.append(message)
+        notes.append(message)
+
+    fallbacks: list[str] = []
     stage("mask")
     if mask_path is not None:
         label_map = read_label_map(mask_path)
         mask = mask_on_grid(label_map, volume.shape, T, label=label)
-        mask_source = f"label map {label_map.source}" + (f", label {label}" if label is not None else "")
+        mask_source = f"label map {Path(label_map.source).name}" + (f", label {label}" if label is not None else "")
         seg_params = {}
     else:
         seg = segment_heart(volume.hu, T, **(segmentation or {}))
@@ -151,35 +182,71 @@ def build_heart_model(
         mask_source = "automatic segmentation"
         seg_params = seg.parameters
         notes.extend(seg.notes)
+        for note in seg.notes:
+            if note.startswith("vessel cut skipped"):
+                fallback(note)
+        if not HEART_ML[0] <= seg.volume_ml <= HEART_ML[1]:
+            fallback(
+                f"the segmented heart is {seg.volume_ml:.0f} ml, outside the usual {HEART_ML[0]:.0f}-"
+                f"{HEART_ML[1]:.0f} ml: check the model (a CT without contrast? give --mask or a seed point)"
+            )
     _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path is not None, notes=notes,
                        source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+    if trim_vessels is None:
+        trim_vessels = mask_path is None
     done("mask")
 
     stage("mesh")
     if trim_vessels:
         # trim at full resolution, then decimate: the patches get fine faces too
         dense = mask_to_mesh(mask, T, target_faces=max(int(target_faces), 400_000))
-        trim = trim_vessel_stubs(dense, volume.hu, T)
-        mesh = decimate(trim.mesh, target_faces)
-        if trim.n_removed_faces:
-            notes.append(
-                f"vessel stubs trimmed: {trim.n_removed_faces} of {len(dense.faces)} faces over "
-                f"contrast lumen removed, mouths closed with {trim.n_patch_faces} faces"
-            )
+        try:
+            trim = trim_vessel_stubs(dense, volume.hu, T)
+        except MeshError as exc:
+            fallback(f"vessel stub trim skipped, surface kept as segmented: {exc}")
+            mesh = decimate(dense, target_faces)
+        else:
+            mesh = decimate(trim.mesh, target_faces)
+            if trim.n_removed_faces:
+                notes.append(
+                    f"vessel stubs trimmed: {trim.n_removed_faces} of {len(dense.faces)} faces over "
+                    f"contrast lumen removed, mouths closed with {trim.n_patch_faces} faces"
+                )
     else:
         mesh = mask_to_mesh(mask, T, target_faces=target_faces)
     done("mesh")
 
     stage("fiducials")
-    if expected_fiducials is None:
-        fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
-    else:
+    fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
+    if expected_fiducials is not None:
+        auto = expected_fiducials == AUTO
+        if not auto and (isinstance(expected_fiducials, str) or int(expected_fiducials) < 0):
+            raise ValueError(f"expected_fiducials must be a count >= 0, {AUTO!r} or None, got {expected_fiducials!r}")
         kwargs = {} if fiducial_floor_hu is None else {"floor_hu": fiducial_floor_hu}
-        fiducials = find_fiducials(volume.hu, T, expected=expected_fiducials, n_rows=fiducial_rows, **kwargs)
-        notes.extend(fiducials.notes)
+        try:
+            fiducials = find_fiducials(
+                volume.hu, T, expected=None if auto else int(expected_fiducials), n_rows=fiducial_rows, **kwargs
+            )
+        except FiducialError as exc:
+            if not auto:
+                raise
+            fallback(f"fiducial search skipped: {exc}")
+        else:
+            notes.extend(fiducials.notes)
+            if auto and len(fiducials.centres_patient_mm) == 0:
+                fallback("no skin markers found: the model has no fiducials (registration will need them from elsewhere)")
     done("fiducials")
 
     stage("frame")
+    base_hint = base_direction(mask, volume.hu, T)
+    if base_hint is not None:
+        v = mesh.vertices - mesh.vertices.mean(axis=0)
+        long_axis = np.linalg.svd(v, full_matrices=False)[2][0]
+        if abs(base_hint @ long_axis) < BASE_HINT_MIN_COSINE:
+            base_hint = None
+    if base_hint is None:
+        fallback("no contrast vessels leave the heart along its long axis: apex and base told apart "
+                 "by the cross-sections' width")
     series = volume.series
     source = {
         "series_instance_uid": series.series_instance_uid,
@@ -197,15 +264,32 @@ def build_heart_model(
         "fiducial_rows": int(fiducial_rows),
         "segmentation": seg_params,
         "trim_vessels": bool(trim_vessels),
+        "base_from_great_vessels": base_hint is not None,
     }
+    if cardiac_phase is None:
+        fallback(f"cardiac phase unknown ({cardiac_phase_source}); give it to 'heartreg register' with --cardiac-phase")
     model = make_heart_model(
         mesh,
-        cardiac_phase=float(cardiac_phase),
+        cardiac_phase=None if cardiac_phase is None else float(cardiac_phase),
         cardiac_phase_source=str(cardiac_phase_source),
         fiducials_patient_mm=fiducials.centres_patient_mm if len(fiducials.centres_patient_mm) else None,
         fiducial_rows=fiducial_rows,
         source=source,
         parameters=parameters,
+        base_hint=base_hint,
+    )
+    apex = -model.frame.axes_patient[:, 2]
+    if apex[0] <= 0 or apex @ APEX_LAI_LPS <= 0:  # to the patient's right, or away from left-anterior-inferior
+        fallback(
+            f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
+            "as usual: check the model (dextrocardia, or a segmentation error)"
+        )
+    notes.append(
+        "heart frame: base where the great vessels leave" if base_hint is not None
+        else "heart frame: base at the broader end"
+    )
+    model = dataclasses.replace(
+        model, parameters={**dict(model.parameters), "notes": list(notes), "warnings": list(fallbacks)}
     )
     done("frame")
     return ModelBuild(model, fiducials, mask_source, timings, tuple(notes))

@@ -12,8 +12,11 @@ voxel volume, ~ staple volume x (metal HU - floor).  So:
 3. blobs: found on a ~2 mm grid of block maxima (connected components after a
    one-voxel dilation that joins fragments of one staple; staples are
    centimetres apart), then measured at full resolution in their box;
-4. a blob whose excess mass lies within [min_mass, max_mass] is a staple; its
-   centre is the E-weighted centroid, mapped through ``T_patient_from_voxel``.
+4. a blob whose excess mass lies within [min_mass, max_mass] is a staple if it
+   is *on* the skin: its connected dense voxels stay in the shell (bone and
+   contrast vessels that reach the shell, e.g. where the field of view cuts a
+   lung, continue beneath it) and span at most ``MAX_EXTENT_MM``; its centre is
+   the E-weighted centroid, mapped through ``T_patient_from_voxel``.
 
 Order (docs/CONTRACTS.md): a grid of ``n_rows`` rows, superior to inferior;
 within a row patient right to left (increasing LPS x).
@@ -21,6 +24,7 @@ within a row patient right to left (increasing LPS x).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +45,16 @@ MIN_MASS = 1.0e4
 #: Grid (mm) on which the body's outline and the candidate blobs are found.
 COARSE_MM = 2.0
 MAX_MASS = 6.0e5
+#: A marker's dense voxels span at most this (a staple is ~6.5 mm; blur and tilt add).
+MAX_EXTENT_MM = 15.0
+#: How far around a candidate its dense surroundings are looked at.
+MARKER_CONTEXT_MM = 8.0
+#: Soft tissue (skin) is above this HU.
+BODY_HU = -300.0
+#: A marker's dense voxels lie this close to the skin's soft tissue (or in the next voxel).
+SKIN_CONTACT_MM = 1.6
+#: Fraction of a candidate's connected dense voxels allowed outside the skin shell.
+MAX_BENEATH_FRACTION = 0.3
 
 
 class FiducialError(HeartregError, ValueError):
@@ -94,6 +108,47 @@ def order_fiducials(centres_mm, *, n_rows: int = 3) -> np.ndarray:
         row = by_height[r * per_row : (r + 1) * per_row]
         order.extend(row[np.argsort(centres[row, 0], kind="stable")])
     return np.asarray(order, dtype=int)
+
+
+def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji) -> str:
+    """Why a dense blob found in the skin shell is not a skin marker ('' if it is one).
+
+    A staple is a small piece of metal wholly on the skin.  The dense voxels
+    (> ``floor_hu``) connected to the blob, looked at ``MARKER_CONTEXT_MM``
+    around it, must stay within the shell (bone and contrast-filled vessels
+    that reach the shell, e.g. where the field of view cuts a lung, continue
+    beneath it) and span at most ``MAX_EXTENT_MM``.
+    """
+    pad = [int(np.ceil(MARKER_CONTEXT_MM / s)) for s in spacing_kji]
+    big = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, hu.shape))
+    dense = np.asarray(hu[big]) > floor_hu
+    inner = tuple(slice(b.start - g.start, b.stop - g.start) for b, g in zip(box, big))
+    labels, _ = ndimage.label(dense, structure=np.ones((3, 3, 3), bool))
+    touched = np.unique(labels[inner][blob])
+    touched = touched[touched > 0]
+    if touched.size == 0:
+        return ""
+    part = np.isin(labels, touched)
+    shell = np.zeros(part.shape, bool)
+    shell[inner] = in_shell
+    beneath = part & ~shell
+    if beneath.sum() > part.sum() * MAX_BENEATH_FRACTION:
+        return "dense tissue continues beneath the skin (bone or a contrast vessel)"
+    kji = np.argwhere(part)
+    extent = float(np.max((kji.max(axis=0) - kji.min(axis=0) + 1) * spacing_kji))
+    if extent > MAX_EXTENT_MM:
+        return f"larger than a marker ({extent:.0f} mm > {MAX_EXTENT_MM:.0f} mm)"
+    lo, hi = kji.min(axis=0) + [g.start for g in big], kji.max(axis=0) + [g.start for g in big]
+    if lo[1] == 0 or lo[2] == 0 or hi[1] == hu.shape[1] - 1 or hi[2] == hu.shape[2] - 1:
+        return "cut by the edge of the field of view"
+    sub = np.asarray(hu[big])
+    body = (sub > BODY_HU) & ~dense
+    near = (ndimage.distance_transform_edt(~part, sampling=spacing_kji) <= SKIN_CONTACT_MM) | ndimage.binary_dilation(
+        part, structure=np.ones((3, 3, 3), bool)
+    )  # the neighbouring voxels at least, however coarse the grid
+    if not (near & body).any():
+        return "not touching the body (it lies in the air)"
+    return ""
 
 
 def find_fiducials(
@@ -169,6 +224,7 @@ def find_fiducials(
     labels, _ = ndimage.label(ndimage.binary_dilation(candidates), structure=np.ones((3, 3, 3), bool))
 
     notes = []
+    rejected: Counter = Counter()
     centres, masses = [], []
     for cbox in ndimage.find_objects(labels):
         # the blob's box at full resolution, one coarse voxel wider
@@ -184,7 +240,11 @@ def find_fiducials(
         mass = float(weight.sum()) * voxel_mm3
         if not (min_mass <= mass <= max_mass):
             if mass > 0.1 * min_mass:
-                notes.append(f"dense blob of {mass:.3g} HU.mm3 on the skin ignored (accepted {min_mass:.3g}-{max_mass:.3g})")
+                rejected[f"excess mass outside {min_mass:.3g}-{max_mass:.3g} HU.mm3"] += 1
+            continue
+        why = _not_on_skin(hu, box, weight > 0, in_shell, floor_hu, spacing_kji)
+        if why:
+            rejected[why] += 1
             continue
         kji = np.argwhere(weight > 0)
         w = weight[weight > 0]
@@ -197,6 +257,7 @@ def find_fiducials(
         centres.append(centre)
         masses.append(mass)
 
+    notes.extend(f"{n} dense blob(s) near the skin ignored: {why}" for why, n in sorted(rejected.items()))
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
     masses = np.asarray(masses, dtype=float)
     if expected is not None and len(centres) != expected:

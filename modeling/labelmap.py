@@ -61,7 +61,33 @@ def _read_nifti(path: Path) -> LabelMap:
     if data.ndim != 3:
         raise LabelMapError(f"label map {path} must be 3-D, got shape {data.shape}")
     T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=float)
-    return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), {})
+    names = _caret_label_names(img)
+    return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), names)
+
+
+def _caret_label_names(img) -> dict:
+    """Label names from a NIfTI header extension holding a Caret XML label table.
+
+    TotalSegmentator's multi-label output (``--ml``) stores its class names so:
+    ``<Label Key="51" ...><![CDATA[heart]]></Label>``.
+    """
+    import xml.etree.ElementTree as ET
+
+    names = {}
+    for ext in getattr(img.header, "extensions", ()):
+        try:
+            root = ET.fromstring(ext.get_content().decode("utf-8", "replace").strip())
+        except (ET.ParseError, AttributeError, ValueError):
+            continue
+        for node in root.iter("Label"):
+            key = node.get("Key")
+            if key is not None and key.lstrip("-").isdigit() and node.text:
+                names[int(key)] = node.text.strip()
+    return names
+
+
+#: TotalSegmentator's file for the whole heart in its ``segmentations/`` folder.
+TOTALSEG_HEART = "heart.nii.gz"
 
 
 _NRRD_TYPES = {
@@ -122,10 +148,24 @@ def _read_nrrd(path: Path) -> LabelMap:
 
 
 def read_label_map(path) -> LabelMap:
-    """Read a label map (NIfTI, NRRD or DICOM SEG) with its affine."""
+    """Read a label map (NIfTI, NRRD or DICOM SEG) with its affine.
+
+    ``path`` may also be a TotalSegmentator output folder: the folder holding
+    ``heart.nii.gz`` (one file per structure), or the folder above it with a
+    ``segmentations/`` sub-folder.  A multi-label NIfTI keeps the names of its
+    labels (TotalSegmentator ``--ml``), so a label can be chosen by name.
+    """
     path = Path(path)
     if not path.exists():
         raise LabelMapError(f"label map {path} does not exist")
+    if path.is_dir():
+        for candidate in (path / TOTALSEG_HEART, path / "segmentations" / TOTALSEG_HEART):
+            if candidate.is_file():
+                return _read_nifti(candidate)
+        raise LabelMapError(
+            f"{path} is a folder without {TOTALSEG_HEART} (or segmentations/{TOTALSEG_HEART}); "
+            "give the label map file itself with --mask FILE"
+        )
     name = path.name.lower()
     if name.endswith((".nii", ".nii.gz")):
         return _read_nifti(path)
@@ -152,8 +192,10 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
         The volume's ``(n_slices, n_rows, n_cols)``.
     T_patient_from_voxel : (4, 4) float64
         The volume's affine.
-    label : int, optional
-        Which label; by default the only non-zero label (several -> error listing them).
+    label : int or str, optional
+        Which label, by value or by name (case-insensitive, from the file's
+        label table); by default the only non-zero label (several -> error
+        listing them).
 
     Returns
     -------
@@ -169,6 +211,14 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     values = values[values != 0]
     if values.size == 0:
         raise LabelMapError(f"label map {label_map.source} is empty (all zero)")
+    if isinstance(label, str):
+        by_name = {name.lower(): value for value, name in label_map.names.items()}
+        if label.lower() not in by_name:
+            known = ", ".join(sorted(label_map.names.values())[:20]) or "none"
+            raise LabelMapError(
+                f"label {label!r} is not named in {label_map.source} (names: {known}); give --label N or a name it has"
+            )
+        label = int(by_name[label.lower()])
     if label is None:
         if values.size > 1:
             named = ", ".join(f"{v}{' (' + label_map.names[v] + ')' if v in label_map.names else ''}" for v in values[:20])

@@ -127,10 +127,11 @@ class HeartModel:
         Epicardial surface, heart frame, mm, outward normals, watertight.
     frame : HeartFrame
         The fit that defines the heart frame (``frame.T_heart_from_patient``).
-    cardiac_phase : float
-        Image cardiac phase phi_C* in [0, 1).
+    cardiac_phase : float or None
+        Image cardiac phase phi_C* in [0, 1); None when unknown (a CT without
+        ECG gating: ``model.json`` says ``null`` and registration asks for it).
     cardiac_phase_source : str
-        Where phi_C* came from (e.g. "GE RpeakTimeStamps"); from imaging.
+        Where phi_C* came from (e.g. "GE RpeakTimeStamps"), or why it is unknown; from imaging.
     fiducials_patient_mm : (n, 3) float64
         Fiducial centroids, patient frame, in the documented order (may be (0, 3)).
     source : Mapping
@@ -143,7 +144,7 @@ class HeartModel:
 
     mesh: Mesh
     frame: HeartFrame
-    cardiac_phase: float
+    cardiac_phase: float | None
     cardiac_phase_source: str
     fiducials_patient_mm: np.ndarray
     source: Mapping = field(default_factory=dict)
@@ -155,9 +156,9 @@ class HeartModel:
             raise TypeError(f"mesh must be a Mesh, got {type(self.mesh).__name__}")
         if not isinstance(self.frame, HeartFrame):
             raise TypeError(f"frame must be a HeartFrame, got {type(self.frame).__name__}")
-        phase = float(self.cardiac_phase)
-        if not (math.isfinite(phase) and 0.0 <= phase < 1.0):
-            raise ValueError(f"cardiac_phase must be a phase in [0, 1), got {self.cardiac_phase}")
+        phase = None if self.cardiac_phase is None else float(self.cardiac_phase)
+        if phase is not None and not (math.isfinite(phase) and 0.0 <= phase < 1.0):
+            raise ValueError(f"cardiac_phase must be a phase in [0, 1) or None (unknown), got {self.cardiac_phase}")
         if not isinstance(self.cardiac_phase_source, str) or not self.cardiac_phase_source:
             raise ValueError("cardiac_phase_source must be a non-empty string saying where phi_C came from")
         fid = np.array(self.fiducials_patient_mm, dtype=np.float64).reshape(-1, 3)
@@ -217,7 +218,7 @@ class HeartModel:
 def make_heart_model(
     mesh_patient: Mesh,
     *,
-    cardiac_phase: float,
+    cardiac_phase: float | None,
     cardiac_phase_source: str,
     fiducials_patient_mm=None,
     fiducial_rows: int = 3,
@@ -232,8 +233,8 @@ def make_heart_model(
     ----------
     mesh_patient : Mesh
         Surface from :func:`modeling.surface.mask_to_mesh`, patient mm.
-    cardiac_phase, cardiac_phase_source : float, str
-        phi_C* of the volume and its source, from imaging.
+    cardiac_phase, cardiac_phase_source : float or None, str
+        phi_C* of the volume and its source, from imaging (None: unknown, and why).
     fiducials_patient_mm : (n, 3) float, optional
         Fiducial centroids, any order; sorted with :func:`order_fiducials`.
     fiducial_rows : int

@@ -306,6 +306,7 @@ def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
     extent = float(np.ptp(mesh.vertices, axis=0).max())
     arrow_mm = 0.75 * extent
     fid = model.fiducials_patient_mm
+    phase = "unknown" if model.cardiac_phase is None else f"{model.cardiac_phase:.2f}"
 
     def add(plotter):
         plotter.add_mesh(surf, color=MESH_COLOUR, opacity=0.55, smooth_shading=True)
@@ -345,6 +346,6 @@ def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
     return compose_figure(
         panels, size=size, titles=[title for title, _, _ in views], handles=handles,
         orientation=[o for _, _, o in views],
-        suptitle=f"Heart model and heart frame in the patient frame, \u03c6C* = {model.cardiac_phase:.2f} "
+        suptitle=f"Heart model and heart frame in the patient frame, \u03c6C* = {phase} "
                  "(cf. Wood et al. 2018, Fig. 5)",
     )

@@ -10,12 +10,17 @@ Classical tools only (scipy.ndimage), in four steps:
    muscle stay below it — or the component at a seed point the user gives in
    patient mm;
 3. *heart region*: the tissue component touching the seed;
-4. *cut the vessels and bridges*: a morphological opening with a ball of radius
-   ``vessel_radius_mm`` (computed with distance transforms on a ~1 mm grid)
-   removes tubes thinner than it — aorta, pulmonary arteries, any thin bridge to
-   the liver or chest wall — and keeps the heart body, whose smallest radius of
-   curvature is larger; the full-resolution tissue mask within ``margin_mm`` of
-   that core is the heart, holes filled.
+4. *cut the bridges*: a morphological opening with a ball of radius
+   ``vessel_radius_mm`` (computed with distance transforms on a ~2 mm grid)
+   removes thin bridges to the liver or chest wall and thin vessels;
+5. *cut the great vessels at their root*, whatever their calibre: a second
+   opening by ``heart_radius_mm`` (larger than any vessel's radius, smaller than
+   the heart's) gives the heart body; of what it leaves out, branches reaching
+   farther than ``vessel_length_mm`` from the body are tubes leaving the heart
+   (ascending aorta, pulmonary trunk, venae cavae) and are cut
+   ``vessel_root_mm`` from the body; shorter ones (apex, auricles) are kept.
+   The full-resolution tissue mask within ``margin_mm`` of the result is the
+   heart, holes filled.
 """
 
 from __future__ import annotations
@@ -105,6 +110,51 @@ def _opening_mm(mask, spacing_kji, radius_mm):
     return outside <= radius_mm
 
 
+def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm):
+    """Cut the tubes leaving the heart body at their root, whatever their calibre.
+
+    The heart body is what an opening by a ball of ``heart_radius_mm`` keeps
+    (thicker than any great vessel); the rest of ``body`` are its branches and
+    corners.  A branch (connected component of the rest) that reaches farther
+    than ``vessel_length_mm`` from the body is a vessel: its voxels farther than
+    ``root_mm`` from the body are removed.  Shorter branches (apex, auricles,
+    the corners of the ventricles) are kept whole.
+
+    Returns
+    -------
+    mask : bool array like ``body``
+    note : str
+        What was cut, or why nothing could be (the body is returned unchanged).
+    """
+    heart = _opening_mm(body, spacing_kji, heart_radius_mm)
+    labels, n = ndimage.label(heart)
+    if n == 0:
+        return body, (
+            f"vessel cut skipped: no part of the heart region is thicker than {2 * heart_radius_mm:.0f} mm; "
+            "great vessels may remain"
+        )
+    counts = ndimage.sum_labels(seed, labels, index=np.arange(1, n + 1))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    heart = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+    distance = ndimage.distance_transform_edt(~heart, sampling=spacing_kji)
+    rest = body & ~heart
+    labels, n = ndimage.label(rest)
+    if n == 0:
+        return body, "vessel cut: no branch leaves the heart body"
+    reach = ndimage.maximum(distance, labels, index=np.arange(1, n + 1))
+    vessels = np.flatnonzero(np.asarray(reach) > vessel_length_mm) + 1
+    if vessels.size == 0:
+        return body, f"vessel cut: no branch reaches farther than {vessel_length_mm:.0f} mm from the heart body"
+    cut = np.isin(labels, vessels) & (distance > root_mm)
+    kept = _largest_component(body & ~cut)
+    removed_ml = float((body & ~kept).sum() * np.prod(spacing_kji) / 1000.0)
+    return kept, (
+        f"great vessels cut at their root: {vessels.size} branch(es) reaching "
+        f"{', '.join(f'{r:.0f}' for r in sorted(np.asarray(reach)[vessels - 1], reverse=True))} mm from the "
+        f"heart body, cut {root_mm:.0f} mm from it ({removed_ml:.0f} ml removed)"
+    )
+
+
 def segment_heart(
     hu,
     T_patient_from_voxel,
@@ -114,6 +164,9 @@ def segment_heart(
     blood_hu: tuple[float, float] = (200.0, 650.0),
     seed_patient_mm=None,
     vessel_radius_mm: float = 14.0,
+    heart_radius_mm: float = 20.0,
+    vessel_length_mm: float = 25.0,
+    vessel_root_mm: float = 3.0,
     margin_mm: float = 1.0,
     smooth_mm: float = 0.6,
     coarse_mm: float = 2.0,
@@ -136,6 +189,15 @@ def segment_heart(
         A point inside the heart (patient mm) instead of the automatic seed.
     vessel_radius_mm : float
         Tubes thinner than this radius are cut off (great vessels, bridges).
+    heart_radius_mm : float
+        Radius of the ball that fits in the heart body but not in a great
+        vessel (the ascending aorta's lumen is 11-15 mm in radius, the heart's
+        tissue 40-50 mm): what it cannot reach is a branch of the body.
+    vessel_length_mm : float
+        A branch reaching farther than this from the heart body is a vessel
+        leaving the heart (corners such as the apex or an auricle stay closer).
+    vessel_root_mm : float
+        Vessels are cut this far from the heart body (at their root).
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
@@ -224,6 +286,11 @@ def segment_heart(
     counts = ndimage.sum_labels(seed_mask[box], labels, index=np.arange(1, n + 1))
     sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
     core = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+    core, cut_note = _cut_great_vessels(
+        core, seed_mask[box], cspacing, heart_radius_mm=heart_radius_mm,
+        vessel_length_mm=vessel_length_mm, root_mm=vessel_root_mm,
+    )
+    notes.append(cut_note)
     reach = margin_mm + 0.5 * float(np.max(cspacing))
     near = ndimage.distance_transform_edt(~core, sampling=cspacing) <= reach
 
@@ -250,6 +317,7 @@ def segment_heart(
         )
     parameters = dict(
         hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), vessel_radius_mm=vessel_radius_mm,
+        heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm, vessel_root_mm=vessel_root_mm,
         margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
         seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),
     )

@@ -24,7 +24,7 @@ from scipy import ndimage
 
 from modeling.surface import Mesh, MeshError, check_mesh
 
-__all__ = ["VesselTrim", "trim_vessel_stubs"]
+__all__ = ["APEX_LAI_LPS", "VesselTrim", "base_direction", "trim_vessel_stubs"]
 
 
 @dataclass(frozen=True)
@@ -122,3 +122,59 @@ def trim_vessel_stubs(
             "pass trim_vessels=False (--keep-vessels) to keep the stubs"
         )
     return VesselTrim(trimmed, n_removed, int(n_patch))
+
+
+#: Contrast blood (HU) just outside a heart mask marks a vessel's mouth.
+MOUTH_BLOOD_HU = 150.0
+#: How far outside the mask (mm) the vessels' mouths are looked for.
+MOUTH_REACH_MM = 4.0
+#: The usual direction of the apex in LPS: patient left, anterior, inferior.
+APEX_LAI_LPS = np.array([1.0, -1.0, -1.0]) / np.sqrt(3.0)
+
+
+def base_direction(mask, hu, T_patient_from_voxel, *, blood_hu: float = MOUTH_BLOOD_HU,
+                   reach_mm: float = MOUTH_REACH_MM, min_ml: float = 1.0):
+    """Direction from the heart's centre to where the great vessels leave it.
+
+    The aorta, pulmonary trunk, venae cavae and pulmonary veins all join the
+    heart at its base; outside a heart mask they are contrast-filled tubes.  The
+    blood voxels in a shell ``reach_mm`` thick just outside ``mask`` are their
+    mouths: the unit vector from the mask's centroid to theirs points from the
+    apex towards the base.
+
+    Parameters
+    ----------
+    mask : (n_slices, n_rows, n_cols) bool
+        The heart, on the grid of ``hu``.
+    hu : (n_slices, n_rows, n_cols) array
+    T_patient_from_voxel : (4, 4) float64
+    blood_hu : float
+        Lower HU of contrast blood (metal and bone, far from the heart's
+        surface, hardly weigh on the centroid).
+    reach_mm : float
+    min_ml : float
+        Fewer mouth voxels than this volume give no answer.
+
+    Returns
+    -------
+    (3,) float64 unit vector, patient frame, or None
+        None when no contrast blood touches the mask (a non-contrast CT).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    T = np.asarray(T_patient_from_voxel, dtype=float)
+    spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
+    boxes = ndimage.find_objects(mask.astype(np.uint8))
+    if not boxes:
+        return None
+    pad = [int(np.ceil(reach_mm / s)) + 1 for s in spacing_kji]
+    box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(boxes[0], pad, mask.shape))
+    sub = mask[box]
+    shell = (ndimage.distance_transform_edt(~sub, sampling=spacing_kji) <= reach_mm) & ~sub
+    mouths = shell & (np.asarray(hu[box]) > blood_hu)
+    voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
+    if mouths.sum() * voxel_ml < min_ml:
+        return None
+    kji_delta = np.argwhere(mouths).mean(axis=0) - np.argwhere(sub).mean(axis=0)
+    d = T[:3, :3] @ kji_delta[::-1]
+    n = np.linalg.norm(d)
+    return None if n < 1e-6 else d / n

@@ -267,13 +267,19 @@ def register_session(
     Raises
     ------
     RegistrationError
-        The model has no fiducials or another number than the session, fewer
+        The model's cardiac phase is unknown, the model has no fiducials or
+        another number than the session, fewer
         than 3 points can be used, or the fiducials cannot be registered.
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")
     if not isinstance(session, Session):
         raise TypeError(f"session must be a Session, got {type(session).__name__}")
+    if model.cardiac_phase is None:
+        raise RegistrationError(
+            f"the model's cardiac phase is unknown ({model.cardiac_phase_source}); "
+            "give the CT's phase (0..1) with --cardiac-phase"
+        )
     harmonics = _as_harmonics(harmonics)
     phases = sweep_phases(phase_step)
     phases_c = phases if cardiac_phase_step is None else sweep_phases(cardiac_phase_step)

@@ -1,0 +1,139 @@
+"""A CT volume from a NIfTI file (research data sets come as NIfTI).
+
+NIfTI stores its affine in RAS (+x right, +y anterior, +z superior); heartreg
+works in DICOM LPS, so the affine is converted with ``diag(-1, -1, 1)`` and the
+volume's notes say so.  The voxel axes are kept as on disk (array ``[i, j, k]``
+becomes ``hu[k, j, i]``), except that the k axis is reversed when needed to make
+``T_patient_from_voxel`` right-handed, as for a DICOM stack.
+
+A NIfTI file has no slice clock and no ECG: the returned volume's slices have
+no acquisition times, so its cardiac phase is unknown (see
+:func:`imaging.compute_phase_report`, which refuses it with a ``GatingError``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from imaging.volume import SeriesError, SeriesInfo, SliceInfo, Volume
+
+__all__ = ["is_nifti_path", "read_nifti_volume"]
+
+_LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+#: Largest |cosine| between two voxel axes accepted as orthogonal.
+ORTHOGONAL_TOL = 1e-3
+#: NIfTI data are sampled to this many bytes for the volume's identity.
+_HASH_BYTES = 1 << 20
+
+
+def is_nifti_path(path) -> bool:
+    """True when ``path`` names a NIfTI file (``.nii`` or ``.nii.gz``)."""
+    return str(path).lower().endswith((".nii", ".nii.gz"))
+
+
+def _uid(digest: str, what: str) -> str:
+    """A deterministic DICOM UID from the file's content (2.25 root, UUID-sized)."""
+    value = int(hashlib.sha256((what + digest).encode()).hexdigest()[:32], 16)
+    return f"2.25.{value}"
+
+
+def read_nifti_volume(path) -> Volume:
+    """Read a 3-D NIfTI CT volume as an :class:`imaging.Volume` in LPS.
+
+    Parameters
+    ----------
+    path : path
+        ``.nii`` or ``.nii.gz`` file holding HU values (the scaling slope and
+        intercept of the header are applied).
+
+    Returns
+    -------
+    Volume
+        ``hu`` int16 when the values are whole numbers in range, else float32;
+        slices without any clock; ``series`` with UIDs derived from the file's
+        content (the same file gives the same UIDs) and no patient data.
+
+    Raises
+    ------
+    SeriesError
+        Missing or unreadable file, not 3-D, or an affine with sheared or
+        degenerate axes.
+    """
+    import nibabel as nib
+
+    path = Path(path)
+    if not path.is_file():
+        raise SeriesError(f"NIfTI file {path} does not exist")
+    try:
+        img = nib.load(str(path))
+        data = np.asarray(img.dataobj)
+    except Exception as exc:  # noqa: BLE001 - nibabel raises many types for bad files
+        raise SeriesError(f"cannot read NIfTI file {path}: {exc}") from None
+    if data.ndim == 4 and data.shape[3] == 1:
+        data = data[..., 0]
+    if data.ndim != 3:
+        raise SeriesError(f"NIfTI file {path} must hold a 3-D volume, got shape {data.shape}")
+    T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64)
+    spacing = np.linalg.norm(T[:3, :3], axis=0)
+    if np.any(spacing < 1e-6) or not np.all(np.isfinite(T)):
+        raise SeriesError(f"NIfTI file {path}: degenerate affine (voxel sizes {spacing.tolist()} mm)")
+    axes = T[:3, :3] / spacing
+    cosines = np.abs(axes.T @ axes - np.eye(3))
+    if cosines.max() > ORTHOGONAL_TOL:
+        raise SeriesError(
+            f"NIfTI file {path}: the voxel axes are not orthogonal (sheared affine); "
+            "resample it to an orthogonal grid first"
+        )
+    notes = ["NIfTI input: affine taken as RAS (NIfTI convention) and converted to LPS; no slice clock"]
+    hu = np.ascontiguousarray(np.transpose(data, (2, 1, 0)))  # [k, j, i]
+    if np.linalg.det(T[:3, :3]) < 0:  # left-handed on disk: reverse k
+        hu = np.ascontiguousarray(hu[::-1])
+        flip = np.eye(4)
+        flip[2, 2], flip[2, 3] = -1.0, hu.shape[0] - 1
+        T = T @ flip
+        notes.append("NIfTI input: slice order reversed to make the voxel frame right-handed")
+    fits_int16 = (np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16) or (
+        np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767
+    )
+    if fits_int16:
+        hu = hu.astype(np.int16)
+    else:
+        hu = hu.astype(np.float32)
+    hu.setflags(write=False)
+    T.setflags(write=False)
+    spacing = np.linalg.norm(T[:3, :3], axis=0)
+    spacing.setflags(write=False)
+
+    digest = hashlib.sha256(
+        hu.ravel()[: _HASH_BYTES // hu.itemsize].tobytes() + np.asarray(hu.shape).tobytes() + T.tobytes()
+    ).hexdigest()
+    normal = T[:3, 2] / spacing[2]
+    slices = tuple(
+        SliceInfo(
+            index=k, file=str(path), frame=k, instance_number=None,
+            position_mm=float((T[:3, :3] @ np.array([0.0, 0.0, k]) + T[:3, 3]) @ normal),
+            k=float(k), sop_instance_uid="", acquisition_time_s=None, mid_scan_time_s=None,
+            trigger_time_ms=None, nominal_interval_ms=None, heart_rate_bpm=None,
+            nominal_cardiac_percent=None,
+        )
+        for k in range(hu.shape[0])
+    )
+    series = SeriesInfo(
+        series_instance_uid=_uid(digest, "series"),
+        study_instance_uid=_uid(digest, "study"),
+        frame_of_reference_uid=_uid(digest, "frame"),
+        series_number=None,
+        description="",
+        modality="CT",
+        manufacturer="",
+        model_name="",
+        n_files=1,
+        subset="",
+    )
+    return Volume(
+        hu=hu, T_patient_from_voxel=T, spacing_mm=spacing, slices=slices, series=series,
+        notes=tuple(notes), source_path=str(path),
+    )

@@ -1,0 +1,74 @@
+"""A step that cannot do its job falls back, warns, and says so in model.json.
+
+The failures are forced (a trim that leaves an open surface, a fiducial search
+that finds no air around the body) on the phantom's sample CT, so the
+fallbacks are tested whatever the data; the real-CT tests meet the same
+fallbacks on real data (no markers, unknown phase).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import modeling.build
+from imaging import load_study
+from modeling import FiducialError, MeshError, find_fiducials, segment_heart
+from modeling.build import ModelingWarning, build_heart_model
+
+
+def _fail(exc):
+    def raiser(*args, **kwargs):
+        raise exc
+
+    return raiser
+
+
+def test_trim_and_fiducial_search_fall_back(sample_case, monkeypatch):
+    case, truth = sample_case
+    volume = load_study(case / "ct")
+    monkeypatch.setattr(modeling.build, "trim_vessel_stubs", _fail(MeshError("left an open surface")))
+    monkeypatch.setattr(modeling.build, "find_fiducials", _fail(FiducialError("no air around the body")))
+    with pytest.warns(ModelingWarning) as caught:
+        build = build_heart_model(volume, cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
+                                  expected_fiducials="auto", target_faces=4000)
+    messages = [str(w.message) for w in caught]
+    assert any(m.startswith("vessel stub trim skipped, surface kept as segmented: left an open surface") for m in messages)
+    assert any(m.startswith("fiducial search skipped: no air around the body") for m in messages)
+    assert set(messages) <= set(build.model.parameters["warnings"])
+    assert len(build.model.fiducials_patient_mm) == 0 and build.model.mesh.n_faces > 0
+    # a count asked for is insisted on: no fallback
+    with pytest.raises(FiducialError, match="no air around the body"):
+        build_heart_model(volume, cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
+                          expected_fiducials=9, target_faces=4000)
+
+
+def test_vessel_cut_skipped_when_nothing_is_heart_thick():
+    """A 50 mm ball of tissue around a contrast pool: thinner than the heart ball asked for."""
+    k, j, i = np.mgrid[:40, :40, :40]
+    r = np.sqrt((k - 20) ** 2 + (j - 20) ** 2 + (i - 20) ** 2) * 1.5  # mm, 1.5 mm voxels
+    hu = np.where(r < 25, 60, -1000).astype(np.int16)
+    hu[r < 15] = 400
+    T = np.diag([1.5, 1.5, 1.5, 1.0])
+    seg = segment_heart(hu, T, heart_radius_mm=30.0, min_volume_ml=10.0)
+    assert any(n.startswith("vessel cut skipped: no part of the heart region is thicker than 60 mm") for n in seg.notes)
+    assert seg.volume_ml == pytest.approx(4 / 3 * np.pi * 25**3 / 1000, rel=0.1)  # the ball, kept whole
+
+
+def test_only_markers_on_the_skin_are_fiducials():
+    """A synthetic chest (a 30 mm radius cylinder of soft tissue, 1 mm voxels):
+    a staple on the skin is found; metal floating 5 mm above the skin and a
+    bone-like rod reaching the skin from inside are not."""
+    k, j, i = np.mgrid[:60, :80, :80]
+    hu = np.where((j - 40) ** 2 + (i - 40) ** 2 < 30**2, 40, -1000).astype(np.int16)
+    hu[30, 10:12, 38:44] = 3000  # staple: 6 x 2 x 1 mm on the anterior skin (LPS y = j: low j is anterior)
+    hu[45, 4:6, 38:44] = 3000  # the same metal 5 mm above the skin, in the air
+    hu[14:17, 10:35, 39:42] = 1200  # a rod from the skin 25 mm into the body
+    T = np.eye(4)
+    found = find_fiducials(hu, T, expected=None)
+    np.testing.assert_allclose(found.centres_patient_mm, [[40.5, 10.5, 30.0]], atol=0.5)  # the staple's centroid
+    notes = " ".join(found.notes)
+    assert "not touching the body (it lies in the air)" in notes
+    assert "dense tissue continues beneath the skin" in notes
+    with pytest.raises(FiducialError, match=r"found 1 metal marker\(s\) on the skin, expected 9"):
+        find_fiducials(hu, T, expected=9)

@@ -1,0 +1,229 @@
+"""The model command on a real chest CT (``shared/realct``, README there).
+
+The CT (an ungated aortic CTA, 1.5 mm voxels, cropped around the heart, a stent
+graft in the descending aorta, no skin markers) is written by the test as a
+plain DICOM series and also read as NIfTI.  Reference: ``heart.nii.gz``,
+TotalSegmentator's heart on a grid shifted by whole voxels (resampled through
+both affines, exactly).  Measured facts about that reference, which bound what
+any epicardial surface can score against it:
+
+- it *includes* the pulmonary trunk and its branches (91 % of
+  ``pulmonary_artery.nii.gz``, 44 ml of its 669 ml), which heartreg cuts at the
+  pulmonary valve as the issue asks: ~6 % of the reference is therefore missed
+  by design;
+- its boundary lies about one voxel inside the myocardium's outer edge (the
+  median HU one voxel outside it is 93, myocardium): a one-voxel shell of
+  ~60-80 ml separates it from an epicardium at the fat/muscle midpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import warnings
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from heartreg.cli import main
+from imaging import load_study
+from imaging.nifti import read_nifti_volume
+from modeling import read_model
+from modeling.build import ModelingWarning, build_heart_model
+from modeling.fiducials import FiducialError, find_fiducials
+from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
+from modeling.vessels import APEX_LAI_LPS, base_direction
+
+from .realct import REALCT, mesh_to_mask, overlap, principal_axis, write_ct_series
+
+pytestmark = pytest.mark.skipif(not REALCT.is_dir(), reason=f"real CT folder {REALCT} is missing")
+
+SPACING = (1.5, 1.5, 1.5)
+
+
+def _angle_deg(a, b, *, signed=False) -> float:
+    c = float(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(c if signed else abs(c), -1.0, 1.0))))
+
+
+@pytest.fixture(scope="module")
+def realct(tmp_path_factory):
+    """(NIfTI volume, DICOM study folder, reference mask on the CT's grid)."""
+    volume = read_nifti_volume(REALCT / "ct_cropped.nii.gz")
+    study = write_ct_series(volume.hu, volume.T_patient_from_voxel, tmp_path_factory.mktemp("realct") / "study")
+    reference = mask_on_grid(read_label_map(REALCT / "heart.nii.gz"), volume.shape, volume.T_patient_from_voxel)
+    return volume, study, reference
+
+
+def _run_model(args):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rc = main(args)
+    return rc, [str(w.message) for w in caught if issubclass(w.category, ModelingWarning)]
+
+
+@pytest.fixture(scope="module")
+def auto_model(realct, tmp_path_factory):
+    """``heartreg model STUDY -o OUT`` with no options on the DICOM series."""
+    _, study, _ = realct
+    out = tmp_path_factory.mktemp("auto") / "model"
+    rc, caught = _run_model(["model", str(study), "-o", str(out), "-q"])
+    return rc, caught, out
+
+
+@pytest.fixture(scope="module")
+def mask_model(realct, tmp_path_factory):
+    """``heartreg model CT.nii.gz --mask heart.nii.gz`` (the NIfTI CT as input)."""
+    out = tmp_path_factory.mktemp("mask") / "model"
+    rc, caught = _run_model(
+        ["model", str(REALCT / "ct_cropped.nii.gz"), "-o", str(out), "-q", "--mask", str(REALCT / "heart.nii.gz")]
+    )
+    return rc, caught, out
+
+
+def _metrics(model_dir, volume, reference):
+    model = read_model(model_dir)
+    mesh = model.mesh_patient()
+    mask = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, volume.T_patient_from_voxel)
+    return model, overlap(mask, reference, SPACING)
+
+
+def test_nifti_and_dicom_give_the_same_volume(realct):
+    volume, study, _ = realct
+    dicom = load_study(study)
+    np.testing.assert_array_equal(dicom.hu, volume.hu)
+    np.testing.assert_allclose(dicom.T_patient_from_voxel, volume.T_patient_from_voxel, atol=1e-4)
+    assert any("RAS" in n and "LPS" in n for n in volume.notes)
+    assert all(s.acquisition_time_s is None for s in volume.slices)  # no slice clock
+
+
+def test_model_with_no_options(realct, auto_model):
+    volume, _, reference = realct
+    rc, caught, out = auto_model
+    assert rc == 0
+    payload = json.loads((out / "model.json").read_text())
+    # ungated: the phase is unknown, said in model.json and warned
+    assert payload["cardiac_phase"] is None and "no ECG gating" in payload["cardiac_phase_source"]
+    # no skin markers in this scan (contrast vessels, sternum, an ECG clip in the air are not markers)
+    assert payload["fiducials_patient_mm"] == []
+    for message in ("cardiac phase unknown", "no skin markers found"):
+        assert any(message in w for w in caught), message
+        assert any(message in w for w in payload["parameters"]["warnings"]), message
+    model, m = _metrics(out, volume, reference)
+    # Measured 0.862 / 3.8-4.0 mm / 14 mm: bounds a few % looser than measured
+    # (see the module docstring for what the reference includes; the issue's
+    # targets are in test_issue_targets).
+    assert m["dice"] >= 0.84 and m["msd_mm"] <= 4.5 and m["p95_mm"] <= 16.0, m
+    # the long axis follows the reference's principal axis (measured 7 deg)
+    z = model.frame.axes_patient[:, 2]
+    assert _angle_deg(z, principal_axis(reference, volume.T_patient_from_voxel)) <= 15.0
+    apex = -z  # towards patient left, anterior, inferior (LPS: +x, -y, -z)
+    assert apex[0] > 0 and apex[1] < 0 and apex[2] < 0 and apex @ APEX_LAI_LPS > 0.7
+    assert payload["parameters"]["base_from_great_vessels"] is True
+    assert "great vessels cut at their root" in " ".join(payload["parameters"]["notes"])
+
+
+def test_model_from_reference_mask(realct, mask_model, auto_model):
+    volume, _, reference = realct
+    rc, caught, out = mask_model
+    assert rc == 0
+    payload = json.loads((out / "model.json").read_text())
+    assert payload["parameters"]["trim_vessels"] is False  # a given mask is meshed as it is
+    assert "a NIfTI volume has no slice clock" in payload["cardiac_phase_source"]
+    assert str(REALCT) not in json.dumps(payload)  # no folder path in the model
+    model, m = _metrics(out, volume, reference)
+    # meshing a blocky 1.5 mm mask: only the smoothing of its staircase differs (measured 0.993)
+    assert m["dice"] >= 0.98 and m["msd_mm"] <= 0.5, m
+    apex = -model.frame.axes_patient[:, 2]
+    assert apex @ APEX_LAI_LPS > 0.7
+    # the automatic model's frame: same apex->base sign, axes close (measured 12.6 deg; the issue's 5 deg
+    # is in test_issue_targets)
+    auto = read_model(auto_model[2])
+    assert _angle_deg(auto.frame.axes_patient[:, 2], model.frame.axes_patient[:, 2], signed=True) <= 20.0
+
+
+@pytest.mark.xfail(strict=True, reason="issue 9's targets are not reached yet (measured Dice 0.86, MSD 3.9 mm, "
+                   "p95 14 mm, frame 12.6 deg); see the module docstring for why part of the gap is the reference")
+def test_issue_targets(realct, auto_model, mask_model):
+    volume, _, reference = realct
+    auto, m = _metrics(auto_model[2], volume, reference)
+    given = read_model(mask_model[2])
+    assert m["dice"] >= 0.92 and m["msd_mm"] <= 1.5 and m["p95_mm"] <= 5.0, m
+    assert _angle_deg(auto.frame.axes_patient[:, 2], given.frame.axes_patient[:, 2], signed=True) <= 5.0
+
+
+def test_fiducials_insisted_on(realct):
+    volume, _, _ = realct
+    with pytest.raises(FiducialError, match=r"found 0 metal marker\(s\) on the skin, expected 9"):
+        find_fiducials(volume.hu, volume.T_patient_from_voxel, expected=9)
+    notes = " ".join(find_fiducials(volume.hu, volume.T_patient_from_voxel, expected=None).notes)
+    assert "continues beneath the skin" in notes and "edge of the field of view" in notes
+
+
+def test_totalsegmentator_outputs(realct, tmp_path):
+    volume, _, reference = realct
+    T = volume.T_patient_from_voxel
+    # its segmentations/ folder, given as the folder or as the one above it
+    seg = tmp_path / "ts" / "segmentations"
+    seg.mkdir(parents=True)
+    shutil.copy(REALCT / "heart.nii.gz", seg / "heart.nii.gz")
+    for path in (seg, seg.parent):
+        assert np.array_equal(mask_on_grid(read_label_map(path), volume.shape, T), reference)
+    with pytest.raises(LabelMapError, match="without heart.nii.gz"):
+        read_label_map(tmp_path)
+    # its multi-label file (--ml): the label table in a Caret XML header extension
+    ct = nib.load(str(REALCT / "ct_cropped.nii.gz"))
+    labels = np.zeros(ct.shape, np.uint8)
+    labels[reference.transpose(2, 1, 0)] = 51
+    labels[np.asarray(nib.load(str(REALCT / "pulmonary_artery.nii.gz")).dataobj) > 0] = 52
+    image = nib.Nifti1Image(labels, ct.affine)
+    xml = ('<?xml version="1.0" encoding="UTF-8"?><CaretExtension><VolumeInformation Index="0"><LabelTable>'
+           '<Label Key="51" Red="1" Green="0" Blue="0" Alpha="1"><![CDATA[heart]]></Label>'
+           '<Label Key="52" Red="0" Green="0" Blue="1" Alpha="1"><![CDATA[pulmonary_artery]]></Label>'
+           '</LabelTable></VolumeInformation></CaretExtension>')
+    image.header.extensions.append(nib.nifti1.Nifti1Extension(0, xml.encode()))
+    ml = tmp_path / "total.nii.gz"
+    nib.save(image, str(ml))
+    label_map = read_label_map(ml)
+    assert label_map.names == {51: "heart", 52: "pulmonary_artery"}
+    heart = mask_on_grid(label_map, volume.shape, T, label="Heart")
+    assert np.array_equal(heart, reference & ~np.asarray(labels.transpose(2, 1, 0) == 52))
+    with pytest.raises(LabelMapError, match="'aorta' is not named"):
+        mask_on_grid(label_map, volume.shape, T, label="aorta")
+    with pytest.raises(LabelMapError, match="several labels"):
+        mask_on_grid(label_map, volume.shape, T)
+
+
+def test_base_direction(realct):
+    volume, _, reference = realct
+    T = volume.T_patient_from_voxel
+    base = base_direction(reference, volume.hu, T)
+    assert -base @ APEX_LAI_LPS > 0.8  # measured 0.99: the vessels leave at the base
+    # a CT without contrast: no vessel mouths, no answer
+    assert base_direction(reference, np.zeros(volume.shape, np.int16), T) is None
+
+
+def test_mirrored_heart_warns(realct, tmp_path):
+    """A mirror image (dextrocardia): the apex points right; a warning, not an error."""
+    volume, _, reference = realct
+    mirrored = dataclasses.replace(volume, hu=np.ascontiguousarray(volume.hu[:, :, ::-1]))
+    mask = tmp_path / "mirrored.nii.gz"
+    nib.save(nib.Nifti1Image(reference[:, :, ::-1].transpose(2, 1, 0).astype(np.uint8),
+                             np.diag([-1.0, -1.0, 1.0, 1.0]) @ volume.T_patient_from_voxel), str(mask))
+    with pytest.warns(ModelingWarning, match="not towards patient left-anterior-inferior"):
+        build = build_heart_model(mirrored, cardiac_phase=None, cardiac_phase_source="test",
+                                  mask_path=mask, expected_fiducials=None, target_faces=4000)
+    assert -build.model.frame.axes_patient[:, 2][0] < 0  # the apex points to the patient's right
+    assert any("left-anterior-inferior" in w for w in build.model.parameters["warnings"])
+
+
+def test_register_asks_for_the_phase(mask_model, tmp_path, capsys):
+    out = mask_model[2]
+    assert main(["register", str(out), str(tmp_path), "-o", str(tmp_path / "reg"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "cardiac phase of model" in err and "--cardiac-phase" in err and len(err.strip().splitlines()) == 1
+    assert main(["register", str(out), str(tmp_path), "-o", str(tmp_path / "reg"), "-q", "--cardiac-phase", "1.5"]) == 1
+    assert "--cardiac-phase must be a phase in [0, 1)" in capsys.readouterr().err
+
