@@ -67,7 +67,7 @@ class BatchResult:
 def _check_out(out: Path, cases) -> Path:
     from heartreg.pipeline import check_out_dir
 
-    out = check_out_dir(out, what="batch output folder").resolve()
+    out = Path(out).resolve()
     for case in cases:
         if case.name in _RESERVED_NAMES:
             raise CohortError(f"case name {case.name!r} is a file of the batch's own; rename that case")
@@ -76,7 +76,7 @@ def _check_out(out: Path, cases) -> Path:
             if out == p or p in out.parents:
                 raise CohortError(f"the output folder {out} is inside case {case.name}'s {role} {p}; "
                                   "choose an output folder outside the inputs")
-    return out
+    return check_out_dir(out, what="batch output folder")
 
 
 def _record_of(name: str, result) -> CaseRecord:
