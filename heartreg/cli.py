@@ -230,6 +230,7 @@ def _cmd_reproduce(args) -> int:
         args.out_dir, size=args.size, seed=args.seed, trials=args.trials, n_points=args.points,
         phase_step=args.step, command=" ".join(argv), rerun=not args.report_only, progress=not args.quiet,
         log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
+        workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit,
     )
     print((result.out_dir / "reproduction.md").read_text())
     s = result.summary

@@ -38,10 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from heartreg import __version__
+from heartreg.batch.cohort import COMMANDS, Case
 from hrcore.errors import HeartregError
 from imaging.files import umask_mode, write_text_atomic
-
-from heartreg.batch.cohort import COMMANDS, Case
 
 __all__ = ["CASE_FILE", "CaseRecord", "case_key", "run_case"]
 
@@ -93,7 +92,7 @@ class CaseRecord:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_json(cls, data: dict) -> "CaseRecord":
+    def from_json(cls, data: dict) -> CaseRecord:
         names = cls.__dataclass_fields__
         data = {k: v for k, v in data.items() if k in names}
         data["notes"] = tuple(data.get("notes", ()))

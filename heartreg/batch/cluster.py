@@ -15,12 +15,12 @@ import logging
 import os
 import sys
 import uuid
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Callable, Iterator, Sequence
 
 from hrcore.errors import HeartregError
 
-__all__ = ["ClusterError", "DEFAULT_MEMORY_LIMIT", "TaskFailure", "default_workers", "open_client", "run_tasks"]
+__all__ = ["DEFAULT_MEMORY_LIMIT", "ClusterError", "TaskFailure", "default_workers", "open_client", "run_tasks"]
 
 #: Memory limit of each local worker: a full-size case (512 x 512 x 288) peaks near 0.8 GB.
 DEFAULT_MEMORY_LIMIT = "4GB"
@@ -56,7 +56,7 @@ def _dashboard_link(client) -> str:
         if "dashboard" not in client.scheduler_info().get("services", {}):
             return ""
         link = client.dashboard_link
-        with urllib.request.urlopen(link, timeout=2) as response:  # noqa: S310 - the scheduler's own http address
+        with urllib.request.urlopen(link, timeout=2) as response:
             return link if response.status == 200 else ""
     except Exception:  # noqa: BLE001 - the link is a courtesy: no page, no link
         return ""
@@ -127,6 +127,8 @@ def _failure_line(exc: BaseException) -> str:
     if isinstance(exc, KilledWorker):
         return ("its worker died while running it (out of memory? the limit is per worker: "
                 "raise --memory-limit or lower --workers)")
+    if isinstance(exc, HeartregError):
+        return " ".join(str(exc).split())
     return " ".join(f"{type(exc).__name__}: {exc}".split())
 
 

@@ -140,7 +140,7 @@ def route_options(text: str, where: str, table=None) -> dict[str, list[str]]:
     i = 0
     while i < len(tokens):
         token = tokens[i]
-        flag, eq, value = token.partition("=") if token.startswith("--") else (token, "", "")
+        flag, eq, _ = token.partition("=") if token.startswith("--") else (token, "", "")
         if flag in _RESERVED:
             raise CohortError(f"{where}: option {flag} is set by the batch itself; remove it from options")
         owners = [c for c in COMMANDS if flag in table[c]]

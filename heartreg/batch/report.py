@@ -13,11 +13,10 @@ import html
 import io
 from pathlib import Path
 
+from heartreg.batch.case import THUMBNAIL, CaseRecord
 from imaging.files import write_text_atomic
 
-from heartreg.batch.case import THUMBNAIL, CaseRecord
-
-__all__ = ["COLUMNS", "summary_csv", "index_html"]
+__all__ = ["COLUMNS", "index_html", "summary_csv"]
 
 #: (column, header meaning) of ``summary.csv``, in order.
 COLUMNS = (

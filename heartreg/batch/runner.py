@@ -18,16 +18,20 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
-
-from imaging.files import write_text_atomic
 
 from heartreg.batch.case import CaseRecord, read_case_record, run_case
-from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT, TaskFailure, open_client, run_tasks
+from heartreg.batch.cluster import (
+    DEFAULT_MEMORY_LIMIT,
+    TaskFailure,
+    open_client,
+    run_tasks,
+)
 from heartreg.batch.cohort import Case, CohortError, read_cohort, select_part
 from heartreg.batch.report import index_html, summary_csv
+from imaging.files import write_text_atomic
 
 __all__ = ["BatchResult", "run_batch"]
 
