@@ -201,6 +201,24 @@ def _ensure_case(case_dir: Path, preset: str, size: str, seed: int, n_points, pr
     """Make the phantom case, or reuse one with the same preset, size, seed and points."""
     from heartreg.phantom import make_phantom
 
+    truth = _existing_case(case_dir, preset, size, seed, n_points)
+    if truth is not None:
+        return truth, True
+    overrides = {} if n_points is None else {"n_points": n_points}
+    # no truth.json: anything else there is a half-written case, replace it
+    truth = make_phantom(case_dir, preset=preset, size=size, seed=seed, progress=progress,
+                         overwrite=True, **overrides)
+    return truth, False
+
+
+def _existing_case(case_dir: Path, preset: str, size: str, seed: int, n_points):
+    """The truth of the phantom case in ``case_dir`` if it is the one asked for, None if there is none.
+
+    Raises
+    ------
+    ReproduceError
+        Another phantom case is there.
+    """
     truth_path = case_dir / "truth.json"
     if truth_path.exists():
         truth = json.loads(truth_path.read_text())
@@ -215,12 +233,8 @@ def _ensure_case(case_dir: Path, preset: str, size: str, seed: int, n_points, pr
                 f"{'yes' if 'session' in truth else 'no'}), not {want}; choose another output "
                 "folder or delete that case"
             )
-        return truth, True
-    overrides = {} if n_points is None else {"n_points": n_points}
-    # no truth.json: anything else there is a half-written case, replace it
-    truth = make_phantom(case_dir, preset=preset, size=size, seed=seed, progress=progress,
-                         overwrite=True, **overrides)
-    return truth, False
+        return truth
+    return None
 
 
 def _path_axis(locus_mm):
@@ -489,6 +503,8 @@ def _run_trials(trials, out: Path, *, size, seed, n_points, phase_step, workers,
     """Run the trials on the batch machinery (:mod:`heartreg.batch.cluster`), in parallel, in trial order."""
     from heartreg.batch.cluster import TaskFailure, open_client, run_tasks
 
+    for k in trials:  # a foreign case in the way is refused before any cluster starts
+        _existing_case(out / f"trial{k}" / "case", f"wood2018-trial{k}", size, seed, n_points)
     results = {}
     with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit, log=say) as client:
         for n, (name, value) in enumerate(run_tasks(

@@ -42,7 +42,7 @@ from heartreg.batch.cohort import COMMANDS, Case
 from hrcore.errors import HeartregError
 from imaging.files import umask_mode, write_text_atomic
 
-__all__ = ["CASE_FILE", "CaseRecord", "case_key", "run_case"]
+__all__ = ["CASE_FILE", "CaseError", "CaseRecord", "case_key", "read_case_record", "run_case"]
 
 #: The record of a finished case, inside its folder (written last, renamed in with it).
 CASE_FILE = "case.json"
