@@ -14,8 +14,9 @@ import sys
 from pathlib import Path
 
 from heartreg import __version__
+from hrcore.errors import HeartregError
 
-__all__ = ["main"]
+__all__ = ["CommandLineError", "command_parser", "main"]
 
 EXIT_USAGE = 2
 
@@ -292,6 +293,7 @@ def _cmd_reproduce(args) -> int:
         args.out_dir, size=args.size, seed=args.seed, trials=args.trials, n_points=args.points,
         phase_step=args.step, command=" ".join(argv), rerun=not args.report_only, progress=not args.quiet,
         log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
+        workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit,
     )
     print((result.out_dir / "reproduction.md").read_text())
     s = result.summary
@@ -300,6 +302,35 @@ def _cmd_reproduce(args) -> int:
     print(f"all outputs in {result.out_dir}; open {result.paths['html']} in a browser")
     print("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in result.timings_s.items()))
     return 0
+
+
+def _cmd_batch(args) -> int:
+    from heartreg.batch import run_batch
+
+    log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr))
+    result = run_batch(
+        args.cohort, args.out_dir, workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit,
+        num_parts=args.num_parts, part_id=args.part_id, progress=not args.quiet, log=log,
+    )
+    mine = len(result.ran)
+    print(f"batch of {len(result.records)} case(s) in {result.out_dir}: {result.count('done')} done "
+          f"({mine} run now), {result.count('failed')} failed, {result.count('not run')} not run")
+    for r in result.records:
+        if r.status == "failed":
+            print(f"  {r.case}: {r.error}")
+    print(f"  summary {result.paths['summary']}, page {result.paths['index']}")
+    return 1 if result.count("failed") else 0
+
+
+def _add_cluster_options(p) -> None:
+    from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT
+
+    p.add_argument("--workers", type=int, default=None,
+                   help="local worker processes, one thread each (default: the usable cores)")
+    p.add_argument("--memory-limit", default=DEFAULT_MEMORY_LIMIT,
+                   help=f"memory limit of each local worker (default {DEFAULT_MEMORY_LIMIT})")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run on this Dask scheduler instead of a local cluster")
 
 
 def _add_study_options(p) -> None:
@@ -402,7 +433,43 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report-only", action="store_true",
                    help="re-draw the tables, figures and page from an earlier run in OUT_DIR; run nothing")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    _add_cluster_options(p)
     p.set_defaults(func=_cmd_reproduce)
+
+    p = sub.add_parser("batch", help="a cohort of studies (CSV or folder) through phases, model, register on Dask")
+    p.add_argument("cohort", type=Path, help="cohort CSV (columns case, study, session, mask, options) or a folder "
+                   "of study folders")
+    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder: one folder per case, "
+                   "summary.csv, index.html")
+    _add_cluster_options(p)
+    p.add_argument("--num-parts", type=int, default=1, help="split the cohort into this many parts (array jobs)")
+    p.add_argument("--part-id", type=int, default=0, help="the part to run, 0 .. NUM_PARTS-1")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_batch)
+    return parser
+
+
+class CommandLineError(HeartregError, ValueError):
+    """A command line that does not parse (``heartreg batch`` checks its cases' lines with it)."""
+
+
+def command_parser() -> argparse.ArgumentParser:
+    """The parser ``main`` uses, raising :class:`CommandLineError` instead of exiting.
+
+    ``heartreg batch`` parses and runs each case's single commands with it, so
+    a case runs exactly the code of the command typed by hand.
+    """
+    parser = _build_parser()
+
+    def fail(message):
+        raise CommandLineError(message)
+
+    parsers = [parser]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            parsers.extend(action.choices.values())
+    for p in parsers:
+        p.error = fail
     return parser
 
 

@@ -38,6 +38,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT
 from heartreg.demo import pose_error
 from heartreg.phantom.config import PAPER_TABLE1
 from hrcore.errors import HeartregError
@@ -200,6 +201,24 @@ def _ensure_case(case_dir: Path, preset: str, size: str, seed: int, n_points, pr
     """Make the phantom case, or reuse one with the same preset, size, seed and points."""
     from heartreg.phantom import make_phantom
 
+    truth = _existing_case(case_dir, preset, size, seed, n_points)
+    if truth is not None:
+        return truth, True
+    overrides = {} if n_points is None else {"n_points": n_points}
+    # no truth.json: anything else there is a half-written case, replace it
+    truth = make_phantom(case_dir, preset=preset, size=size, seed=seed, progress=progress,
+                         overwrite=True, **overrides)
+    return truth, False
+
+
+def _existing_case(case_dir: Path, preset: str, size: str, seed: int, n_points):
+    """The truth of the phantom case in ``case_dir`` if it is the one asked for, None if there is none.
+
+    Raises
+    ------
+    ReproduceError
+        Another phantom case is there.
+    """
     truth_path = case_dir / "truth.json"
     if truth_path.exists():
         truth = json.loads(truth_path.read_text())
@@ -214,12 +233,8 @@ def _ensure_case(case_dir: Path, preset: str, size: str, seed: int, n_points, pr
                 f"{'yes' if 'session' in truth else 'no'}), not {want}; choose another output "
                 "folder or delete that case"
             )
-        return truth, True
-    overrides = {} if n_points is None else {"n_points": n_points}
-    # no truth.json: anything else there is a half-written case, replace it
-    truth = make_phantom(case_dir, preset=preset, size=size, seed=seed, progress=progress,
-                         overwrite=True, **overrides)
-    return truth, False
+        return truth
+    return None
 
 
 def _path_axis(locus_mm):
@@ -475,6 +490,36 @@ def _load_trial(k, trial_dir, *, size, seed, n_points) -> TrialResult:
     return _trial_result(k, trial_dir, truth, saved["truth_rows"], extra, saved["timings_s"])
 
 
+def _trial_task(k: int, out_dir: str, size: str, seed: int, n_points, phase_step: float):
+    """One trial as a Dask task: paths in, its result and log lines out."""
+    lines = []
+    result = _run_trial(k, Path(out_dir) / f"trial{k}", size=size, seed=seed, n_points=n_points,
+                        phase_step=phase_step, progress=False, say=lines.append)
+    return result, lines
+
+
+def _run_trials(trials, out: Path, *, size, seed, n_points, phase_step, workers, scheduler, memory_limit,
+                progress, say) -> list[TrialResult]:
+    """Run the trials on the batch machinery (:mod:`heartreg.batch.cluster`), in parallel, in trial order."""
+    from heartreg.batch.cluster import TaskFailure, open_client, run_tasks
+
+    for k in trials:  # a foreign case in the way is refused before any cluster starts
+        _existing_case(out / f"trial{k}" / "case", f"wood2018-trial{k}", size, seed, n_points)
+    results = {}
+    with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit, log=say) as client:
+        for n, (name, value) in enumerate(run_tasks(
+                client, _trial_task, trials, names=[f"trial{k}" for k in trials],
+                args=(str(out.resolve()), size, seed, n_points, phase_step), progress=progress, desc="trials"), 1):
+            k = int(name.removeprefix("trial"))
+            if isinstance(value, TaskFailure):
+                raise ReproduceError(f"trial {k} failed: {value.error}")
+            result, lines = value
+            for line in lines:
+                say(f"[trial {k}, {n}/{len(trials)} done] {line}")
+            results[k] = result
+    return [results[k] for k in trials]
+
+
 # ----------------------------------------------------------------- driver
 def reproduce(
     out_dir,
@@ -488,6 +533,9 @@ def reproduce(
     rerun: bool = True,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    memory_limit: str = DEFAULT_MEMORY_LIMIT,
 ) -> Reproduction:
     """Run the paper's experiment on the phantom presets and write the comparison.
 
@@ -512,9 +560,13 @@ def reproduce(
         re-renders the tables, figures and page from an earlier run's files in
         ``out_dir`` without running anything.
     progress : bool
-        Progress bars of the phantom and the pipeline on stderr.
+        A progress bar of the trials on stderr.
     log : callable, optional
         Receives one line per step (the CLI prints it on stderr).
+    workers, scheduler, memory_limit
+        Where the trials run, in parallel: as ``heartreg batch``
+        (:func:`heartreg.batch.open_client`): local worker processes (default
+        the usable cores), or a running Dask scheduler's workers.
 
     Returns
     -------
@@ -548,18 +600,12 @@ def reproduce(
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
 
-    results = []
-    for n, k in enumerate(trials, 1):
-        trial_dir = out / f"trial{k}"
-        if rerun:
-            def step(msg, n=n, k=k):
-                say(f"[trial {k}, {n}/{len(trials)}] {msg}")
-
-            result = _run_trial(k, trial_dir, size=size, seed=seed, n_points=n_points, phase_step=phase_step,
-                                progress=progress, say=step)
-        else:
-            result = _load_trial(k, trial_dir, size=size, seed=seed, n_points=n_points)
-        results.append(result)
+    if rerun:
+        results = _run_trials(trials, out, size=size, seed=seed, n_points=n_points, phase_step=phase_step,
+                              workers=workers, scheduler=scheduler, memory_limit=memory_limit,
+                              progress=progress, say=say)
+    else:
+        results = [_load_trial(k, out / f"trial{k}", size=size, seed=seed, n_points=n_points) for k in trials]
 
     summary = _summary(results)
     figs = figure_data(results)

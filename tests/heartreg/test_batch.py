@@ -1,0 +1,284 @@
+"""``heartreg batch``: five sample cases on a two-worker local cluster, stopped and resumed.
+
+The cases share the session-wide sample phantom (``sample_case``): one runs the
+whole chain (phases, model, register with its 30-point session), three only
+phases and model with different options, and one is broken (a study folder
+without DICOM).  The batch is started in a child process and killed after two
+cases finish; the restart must run only the rest, and every output must be the
+bytes the single commands write (the commands are deterministic: same inputs,
+same bytes).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from heartreg.batch import CohortError, read_cohort, run_batch
+from heartreg.batch.cohort import select_part
+from heartreg.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+#: bounded waits (s): a loaded 2-core machine runs a sample case in 5-60 s
+KILL_WAIT_S = 600
+SCHEDULER_WAIT_S = 120
+
+ROWS = [
+    # case, study, session, options
+    ("whole", "case/ct", "case/session", "--step 0.1 --no-view"),
+    ("faces8k", "case/ct", "", "--faces 8000 --fiducials 0"),
+    ("broken", "broken", "", ""),
+    ("vessels", "case/ct", "", "--keep-vessels --faces 8000 --fiducials 0"),
+    ("faces5k", "case/ct", "", "--faces 5000 --fiducials 0"),
+]
+BROKEN_MESSAGE = r"^phases: no DICOM images found under '<study>'"
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    return env
+
+
+def _write_cohort(folder: Path, case_dir: Path, rows) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "case").symlink_to(case_dir)
+    (folder / "broken").mkdir()
+    (folder / "broken" / "IM0001.dcm").write_bytes(b"not a DICOM file")
+    path = folder / "cohort.csv"
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["case", "study", "session", "options"])
+        writer.writerows(rows)
+    return path
+
+
+def _finished(out: Path) -> dict:
+    """Finished cases: name -> mtime of case.json (ns)."""
+    return {p.parent.name: p.stat().st_mtime_ns for p in out.glob("*/case.json")}
+
+
+def _files(folder: Path) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def batch(sample_case, tmp_path_factory):
+    """The batch killed after two cases, then run again to the end."""
+    case_dir, _ = sample_case
+    root = tmp_path_factory.mktemp("batch")
+    cohort = _write_cohort(root / "in", case_dir, ROWS)
+    out = root / "out"
+    child = subprocess.Popen(
+        [sys.executable, "-m", "heartreg.cli", "batch", str(cohort), "-o", str(out), "--workers", "2", "-q"],
+        env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + KILL_WAIT_S
+        while len(_finished(out)) < 2 and child.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        child.kill()  # the client only: its local workers must notice and stop by themselves
+        child.wait(timeout=30)
+        before = _finished(out)
+        folders = sorted(p.name for p in out.iterdir() if p.is_dir() and not p.name.startswith((".", "_")))
+    finally:
+        time.sleep(1)
+        try:
+            os.killpg(child.pid, signal.SIGKILL)  # any worker left behind (cleanup, not part of the test)
+        except ProcessLookupError:
+            pass
+    result = run_batch(cohort, out, workers=2, progress=False)
+    return root, cohort, out, before, folders, result
+
+
+def test_a_killed_batch_leaves_only_whole_cases_and_the_restart_runs_only_the_rest(batch):
+    _, _, out, before, folders, result = batch
+    assert len(before) >= 2
+    # no half-written case: every case folder the killed batch left holds its record
+    assert folders == sorted(before)
+    names = {r[0] for r in ROWS}
+    assert set(result.ran) == names - set(before)
+    # the cases done before the kill were judged done by their key, not rewritten
+    assert {n: t for n, t in _finished(out).items() if n in before} == before
+    by_name = {r.case: r for r in result.records}
+    assert all(by_name[n].reused for n in before)
+    # the staging folders of the cases the kill interrupted are gone
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_four_done_one_failed_with_its_message(batch):
+    _, _, out, _, _, result = batch
+    statuses = {r.case: r.status for r in result.records}
+    assert statuses == {"whole": "done", "faces8k": "done", "broken": "failed", "vessels": "done", "faces5k": "done"}
+    (failed,) = [r for r in result.records if r.status == "failed"]
+    assert failed.error == json.loads((out / "_failed" / "broken.json").read_text())["error"]
+    assert re.match(BROKEN_MESSAGE, failed.error), failed.error
+    assert not (out / "broken").exists()
+
+
+def test_outputs_are_the_single_commands_bytes(batch, sample_case, tmp_path):
+    case_dir, _ = sample_case
+    _, _, out, _, _, _ = batch
+    single = tmp_path / "single"
+    ct, session = str(case_dir / "ct"), str(case_dir / "session")
+    assert main(["phases", ct, "-o", str(single / "phases"), "-q"]) == 0
+    assert main(["model", ct, "-o", str(single / "model"), "-q"]) == 0
+    assert main(["register", str(single / "model"), session, "-o", str(single / "registration"), "-q",
+                 "--step", "0.1", "--no-view"]) == 0
+    for part in ("phases", "model", "registration"):
+        mine, theirs = _files(out / "whole" / part), _files(single / part)
+        assert sorted(mine) == sorted(theirs) and len(mine) >= 3, part
+        assert [n for n in mine if mine[n] != theirs[n]] == [], part
+
+
+def test_summary_and_index_hold_the_outputs_numbers_and_no_input_path(batch):
+    root, _, out, _, _, _ = batch
+    rows = {r["case"]: r for r in csv.DictReader((out / "summary.csv").open())}
+    assert list(rows) == [r[0] for r in ROWS]
+    for name in ("whole", "faces8k", "vessels", "faces5k"):
+        phases = json.loads((out / name / "phases" / "phases.json").read_text())
+        model = json.loads((out / name / "model" / "model.json").read_text())
+        row = rows[name]
+        assert row["status"] == "done" and row["error"] == ""
+        # summary.csv writes 10 significant digits
+        assert float(row["phi_c"]) == pytest.approx(phases["volume_cardiac_phase"], rel=1e-9)
+        assert float(row["heart_volume_ml"]) == pytest.approx(model["volume_mm3"] / 1000, rel=1e-9)
+        assert [float(row[f"euler_{a}_deg"]) for a in "xyz"] == pytest.approx(model["euler_xyz_deg"], rel=1e-9)
+        assert int(row["n_faces"]) == model["n_faces"]
+    assert int(rows["faces8k"]["n_faces"]) <= 8000 < int(rows["whole"]["n_faces"])
+    reg = json.loads((out / "whole" / "registration" / "registration.json").read_text())
+    assert float(rows["whole"]["phi_r"]) == pytest.approx(reg["respiration_phase"], abs=1e-12)
+    assert float(rows["whole"]["rms_mm"]) == pytest.approx(reg["rms_mm"], rel=1e-9)
+    assert rows["faces8k"]["phi_r"] == "" and rows["broken"]["status"] == "failed"
+    page = (out / "index.html").read_text()
+    assert page.count("data:image/png;base64,") == 4
+    for name in ("whole", "faces8k", "vessels", "faces5k"):
+        assert f'<a href="{name}/">{name}</a>' in page
+    assert "no DICOM images found" in page
+    for text in (page, (out / "summary.csv").read_text(), *(p.read_text() for p in out.glob("*/case.json"))):
+        assert str(root) not in text and "PHANTOM^" not in text
+
+
+def test_the_key_follows_inputs_and_options_not_where_the_cohort_is(batch, sample_case, tmp_path):
+    case_dir, _ = sample_case
+    _, cohort, _, _, _, _ = batch
+    # the same cohort in another folder, with one option changed
+    rows = [r if r[0] != "faces5k" else ("faces5k", "case/ct", "", "--faces 6000 --fiducials 0") for r in ROWS]
+    changed = _write_cohort(tmp_path / "in", case_dir, rows)
+    cases = {c.name: c for c in read_cohort(changed)}
+    from heartreg.batch import case_key
+
+    old = {c.name: c for c in read_cohort(cohort)}
+    assert case_key(cases["faces8k"]) == case_key(old["faces8k"])  # moved cohort, same inputs: same key
+    assert case_key(cases["faces5k"]) != case_key(old["faces5k"])
+
+
+def test_scheduler_started_separately_on_loopback(batch, sample_case, tmp_path):
+    """A scheduler and one worker in their own process (127.0.0.1, ephemeral port); the batch connects to it."""
+    case_dir, _ = sample_case
+    _, _, out, _, _, _ = batch
+    script = (
+        "import sys\n"
+        "from distributed import LocalCluster\n"
+        "if __name__ == '__main__':\n"
+        "    c = LocalCluster(n_workers=1, threads_per_worker=1, host='127.0.0.1', scheduler_port=0,\n"
+        "                     dashboard_address=None)\n"
+        "    print(c.scheduler_address, flush=True)\n"
+        "    sys.stdin.read()\n"  # until the test closes stdin
+        "    c.close()\n"
+    )
+    cluster = subprocess.Popen([sys.executable, "-c", script], env=_env(), stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    try:
+        address = cluster.stdout.readline().strip()
+        assert address.startswith("tcp://127.0.0.1:"), address
+        cohort = _write_cohort(tmp_path / "in", case_dir, [r for r in ROWS if r[0] in ("faces5k", "broken")])
+        remote = tmp_path / "out"
+        code = main(["batch", str(cohort), "-o", str(remote), "--scheduler", address, "-q"])
+        assert code == 1  # one case failed
+        statuses = {r["case"]: r["status"] for r in csv.DictReader((remote / "summary.csv").open())}
+        assert statuses == {"faces5k": "done", "broken": "failed"}
+        # the worker of the other cluster wrote the same bytes as the local batch
+        for part in ("phases", "model"):
+            assert _files(remote / "faces5k" / part) == _files(out / "faces5k" / part)
+    finally:
+        cluster.stdin.close()
+        try:
+            cluster.wait(timeout=SCHEDULER_WAIT_S)
+        except subprocess.TimeoutExpired:
+            os.killpg(cluster.pid, signal.SIGKILL)
+
+
+def test_an_unreachable_scheduler_is_one_line(tmp_path, sample_case, capsys, monkeypatch):
+    case_dir, _ = sample_case
+    monkeypatch.setattr("heartreg.batch.cluster.CONNECT_TIMEOUT_S", 2)  # Dask retries until then
+    cohort = _write_cohort(tmp_path / "in", case_dir, ROWS[1:2])
+    # port 9 (discard) on loopback: nothing listens, the connection is refused at once
+    assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:9", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in err and "Traceback" not in err
+
+
+# ------------------------------------------------------------------ cohort (no cluster)
+def test_options_go_to_the_commands_that_have_them(tmp_path, sample_case):
+    case_dir, _ = sample_case
+    (tmp_path / "qrs.csv").write_text("time_s\n1.0\n")
+    cohort = _write_cohort(tmp_path / "in", case_dir, [
+        ("a", "case/ct", "case/session", "--qrs ../qrs.csv --faces 9000 --step 0.05 --harmonics 3 2 1 1"),
+    ])
+    (case,) = read_cohort(cohort)
+    qrs = str((tmp_path / "qrs.csv").resolve())
+    assert case.argv["phases"] == ("--qrs", qrs)
+    assert case.argv["model"] == ("--qrs", qrs, "--faces", "9000")
+    assert case.argv["register"] == ("--step", "0.05", "--harmonics", "3", "2", "1", "1")
+    assert case.inputs["phases --qrs"] == qrs and case.session == str((case_dir / "session").resolve())
+
+
+@pytest.mark.parametrize(("options", "match"), [
+    ("--facs 9000", r"line 2: '--facs' is not an option of heartreg phases, model, register"),
+    ("-o elsewhere", r"line 2: option -o is set by the batch itself"),
+    ("--faces many", r"line 2: heartreg model: argument --faces: invalid int value: 'many'"),
+    ("--step 0.05", r"line 2: --step is an option of register, but the case has no session"),
+    ("--harmonics 5 4", r"line 2: option --harmonics needs 4 value\(s\)"),
+])
+def test_bad_options_are_refused_before_any_work(tmp_path, sample_case, options, match):
+    case_dir, _ = sample_case
+    cohort = _write_cohort(tmp_path / "in", case_dir, [("a", "case/ct", "", options)])
+    with pytest.raises(CohortError, match=match):
+        read_cohort(cohort)
+
+
+def test_cohort_names_and_parts(tmp_path, sample_case):
+    case_dir, _ = sample_case
+    twice = _write_cohort(tmp_path / "twice", case_dir, [("a", "case/ct", "", ""), ("A", "broken", "", "")])
+    with pytest.raises(CohortError, match="case name 'A' is used twice"):
+        read_cohort(twice)
+    bad = _write_cohort(tmp_path / "bad", case_dir, [("../up", "case/ct", "", "")])
+    with pytest.raises(CohortError, match=r"case name '../up' must start with a letter or digit"):
+        read_cohort(bad)
+    # a folder of study folders: one case per subfolder, named by it
+    folder = tmp_path / "folder"
+    for name in ("s2", "s1"):
+        (folder / name).mkdir(parents=True)
+    cases = read_cohort(folder)
+    assert [c.name for c in cases] == ["s1", "s2"] and not any(c.has_session for c in cases)
+    parts = [select_part(list("abcde"), 2, i) for i in (0, 1)]
+    assert parts == [("a", "c", "e"), ("b", "d")]
+    with pytest.raises(CohortError, match=r"--part-id must be in 0..1 for --num-parts 2, got 2"):
+        select_part(list("abc"), 2, 2)
+
+
+def test_an_output_folder_inside_an_input_is_refused(tmp_path, sample_case):
+    case_dir, _ = sample_case
+    cohort = _write_cohort(tmp_path / "in", case_dir, [("a", "broken", "", "")])
+    with pytest.raises(CohortError, match="is inside case a's study"):
+        run_batch(cohort, tmp_path / "in" / "broken" / "out", workers=1, progress=False)
