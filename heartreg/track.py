@@ -220,7 +220,17 @@ class IgtlSink:
         return now
 
     def send(self, time_s: float, T_ras_from_robot, text: str) -> None:
+        """Queue one sample's TRANSFORM and STRING (timestamp: the sample time).
+
+        pyigtl's queue holds 100 messages and drops the oldest beyond; when it
+        is 80 % full this waits (at most 0.5 s) for it to drain instead.
+        """
         pyigtl = self._pyigtl
+        server = self._server
+        if len(server.outgoing_messages) > 80:
+            end = time.monotonic() + 0.5
+            while len(server.outgoing_messages) > 20 and time.monotonic() < end and self.connected:
+                time.sleep(0.0005)
         self._server.send_message(pyigtl.TransformMessage(T_ras_from_robot, timestamp=time_s,
                                                           device_name=DEVICE_TRANSFORM), wait=False)
         self._server.send_message(pyigtl.StringMessage(text, timestamp=time_s, device_name=DEVICE_STATUS),
@@ -403,25 +413,26 @@ def _status_text(rows: TrackRows, i: int) -> str:
     }, separators=(",", ":"))
 
 
+_ROW_FMT = ",".join(
+    ["%.3f", "%.4f", "%.4f", "%s", "%d"] + ["%.4f"] * 3 + ["%.6f"] * 4 + ["%.4f"] * 4 + ["%.3f"]
+    + ["%.4f"] * 3 + ["%d"]
+) + "\n"
+
+
 def _csv_lines(rows: TrackRows, sent: np.ndarray) -> str:
+    """The log rows of a chunk (``nan`` where a value is undefined)."""
     T = rows.T_heart_from_robot
+    m = T.shape[0]
     ok = np.isfinite(T[:, 0, 0])
-    q = np.full((T.shape[0], 4), np.nan)
+    q = np.full((m, 4), np.nan)
     if ok.any():
         q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    lines = []
-    for i in range(T.shape[0]):
-        vals = [f"{rows.time_s[i]:.3f}", _f(rows.phase_c[i], 4), _f(rows.phase_r[i], 4), rows.quality[i],
-                str(int(rows.flags[i]))]
-        vals += [_f(x, 4) for x in T[i, :3, 3]] + [_f(x, 6) for x in q[i]]
-        vals += [_f(x, 4) for x in rows.surface_mm[i]] + [_f(rows.distance_mm[i], 4), _f(rows.nearest_point_mm[i], 3)]
-        vals += [_f(x, 4) for x in rows.static_mm[i]] + [str(int(sent[i]))]
-        lines.append(",".join(vals))
-    return "\n".join(lines) + "\n" if lines else ""
-
-
-def _f(x, digits) -> str:
-    return "" if x != x else f"{x:.{digits}f}"
+    cols = [rows.time_s, rows.phase_c, rows.phase_r, rows.quality, rows.flags,
+            *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
+            *rows.static_mm.T, sent.astype(int)]
+    cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]
+    fmt = _ROW_FMT
+    return "".join([fmt % r for r in zip(*cols)])
 
 
 @dataclass(frozen=True)
@@ -574,6 +585,100 @@ def print_summary(summary: TrackSummary, csv_path, *, file=sys.stdout) -> None:
     print(f"tracked {s.n_samples} samples ({s.n_placed} placed on the map) in {s.wall_s:.2f} s "
           f"({rate:.0f} samples/s){' - interrupted' if s.interrupted else ''}", file=file)
     print(f"  log               {csv_path}", file=file)
+    if s.n_sent == 0 and s.models_sent == 0:
+        print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
+        print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
+        return
     print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
           f"model sent {s.models_sent} time(s)", file=file)
     print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
+
+
+# ------------------------------------------------------------ OpenIGTLink in
+#: device names of an OpenIGTLink pose stream (PLUS's naming).
+DEVICE_ROBOT, DEVICE_PROBE, DEVICE_SIGNALS = "RobotToTracker", "ProbeToTracker", "Signals"
+
+
+def lossless_client(host: str, port: int):
+    """A pyigtl client that keeps every message (pyigtl keeps only the latest
+    per device); POLYDATA bodies are kept raw (pyigtl 0.3 cannot unpack them:
+    read them with :func:`unpack_polydata`).
+
+    Returns
+    -------
+    client, messages
+        ``messages`` is a ``collections.deque`` the client appends to.
+    """
+    import collections
+
+    import pyigtl
+    from pyigtl import messages as pm
+
+    received = collections.deque()
+
+    class _RawPolyData(pyigtl.MessageBase):
+        def __init__(self):
+            super().__init__()
+            self._message_type = "POLYDATA"
+            self.content = b""
+
+        def _unpack_content(self, content):
+            self.content = bytes(content)
+
+    class _Client(pyigtl.OpenIGTLinkClient):
+        def _receive_message_from_socket(self, ssocket):
+            added = pm.message_type_to_class_constructor.setdefault("POLYDATA", _RawPolyData) is _RawPolyData
+            try:
+                got = super()._receive_message_from_socket(ssocket)
+            finally:
+                if added:
+                    pm.message_type_to_class_constructor.pop("POLYDATA", None)
+            if got:
+                with self.lock_incoming_messages:
+                    received.extend(self.incoming_messages.values())
+                    self.incoming_messages.clear()
+            return got
+
+    return _Client(host=host, port=int(port)), received
+
+
+def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0) -> Iterator[StreamChunk]:
+    """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample.
+
+    A sample is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM``
+    ``ProbeToTracker`` and a ``STRING`` ``Signals`` (``"ecg_mv,flow_insp_lpm,
+    flow_exp_lpm"``) with the same timestamp (the sample time, s).  A sample
+    missing a part is skipped; the stream ends after ``idle_timeout_s``
+    without a message.
+    """
+    client, received = lossless_client(host, port)
+    pending: dict[float, dict] = {}
+    last = time.monotonic()
+    try:
+        while True:
+            if not received:
+                if time.monotonic() - last > idle_timeout_s:
+                    return
+                time.sleep(0.001)
+                continue
+            last = time.monotonic()
+            msg = received.popleft()
+            key = round(float(msg.timestamp), 6)
+            slot = pending.setdefault(key, {})
+            if msg.device_name in (DEVICE_ROBOT, DEVICE_PROBE) and msg.message_type == "TRANSFORM":
+                slot[msg.device_name] = np.asarray(msg.matrix, dtype=float)
+            elif msg.device_name == DEVICE_SIGNALS and msg.message_type == "STRING":
+                try:
+                    slot[DEVICE_SIGNALS] = [float(x) for x in msg.string.split(",")]
+                except ValueError:
+                    pending.pop(key)
+                    continue
+            if len(slot) == 3:
+                pending.pop(key)
+                for old in [k for k in pending if k < key]:
+                    pending.pop(old)  # an incomplete earlier sample will not complete now
+                ecg, fi, fe = slot[DEVICE_SIGNALS]
+                yield next(chunks_from_samples(
+                    [(key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE], True, ecg, fi, fe)]))
+    finally:
+        client.stop()

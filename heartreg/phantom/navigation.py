@@ -110,11 +110,11 @@ class NavigationTruth:
     image_phase_r: float
 
     @classmethod
-    def read(cls, case_dir) -> "NavigationTruth":
-        """Read ``navigation_truth.csv`` (and the image phases of ``truth.json``)."""
-        case = Path(case_dir)
-        data = np.loadtxt(case / "navigation_truth.csv", delimiter=",", skiprows=1, ndmin=2)
-        truth = json.loads((case / "truth.json").read_text())
+    def read(cls, out_dir, case_dir=None) -> "NavigationTruth":
+        """Read ``out_dir/navigation_truth.csv`` (and the image phases of the case's
+        ``truth.json``; ``case_dir`` defaults to ``out_dir``)."""
+        data = np.loadtxt(Path(out_dir) / "navigation_truth.csv", delimiter=",", skiprows=1, ndmin=2)
+        truth = json.loads((Path(case_dir or out_dir) / "truth.json").read_text())
         return cls(data[:, 0], data[:, 1], data[:, 2], data[:, 3], data[:, 4], data[:, 5:8], data[:, 8],
                    float(truth["cardiac_phase"]), float(truth["respiration_phase"]))
 
@@ -163,6 +163,7 @@ def _surface_path(rng, heart, n_samples, rate, *, rest_s, speed_mm_s, pause_s, b
 def write_navigation(
     case_dir,
     *,
+    out_dir=None,
     duration_s: float = 60.0,
     rest_s: float = 12.0,
     speed_mm_s: float = 3.0,
@@ -177,6 +178,9 @@ def write_navigation(
         A case written by :func:`heartreg.phantom.generate.make_phantom` with
         its session (its ``truth.json`` gives the configuration, the seed, the
         image phases and the registration points).
+    out_dir : path, optional
+        Where to write (default ``case_dir``); existing navigation outputs
+        there are replaced.
     duration_s : float, s
         Length of the record.
     rest_s, pause_s : float, s
@@ -213,12 +217,14 @@ def write_navigation(
         cfg[key] = tuple(cfg[key])
     config = PhantomConfig(**cfg)
     seed = int(truth["seed"] if seed is None else seed)
-    staging = Path(tempfile.mkdtemp(prefix=".navigation-", dir=case))
+    out = case if out_dir is None else Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".navigation-", dir=out))
     try:
         os.chmod(staging, 0o777 & ~_umask())
         nav = _write(staging, config, truth, seed, duration_s, rest_s, speed_mm_s, pause_s)
         for name in ("navigation", "navigation_truth.csv"):
-            dst = case / name
+            dst = out / name
             if dst.is_dir():
                 shutil.rmtree(dst)
             elif dst.exists():
