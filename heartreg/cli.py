@@ -191,7 +191,7 @@ def _cmd_track(args) -> int:
 
     if args.speed is not None and not args.speed > 0:
         raise ValueError(f"--speed must be positive (1 = real time), got {args.speed}")
-    tracker, model, rate = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
+    tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
     if args.igtl_in is not None:
         host, _, port = args.igtl_in.rpartition(":")
         if not port.isdigit():

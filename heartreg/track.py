@@ -30,9 +30,9 @@ import signal
 import sys
 import tempfile
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -43,17 +43,17 @@ from registration.motion_model import Harmonics
 from registration.online import CausalPhases, PhaseFlag
 
 __all__ = [
-    "TrackError",
-    "StreamChunk",
-    "RateLimiter",
-    "IgtlSink",
-    "Tracker",
     "TRACK_COLUMNS",
-    "session_chunks",
+    "T_RAS_FROM_LPS",
+    "IgtlSink",
+    "RateLimiter",
+    "StreamChunk",
+    "TrackError",
+    "Tracker",
     "chunks_from_samples",
     "load_tracker",
     "run_track",
-    "T_RAS_FROM_LPS",
+    "session_chunks",
 ]
 
 #: LPS -> RAS (a rotation by 180 degrees about z: no change of handedness).

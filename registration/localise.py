@@ -30,8 +30,8 @@ hundred microseconds, ten thousand cost well under a second.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -40,7 +40,7 @@ from hrcore.errors import HeartregError
 from registration.icp import SurfaceIndex, closest_points
 from registration.motion_model import MotionModel, design_matrix
 
-__all__ = ["LocaliseError", "MapPositions", "Localiser", "registered_models"]
+__all__ = ["LocaliseError", "Localiser", "MapPositions", "registered_models"]
 
 #: Neighbours whose displacement is interpolated.
 N_NEIGHBOURS = 6

@@ -37,6 +37,7 @@ same stream in chunks of 1 or of 10 000 gives the same phases (tested).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -46,13 +47,13 @@ from scipy import signal
 from hrcore.errors import HeartregError
 
 __all__ = [
-    "StreamError",
-    "PhaseFlag",
     "CausalPhase",
-    "OnlineRPeakDetector",
-    "OnlineExpirationDetector",
     "CausalPhases",
+    "OnlineExpirationDetector",
+    "OnlineRPeakDetector",
     "PhaseChunk",
+    "PhaseFlag",
+    "StreamError",
 ]
 
 #: Band (Hz) of the causal QRS detection filter (Pan-Tompkins).
@@ -341,10 +342,8 @@ class OnlineExpirationDetector:
             ring.put(i, ti, qi)
             self._i = i + 1
             cur = self._cur
-            if qi < cur[0]:
-                cur[0] = qi
-            if qi > cur[1]:
-                cur[1] = qi
+            cur[0] = min(cur[0], qi)
+            cur[1] = max(cur[1], qi)
             cur[2] += 1
             if cur[2] >= self._block:
                 self._blocks.append((cur[0], cur[1]))
@@ -487,11 +486,11 @@ class CausalPhases:
             phase_c[k] = pc
             phase_r[k] = pr
             f = 0
-            if pc != pc:
+            if math.isnan(pc):
                 f |= PhaseFlag.NO_CARDIAC
             elif pred_c:
                 f |= PhaseFlag.CARDIAC_PREDICTED
-            if pr != pr:
+            if math.isnan(pr):
                 f |= PhaseFlag.NO_RESPIRATION
             elif pred_r:
                 f |= PhaseFlag.RESPIRATION_PREDICTED

@@ -45,23 +45,28 @@ from scipy.spatial.transform import Rotation
 from heartreg import __version__
 from heartreg.phantom.config import PhantomConfig
 from heartreg.phantom.heart import respiratory_waveform
-from heartreg.phantom.layout import T_fiducial_shift, T_patient_from_probe, fiducials_patient_mm, make_heart
+from heartreg.phantom.layout import (
+    T_fiducial_shift,
+    T_patient_from_probe,
+    fiducials_patient_mm,
+    make_heart,
+)
 from heartreg.phantom.session import (
+    _FMT_POS,
+    _ROW_FORMAT,
     FIDUCIAL_COLUMNS,
     FIDUCIAL_ORDER,
     POINT_COLUMNS,
     SESSION_FORMAT,
     SESSION_UNITS,
     SESSION_VERSION,
-    _FMT_POS,
-    _ROW_FORMAT,
-    _T_drift,
-    _T_tracker_from_patient,
     _add_noise,
     _drift_params,
     _format_rows,
     _pose_columns,
     _poses,
+    _T_drift,
+    _T_tracker_from_patient,
     reachable_patch,
 )
 from heartreg.phantom.signals import (
@@ -110,7 +115,7 @@ class NavigationTruth:
     image_phase_r: float
 
     @classmethod
-    def read(cls, out_dir, case_dir=None) -> "NavigationTruth":
+    def read(cls, out_dir, case_dir=None) -> NavigationTruth:
         """Read ``out_dir/navigation_truth.csv`` (and the image phases of the case's
         ``truth.json``; ``case_dir`` defaults to ``out_dir``)."""
         data = np.loadtxt(Path(out_dir) / "navigation_truth.csv", delimiter=",", skiprows=1, ndmin=2)
@@ -294,8 +299,7 @@ def _write(staging, config, truth, seed, duration_s, rest_s, speed_mm_s, pause_s
     f_probe = np.round(f_probe + noise.fiducial_touch_mm * rng.standard_normal(f_ct.shape), 4)
     with open(folder / "fiducials.csv", "w", newline="") as fh:
         fh.write(",".join(FIDUCIAL_COLUMNS) + "\n")
-        for k, row in enumerate(f_probe, start=1):
-            fh.write(f"{k:d}," + ",".join(_FMT_POS % x for x in row) + "\n")
+        fh.writelines(f"{k:d}," + ",".join(_FMT_POS % x for x in row) + "\n" for k, row in enumerate(f_probe, start=1))
     meta = {
         "format": SESSION_FORMAT,
         "version": SESSION_VERSION,

@@ -70,7 +70,7 @@ def nav(sample_case, tmp_path_factory):
 @pytest.fixture(scope="module")
 def loaded(nav):
     """The tracker parts (motion models re-fitted once); ``fresh()`` gives a new tracker."""
-    tracker, model, rate = load_tracker(nav["root"] / "model", nav["root"] / "registration", nav["case"] / "session")
+    tracker, _, rate = load_tracker(nav["root"] / "model", nav["root"] / "registration", nav["case"] / "session")
     return lambda: Tracker(tracker.localiser, rate, **tracker._priors)
 
 
