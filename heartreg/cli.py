@@ -22,6 +22,8 @@ EXIT_USAGE = 2
 def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
+    if args.navigation and args.no_session:
+        raise ValueError("--navigation needs the session: drop --no-session")
     overrides = {}
     if args.points is not None:
         overrides["n_points"] = args.points
@@ -41,6 +43,11 @@ def _cmd_phantom(args) -> int:
     print(f"  image phase      phi_C* = {truth['cardiac_phase']:.4f}, phi_R* = {truth['respiration_phase']:.2f}")
     if "session" in truth:
         print(f"  session points   {len(truth['session']['points'])} in {out / 'session'}")
+    if args.navigation:
+        from heartreg.phantom.navigation import write_navigation
+
+        nav = write_navigation(out)
+        print(f"  navigation       {nav.time_s.size} samples in {out / 'navigation'}, truth {out / 'navigation_truth.csv'}")
     print(f"  truth            {out / 'truth.json'}")
     return 0
 
@@ -303,6 +310,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--points", type=int, default=None, help="number of robot attachment points")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
+    p.add_argument("--navigation", action="store_true",
+                   help="also a 60 s navigation session (the robot crawling) and its truth, for heartreg track")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)

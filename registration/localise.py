@@ -31,6 +31,8 @@ hundred microseconds, ten thousand cost well under a second.
 from __future__ import annotations
 
 from collections.abc import Sequence
+import cmath
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,6 +137,9 @@ class Localiser:
         self._star_rot = star[3 * n:].reshape(n, 3)
         self.phase_c = float(phase_c)
         self.phase_r = float(phase_r)
+        S = self.surface
+        self._tri = [tuple(a) + tuple(b) + tuple(c) + tuple(d) for a, b, c, d in
+                     zip(S._a.tolist(), S._ab.tolist(), S._ac.tolist(), S._dots.tolist())]
 
     def _evaluate(self, phase_c, phase_r) -> np.ndarray:
         """(m, 6n): positions (3n, mm) and probe-frame rotation vectors (3n, rad)."""
@@ -178,7 +183,15 @@ class Localiser:
         Th = self.T_heart_from_probe
         static = T[:, :3, 3] @ Th[:3, :3].T + Th[:3, 3]
         idx = np.flatnonzero(ok)
-        if idx.size:
+        if idx.size == 1:  # a live sample: the same maths with less set-up per call
+            Tm = self._locate_one(T[idx[0]], float(pc[idx[0]]), float(pr[idx[0]]))
+            cp, normal = self._nearest_one(Tm[0][0, :3, 3])
+            out["T_heart_from_robot"][idx] = Tm[0]
+            out["position_mm"][idx] = Tm[0][:, :3, 3]
+            out["nearest_point_mm"][idx] = Tm[1]
+            out["surface_mm"][idx] = cp
+            out["distance_mm"][idx] = float(np.dot(Tm[0][0, :3, 3] - cp, normal))
+        elif idx.size:
             Tm = self._locate(T[idx], pc[idx], pr[idx])
             out["T_heart_from_robot"][idx] = Tm[0]
             out["position_mm"][idx] = Tm[0][:, :3, 3]
@@ -210,6 +223,84 @@ class Localiser:
             full = closest_points(s, q[unproven])
             cp[unproven], normals[unproven] = full.points, full.normals
         return cp, normals
+
+    def _design_one(self, phase_c: float, phase_r: float) -> np.ndarray:
+        """The regressor of one phase pair (as :func:`design_matrix`), in plain floats."""
+        h = self.harmonics
+        zc = cmath.exp(2j * math.pi * phase_c)
+        zr = cmath.exp(2j * math.pi * phase_r)
+        pc_ = [zc ** (i + 1) for i in range(max(h.cardiac, h.coupled_cardiac))]
+        pr_ = [zr ** (j + 1) for j in range(max(h.respiratory, h.coupled_respiratory))]
+        x = [1.0]
+        for z in pr_[: h.respiratory]:
+            x += (z.imag, z.real)
+        for z in pc_[: h.cardiac]:
+            x += (z.imag, z.real)
+        for i in range(h.coupled_cardiac):
+            for j in range(h.coupled_respiratory):
+                minus = pc_[i] * pr_[j].conjugate()
+                plus = pc_[i] * pr_[j]
+                x += (minus.imag, minus.real, plus.imag, plus.real)
+        return np.array(x)
+
+    def _locate_one(self, T, pc: float, pr: float):
+        """:meth:`_locate` for one sample."""
+        n, k = self.n_points, self.k
+        now = self._design_one(pc, pr) @ self._W + self._mean
+        pos = now[: 3 * n].reshape(n, 3)
+        p = T[:3, 3]
+        diff = pos - p
+        d2 = np.einsum("nj,nj->n", diff, diff)
+        near = np.argpartition(d2, k)[: k + 1]
+        near = near[np.argsort(d2[near])]
+        dn = d2[near]
+        w = (1.0 - dn[:k] / (dn[k] * 1.0001 + 1e-9)) ** 2
+        nb = near[:k]
+        basis = np.ones((k, 4))
+        basis[:, 1:] = diff[nb]
+        wb = basis * w[:, None]
+        A = wb.T @ basis
+        ridge = self.ridge_mm2 * w.sum()
+        A[1, 1] += ridge
+        A[2, 2] += ridge
+        A[3, 3] += ridge
+        shift = np.linalg.solve(A, wb.T @ (self._star_pos[nb] - pos[nb]))[0]
+        dw = (w / w.sum()) @ (self._star_rot[nb] - now[3 * n:].reshape(n, 3)[nb])
+        out = np.eye(4)
+        out[:3, :3] = _rodrigues(dw) @ T[:3, :3]
+        out[:3, 3] = p + shift
+        return (self.T_heart_from_probe @ out)[None], np.array([math.sqrt(dn[0])])
+
+    def _nearest_one(self, q):
+        """Exact closest surface point and face normal of one point, plain floats.
+
+        Faces are tried in order of their search site's distance until no
+        unseen face can be closer (the bound of :mod:`registration.icp`); if
+        the 32 nearest sites do not prove it, :func:`closest_points` does.
+        """
+        s = self.surface
+        kc = int(min(32, s._site_face.shape[0]))
+        dist_s, idx = s.tree.query(q, k=kc)
+        faces = s._site_face[idx].tolist()
+        dist_s = dist_s.tolist()
+        r = s.site_radius_mm
+        qx, qy, qz = q.tolist()
+        best_d2, best_f, best_p = math.inf, -1, None
+        seen = set()
+        for ds, f in zip(dist_s, faces):
+            if best_f >= 0 and ds - r > math.sqrt(best_d2):
+                break  # every face not tried yet is farther than the best
+            if f in seen:
+                continue
+            seen.add(f)
+            d2, cp = _point_triangle(qx, qy, qz, self._tri[f])
+            if d2 < best_d2:
+                best_d2, best_f, best_p = d2, f, cp
+        best = math.sqrt(best_d2)
+        if kc < s._site_face.shape[0] and best > dist_s[-1] - r:
+            full = closest_points(s, q[None])
+            return full.points[0], full.normals[0]
+        return np.array(best_p), s.normals[best_f]
 
     def _locate(self, T, pc, pr):
         m, n, k = T.shape[0], self.n_points, self.k
@@ -245,6 +336,54 @@ class Localiser:
         out[:, 3, 3] = 1.0
         Th = self.T_heart_from_probe
         return Th @ out, np.sqrt(dn[:, 0])
+
+
+def _rodrigues(w) -> np.ndarray:
+    """Rotation matrix of a rotation vector (rad), (3, 3)."""
+    x, y, z = (float(v) for v in w)
+    t = math.sqrt(x * x + y * y + z * z)
+    if t < 1e-12:
+        return np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
+    c, s, k = math.cos(t), math.sin(t) / t, (1.0 - math.cos(t)) / (t * t)
+    return np.array([
+        [c + k * x * x, k * x * y - s * z, k * x * z + s * y],
+        [k * x * y + s * z, c + k * y * y, k * y * z - s * x],
+        [k * x * z - s * y, k * y * z + s * x, c + k * z * z],
+    ])
+
+
+def _point_triangle(px, py, pz, tri):
+    """Squared distance and closest point of p on a triangle (Ericson, Real-Time
+    Collision Detection, 5.1.5), plain floats; ``tri`` = a, ab, ac, (ab.ab, ab.ac, ac.ac)."""
+    ax, ay, az, bx, by, bz, cx, cy, cz, ab_ab, ab_ac, ac_ac = tri
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = bx * apx + by * apy + bz * apz
+    d2 = cx * apx + cy * apy + cz * apz
+    if d1 <= 0 and d2 <= 0:
+        v = w = 0.0
+    else:
+        d3, d4 = d1 - ab_ab, d2 - ab_ac
+        d5, d6 = d1 - ab_ac, d2 - ac_ac
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d3 >= 0 and d4 <= d3:
+            v, w = 1.0, 0.0
+        elif vc <= 0 and d1 >= 0 and d3 <= 0:
+            v, w = d1 / (d1 - d3), 0.0
+        elif d6 >= 0 and d5 <= d6:
+            v, w = 0.0, 1.0
+        elif vb <= 0 and d2 >= 0 and d6 <= 0:
+            v, w = 0.0, d2 / (d2 - d6)
+        elif va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            v = 1.0 - w
+        else:
+            den = va + vb + vc
+            v, w = vb / den, vc / den
+    qx, qy, qz = ax + v * bx + w * cx, ay + v * by + w * cy, az + v * bz + w * cz
+    dx, dy, dz = px - qx, py - qy, pz - qz
+    return dx * dx + dy * dy + dz * dz, (qx, qy, qz)
 
 
 def registered_models(session, point_ids, *, harmonics, coverage_bins: int = 10) -> list[MotionModel]:

@@ -44,6 +44,7 @@ from scipy.spatial.transform import Rotation
 
 from heartreg import __version__
 from heartreg.phantom.config import PhantomConfig
+from heartreg.phantom.generate import PhantomError
 from heartreg.phantom.heart import respiratory_waveform
 from heartreg.phantom.layout import (
     T_fiducial_shift,
@@ -203,14 +204,14 @@ def write_navigation(
     try:
         truth = json.loads((case / "truth.json").read_text())
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{case}: no readable truth.json of a phantom case ({exc}); run heartreg phantom first") from None
+        raise PhantomError(f"{case}: no readable truth.json of a phantom case ({exc}); run heartreg phantom first") from None
     if "session" not in truth:
-        raise ValueError(f"{case}: the phantom case has no session (made with --no-session); navigation needs it")
+        raise PhantomError(f"{case}: the phantom case has no session (made with --no-session); navigation needs it")
     for name, value in (("duration_s", duration_s), ("speed_mm_s", speed_mm_s)):
         if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be positive, got {value!r}")
+            raise PhantomError(f"{name} must be positive, got {value!r}")
     if not (0 <= rest_s < duration_s) or pause_s < 0:
-        raise ValueError(f"rest_s must be in [0, duration_s) and pause_s >= 0, got {rest_s!r}, {pause_s!r}")
+        raise PhantomError(f"rest_s must be in [0, duration_s) and pause_s >= 0, got {rest_s!r}, {pause_s!r}")
     cfg = dict(truth["config"])
     from heartreg.phantom.config import HeartMotion, HeartShape, NoiseModel
 

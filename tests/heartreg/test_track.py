@@ -281,3 +281,9 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
     with pytest.raises(ValueError, match="sample times must increase"):
         CausalPhases(100.0).update([1.0, 1.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
     assert not (tmp_path / "x.csv").exists()
+    from heartreg.phantom import PhantomError
+
+    with pytest.raises(PhantomError, match="no readable truth.json"):
+        write_navigation(tmp_path)
+    with pytest.raises(PhantomError, match="speed_mm_s must be positive"):
+        write_navigation(nav["case"], out_dir=tmp_path, speed_mm_s=0.0)
