@@ -66,7 +66,7 @@ def _load(case: str):
     from heartreg.track import load_tracker
     from registration.session import read_session
 
-    tracker, model, rate = load_tracker(Path(case) / "model", Path(case) / "registration", Path(case) / "session")
+    tracker, model, _ = load_tracker(Path(case) / "model", Path(case) / "registration", Path(case) / "session")
     return tracker, model, read_session(Path(case) / "navigation")
 
 

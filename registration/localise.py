@@ -24,15 +24,16 @@ AM Fourier models, section 2.2.5), so it is interpolated around the robot:
    heart frame, and the nearest point of the surface and the signed distance
    to it are found (exactly, :func:`registration.icp.closest_points`).
 
-Everything is vectorised over a batch of samples: one sample costs a few
-hundred microseconds, ten thousand cost well under a second.
+Everything is vectorised over a batch of samples (a replay); a single live
+sample takes a leaner path with the same maths (plain-float regressor and
+closest-point search), so that its cost is a few dozen numpy calls.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 import cmath
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -197,32 +198,10 @@ class Localiser:
             out["position_mm"][idx] = Tm[0][:, :3, 3]
             out["nearest_point_mm"][idx] = Tm[1]
             q = Tm[0][:, :3, 3]
-            cp, normals = self._nearest_on_surface(q)
-            out["surface_mm"][idx] = cp
-            out["distance_mm"][idx] = np.einsum("ij,ij->i", q - cp, normals)
+            cp = closest_points(self.surface, q, k=8)
+            out["surface_mm"][idx] = cp.points
+            out["distance_mm"][idx] = np.einsum("ij,ij->i", q - cp.points, cp.normals)
         return MapPositions(static_mm=static, **out)
-
-    def _nearest_on_surface(self, q):
-        """Exact closest surface points and their face normals, (m, 3) each.
-
-        The faces of the 32 nearest search sites are tried first (one thread,
-        no set-up: a live sample costs tens of microseconds); where that does
-        not prove the answer (see :mod:`registration.icp`),
-        :func:`~registration.icp.closest_points` searches further.
-        """
-        from registration.icp import _best_among
-
-        s = self.surface
-        kc = int(min(32, s._site_face.shape[0]))
-        dist_s, idx = s.tree.query(q, k=kc)
-        dist_s, idx = dist_s.reshape(-1, kc), idx.reshape(-1, kc)
-        cp, d, face = _best_among(s, q, s._site_face[idx])
-        normals = s.normals[face]
-        unproven = np.flatnonzero(d > dist_s[:, -1] - s.site_radius_mm) if kc < s._site_face.shape[0] else []
-        if len(unproven):
-            full = closest_points(s, q[unproven])
-            cp[unproven], normals[unproven] = full.points, full.normals
-        return cp, normals
 
     def _design_one(self, phase_c: float, phase_r: float) -> np.ndarray:
         """The regressor of one phase pair (as :func:`design_matrix`), in plain floats."""

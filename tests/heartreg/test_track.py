@@ -254,6 +254,14 @@ def test_rate_limiter_and_ctrl_c(nav, loaded, tmp_path):
     passed = sum(limiter.allow() for _ in range(1000))
     assert passed == 100 and limiter.dropped == 900
 
+    # pacing: a replay at 10x real time never runs ahead of the stream's clock
+    import itertools
+
+    paced = itertools.islice(session_chunks(read_session(nav["root"] / "navigation"), chunk=1), 200)
+    summary = run_track(loaded(), paced, tmp_path / "paced.csv", speed=10.0)
+    assert summary.n_samples == 200 and summary.wall_s >= 199 * 0.01 / 10.0
+    (tmp_path / "paced.csv").unlink()
+
     tracker = loaded()
 
     def interrupted():
