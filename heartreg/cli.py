@@ -24,6 +24,8 @@ EXIT_USAGE = 2
 def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
+    if args.navigation and args.no_session:
+        raise ValueError("--navigation needs the session: drop --no-session")
     overrides = {}
     if args.points is not None:
         overrides["n_points"] = args.points
@@ -46,6 +48,11 @@ def _cmd_phantom(args) -> int:
         print(f"  session points   {len(truth['session']['points'])} in {out / 'session'}")
         if args.plus:
             print(f"  PLUS session     {out / 'session_plus'} (poses in tracking.seq.mha)")
+    if args.navigation:
+        from heartreg.phantom.navigation import write_navigation
+
+        nav = write_navigation(out)
+        print(f"  navigation       {nav.time_s.size} samples in {out / 'navigation'}, truth {out / 'navigation_truth.csv'}")
     print(f"  truth            {out / 'truth.json'}")
     return 0
 
@@ -247,6 +254,42 @@ def _cmd_register(args) -> int:
     return 0
 
 
+def _cmd_track(args) -> int:
+    from registration.session import read_session
+
+    from heartreg.track import igtl_client_chunks, load_tracker, print_summary, run_track, session_chunks
+
+    if args.speed is not None and not args.speed > 0:
+        raise ValueError(f"--speed must be positive (1 = real time), got {args.speed}")
+    tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
+    if args.igtl_in is not None:
+        host, _, port = args.igtl_in.rpartition(":")
+        if not port.isdigit():
+            raise ValueError(f"--igtl-in must be HOST:PORT, got {args.igtl_in!r}")
+        chunks = igtl_client_chunks(host or "127.0.0.1", int(port), idle_timeout_s=args.idle_timeout)
+        speed = None  # a live stream paces itself
+    else:
+        replay = read_session(args.replay if args.replay is not None else args.session_dir)
+        chunks = session_chunks(replay, chunk=1 if args.speed is not None else 2000)
+        speed = args.speed
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(desc="track", unit="sample", leave=False)
+    try:
+        summary = run_track(
+            tracker, chunks, args.log, model=model, speed=speed, igtl_port=args.igtl_port,
+            igtl_rate_hz=args.igtl_rate if args.igtl_rate > 0 else None, wait_client_s=args.wait_client,
+            progress=None if bar is None else (lambda rows: bar.update(len(rows.time_s))),
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+    print_summary(summary, args.log)
+    return 130 if summary.interrupted else 0
+
+
 def _cmd_pipeline(args) -> int:
     from heartreg.pipeline import run_pipeline
 
@@ -363,6 +406,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
     p.add_argument("--plus", action="store_true",
                    help="also write the session with its poses in a PLUS sequence file (session_plus/)")
+    p.add_argument("--navigation", action="store_true",
+                   help="also a 60 s navigation session (the robot crawling) and its truth, for heartreg track")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)
@@ -421,6 +466,28 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_register)
+
+    p = sub.add_parser("track", help="the robot on the map, live: causal phases, CSV log, OpenIGTLink to Slicer")
+    p.add_argument("model_dir", type=Path, help="heart model folder (heartreg model)")
+    p.add_argument("registration_dir", type=Path, help="registration folder (heartreg register)")
+    p.add_argument("session_dir", type=Path,
+                   help="the session the registration was made from (its records give the motion models)")
+    p.add_argument("--replay", type=Path, default=None,
+                   help="session folder to replay as the pose stream (default SESSION_DIR)")
+    p.add_argument("--igtl-in", default=None, metavar="HOST:PORT",
+                   help="take the stream from an OpenIGTLink server instead (docs/formats.md)")
+    p.add_argument("--idle-timeout", type=float, default=5.0, help="--igtl-in: end after this many idle seconds")
+    p.add_argument("--speed", type=float, default=None,
+                   help="replay pacing: 1 = real time, 2 = twice as fast (default: as fast as possible)")
+    p.add_argument("--log", type=Path, required=True, help="CSV log to write (one row per sample)")
+    p.add_argument("--igtl-port", type=int, default=None,
+                   help="serve OpenIGTLink to Slicer on this port (18944 is Slicer's default; 0: any free)")
+    p.add_argument("--igtl-rate", type=float, default=100.0,
+                   help="most samples per second sent over OpenIGTLink (0: all)")
+    p.add_argument("--wait-client", type=float, default=0.0,
+                   help="seconds to wait for an OpenIGTLink client before the stream starts")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_track)
 
     p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (phantom cases reused)")

@@ -1,0 +1,684 @@
+"""``heartreg track``: the robot on the map, live, streamed to 3D Slicer.
+
+From a heart model, a registration and the session it was made from (whose
+records give the registered points' motion models), consume a pose stream
+with its ECG and airflow and, for every sample, say where the robot is on the
+static map (:mod:`registration.online` for the causal phases,
+:mod:`registration.localise` for the mapping).  Outputs:
+
+- a CSV log, one row per sample (``docs/formats.md``, *Track log*), written
+  under a temporary name and renamed when the stream ends or is interrupted;
+- over OpenIGTLink (pyigtl, as a server Slicer's OpenIGTLinkIF connects to):
+  the model once per connection as ``POLYDATA`` ``HeartModel``, then per
+  sample a ``TRANSFORM`` ``RobotToRAS`` and a ``STRING`` ``RobotStatus``
+  (phases, quality), in Slicer's RAS scene (the CT's patient frame, LPS
+  turned to RAS), rate-limited: samples beyond ``igtl_rate_hz`` are dropped
+  from the stream quietly (counted, and marked in the log's ``sent`` column).
+
+Pose sources are iterables of :class:`StreamChunk` (arrays of samples):
+:func:`session_chunks` replays a session folder; a PLUS sequence reader or an
+OpenIGTLink receiver plugs in the same way (:func:`chunks_from_samples`
+groups ``(time, T_tracker_from_robot, T_tracker_from_probe, status, ecg,
+flow_insp, flow_exp)`` samples).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import tempfile
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hrcore.errors import HeartregError
+from registration.localise import FAR_MM, Localiser, registered_models
+from registration.motion_model import Harmonics
+from registration.online import CausalPhases, PhaseFlag
+
+__all__ = [
+    "TRACK_COLUMNS",
+    "T_RAS_FROM_LPS",
+    "IgtlSink",
+    "RateLimiter",
+    "StreamChunk",
+    "TrackError",
+    "Tracker",
+    "chunks_from_samples",
+    "load_tracker",
+    "run_track",
+    "session_chunks",
+]
+
+#: LPS -> RAS (a rotation by 180 degrees about z: no change of handedness).
+T_RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+#: |distance| to the surface (mm) above which a sample is flagged off_surface.
+OFF_SURFACE_MM = 5.0
+#: a gap between samples longer than this many sample intervals restarts the phases.
+GAP_SAMPLES = 10
+DEVICE_MODEL, DEVICE_TRANSFORM, DEVICE_STATUS = "HeartModel", "RobotToRAS", "RobotStatus"
+TRACK_COLUMNS = (
+    "time_s", "phase_c", "phase_r", "quality", "flags",
+    "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
+    "surface_x_mm", "surface_y_mm", "surface_z_mm", "distance_mm", "nearest_point_mm",
+    "static_x_mm", "static_y_mm", "static_z_mm", "sent",
+)  # fmt: skip
+
+
+class TrackError(HeartregError, ValueError):
+    """Inputs of ``heartreg track`` that cannot be used (named in the message)."""
+
+
+@dataclass(frozen=True, eq=False)
+class StreamChunk:
+    """A run of stream samples.
+
+    Attributes
+    ----------
+    time_s : (m,) float64, s
+    T_tracker_from_robot, T_tracker_from_probe : (m, 4, 4) float64, mm
+    ecg_mv, flow_insp_lpm, flow_exp_lpm : (m,) float64, mV and L/min
+    status : (m,) bool
+        The tracker saw both sensors (PLUS ``TransformStatus`` OK).
+    """
+
+    time_s: np.ndarray
+    T_tracker_from_robot: np.ndarray
+    T_tracker_from_probe: np.ndarray
+    ecg_mv: np.ndarray
+    flow_insp_lpm: np.ndarray
+    flow_exp_lpm: np.ndarray
+    status: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+def session_chunks(session, *, chunk: int = 1000) -> Iterator[StreamChunk]:
+    """Replay a session's records in order, ``chunk`` samples at a time.
+
+    The session reader keeps ``T_probe_from_robot``; it is given as
+    ``T_tracker_from_robot`` with an identity probe, which is the same pose
+    relative to the probe.
+    """
+    for record in session.points:
+        n = record.n_samples
+        for lo in range(0, n, chunk):
+            sl = slice(lo, min(n, lo + chunk))
+            m = sl.stop - sl.start
+            yield StreamChunk(
+                time_s=record.time_s[sl], T_tracker_from_robot=record.T_probe_from_robot[sl],
+                T_tracker_from_probe=np.broadcast_to(np.eye(4), (m, 4, 4)),
+                ecg_mv=record.ecg_mv[sl], flow_insp_lpm=record.flow_insp_lpm[sl],
+                flow_exp_lpm=record.flow_exp_lpm[sl], status=np.ones(m, dtype=bool),
+            )
+
+
+def chunks_from_samples(samples: Iterable, *, chunk: int = 1) -> Iterator[StreamChunk]:
+    """Group samples ``(time_s, T_tracker_from_robot, T_tracker_from_probe, status,
+    ecg_mv, flow_insp_lpm, flow_exp_lpm)`` (e.g. from a PLUS sequence or an
+    OpenIGTLink receiver) into chunks of ``chunk``."""
+    buf: list = []
+    for s in samples:
+        buf.append(s)
+        if len(buf) >= chunk:
+            yield _stack(buf)
+            buf = []
+    if buf:
+        yield _stack(buf)
+
+
+def _stack(buf) -> StreamChunk:
+    t, Tr, Tp, st, ecg, fi, fe = zip(*buf)
+    return StreamChunk(np.array(t, float), np.array(Tr, float), np.array(Tp, float), np.array(ecg, float),
+                       np.array(fi, float), np.array(fe, float), np.array(st, bool))
+
+
+class RateLimiter:
+    """At most ``max_hz`` events per second of the given clock; the rest are
+    dropped quietly and counted (``dropped``)."""
+
+    def __init__(self, max_hz: float | None, *, clock=time.monotonic):
+        if max_hz is not None and not max_hz > 0:
+            raise ValueError(f"max_hz must be positive or None, got {max_hz!r}")
+        self._interval = 0.0 if max_hz is None else 1.0 / float(max_hz)
+        self._clock = clock
+        self._next = -np.inf
+        self.passed = 0
+        self.dropped = 0
+
+    def allow(self) -> bool:
+        now = self._clock()
+        if now >= self._next:
+            # the budget follows the clock; a late event does not earn a burst
+            self._next = max(self._next + self._interval, now) if np.isfinite(self._next) else now + self._interval
+            self.passed += 1
+            return True
+        self.dropped += 1
+        return False
+
+
+class IgtlSink:
+    """An OpenIGTLink server (pyigtl) that Slicer's OpenIGTLinkIF connects to.
+
+    pyigtl 0.3 has a ``PolyDataMessage`` that packs points and polygons
+    (it cannot unpack one: a pyigtl *client* drops POLYDATA messages, see
+    :func:`unpack_polydata`).  The model goes once per (re)connection.
+
+    Parameters
+    ----------
+    port : int
+        TCP port; 0 picks a free one (``port`` tells which).
+    vertices_ras : (V, 3) float, mm
+    faces : (F, 3) int
+    """
+
+    def __init__(self, port: int, vertices_ras, faces):
+        import pyigtl
+
+        self._pyigtl = pyigtl
+        previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            self._server = pyigtl.OpenIGTLinkServer(port=int(port), local_server=True)
+        except OSError as exc:
+            raise TrackError(f"--igtl-port {port}: cannot listen ({exc}); choose another port") from None
+        finally:
+            for s, h in previous.items():  # pyigtl installs its own; Ctrl-C stays ours
+                if signal.getsignal(s) is not h:
+                    signal.signal(s, h)
+        self.port = int(self._server.server_address[1])
+        faces = np.asarray(faces, dtype=np.uint32)
+        polys = np.concatenate([np.full((faces.shape[0], 1), 3, np.uint32), faces], axis=1).ravel()
+        self._model = pyigtl.PolyDataMessage(points=np.asarray(vertices_ras, dtype=np.float32),
+                                             polygons=polys, device_name=DEVICE_MODEL)
+        self._was_connected = False
+        self.models_sent = 0
+
+    @property
+    def connected(self) -> bool:
+        return bool(self._server.is_connected())
+
+    def wait_for_client(self, timeout_s: float) -> bool:
+        end = time.monotonic() + timeout_s
+        while not self.connected and time.monotonic() < end:
+            time.sleep(0.005)
+        return self.connected
+
+    def poll(self) -> bool:
+        """Send the model on a new connection; True while a client is connected."""
+        now = self.connected
+        if now and not self._was_connected:
+            self._server.send_message(self._model, wait=False)
+            self.models_sent += 1
+        self._was_connected = now
+        return now
+
+    def send(self, time_s: float, T_ras_from_robot, text: str) -> None:
+        """Queue one sample's TRANSFORM and STRING (timestamp: the sample time).
+
+        pyigtl's queue holds 100 messages and drops the oldest beyond; when it
+        is 80 % full this waits (at most 0.5 s) for it to drain instead.
+        """
+        pyigtl = self._pyigtl
+        server = self._server
+        if len(server.outgoing_messages) > 80:
+            end = time.monotonic() + 0.5
+            while len(server.outgoing_messages) > 20 and time.monotonic() < end and self.connected:
+                time.sleep(0.0005)
+        self._server.send_message(pyigtl.TransformMessage(T_ras_from_robot, timestamp=time_s,
+                                                          device_name=DEVICE_TRANSFORM), wait=False)
+        self._server.send_message(pyigtl.StringMessage(text, timestamp=time_s, device_name=DEVICE_STATUS),
+                                  wait=False)
+
+    def flush(self, timeout_s: float = 2.0) -> None:
+        """Wait (bounded) until the queued messages have gone out."""
+        end = time.monotonic() + timeout_s
+        while self.connected and time.monotonic() < end:
+            with self._server.lock_outgoing_messages:
+                if not self._server.outgoing_messages:
+                    return
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self._server.communication_thread_stop_requested = True
+        self._server.shutdown()
+        self._server.server_close()
+
+
+def unpack_polydata(content: bytes):
+    """Points (V, 3) float32 and triangles (F, 3) of a POLYDATA body (no attributes).
+
+    pyigtl 0.3 cannot unpack POLYDATA; this reads what :class:`IgtlSink` sends
+    (OpenIGTLink v2 POLYDATA: ten uint32 counts, float32 points, uint32 cells).
+    """
+    head = np.frombuffer(content[:40], dtype=">u4")
+    n_points = int(head[0])
+    sizes = head[[2, 4, 6, 8]]
+    off = 40
+    points = np.frombuffer(content[off:off + 12 * n_points], dtype=">f4").reshape(-1, 3)
+    off += 12 * n_points + int(sizes[0]) + int(sizes[1])
+    polys = np.frombuffer(content[off:off + int(sizes[2])], dtype=">u4").reshape(-1, 4)
+    if np.any(polys[:, 0] != 3):
+        raise ValueError("POLYDATA polygons are not all triangles")
+    return points.astype(np.float32), polys[:, 1:].astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class TrackRows:
+    """The outputs of a chunk (see :data:`TRACK_COLUMNS`)."""
+
+    time_s: np.ndarray
+    phase_c: np.ndarray
+    phase_r: np.ndarray
+    quality: tuple
+    flags: np.ndarray
+    T_heart_from_robot: np.ndarray
+    surface_mm: np.ndarray
+    distance_mm: np.ndarray
+    nearest_point_mm: np.ndarray
+    static_mm: np.ndarray
+
+
+def _quality(flags: int, distance: float, nearest: float, status: bool) -> str:
+    if not status:
+        return "tracker"
+    if flags & (PhaseFlag.NO_CARDIAC | PhaseFlag.NO_RESPIRATION):
+        return "no_phase"
+    if abs(distance) > OFF_SURFACE_MM:
+        return "off_surface"
+    if nearest > FAR_MM:
+        return "far"
+    if flags & (PhaseFlag.CARDIAC_PREDICTED | PhaseFlag.RESPIRATION_PREDICTED):
+        return "predicted"
+    return "ok"
+
+
+class Tracker:
+    """Causal phases + localisation of a stream (no I/O).
+
+    Parameters
+    ----------
+    localiser : Localiser
+    rate_hz : float, Hz
+        The stream's sample rate.
+    rr_prior_s, breath_prior_s : float, s, optional
+        Periods assumed before two events are seen.
+    """
+
+    def __init__(self, localiser: Localiser, rate_hz: float, *, rr_prior_s=None, breath_prior_s=None):
+        self.localiser = localiser
+        self.rate_hz = float(rate_hz)
+        self._priors = dict(rr_prior_s=rr_prior_s, breath_prior_s=breath_prior_s)
+        self.phases = CausalPhases(self.rate_hz, **self._priors)
+        self._last_t = -np.inf
+        self.r_peaks: list[tuple[float, float]] = []
+        self.onsets: list[tuple[float, float]] = []
+
+    def process(self, chunk: StreamChunk) -> TrackRows:
+        """Phases and map positions of every sample of ``chunk``."""
+        t = chunk.time_s
+        if len(chunk) and t[0] - self._last_t > GAP_SAMPLES / self.rate_hz and np.isfinite(self._last_t):
+            self.phases = CausalPhases(self.rate_hz, **self._priors)  # a gap: the signals restart
+        if len(chunk):
+            self._last_t = float(t[-1])
+        ph = self.phases.update(t, chunk.ecg_mv, chunk.flow_insp_lpm, chunk.flow_exp_lpm)
+        self.r_peaks.extend(ph.r_peaks)
+        self.onsets.extend(ph.onsets)
+        Tp = chunk.T_tracker_from_probe
+        Rt = np.swapaxes(Tp[:, :3, :3], 1, 2)
+        T_probe_from_robot = np.zeros_like(chunk.T_tracker_from_robot)
+        T_probe_from_robot[:, :3, :3] = Rt @ chunk.T_tracker_from_robot[:, :3, :3]
+        T_probe_from_robot[:, :3, 3] = np.einsum("mij,mj->mi", Rt, chunk.T_tracker_from_robot[:, :3, 3] - Tp[:, :3, 3])
+        T_probe_from_robot[:, 3, 3] = 1.0
+        pc = np.where(chunk.status, ph.phase_c, np.nan)
+        mp = self.localiser.locate(T_probe_from_robot, pc, ph.phase_r)
+        quality = tuple(
+            _quality(int(f), float(d), float(nn), bool(s))
+            for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, chunk.status)
+        )
+        return TrackRows(t, ph.phase_c, ph.phase_r, quality, ph.flags, mp.T_heart_from_robot, mp.surface_mm,
+                         mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
+
+
+def _read_registration(reg_dir) -> dict:
+    path = Path(reg_dir) / "registration.json"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise TrackError(f"{path} not found: give the output folder of heartreg register") from None
+    except (OSError, ValueError) as exc:
+        raise TrackError(f"{path}: not readable JSON ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != "heartreg-registration":
+        raise TrackError(f"{path}: not a heartreg registration (format {data.get('format')!r})")
+    try:
+        return {
+            "T_heart_from_probe": np.array(data["T_heart_from_probe"], dtype=float).reshape(4, 4),
+            "phase_c": float(data["cardiac_phase"]),
+            "phase_r": float(data["respiration_phase"]),
+            "point_ids": [int(i) for i in data["point_ids"]],
+            "harmonics": Harmonics(**data["parameters"]["harmonics"]),
+            "coverage_bins": int(data["parameters"].get("coverage_bins", 10)),
+            "fits": {int(f["point_id"]): f for f in data["point_fits"]},
+        }
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TrackError(f"{path}: missing or bad field ({exc}); re-run heartreg register") from None
+
+
+def load_tracker(model_dir, registration_dir, session_dir):
+    """(Tracker, HeartModel, sample rate) for a model, a registration and its session.
+
+    The registered points' motion models are fitted again from the session and
+    checked against the registration's fit residuals, so a session other than
+    the registration's is refused.
+    """
+    from modeling.model import read_model
+    from registration.icp import SurfaceIndex
+    from registration.session import read_session
+
+    model = read_model(model_dir)
+    reg = _read_registration(registration_dir)
+    session = read_session(session_dir)
+    models = registered_models(session, reg["point_ids"], harmonics=reg["harmonics"],
+                               coverage_bins=reg["coverage_bins"])
+    for pid, m in zip(reg["point_ids"], models):
+        want = float(reg["fits"][pid]["residual_rms_3d_mm"])
+        if not np.isclose(m.residual_rms_3d_mm, want, rtol=1e-6, atol=1e-9):
+            raise TrackError(
+                f"{session_dir}: point {pid} fits with residual {m.residual_rms_3d_mm:.6f} mm, the "
+                f"registration's was {want:.6f} mm: give the session the registration was made from"
+            )
+    localiser = Localiser(models, reg["T_heart_from_probe"], reg["phase_c"], reg["phase_r"],
+                          SurfaceIndex(model.mesh.vertices, model.mesh.faces))
+    fits = list(reg["fits"].values())
+    rr = 1.0 / float(np.mean([f["heart_rate_hz"] for f in fits]))
+    br = 1.0 / float(np.mean([f["resp_rate_hz"] for f in fits]))
+    return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
+
+
+def _status_text(rows: TrackRows, i: int) -> str:
+    p = rows.T_heart_from_robot[i, :3, 3]
+    return json.dumps({
+        "time_s": round(float(rows.time_s[i]), 4),
+        "phase_c": None if np.isnan(rows.phase_c[i]) else round(float(rows.phase_c[i]), 4),
+        "phase_r": None if np.isnan(rows.phase_r[i]) else round(float(rows.phase_r[i]), 4),
+        "quality": rows.quality[i],
+        "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
+        "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],
+    }, separators=(",", ":"))
+
+
+_ROW_FMT = ",".join(
+    ["%.3f", "%.4f", "%.4f", "%s", "%d"] + ["%.4f"] * 3 + ["%.6f"] * 4 + ["%.4f"] * 4 + ["%.3f"]
+    + ["%.4f"] * 3 + ["%d"]
+) + "\n"
+
+
+def _csv_lines(rows: TrackRows, sent: np.ndarray) -> str:
+    """The log rows of a chunk (``nan`` where a value is undefined)."""
+    T = rows.T_heart_from_robot
+    m = T.shape[0]
+    ok = np.isfinite(T[:, 0, 0])
+    q = np.full((m, 4), np.nan)
+    if ok.any():
+        q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
+    cols = [rows.time_s, rows.phase_c, rows.phase_r, rows.quality, rows.flags,
+            *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
+            *rows.static_mm.T, sent.astype(int)]
+    cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]
+    fmt = _ROW_FMT
+    return "".join([fmt % r for r in zip(*cols)])
+
+
+@dataclass(frozen=True)
+class TrackSummary:
+    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency."""
+
+    n_samples: int
+    n_placed: int
+    n_sent: int
+    n_dropped: int
+    models_sent: int
+    wall_s: float
+    r_peak_latency_ms: tuple
+    interrupted: bool
+
+
+def run_track(
+    tracker: Tracker,
+    chunks: Iterable[StreamChunk],
+    csv_path,
+    *,
+    model=None,
+    speed: float | None = None,
+    igtl_port: int | None = None,
+    igtl_rate_hz: float | None = 100.0,
+    wait_client_s: float = 0.0,
+    sink: IgtlSink | None = None,
+    progress=None,
+) -> TrackSummary:
+    """Run a stream through the tracker to the CSV log and OpenIGTLink.
+
+    Parameters
+    ----------
+    tracker : Tracker
+    chunks : iterable of StreamChunk
+    csv_path : path
+        The log; written as ``.name-XXXX`` beside it and renamed at the end
+        (also after Ctrl-C: the log then holds every sample processed).
+    model : HeartModel, optional
+        Needed for OpenIGTLink (the POLYDATA).
+    speed : float, optional
+        Replay pacing: 1.0 real time (each sample processed at its time), 2.0
+        twice as fast, None as fast as possible.
+    igtl_port : int, optional
+        Serve OpenIGTLink on this port (0: a free one); None: no streaming.
+    igtl_rate_hz : float, optional
+        Most samples per second sent (None: all).
+    wait_client_s : float, s
+        Wait this long for a client before the stream starts.
+    sink : IgtlSink, optional
+        An open sink to use instead of ``igtl_port`` (left open).
+    progress : callable, optional
+        Called with each :class:`TrackRows` (e.g. a progress bar).
+
+    Returns
+    -------
+    TrackSummary
+    """
+    csv_path = Path(csv_path)
+    if csv_path.exists() and csv_path.is_dir():
+        raise TrackError(f"--log {csv_path} is a folder; give a file name")
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    own_sink = False
+    if sink is None and igtl_port is not None:
+        if model is None:
+            raise TrackError("OpenIGTLink needs the model (its POLYDATA)")
+        mesh = model.mesh
+        T = T_RAS_FROM_LPS @ model.T_patient_from_heart
+        sink = IgtlSink(igtl_port, mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.faces)
+        own_sink = True
+    T_ras_from_heart = None if model is None else T_RAS_FROM_LPS @ model.T_patient_from_heart
+    if sink is not None and T_ras_from_heart is None:
+        raise TrackError("OpenIGTLink needs the model (its frame)")
+    limiter = RateLimiter(igtl_rate_hz)
+    fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.stem}-", suffix=".csv", dir=csv_path.parent)
+    n = placed = sent_total = 0
+    interrupted = False
+    t_wall0 = time.perf_counter()
+    try:
+        with os.fdopen(fd, "w", newline="") as fh:
+            fh.write(",".join(TRACK_COLUMNS) + "\n")
+            if sink is not None and wait_client_s > 0:
+                sink.wait_for_client(wait_client_s)
+            t_stream0 = None
+            try:
+                for chunk in chunks:
+                    if speed is not None and len(chunk):
+                        if t_stream0 is None:
+                            t_stream0, t_real0 = float(chunk.time_s[0]), time.monotonic()
+                        rows_list = []
+                        for k in range(len(chunk)):  # each sample at its own time
+                            due = t_real0 + (float(chunk.time_s[k]) - t_stream0) / speed
+                            delay = due - time.monotonic()
+                            if delay > 0:
+                                time.sleep(delay)
+                            one = StreamChunk(*(getattr(chunk, f)[k:k + 1] for f in StreamChunk.__dataclass_fields__))
+                            rows_list.append(_emit(tracker.process(one), sink, limiter, T_ras_from_heart))
+                    else:
+                        rows_list = [_emit(tracker.process(chunk), sink, limiter, T_ras_from_heart)]
+                    for rows, sent in rows_list:
+                        fh.write(_csv_lines(rows, sent))
+                        n += len(rows.time_s)
+                        placed += int(np.count_nonzero(np.isfinite(rows.T_heart_from_robot[:, 0, 3])))
+                        sent_total += int(sent.sum())
+                        if progress is not None:
+                            progress(rows)
+            except KeyboardInterrupt:
+                interrupted = True
+        if sink is not None:
+            sink.flush()
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, csv_path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        if own_sink:
+            sink.close()
+    lat = np.array([c - r for r, c in tracker.r_peaks]) * 1000.0
+    return TrackSummary(
+        n_samples=n, n_placed=placed, n_sent=sent_total, n_dropped=limiter.dropped,
+        models_sent=0 if sink is None else sink.models_sent, wall_s=time.perf_counter() - t_wall0,
+        r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
+        interrupted=interrupted,
+    )
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):
+    m = len(rows.time_s)
+    sent = np.zeros(m, dtype=bool)
+    if sink is None or not sink.poll():
+        return rows, sent
+    for i in range(m):
+        if np.isnan(rows.T_heart_from_robot[i, 0, 3]) or not limiter.allow():
+            continue
+        sink.send(float(rows.time_s[i]), T_ras_from_heart @ rows.T_heart_from_robot[i], _status_text(rows, i))
+        sent[i] = True
+    return rows, sent
+
+
+def print_summary(summary: TrackSummary, csv_path, *, file=sys.stdout) -> None:
+    """The CLI's summary lines."""
+    s = summary
+    rate = s.n_samples / s.wall_s if s.wall_s > 0 else float("nan")
+    print(f"tracked {s.n_samples} samples ({s.n_placed} placed on the map) in {s.wall_s:.2f} s "
+          f"({rate:.0f} samples/s){' - interrupted' if s.interrupted else ''}", file=file)
+    print(f"  log               {csv_path}", file=file)
+    if s.n_sent == 0 and s.models_sent == 0:
+        print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
+        print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
+        return
+    print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
+          f"model sent {s.models_sent} time(s)", file=file)
+    print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
+
+
+# ------------------------------------------------------------ OpenIGTLink in
+#: device names of an OpenIGTLink pose stream (PLUS's naming).
+DEVICE_ROBOT, DEVICE_PROBE, DEVICE_SIGNALS = "RobotToTracker", "ProbeToTracker", "Signals"
+
+
+def lossless_client(host: str, port: int):
+    """A pyigtl client that keeps every message (pyigtl keeps only the latest
+    per device); POLYDATA bodies are kept raw (pyigtl 0.3 cannot unpack them:
+    read them with :func:`unpack_polydata`).
+
+    Returns
+    -------
+    client, messages
+        ``messages`` is a ``collections.deque`` the client appends to.
+    """
+    import collections
+
+    import pyigtl
+    from pyigtl import messages as pm
+
+    received = collections.deque()
+
+    class _RawPolyData(pyigtl.MessageBase):
+        def __init__(self):
+            super().__init__()
+            self._message_type = "POLYDATA"
+            self.content = b""
+
+        def _unpack_content(self, content):
+            self.content = bytes(content)
+
+    class _Client(pyigtl.OpenIGTLinkClient):
+        def _receive_message_from_socket(self, ssocket):
+            added = pm.message_type_to_class_constructor.setdefault("POLYDATA", _RawPolyData) is _RawPolyData
+            try:
+                got = super()._receive_message_from_socket(ssocket)
+            finally:
+                if added:
+                    pm.message_type_to_class_constructor.pop("POLYDATA", None)
+            if got:
+                with self.lock_incoming_messages:
+                    received.extend(self.incoming_messages.values())
+                    self.incoming_messages.clear()
+            return got
+
+    return _Client(host=host, port=int(port)), received
+
+
+def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0) -> Iterator[StreamChunk]:
+    """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample.
+
+    A sample is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM``
+    ``ProbeToTracker`` and a ``STRING`` ``Signals`` (``"ecg_mv,flow_insp_lpm,
+    flow_exp_lpm"``) with the same timestamp (the sample time, s).  A sample
+    missing a part is skipped; the stream ends after ``idle_timeout_s``
+    without a message.
+    """
+    client, received = lossless_client(host, port)
+    pending: dict[float, dict] = {}
+    last = time.monotonic()
+    try:
+        while True:
+            if not received:
+                if time.monotonic() - last > idle_timeout_s:
+                    return
+                time.sleep(0.001)
+                continue
+            last = time.monotonic()
+            msg = received.popleft()
+            key = round(float(msg.timestamp), 6)
+            slot = pending.setdefault(key, {})
+            if msg.device_name in (DEVICE_ROBOT, DEVICE_PROBE) and msg.message_type == "TRANSFORM":
+                slot[msg.device_name] = np.asarray(msg.matrix, dtype=float)
+            elif msg.device_name == DEVICE_SIGNALS and msg.message_type == "STRING":
+                try:
+                    slot[DEVICE_SIGNALS] = [float(x) for x in msg.string.split(",")]
+                except ValueError:
+                    pending.pop(key)
+                    continue
+            if len(slot) == 3:
+                pending.pop(key)
+                for old in [k for k in pending if k < key]:
+                    pending.pop(old)  # an incomplete earlier sample will not complete now
+                ecg, fi, fe = slot[DEVICE_SIGNALS]
+                yield next(chunks_from_samples(
+                    [(key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE], True, ecg, fi, fe)]))
+    finally:
+        client.stop()

@@ -1,0 +1,297 @@
+"""``heartreg track`` on a phantom navigation session, against the phantom's truth.
+
+The case is the shared sample-size phantom (trial 1, 30 points); its model is
+built from its CT by the real chain (phases, segmentation, mesh, frame) and
+registered without the cardiac sweep (not used by track).  The robot then
+crawls for 60 s to places between the registration points
+(:mod:`heartreg.phantom.navigation`); the truth is its surface point at the
+image phases, in the CT patient frame, compared in the model's heart frame.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+
+import numpy as np
+import pytest
+
+from heartreg.cli import main
+from heartreg.phantom.layout import make_heart
+from heartreg.phantom.navigation import NavigationTruth, write_navigation
+from heartreg.track import (
+    DEVICE_PROBE,
+    DEVICE_ROBOT,
+    DEVICE_SIGNALS,
+    T_RAS_FROM_LPS,
+    TRACK_COLUMNS,
+    IgtlSink,
+    RateLimiter,
+    Tracker,
+    igtl_client_chunks,
+    load_tracker,
+    lossless_client,
+    run_track,
+    session_chunks,
+    unpack_polydata,
+)
+from registration.online import CausalPhases
+from registration.pipeline import point_phases
+from registration.session import read_session
+
+
+@pytest.fixture(scope="module")
+def nav(sample_case, tmp_path_factory):
+    from heartreg.pipeline import open_study
+    from modeling import build_heart_model, write_model
+    from modeling.model import read_model
+    from registration.pipeline import register_session
+    from registration.report import write_registration
+
+    case_dir, truth = sample_case
+    root = tmp_path_factory.mktemp("track")
+    volume, report = open_study(case_dir / "ct")
+    build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase, cardiac_phase_source=report.source)
+    model = read_model(write_model(build.model, root / "model"))
+    session = read_session(case_dir / "session")
+    result = register_session(model, session, cardiac_sweep=False)
+    write_registration(result, root / "registration", view=False)
+    write_navigation(case_dir, out_dir=root)
+    log = root / "track.csv"
+    status = main(["track", str(root / "model"), str(root / "registration"), str(case_dir / "session"),
+                   "--replay", str(root / "navigation"), "--log", str(log), "-q"])
+    assert status == 0
+    with open(log, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return dict(root=root, case=case_dir, truth=truth, model=model, rows=rows,
+                nav_truth=NavigationTruth.read(root, case_dir))
+
+
+@pytest.fixture(scope="module")
+def loaded(nav):
+    """The tracker parts (motion models re-fitted once); ``fresh()`` gives a new tracker."""
+    tracker, _, rate = load_tracker(nav["root"] / "model", nav["root"] / "registration", nav["case"] / "session")
+    return lambda: Tracker(tracker.localiser, rate, **tracker._priors)
+
+
+def _column(rows, *names):
+    return np.array([[float(r[n]) for n in names] for r in rows])
+
+
+def test_navigation_session_is_true_and_goes_between_the_registered_points(nav):
+    truth, nt = nav["truth"], nav["nav_truth"]
+    record = read_session(nav["root"] / "navigation").points[0]
+    assert record.n_samples == nt.time_s.size and np.array_equal(np.round(record.time_s, 3), nt.time_s)
+    # the written poses are the analytic surface at the true phases, through T*,
+    # up to the tracker noise (0.2 mm per axis on each of two sensors: ~0.5 mm 3-D)
+    from heartreg.phantom.config import make_config
+
+    heart = make_heart(make_config(truth["preset"]))
+    T_star = np.asarray(truth["T_patient_from_probe"])
+    robot = record.T_probe_from_robot[:, :3, 3] @ T_star[:3, :3].T + T_star[:3, 3]
+    clean = heart.surface_points(nt.u, nt.v, nt.phase_c, nt.phase_r)
+    assert np.sqrt(np.mean(np.sum((robot - clean) ** 2, axis=1))) < 0.6
+    # it crawls (metres of path would be wrong, millimetres of standing still too)
+    on_map = nt.map_patient_mm
+    assert 60.0 < np.linalg.norm(np.diff(on_map, axis=0), axis=1).sum() < 400.0
+    # mostly where the registration had no point: median > 5 mm from the nearest
+    assert np.median(nt.nearest_registered_mm) > 5.0
+
+
+def test_map_position_error_against_truth(nav):
+    rows, model, nt = nav["rows"], nav["model"], nav["nav_truth"]
+    assert [*rows[0].keys()] == list(TRACK_COLUMNS)
+    T = model.T_heart_from_patient
+    truth_heart = nt.map_patient_mm @ T[:3, :3].T + T[:3, 3]
+    pos = _column(rows, "map_x_mm", "map_y_mm", "map_z_mm")
+    static = _column(rows, "static_x_mm", "static_y_mm", "static_z_mm")
+    placed = np.isfinite(pos[:, 0])
+    quality = np.array([r["quality"] for r in rows])
+    # the phases need one R-peak (after a 2 s learning window) and one start of
+    # expiration (after one breath, ~5 s): the first ~8 s of 60 have no place
+    assert placed.mean() > 0.8
+    assert np.all(quality[~placed] == "no_phase")
+    err = np.linalg.norm(pos[placed] - truth_heart[placed], axis=1)
+    err_static = np.linalg.norm(static[placed] - truth_heart[placed], axis=1)
+    # Done-when of issue 13: mean <= 2 mm, p95 <= 4 mm (measured 1.7 / 3.1 mm: the
+    # registration's ~0.8 mm, the motion interpolation between points ~14 mm
+    # apart, and causal phases that cannot know the current beat's length)
+    assert err.mean() <= 2.0 and np.percentile(err, 95) <= 4.0
+    # T z without the motion correction (paper section 1) is far worse
+    assert err_static.mean() > 2.0 * err.mean()
+    # the robot is on the surface: nearest-surface distance within a few mm
+    dist = _column(rows, "distance_mm")[placed, 0]
+    assert np.median(np.abs(dist)) < 1.5
+
+
+def test_causal_cardiac_phase_lags_the_offline_one_by_the_detection_delay(nav, loaded):
+    rows = nav["rows"]
+    record = read_session(nav["root"] / "navigation").points[0]
+    offline, _, peaks, _ = point_phases(record)
+    live = _column(rows, "phase_c")[:, 0]
+    both = np.isfinite(live) & np.isfinite(offline)
+    d = np.mod(live[both] - offline[both] + 0.5, 1.0) - 0.5
+    # most of each beat agrees closely (only the RR estimate differs); the beat
+    # is known ~0.1 s late, and an ectopic beat (6 % of beats, each followed by
+    # a compensatory pause: 11 % of this record's RR intervals) cannot be
+    # foreseen: measured median 0.013 cycles, 83 % of samples within 0.1
+    assert np.median(np.abs(d)) < 0.03
+    assert np.mean(np.abs(d) < 0.1) > 0.75
+    # the same R-peaks as the offline detector, within 2 ms
+    tracker = loaded()
+    cp = CausalPhases(tracker.rate_hz, rr_prior_s=tracker._priors["rr_prior_s"])
+    out = cp.update(record.time_s, record.ecg_mv, record.flow_insp_lpm, record.flow_exp_lpm)
+    live_r = np.array([r for r, _ in out.r_peaks])
+    latency = np.array([c - r for r, c in out.r_peaks])
+    near = np.min(np.abs(live_r[:, None] - peaks[None]), axis=1)
+    assert np.all(near < 0.002)
+    assert np.all(latency <= 0.13)  # confirm_s = 0.1 after the QRS onset crossing
+
+
+def test_phases_do_not_depend_on_the_chunking(nav):
+    record = read_session(nav["root"] / "navigation").points[0]
+    n = 1500
+    args = (record.time_s[:n], record.ecg_mv[:n], record.flow_insp_lpm[:n], record.flow_exp_lpm[:n])
+    whole = CausalPhases(100.0, rr_prior_s=0.9, breath_prior_s=5.0).update(*args)
+    cp = CausalPhases(100.0, rr_prior_s=0.9, breath_prior_s=5.0)
+    parts = [cp.update(*(a[i:i + 7] for a in args)) for i in range(0, n, 7)]
+    np.testing.assert_array_equal(np.concatenate([p.phase_c for p in parts]), whole.phase_c)
+    np.testing.assert_array_equal(np.concatenate([p.phase_r for p in parts]), whole.phase_r)
+
+
+def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):
+    root, model = nav["root"], nav["model"]
+    tracker = loaded()
+    replay = read_session(root / "navigation")
+    mesh = model.mesh
+    T_ras = T_RAS_FROM_LPS @ model.T_patient_from_heart
+    sink = IgtlSink(0, mesh.vertices @ T_ras[:3, :3].T + T_ras[:3, 3], mesh.faces)  # ephemeral port
+    client, received = lossless_client("127.0.0.1", sink.port)
+    try:
+        assert sink.wait_for_client(10.0)
+        chunks = [c for i, c in zip(range(1), session_chunks(replay, chunk=1500))]  # the first 15 s
+        summary = run_track(tracker, chunks, tmp_path / "log.csv", model=model, sink=sink, igtl_rate_hz=None)
+        deadline = time.monotonic() + 10.0  # bounded wait for the last messages
+        while time.monotonic() < deadline and sum(m.message_type == "TRANSFORM" for m in list(received)) < summary.n_sent:
+            time.sleep(0.01)
+    finally:
+        client.stop()
+        sink.close()
+    msgs = list(received)
+    polys = [m for m in msgs if m.message_type == "POLYDATA"]
+    assert len(polys) == 1 and summary.models_sent == 1
+    points, faces = unpack_polydata(polys[0].content)
+    # the model in Slicer's RAS scene: float32 coordinates of ~100 mm (1e-5 mm steps)
+    np.testing.assert_allclose(points, mesh.vertices @ T_ras[:3, :3].T + T_ras[:3, 3], atol=1e-4)
+    np.testing.assert_array_equal(faces, mesh.faces)
+    with open(tmp_path / "log.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    sent = {round(float(r["time_s"]), 3): r for r in rows if r["sent"] == "1"}
+    assert summary.n_sent == len(sent) > 400  # 15 s at 100 Hz, the first ~8 s without phases
+    transforms = {round(m.timestamp, 3): m for m in msgs if m.message_type == "TRANSFORM"}
+    assert len(transforms) >= 0.99 * len(sent)
+    status = {round(m.timestamp, 3): m for m in msgs if m.message_type == "STRING"}
+    for t, m in transforms.items():
+        r = sent[t]
+        lps = np.linalg.inv(T_RAS_FROM_LPS) @ m.matrix
+        heart = model.T_heart_from_patient @ lps
+        # float32 matrices: ~1e-5 relative; the log has 4 decimals
+        np.testing.assert_allclose(heart[:3, 3], [float(r["map_x_mm"]), float(r["map_y_mm"]), float(r["map_z_mm"])],
+                                   atol=2e-3)
+        assert f'"quality":"{r["quality"]}"' in status[t].string
+
+
+def test_openigtlink_input_gives_the_replay_results(nav, loaded, tmp_path):
+    import pyigtl
+
+    root = nav["root"]
+    tracker = loaded()
+    rec = read_session(root / "navigation").points[0]
+    n = 900
+    server = pyigtl.OpenIGTLinkServer(port=0, local_server=True)
+    import signal
+
+    for s in (signal.SIGINT, signal.SIGTERM):  # pyigtl's handlers: give Ctrl-C back to pytest
+        signal.signal(s, signal.default_int_handler if s == signal.SIGINT else signal.SIG_DFL)
+    port = server.server_address[1]
+    import threading
+
+    def send():
+        while not server.is_connected():
+            time.sleep(0.005)
+        for i in range(n):
+            t = float(rec.time_s[i])
+            server.send_message(pyigtl.TransformMessage(rec.T_probe_from_robot[i], timestamp=t, device_name=DEVICE_ROBOT), wait=False)
+            server.send_message(pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name=DEVICE_PROBE), wait=False)
+            server.send_message(pyigtl.StringMessage(
+                f"{float(rec.ecg_mv[i])!r},{float(rec.flow_insp_lpm[i])!r},{float(rec.flow_exp_lpm[i])!r}", timestamp=t,
+                device_name=DEVICE_SIGNALS), wait=i % 25 == 24)  # keep pyigtl's 100-message queue from overflowing
+
+    thread = threading.Thread(target=send, daemon=True)
+    thread.start()
+    try:
+        summary = run_track(tracker, igtl_client_chunks("127.0.0.1", port, idle_timeout_s=3.0), tmp_path / "in.csv")
+    finally:
+        thread.join(timeout=10)
+        server.stop()
+    assert summary.n_samples == n
+    ref = loaded()
+    rows_ref = run_track(ref, session_chunks(read_session(root / "navigation"), chunk=n), tmp_path / "ref.csv")
+    assert rows_ref.n_samples == 6000
+    with open(tmp_path / "in.csv", newline="") as fh:
+        got = list(csv.DictReader(fh))
+    with open(tmp_path / "ref.csv", newline="") as fh:
+        want = list(csv.DictReader(fh))[:n]
+    assert [r["phase_c"] for r in got] == [r["phase_c"] for r in want]
+    a = _column(got, "map_x_mm", "map_y_mm", "map_z_mm")
+    b = _column(want, "map_x_mm", "map_y_mm", "map_z_mm")
+    np.testing.assert_allclose(a, b, atol=2e-3, equal_nan=True)  # poses went as float32
+
+
+def test_rate_limiter_and_ctrl_c(nav, loaded, tmp_path):
+    clock = iter(np.arange(0.0, 1.0, 0.001))  # 1 kHz of events for 1 s
+    limiter = RateLimiter(100.0, clock=lambda: next(clock))
+    passed = sum(limiter.allow() for _ in range(1000))
+    assert passed == 100 and limiter.dropped == 900
+
+    # pacing: a replay at 10x real time never runs ahead of the stream's clock
+    import itertools
+
+    paced = itertools.islice(session_chunks(read_session(nav["root"] / "navigation"), chunk=1), 200)
+    summary = run_track(loaded(), paced, tmp_path / "paced.csv", speed=10.0)
+    assert summary.n_samples == 200 and summary.wall_s >= 199 * 0.01 / 10.0
+    (tmp_path / "paced.csv").unlink()
+
+    tracker = loaded()
+
+    def interrupted():
+        for i, chunk in enumerate(session_chunks(read_session(nav["root"] / "navigation"), chunk=500)):
+            if i == 3:
+                raise KeyboardInterrupt
+            yield chunk
+
+    summary = run_track(tracker, interrupted(), tmp_path / "cut.csv")
+    assert summary.interrupted and summary.n_samples == 1500
+    with open(tmp_path / "cut.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 1500
+    assert [p.name for p in tmp_path.iterdir()] == ["cut.csv"]  # no temporary file left
+
+
+def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
+    root = nav["root"]
+    status = main(["track", str(root / "model"), str(tmp_path), str(nav["case"] / "session"), "--log", str(tmp_path / "x.csv")])
+    assert status == 1
+    assert "registration.json not found" in capsys.readouterr().err
+    status = main(["track", str(root / "model"), str(root / "registration"), str(root / "navigation"),
+                   "--log", str(tmp_path / "x.csv")])
+    assert status == 1
+    assert "give the session the registration was made from" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="sample times must increase"):
+        CausalPhases(100.0).update([1.0, 1.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
+    assert not (tmp_path / "x.csv").exists()
+    from heartreg.phantom import PhantomError
+
+    with pytest.raises(PhantomError, match="no readable truth.json"):
+        write_navigation(tmp_path)
+    with pytest.raises(PhantomError, match="speed_mm_s must be positive"):
+        write_navigation(nav["case"], out_dir=tmp_path, speed_mm_s=0.0)
