@@ -59,7 +59,9 @@ def phase_report_extra(volume, study_dir) -> dict:
 
 
 def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None):
-    """Load a study's volume and its cardiac phase report.
+    """Load a study's volume and its cardiac phase report: ``imaging.load_study``
+    then ``imaging.compute_phase_report`` (which reads the study's ECG waveforms
+    itself), with the user's R-peak file if given.
 
     Parameters
     ----------
@@ -70,28 +72,24 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
     qrs : path, optional
         R-peak times file (CSV, column ``time_s``, AcquisitionTime clock).
     warn : callable, optional
-        Receives notes about unreadable ECG waveforms.
+        Receives the report's notes about unreadable ECG waveforms.
 
     Returns
     -------
     volume : imaging.Volume
     report : imaging.PhaseReport
     """
-    from imaging import compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
-    from imaging.waveform import WaveformError
+    from imaging import compute_phase_report, load_study, read_qrs_file
 
     volume = load_study(study_dir, series=series, progress=progress)
     qrs_s = read_qrs_file(qrs) if qrs else None
-    records = []
-    for path in volume.waveform_files:
-        try:
-            records.append(read_ecg_waveform(path))
-        except WaveformError as exc:
-            if warn is not None:
-                warn(f"note: {exc}")
     report = compute_phase_report(
-        volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else "", ecg_records=records
+        volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else ""
     )
+    if warn is not None:
+        for note in report.notes:
+            if "unreadable" in note:
+                warn(f"note: {note}")
     return volume, report
 
 

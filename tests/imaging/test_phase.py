@@ -158,3 +158,35 @@ def test_full_size_phases(full_case):
     _check(report, truth)
     report = compute_phase_report(volume, qrs_s=read_qrs_file(case / "qrs.csv"))
     _check(report, truth)
+
+
+def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
+    """Issue 10: a study whose only R-peak source is its ECG waveform (no GE stamps,
+    no TriggerTime): ``compute_phase_report(volume)`` reads the waveform itself and
+    gives the command's phi_C* (the truth, within VOLUME_TOL), naming the waveform
+    by its file name only."""
+    case, truth = sample_case
+    ct = _copy_without(case, tmp_path, private=True, gating=True)
+    report = compute_phase_report(load_study(ct))
+    assert report.source.startswith("ECG waveform IM") and str(tmp_path) not in report.source
+    assert "/" not in report.source
+    _check(report, truth)
+    out = tmp_path / "out"
+    assert main(["phases", str(ct), "-o", str(out), "-q"]) == 0
+    written = json.loads((out / "phases.json").read_text())
+    assert written["volume_cardiac_phase"] == report.volume_cardiac_phase
+    assert written["source"] == report.source
+
+
+def test_unreadable_waveform_is_named_by_file_in_the_notes(sample_case, tmp_path):
+    """A broken ECG waveform instance: the report falls back and its note names the file only."""
+    case, truth = sample_case
+    ct = _copy_without(case, tmp_path, private=True)
+    wave = next(f for f in ct.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "ECG")
+    ds = pydicom.dcmread(wave)
+    del ds.WaveformSequence[0].WaveformData
+    ds.save_as(wave)
+    report = compute_phase_report(load_study(ct))
+    assert report.source.startswith("TriggerTime")
+    note = next(n for n in report.notes if "unreadable" in n)
+    assert wave.name in note and str(tmp_path) not in note
