@@ -62,7 +62,9 @@ def phase_report_extra(volume, study_dir) -> dict:
 
 
 def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None, phase_required: bool = True):
-    """Load a study's volume and its cardiac phase report.
+    """Load a study's volume and its cardiac phase report: ``imaging.load_study``
+    then ``imaging.compute_phase_report`` (which reads the study's ECG waveforms
+    itself), with the user's R-peak file if given.
 
     Parameters
     ----------
@@ -73,7 +75,7 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
     qrs : path, optional
         R-peak times file (CSV, column ``time_s``, AcquisitionTime clock).
     warn : callable, optional
-        Receives notes about unreadable ECG waveforms.
+        Receives the report's notes about unreadable ECG waveforms.
     phase_required : bool
         When false, a CT without gating gives ``report`` None and the reason
         instead of a ``GatingError`` (a heart model needs no phase).
@@ -85,28 +87,24 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
         The reason the phase is unknown, when ``phase_required`` is false and
         no R-peak source times the slices.
     """
-    from imaging import compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
-    from imaging.waveform import WaveformError
+    from imaging import compute_phase_report, load_study, read_qrs_file
 
     volume = load_study(study_dir, series=series, progress=progress)
     qrs_s = read_qrs_file(qrs) if qrs else None
-    records = []
-    for path in volume.waveform_files:
-        try:
-            records.append(read_ecg_waveform(path))
-        except WaveformError as exc:
-            if warn is not None:
-                warn(f"note: {exc}")
     from imaging import GatingError
 
     try:
         report = compute_phase_report(
-            volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else "", ecg_records=records
+            volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else ""
         )
     except GatingError as exc:
         if phase_required or qrs:
             raise
         return volume, f"no ECG gating ({str(exc).split(';')[0]})"
+    if warn is not None:
+        for note in report.notes:
+            if "unreadable" in note:
+                warn(f"note: {note}")
     return volume, report
 
 

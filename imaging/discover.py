@@ -14,6 +14,8 @@ Nothing identifying a patient is copied out of the datasets.
 
 from __future__ import annotations
 
+import datetime
+
 import logging
 import os
 import stat
@@ -207,6 +209,31 @@ def _tm_to_seconds(value) -> float | None:
     except ValueError:
         return None
     return hh * 3600.0 + mm * 60.0 + ss
+
+
+def _date(value) -> datetime.date | None:
+    """The calendar day of a DICOM DA ('YYYYMMDD') or DT ('YYYYMMDD...'), else None."""
+    if value is None:
+        return None
+    if isinstance(value, datetime.date):  # also a datetime
+        return datetime.date(value.year, value.month, value.day)
+    text = str(value).strip()
+    if len(text) < 8 or not text[:8].isdigit():
+        return None
+    try:
+        return datetime.date(int(text[0:4]), int(text[4:6]), int(text[6:8]))
+    except ValueError:
+        return None
+
+
+def on_study_clock(time_s: float | None, day, study_day) -> float | None:
+    """Seconds after midnight of ``day`` -> seconds after midnight of the study's
+    day ((0008,0020) *Study Date*): a scan that crosses midnight keeps counting
+    (00:00:07 of the next day is 86 407 s).  Without both dates the time is
+    returned as it is."""
+    if time_s is None or day is None or study_day is None:
+        return time_s
+    return time_s + 86400.0 * (day - study_day).days
 
 
 def _dt_to_seconds(value) -> float | None:
@@ -585,11 +612,17 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
     mid_scan = _as_float(
         _private_value(ds, GE_MID_SCAN_TIME[0], GE_ACQU_CREATOR, GE_MID_SCAN_TIME[1])
     )
-    top_time = _dt_to_seconds(_get(ds, "AcquisitionDateTime"))
+    study_day = _date(_get(ds, "StudyDate"))
+    top_dt = _get(ds, "AcquisitionDateTime")
+    top_time = on_study_clock(_dt_to_seconds(top_dt), _date(top_dt), study_day)
     if top_time is None:
-        top_time = _tm_to_seconds(_get(ds, "AcquisitionTime"))
+        top_time = on_study_clock(
+            _tm_to_seconds(_get(ds, "AcquisitionTime")), _date(_get(ds, "AcquisitionDate")), study_day
+        )
     if top_time is None:
-        top_time = _tm_to_seconds(_get(ds, "ContentTime"))
+        top_time = on_study_clock(
+            _tm_to_seconds(_get(ds, "ContentTime")), _date(_get(ds, "ContentDate")), study_day
+        )
     common = dict(
         path=path,
         n_frames_in_file=n_frames,
@@ -642,7 +675,8 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
         spacing = _first("PixelSpacing", measures, ds)
         frame_type = _first("FrameType", frame_type_item)
         image_type = top_type + _upper_values(frame_type)
-        t = _dt_to_seconds(_first("FrameAcquisitionDateTime", content))
+        frame_dt = _first("FrameAcquisitionDateTime", content)
+        t = on_study_clock(_dt_to_seconds(frame_dt), _date(frame_dt), study_day)
         trigger = _as_float(_first("TriggerTime", cardiac, ds))
         if trigger is None:
             trigger = _as_float(_first("NominalCardiacTriggerDelayTime", cardiac))

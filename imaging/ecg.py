@@ -27,6 +27,7 @@ extremum of the record, so a QRS cut by the start or the end is left out.
 
 from __future__ import annotations
 
+from bisect import bisect_left, bisect_right
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,17 +38,46 @@ from imaging.events import SignalError, phase_from_events
 __all__ = ["RPeaks", "SignalError", "detect_r_peaks", "cardiac_phase"]
 
 #: Pan-Tompkins band (Hz) of the detection filter.
-QRS_BAND_HZ = (5.0, 15.0)
+QRS_BAND_HZ = (5.0, 25.0)
 #: Band (Hz) of the light filter on which R maxima are located.
 REFINE_BAND_HZ = (0.5, 40.0)
 #: Moving-window integration length (s).
 INTEGRATION_S = 0.150
 #: Half-width (s) of the window in which a detection is moved to the R maximum.
-REFINE_HALF_WIDTH_S = 0.080
+REFINE_HALF_WIDTH_S = 0.065
 #: A peak this close (s) after a QRS is tested for being a T wave.
 T_WAVE_WINDOW_S = 0.360
 #: Search back when no QRS came for this multiple of the regular RR interval.
 SEARCH_BACK_FACTOR = 1.66
+#: The signal level is the median energy of this many last QRS complexes.
+SPK_MEMORY = 8
+#: Threshold = noise level + this fraction of (signal level - noise level).
+THRESHOLD_FRACTION = 0.25
+#: Seconds at the start from which the first signal and noise levels are learnt.
+LEARN_S = 8.0
+#: Half-width (s) of the window whose median is a beat's baseline.
+BASELINE_HALF_WIDTH_S = 0.25
+#: A beat's R-peak goes to the record's minor side when that side's excursion
+#: is this many times the dominant side's.
+LOCAL_POLARITY_RATIO = 1.0
+#: A beat whose R-peak lies closer than this (s) to either end of the record is
+#: incomplete (half a QRS complex) and is left out.
+EDGE_MARGIN_S = 0.050
+#: Half-life (s) of the signal level once no QRS came for the search-back limit.
+DECAY_HALF_LIFE_S = 1.0
+#: The decayed signal level stays at least this multiple of the noise level.
+NOISE_FLOOR_RATIO = 4.0
+#: A peak earlier than this fraction of the regular RR after the last QRS ...
+EARLY_FRACTION = 0.55
+#: ... is noise unless its energy is at least this fraction of the QRS level.
+EARLY_ENERGY_RATIO = 0.7
+#: Within this fraction of the regular RR (at most MAX_REFRACTORY_S, at least
+#: the refractory period) only the larger of two peaks is a QRS (a P wave
+#: before it, an artefact after it).
+REFRACTORY_RR_FRACTION = 0.6
+MAX_REFRACTORY_S = 0.25
+#: Levels are learnt afresh from a gap this long (s) past the search-back limit.
+RELEARN_AFTER_S = 1.0
 #: Shortest record (s) on which detection is attempted.
 MIN_DURATION_S = 2.0
 #: Lowest sampling rate (Hz): the 5-15 Hz band must sit well below Nyquist.
@@ -166,71 +196,169 @@ def _parabolic(y_m: np.ndarray, y_0: np.ndarray, y_p: np.ndarray) -> np.ndarray:
     return np.clip(delta, -0.5, 0.5)
 
 
-class _PanTompkins:
-    """Sequential adaptive-threshold classification of integrated-signal peaks."""
+def _median(values: list[float]) -> float:
+    s = sorted(values)
+    m = len(s) // 2
+    return s[m] if len(s) % 2 else 0.5 * (s[m - 1] + s[m])
 
-    def __init__(self, peaks, values, slopes, rate, refractory):
-        self.peaks, self.values, self.slopes = peaks, values, slopes
+
+class _Classifier:
+    """Sequential adaptive-threshold classification of energy peaks.
+
+    Pan-Tompkins' rules, with the signal level taken as the median of the last
+    :data:`SPK_MEMORY` QRS energies instead of a running average, so that one
+    large transient cannot lift the threshold above the beats that follow, and a
+    search-back that repeats until the gap before the current peak is closed.
+    """
+
+    def __init__(self, peaks, values, slopes, rate: float, refractory: int):
+        self.peaks = peaks.tolist()
+        self.values = values.tolist()
+        self.slopes = slopes.tolist()
         self.rate, self.refractory = rate, refractory
 
-    def run(self, learn_max: float, learn_mean: float) -> list[int]:
-        spk, npk = 0.25 * learn_max, 0.5 * learn_mean
-        qrs: list[int] = []  # indices into self.peaks
-        rr: list[float] = []
-        self.first_threshold2 = None
-        for j in range(self.peaks.size):
-            p, v = self.peaks[j], self.values[j]
-            th1 = npk + 0.25 * (spk - npk)
-            if qrs:
-                last = qrs[-1]
-                limit = self._rr_limit(rr)
-                if limit is not None and p - self.peaks[last] > limit:
-                    found = self._search_back(last, j, 0.5 * th1)
-                    if found is not None:
-                        spk = 0.25 * self.values[found] + 0.75 * spk
-                        self._accept(qrs, rr, found)
-                        th1 = npk + 0.25 * (spk - npk)
-            if v > th1:
-                if qrs and p - self.peaks[qrs[-1]] < T_WAVE_WINDOW_S * self.rate:
-                    if self.slopes[j] < 0.5 * self.slopes[qrs[-1]]:
-                        npk = 0.125 * v + 0.875 * npk  # a T wave
+    def run(self, spk0: float, npk0: float) -> list[int]:
+        peaks, values, slopes = self.peaks, self.values, self.slopes
+        self.recent = [spk0]  # energies of the last accepted QRS complexes
+        self.npk = npk0
+        self.limit = SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
+        self.dead = self.refractory
+        qrs: list[int] = []  # indices into peaks
+        rr: list[int] = []  # samples
+        t_window = T_WAVE_WINDOW_S * self.rate
+        for j in range(len(peaks)):
+            p, v = peaks[j], values[j]
+            # search back in the gap before this peak, as often as beats are missing
+            tried_relearning = False
+            while qrs and p - peaks[qrs[-1]] > self.limit:
+                found = self._search_back(qrs[-1], j)
+                if found is None:
+                    if tried_relearning or p - peaks[qrs[-1]] < self.limit + RELEARN_AFTER_S * self.rate:
+                        break
+                    tried_relearning = True
+                    if self._relearn(qrs[-1], j):
                         continue
-                spk = 0.125 * v + 0.875 * spk
-                if not qrs:
-                    self.first_threshold2 = 0.5 * th1
+                    break
+                self._accept(qrs, rr, found)
+            th1 = self.threshold(p - peaks[qrs[-1]] if qrs else 0)
+            if qrs and p - peaks[qrs[-1]] < self.dead:
+                if v > th1 and v > values[qrs[-1]]:  # the larger of two close peaks is the QRS
+                    self._retract(qrs, rr)
+                    self._accept(qrs, rr, j)
+                continue
+            if v > th1:
+                if qrs and p - peaks[qrs[-1]] < EARLY_FRACTION * self.limit / SEARCH_BACK_FACTOR and v < (
+                    EARLY_ENERGY_RATIO * _median(self.recent)
+                ):
+                    self.npk = 0.125 * v + 0.875 * self.npk  # noise: too early for a weak beat
+                    continue
+                if qrs and p - peaks[qrs[-1]] < t_window:
+                    if slopes[j] < 0.5 * slopes[qrs[-1]]:
+                        self.npk = 0.125 * v + 0.875 * self.npk  # a T wave
+                        continue
+                    last = qrs[-1]
+                    if slopes[last] < 0.5 * slopes[j] or (
+                        values[last] < 0.5 * v and slopes[last] < 0.85 * slopes[j]
+                    ):
+                        self._retract(qrs, rr)  # the last one was a P wave before this QRS
                 self._accept(qrs, rr, j)
             else:
-                npk = 0.125 * v + 0.875 * npk
-        self.last_threshold2 = 0.5 * (npk + 0.25 * (spk - npk))
+                self.npk = 0.125 * v + 0.875 * self.npk
+        self.rr = rr
         return qrs
 
-    def _accept(self, qrs, rr, j):
-        if qrs:
-            rr.append(float(self.peaks[j] - self.peaks[qrs[-1]]))
-        qrs.append(j)
+    def threshold(self, gap: float) -> float:
+        """Threshold 1 a peak ``gap`` samples after the last QRS must pass.
 
-    @staticmethod
-    def _rr_limit(rr: list[float]) -> float | None:
+        Past the search-back limit the signal level decays (half-life
+        DECAY_HALF_LIFE_S), down to NOISE_FLOOR_RATIO x the noise level, so that a
+        lead whose QRS complexes shrank (after a transient, a lead change) is
+        followed again within seconds.
+        """
+        spk = _median(self.recent)
+        over = gap - self.limit
+        if over > 0:
+            spk = max(spk * 0.5 ** (over / (DECAY_HALF_LIFE_S * self.rate)), NOISE_FLOOR_RATIO * self.npk)
+        return self.npk + THRESHOLD_FRACTION * (spk - self.npk)
+
+    def _relearn(self, last: int, j: int) -> bool:
+        """Learn the levels afresh from the peaks of a long gap (last, j) without a QRS.
+
+        After a large transient both levels can sit far above the beats that
+        follow.  If the largest peak of the gap stands out from the others
+        (NOISE_FLOOR_RATIO x their median, as a QRS does among T waves and
+        noise), it becomes the signal level and their median the noise level.
+        A gap of similar peaks (a flat or disconnected lead) teaches nothing.
+        """
+        gap = self.values[last + 1 : j]
+        if len(gap) < 2:
+            return False
+        top, typical = max(gap), _median(gap)
+        if top < NOISE_FLOOR_RATIO * typical or top >= _median(self.recent):
+            return False
+        self.recent = [top]
+        self.npk = min(self.npk, typical)
+        return True
+
+    def _search_back(self, last: int, j: int) -> int | None:
+        """The largest peak in the gap (last, j) above half its threshold 1."""
+        peaks, values = self.peaks, self.values
+        lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
+        best, best_v = None, 0.0
+        for k in range(last + 1, j):
+            if lo_p <= peaks[k] <= hi_p and values[k] > best_v and values[k] > 0.5 * self.threshold(peaks[k] - peaks[last]):
+                best, best_v = k, values[k]
+        return best
+
+    def _retract(self, qrs, rr) -> None:
+        """Take back the last QRS (a P or T wave, as the steeper complex after it shows)."""
+        j = qrs.pop()
+        if rr:
+            rr.pop()
+        if self.recent and self.recent[-1] == self.values[j]:
+            self.recent.pop()
+        self.npk = 0.125 * self.values[j] + 0.875 * self.npk
+        self._update_limits(rr)
+
+    def _accept(self, qrs, rr, j) -> None:
+        if qrs:
+            gap = self.peaks[j] - self.peaks[qrs[-1]]
+            if gap > self.limit:  # found after the level decayed: start learning it afresh
+                self.recent = []
+            rr.append(gap)
+        qrs.append(j)
+        self._update_limits(rr)
+        self.recent.append(self.values[j])
+        if len(self.recent) > SPK_MEMORY:
+            del self.recent[0]
+
+    def _update_limits(self, rr) -> None:
+        self.limit = self._rr_limit(rr)
+        regular_rr = self.limit / SEARCH_BACK_FACTOR
+        self.dead = max(self.refractory, min(MAX_REFRACTORY_S * self.rate, REFRACTORY_RR_FRACTION * regular_rr))
+
+    def _rr_limit(self, rr) -> float:
         """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples."""
         if len(rr) < 2:
-            return None
-        recent = np.asarray(rr[-8:])
-        avg1 = float(np.mean(recent))
+            return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
+        recent = rr[-8:]
+        avg1 = sum(recent) / len(recent)
         regular = [r for r in rr[-32:] if 0.92 * avg1 <= r <= 1.16 * avg1][-8:]
-        avg = float(np.mean(regular)) if regular else avg1
+        avg = sum(regular) / len(regular) if regular else avg1
         return SEARCH_BACK_FACTOR * avg
 
-    def _search_back(self, last: int, j: int, threshold: float) -> int | None:
-        lo = self.peaks[last] + self.refractory
-        hi = self.peaks[j] - self.refractory
-        cand = [k for k in range(last + 1, j) if lo <= self.peaks[k] <= hi]
-        return self._best(cand, threshold)
+    def best_in(self, lo_p: float, hi_p: float, threshold: float) -> int | None:
+        """The largest peak above ``threshold`` with position in [lo_p, hi_p]."""
+        return self._best(0, len(self.peaks), lo_p, hi_p, threshold)
 
-    def _best(self, cand, threshold) -> int | None:
-        if not cand:
-            return None
-        k = max(cand, key=lambda c: self.values[c])
-        return k if self.values[k] > threshold else None
+    def _best(self, lo_j, hi_j, lo_p, hi_p, threshold) -> int | None:
+        lo_j = max(lo_j, bisect_left(self.peaks, lo_p))
+        hi_j = min(hi_j, bisect_right(self.peaks, hi_p))
+        best, best_v = None, threshold
+        for k in range(lo_j, hi_j):
+            if self.values[k] > best_v:
+                best, best_v = k, self.values[k]
+        return best
 
 
 def detect_r_peaks(
@@ -241,7 +369,7 @@ def detect_r_peaks(
     refractory_s: float = 0.200,
     polarity: int | str = "auto",
 ) -> RPeaks:
-    """Detect QRS complexes (Pan-Tompkins) and locate each R-peak below one sample.
+    """Detect QRS complexes and locate each R-peak below one sample.
 
     Parameters
     ----------
@@ -254,8 +382,10 @@ def detect_r_peaks(
     refractory_s : float, s
         Shortest RR interval accepted (Pan-Tompkins: 200 ms).
     polarity : {"auto", 1, -1}
-        Side of the dominant QRS deflection.  "auto" chooses it from the median
-        upward and downward QRS excursions of the record (inverted leads give -1).
+        Side of the QRS deflection the R-peak is put on.  "auto" chooses it per
+        beat: the record's dominant side (from the median upward and downward
+        QRS excursions), unless the other side's excursion of that beat is
+        larger (ectopic beats of the opposite polarity).  1 or -1 fixes it.
 
     Returns
     -------
@@ -267,6 +397,22 @@ def detect_r_peaks(
     SignalError
         If the signal is absent, empty, not 1-D, contains NaN, is constant or flat,
         is shorter than 2 s, the rate is below 50 Hz, or no QRS complex is found.
+
+    References
+    ----------
+    Pan J, Tompkins WJ. A real-time QRS detection algorithm. IEEE Trans Biomed
+    Eng 1985;32(3):230-236. doi:10.1109/TBME.1985.325532
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rate = 250.0
+    >>> t = np.arange(int(10 * rate)) / rate
+    >>> beats = np.arange(0.5, 10.0, 0.8)
+    >>> ecg = sum(np.exp(-0.5 * ((t - b) / 0.012) ** 2) for b in beats)
+    >>> peaks = detect_r_peaks(ecg, rate)
+    >>> np.allclose(peaks.times_s, beats, atol=1e-3)
+    True
     """
     x, rate = _check_signal(signal_mv, rate_hz)
     start = float(start_s)
@@ -277,121 +423,139 @@ def detect_r_peaks(
     if polarity not in ("auto", 1, -1):
         raise SignalError(f"polarity must be 'auto', 1 or -1, got {polarity!r}")
 
-    # --- Pan-Tompkins front end -------------------------------------------
+    # --- energy of the QRS band: band-pass, derivative, square, integrate ---
     band = _bandpass(x, QRS_BAND_HZ, rate)
     if np.percentile(np.abs(band), 99.9) < MIN_QRS_BAND_MV:
         raise SignalError(
             "signal_mv is flat: no QRS-band activity above "
             f"{MIN_QRS_BAND_MV:g} mV (is the lead connected, and is the signal in mV?)"
         )
-    deriv = np.convolve(band, np.array([1.0, 2.0, 0.0, -2.0, -1.0]) * (rate / 8.0), mode="same")
+    deriv = ndimage.convolve1d(band, np.array([-1.0, -2.0, 0.0, 2.0, 1.0]) * (rate / 8.0), mode="nearest")
     win = max(1, int(round(INTEGRATION_S * rate)))
     # Mean over the in-record part of the window, so a QRS at an edge keeps its level.
     ones = np.ones_like(deriv)
-    mwi = ndimage.uniform_filter1d(deriv**2, win, mode="constant") / ndimage.uniform_filter1d(
+    energy = ndimage.uniform_filter1d(deriv**2, win, mode="constant") / ndimage.uniform_filter1d(
         ones, win, mode="constant"
     )
     refractory = int(round(float(refractory_s) * rate))
-    # Zero padding lets a maximum at the very first or last sample count as a peak.
-    pad = max(1, refractory)
-    padded = np.concatenate([np.zeros(pad), mwi, np.zeros(pad)])
-    peaks, _ = signal.find_peaks(padded, distance=pad)
+    pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
+    peaks, _ = signal.find_peaks(np.concatenate([np.zeros(pad), energy, np.zeros(pad)]), distance=pad)
     peaks = peaks - pad
     if peaks.size == 0:
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
-    values = mwi[peaks]
+    values = energy[peaks]
     half = max(2, int(round(0.075 * rate)))
-    abs_deriv = np.abs(deriv)
-    slopes = np.array([abs_deriv[max(0, p - half) : p + half + 1].max() for p in peaks])
+    slopes = ndimage.maximum_filter1d(np.abs(deriv), 2 * half + 1)[peaks]
 
-    learn = mwi[: int(2.0 * rate)]
-    pt = _PanTompkins(peaks, values, slopes, rate, refractory)
-    qrs = pt.run(float(learn.max()), float(learn.mean()))
+    # --- classification: initial levels from the first seconds -------------
+    learn_n = min(x.size, int(LEARN_S * rate))
+    block = int(2.0 * rate)
+    blocks = [energy[i : i + block].max() for i in range(0, learn_n - block + 1, block)] or [energy[:learn_n].max()]
+    clf = _Classifier(peaks, values, slopes, rate, refractory)
+    qrs = clf.run(float(np.median(blocks)), 0.5 * float(energy[:learn_n].mean()))
     if not qrs:
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
-    qrs = _search_edges(pt, qrs, x.size)
-    coarse = peaks[np.asarray(sorted(qrs), dtype=int)]
+    qrs = _search_edges(clf, qrs, x.size)
+    coarse = np.asarray([clf.peaks[j] for j in sorted(qrs)], dtype=np.int64)
 
-    # --- move each detection to the R maximum ------------------------------
+    # --- move each detection to its R-peak ---------------------------------
     light = _bandpass(x, REFINE_BAND_HZ, rate)
-    w = max(2, int(round(REFINE_HALF_WIDTH_S * rate)))
-    sign = _polarity(light, coarse, w, rate) if polarity == "auto" else int(polarity)
-    y = sign * light
-    n = y.size
-    idx, amp = [], []
-    base_w = int(round(0.25 * rate))
-    for c in coarse:
-        lo, hi = max(0, c - w), min(n, c + w + 1)
-        k = lo + int(np.argmax(y[lo:hi]))
-        if k <= 0 or k >= n - 1 or y[k] < y[k - 1] or y[k] < y[k + 1]:
-            continue  # extremum at the record's edge: an incomplete beat
-        idx.append(k)
-        amp.append(y[k] - np.median(y[max(0, k - base_w) : k + base_w + 1]))
-    if not idx:
+    idx, amp, sign = _refine(light, coarse, rate, polarity)
+    margin = int(np.ceil(EDGE_MARGIN_S * rate))
+    inside = (idx >= max(1, margin)) & (idx <= x.size - 1 - max(1, margin))
+    idx, amp = idx[inside], amp[inside]
+    if idx.size == 0:
         raise SignalError("no complete QRS complex found in signal_mv: give a longer record")
-    idx_arr = np.asarray(idx, dtype=np.int64)
-    amp_arr = np.asarray(amp, dtype=float)
-    idx_arr, amp_arr = _dedupe(idx_arr, amp_arr, refractory)
-    delta = _parabolic(y[idx_arr - 1], y[idx_arr], y[idx_arr + 1])
-    times = start + (idx_arr + delta) / rate
-    for arr in (times, idx_arr, amp_arr):
+    idx, amp, keep = _dedupe(idx, amp, refractory)
+    side = sign[inside][keep]
+    delta = _parabolic(side * light[idx - 1], side * light[idx], side * light[idx + 1])
+    times = start + (idx + delta) / rate
+    for arr in (times, idx, amp):
         arr.setflags(write=False)
-    return RPeaks(
-        times_s=times,
-        indices=idx_arr,
-        amplitudes_mv=amp_arr,
-        rate_hz=rate,
-        start_s=start,
-        polarity=sign,
-    )
+    dominant = 1 if np.count_nonzero(side > 0) >= np.count_nonzero(side < 0) else -1
+    return RPeaks(times_s=times, indices=idx, amplitudes_mv=amp, rate_hz=rate, start_s=start, polarity=dominant)
 
 
-def _search_edges(pt: _PanTompkins, qrs: list[int], n: int) -> list[int]:
-    """Search back in the gaps before the first and after the last detection."""
-    qrs = list(qrs)
-    if len(qrs) >= 2:
-        rr = np.diff(pt.peaks[np.asarray(qrs)])
-        limit = SEARCH_BACK_FACTOR * float(np.median(rr))
+def _windows(y: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
+    """(m, 2 half + 1) samples of ``y`` around each centre, NaN outside the record."""
+    offsets = np.arange(-half, half + 1)
+    index = centres[:, None] + offsets
+    out = y[np.clip(index, 0, y.size - 1)]
+    out[(index < 0) | (index >= y.size)] = np.nan
+    return out
+
+
+def _refine(light: np.ndarray, coarse: np.ndarray, rate: float, polarity):
+    """R-peak index, amplitude (mV) and side (+1/-1) of every coarse detection.
+
+    Each beat's R-peak is the extremum of the lightly filtered signal within
+    +-REFINE_HALF_WIDTH_S of the detection, on the side chosen by ``polarity``
+    ("auto": the record's dominant side unless this beat's excursion on the other
+    side is larger), measured from the beat's local baseline (median over +-250 ms).
+    """
+    w = max(2, int(round(REFINE_HALF_WIDTH_S * rate)))
+    seg = _windows(light, coarse, w)
+    bw = int(round(BASELINE_HALF_WIDTH_S * rate))
+    base = np.median(light[np.clip(coarse[:, None] + np.arange(-bw, bw + 1), 0, light.size - 1)], axis=1)
+    up = np.nanmax(seg, axis=1) - base
+    down = base - np.nanmin(seg, axis=1)
+    if polarity == "auto":
+        dominant = 1 if np.median(up) >= np.median(down) else -1
+        mine, other = (up, down) if dominant == 1 else (down, up)
+        sign = np.where(other > LOCAL_POLARITY_RATIO * mine, -dominant, dominant)
     else:
-        limit = SEARCH_BACK_FACTOR * pt.rate  # assume 60 bpm when nothing better is known
-    first, last = qrs[0], qrs[-1]
-    if pt.peaks[first] > limit:
-        cand = [k for k in range(first) if pt.peaks[k] <= pt.peaks[first] - pt.refractory]
-        found = pt._best(cand, pt.first_threshold2)
-        if found is not None:
-            qrs.insert(0, found)
-    if n - 1 - pt.peaks[last] > limit:
-        cand = [
-            k for k in range(last + 1, pt.peaks.size) if pt.peaks[k] >= pt.peaks[last] + pt.refractory
-        ]
-        found = pt._best(cand, pt.last_threshold2)
-        if found is not None:
-            qrs.append(found)
+        sign = np.full(coarse.size, int(polarity))
+    signed = seg * sign[:, None]
+    k = np.nanargmax(signed, axis=1)
+    idx = coarse - w + k
+    # a maximum at the window's border may sit on a slope: climb to the extremum
+    y_n = light.size
+    for _ in range(w):
+        i = np.clip(idx, 1, y_n - 2)
+        here = sign * light[i]
+        step = np.where(sign * light[i + 1] > here, 1, np.where(sign * light[i - 1] > here, -1, 0))
+        step[(idx <= 0) | (idx >= y_n - 1)] = 0
+        if not step.any():
+            break
+        idx = idx + step
+    amp = np.where(sign > 0, up, down)
+    # only an interior local extremum is an R-peak: one at the record's edge is cut
+    n = light.size
+    ok = (idx > 0) & (idx < n - 1)
+    ii = np.clip(idx, 1, n - 2)
+    ok &= (sign * light[ii] >= sign * light[ii - 1]) & (sign * light[ii] >= sign * light[ii + 1])
+    return idx[ok].astype(np.int64), amp[ok].astype(float), sign[ok]
+
+
+def _search_edges(clf: _Classifier, qrs: list[int], n: int) -> list[int]:
+    """Search back in the gaps before the first and after the last detection."""
+    qrs = sorted(qrs)
+    peaks = clf.peaks
+    rr = np.diff([peaks[j] for j in qrs])
+    limit = SEARCH_BACK_FACTOR * (float(np.median(rr)) if rr.size else clf.rate)
+    while peaks[qrs[0]] > limit:
+        found = clf.best_in(0, peaks[qrs[0]] - clf.refractory, 0.5 * clf.threshold(0))
+        if found is None:
+            break
+        qrs.insert(0, found)
+    while n - 1 - peaks[qrs[-1]] > limit:
+        found = clf.best_in(peaks[qrs[-1]] + clf.refractory, n - 1, 0.5 * clf.threshold(0))
+        if found is None:
+            break
+        qrs.append(found)
     return qrs
 
 
-def _polarity(light: np.ndarray, coarse: np.ndarray, w: int, rate: float) -> int:
-    """+1 if the median upward QRS excursion beats the median downward one, else -1."""
-    up, down = [], []
-    base_w = int(round(0.25 * rate))
-    for c in coarse:
-        seg = light[max(0, c - w) : c + w + 1]
-        base = np.median(light[max(0, c - base_w) : c + base_w + 1])
-        up.append(seg.max() - base)
-        down.append(base - seg.min())
-    return 1 if np.median(up) >= np.median(down) else -1
-
-
 def _dedupe(idx: np.ndarray, amp: np.ndarray, refractory: int):
-    """Drop the smaller of two refined peaks closer than the refractory period."""
+    """Drop the smaller of two R-peaks closer than the refractory period; also
+    return the kept positions in the input."""
     order = np.argsort(idx, kind="stable")
-    idx, amp = idx[order], amp[order]
-    keep_i, keep_a = [int(idx[0])], [float(amp[0])]
-    for k, a in zip(idx[1:], amp[1:]):
-        if k - keep_i[-1] < refractory:
-            if a > keep_a[-1]:
-                keep_i[-1], keep_a[-1] = int(k), float(a)
+    keep = [int(order[0])]
+    for o in order[1:]:
+        if idx[o] - idx[keep[-1]] < refractory:
+            if amp[o] > amp[keep[-1]]:
+                keep[-1] = int(o)
             continue
-        keep_i.append(int(k))
-        keep_a.append(float(a))
-    return np.asarray(keep_i, dtype=np.int64), np.asarray(keep_a, dtype=float)
+        keep.append(int(o))
+    keep_arr = np.asarray(keep, dtype=np.int64)
+    return idx[keep_arr].copy(), amp[keep_arr].copy(), keep_arr

@@ -266,20 +266,51 @@ def _finite_stamps(r_s: np.ndarray, times_s: np.ndarray, notes: list):
     return r_s[~nan], None
 
 
-def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_records=()) -> PhaseReport:
+def _file_name(source: str) -> str:
+    """A source named by its file name only: a folder can name the patient."""
+    return Path(source).name if source and not source.startswith("<") else source
+
+
+def _read_study_waveforms(volume, notes: list[str]) -> list:
+    from imaging.waveform import WaveformError, read_ecg_waveform
+
+    records = []
+    for path in getattr(volume, "waveform_files", ()):
+        try:
+            records.append(read_ecg_waveform(path))
+        except WaveformError as exc:
+            notes.append(f"ECG waveform {_file_name(str(path))} unreadable: " + _strip_paths(str(exc), path))
+    return records
+
+
+def _strip_paths(text: str, path) -> str:
+    """``text`` with ``path`` (and its folder) replaced by the file name."""
+    p = Path(path)
+    for long in (str(p.resolve()), str(p)):
+        text = text.replace(long, p.name)
+    return text.replace(str(p.parent) + "/", "")
+
+
+def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_records=None) -> PhaseReport:
     """Cardiac phase of every slice of ``volume`` from the best available source.
+
+    Every R-peak source the study holds is considered, in the order of the
+    module docstring; this is what ``heartreg phases``, ``model`` and
+    ``pipeline`` report.
 
     Parameters
     ----------
     volume : imaging.Volume
         Its ``slices`` carry the slice clocks and gating attributes; its
-        ``series`` the GE R-peak time stamps, if any.
+        ``series`` the GE R-peak time stamps, if any; its ``waveform_files`` the
+        study's ECG waveform instances.
     qrs_s : (n,) float, s, optional
         R-peak times on the AcquisitionTime clock (a user's QRS file).
     qrs_label : str
         How to name the R-peak times in the report (e.g. the file name).
-    ecg_records : sequence of imaging.waveform.EcgRecord
-        ECG waveform instances of the study (start times on the AcquisitionTime clock).
+    ecg_records : sequence of imaging.waveform.EcgRecord, optional
+        ECG waveform records to use instead of reading ``volume.waveform_files``
+        (default: read them; an unreadable one is named in the notes).
 
     Raises
     ------
@@ -287,6 +318,8 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         When no source can time every slice; the message lists what was looked for.
     """
     notes: list[str] = []
+    if ecg_records is None:
+        ecg_records = _read_study_waveforms(volume, notes)
     acq = _column(volume, "acquisition_time_s")
     has_acq = bool(np.all(np.isfinite(acq)))
 
@@ -341,7 +374,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
 
     # 3. an ECG waveform instance of the study, QRS detection on it
     for record in ecg_records:
-        label = f"ECG waveform {getattr(record, 'source', '')}".strip()
+        label = f"ECG waveform {_file_name(getattr(record, 'source', ''))}".strip()
         if not has_acq:
             notes.append(f"{label}: slices lack AcquisitionTime, cannot align")
             continue

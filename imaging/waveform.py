@@ -167,13 +167,16 @@ def _to_mv(ch: Dataset, label: str, name: str) -> tuple[float, str | None]:
 
 
 def _start_time(ds: Dataset, group: Dataset, name: str) -> tuple[float, str]:
+    from imaging.discover import _date, on_study_clock
+
     offset_s = float(group.get("MultiplexGroupTimeOffset", 0.0) or 0.0) / 1000.0
-    for keyword, parse, tag in (
-        ("AcquisitionDateTime", _dt_seconds, "(0008,002A)"),
-        ("AcquisitionTime", _tm_seconds, "(0008,0032)"),
-        ("ContentTime", _tm_seconds, "(0008,0033)"),
+    study_day = _date(ds.get("StudyDate"))
+    for keyword, parse, tag, day_keyword in (
+        ("AcquisitionDateTime", _dt_seconds, "(0008,002A)", "AcquisitionDateTime"),
+        ("AcquisitionTime", _tm_seconds, "(0008,0032)", "AcquisitionDate"),
+        ("ContentTime", _tm_seconds, "(0008,0033)", "ContentDate"),
     ):
-        t = parse(ds.get(keyword))
+        t = on_study_clock(parse(ds.get(keyword)), _date(ds.get(day_keyword)), study_day)
         if t is not None:
             src = f"{tag} {keyword} + (0018,1068) MultiplexGroupTimeOffset"
             if keyword != "AcquisitionDateTime":

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from heartreg.phantom.signals import phase_from_events, r_peak_times, synthesize_ecg
-from imaging.ecg import RPeaks, SignalError, cardiac_phase, detect_r_peaks
+from imaging.ecg import EDGE_MARGIN_S, RPeaks, SignalError, cardiac_phase, detect_r_peaks
 
 MATCH_TOL_S = 0.050
 START_S = 36_000.0  # 10:00:00 on the AcquisitionTime clock
@@ -49,8 +49,9 @@ def match(truth_s, detected_s, tol_s=MATCH_TOL_S):
     return len(errors), int(np.count_nonzero(~used)), np.asarray(errors)
 
 
-def complete_beats(truth_s, n_samples, rate_hz, start_s=START_S, margin_s=0.03):
-    """True R-peaks whose R maximum lies inside the record (30 ms from either end)."""
+def complete_beats(truth_s, n_samples, rate_hz, start_s=START_S, margin_s=EDGE_MARGIN_S):
+    """True R-peaks whose whole QRS lies inside the record (R maximum at least
+    EDGE_MARGIN_S = 50 ms, half a QRS complex, from either end)."""
     end = start_s + (n_samples - 1) / rate_hz
     return truth_s[(truth_s >= start_s + margin_s) & (truth_s <= end - margin_s)]
 
@@ -108,9 +109,9 @@ def test_short_record_of_10_s():
 
 
 @pytest.mark.parametrize("rate_hz", [100.0, 1000.0])
-@pytest.mark.parametrize("edge_s", [0.04, 0.10])
+@pytest.mark.parametrize("edge_s", [0.06, 0.10])
 def test_edge_beats_are_found_when_complete(rate_hz, edge_s):
-    """A beat whose R maximum is 40 or 100 ms inside either end is found; a cut one is not invented."""
+    """A beat whose R maximum is 60 or 100 ms inside either end is found; a cut one is not invented."""
     truth, ecg_long = phantom_ecg(3, rate_hz=rate_hz, heart_rate_hz=1.4, duration_s=30.0)
     first = truth[np.searchsorted(truth, START_S + 2.0)]
     last = truth[np.searchsorted(truth, START_S + 20.0)]
@@ -124,6 +125,20 @@ def test_edge_beats_are_found_when_complete(rate_hz, edge_s):
     inside = truth[(truth >= first) & (truth <= last)]
     tp, extra, _ = match(inside, peaks.times_s)
     assert tp == inside.size and extra == 0
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 360.0])
+def test_beats_within_the_edge_margin_are_left_out(rate_hz):
+    """R maxima 40 ms inside either end (QRS cut in half): neither is reported (issue 10)."""
+    truth, ecg_long = phantom_ecg(3, rate_hz=rate_hz, heart_rate_hz=1.4, duration_s=30.0)
+    first = truth[np.searchsorted(truth, START_S + 2.0)]
+    last = truth[np.searchsorted(truth, START_S + 20.0)]
+    i0 = int(round((first - 0.04 - START_S) * rate_hz))
+    i1 = int(round((last + 0.04 - START_S) * rate_hz)) + 1
+    peaks = detect_r_peaks(ecg_long[i0:i1], rate_hz, start_s=START_S + i0 / rate_hz)
+    inside = truth[(truth > first) & (truth < last)]
+    assert peaks.times_s.size == inside.size
+    np.testing.assert_allclose(peaks.times_s, inside, atol=3e-3)
 
 
 def test_beat_cut_by_the_record_start_is_not_reported():

@@ -161,3 +161,83 @@ def test_full_size_phases(full_case):
     _check(report, truth)
     report = compute_phase_report(volume, qrs_s=read_qrs_file(case / "qrs.csv"))
     _check(report, truth)
+
+
+def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
+    """Issue 10: a study whose only R-peak source is its ECG waveform (no GE stamps,
+    no TriggerTime): ``compute_phase_report(volume)`` reads the waveform itself and
+    gives the command's phi_C* (the truth, within VOLUME_TOL), naming the waveform
+    by its file name only."""
+    case, truth = sample_case
+    ct = _copy_without(case, tmp_path, private=True, gating=True)
+    report = compute_phase_report(load_study(ct))
+    assert report.source.startswith("ECG waveform IM") and str(tmp_path) not in report.source
+    assert "/" not in report.source
+    _check(report, truth)
+    out = tmp_path / "out"
+    assert main(["phases", str(ct), "-o", str(out), "-q"]) == 0
+    written = json.loads((out / "phases.json").read_text())
+    assert written["volume_cardiac_phase"] == report.volume_cardiac_phase
+    assert written["source"] == report.source
+
+
+def test_unreadable_waveform_is_named_by_file_in_the_notes(sample_case, tmp_path):
+    """A broken ECG waveform instance: the report falls back and its note names the file only."""
+    case, truth = sample_case
+    ct = _copy_without(case, tmp_path, private=True)
+    wave = next(f for f in ct.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "ECG")
+    ds = pydicom.dcmread(wave)
+    del ds.WaveformSequence[0].WaveformData
+    ds.save_as(wave)
+    report = compute_phase_report(load_study(ct))
+    assert report.source.startswith("TriggerTime")
+    note = next(n for n in report.notes if "unreadable" in n)
+    assert wave.name in note and str(tmp_path) not in note
+
+
+def _shift_clock(path, shift_s):
+    """Move every time of a DICOM file by ``shift_s`` seconds, with its dates."""
+    import datetime
+
+    ds = pydicom.dcmread(path)
+    study_day = datetime.datetime.strptime(ds.StudyDate, "%Y%m%d")
+    for date_kw, time_kw in (("AcquisitionDate", "AcquisitionTime"), ("ContentDate", "ContentTime"),
+                             ("StudyDate", "StudyTime"), ("SeriesDate", "SeriesTime")):
+        if time_kw not in ds:
+            continue
+        t = datetime.datetime.strptime(ds.get(date_kw) or ds.StudyDate, "%Y%m%d") + datetime.timedelta(
+            seconds=pydicom.valuerep.TM(ds.get(time_kw)).hour * 3600.0
+            + pydicom.valuerep.TM(ds.get(time_kw)).minute * 60.0
+            + pydicom.valuerep.TM(ds.get(time_kw)).second
+            + pydicom.valuerep.TM(ds.get(time_kw)).microsecond * 1e-6
+            + shift_s
+        )
+        setattr(ds, date_kw, t.strftime("%Y%m%d"))
+        setattr(ds, time_kw, t.strftime("%H%M%S.%f"))
+    if "AcquisitionDateTime" in ds:
+        t = datetime.datetime.strptime(str(ds.AcquisitionDateTime)[:21].ljust(21, "0")[:14], "%Y%m%d%H%M%S")
+        frac = str(ds.AcquisitionDateTime)[14:].split("+")[0].split("-")[0]
+        t = t + datetime.timedelta(seconds=float("0" + frac) + shift_s)
+        ds.AcquisitionDateTime = t.strftime("%Y%m%d%H%M%S.%f")
+    ds.save_as(path)
+    return study_day
+
+
+def test_scan_across_midnight(sample_case, tmp_path):
+    """Issue 10: slices and ECG at 23:59:5x -> 00:00:xx, dates +1: phases as without the
+    crossing (the truth), not 'slice times outside the R-peaks'."""
+    case, truth = sample_case
+    ct = _copy_without(case, tmp_path, private=True, gating=True)
+    volume = load_study(ct)
+    times = np.array([s.acquisition_time_s for s in volume.slices])
+    midnight_in = 0.5 * (times.min() + times.max())
+    shift = 86400.0 - midnight_in  # midnight falls in the middle of the scan
+    for f in ct.iterdir():
+        _shift_clock(f, shift)
+    moved = load_study(ct)
+    shifted = np.array([s.acquisition_time_s for s in moved.slices])
+    assert shifted.min() < 86400.0 < shifted.max()  # on the study day's clock, past 24 h
+    np.testing.assert_allclose(shifted, times + shift, atol=1e-5)
+    report = compute_phase_report(moved)
+    assert report.source.startswith("ECG waveform")
+    _check(report, truth)

@@ -1,0 +1,113 @@
+"""No path, folder name or patient tag in any output of any command (issue 10).
+
+A phantom study is copied into a folder named like a patient, every DICOM file
+gets (0010,0010) *Patient's Name*, (0010,0020) *Patient ID* and (0010,0030)
+*Patient's Birth Date*, and the GE R-peak stamps are removed so that the study
+is timed by its ECG waveform (the source whose absolute path used to leak into
+``phases.json`` and ``model.json``).  Then ``phases``, ``model``, ``register``
+and ``pipeline`` run, and every file they wrote is searched, as bytes and with
+the compressed text chunks of PNG files inflated, for the name, the ID, the
+birth date (both spellings), the folder name and the temporary path.
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import zlib
+from pathlib import Path
+
+import pydicom
+import pytest
+
+from heartreg.cli import main
+
+NAME = "DOE^JANE"
+PATIENT_ID = "PID8675309"
+BIRTH = "19610412"
+FOLDER = "DOE_JANE_PID8675309"
+
+
+def _patient_case(case_dir: Path, root: Path) -> Path:
+    """``root/FOLDER`` holding ct/ (tags set, GE stamps removed) and session/."""
+    folder = root / FOLDER
+    (folder / "ct").mkdir(parents=True)
+    for f in sorted((case_dir / "ct").iterdir()):
+        ds = pydicom.dcmread(f)
+        if ds.Modality != "ECG":
+            ds.remove_private_tags()
+        ds.PatientName = NAME
+        ds.PatientID = PATIENT_ID
+        ds.PatientBirthDate = BIRTH
+        ds.save_as(folder / "ct" / f.name)
+    shutil.copytree(case_dir / "session", folder / "session")
+    return folder
+
+
+def _png_texts(data: bytes) -> bytes:
+    """The text chunks of a PNG (tEXt, zTXt, iTXt), inflated where compressed."""
+    out = []
+    pos = 8
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        body = data[pos + 8 : pos + 8 + length]
+        if kind == b"tEXt":
+            out.append(body)
+        elif kind == b"zTXt":
+            key, _, rest = body.partition(b"\0")
+            out += [key, zlib.decompress(rest[1:])]
+        elif kind == b"iTXt":
+            key, _, rest = body.partition(b"\0")
+            compressed, rest = rest[0], rest[2:]
+            _, _, rest = rest.partition(b"\0")  # language
+            _, _, text = rest.partition(b"\0")  # translated keyword
+            out += [key, zlib.decompress(text) if compressed else text]
+        pos += 12 + length
+    return b"\n".join(out)
+
+
+def _leaks(out_root: Path, needles: list[str]) -> list[str]:
+    found = []
+    files = [p for p in out_root.rglob("*") if p.is_file()]
+    assert files, f"nothing written under {out_root}"
+    for path in files:
+        data = path.read_bytes()
+        if path.suffix.lower() == ".png":
+            data += _png_texts(data)
+        for needle in needles:
+            if needle.encode() in data:
+                found.append(f"{path.relative_to(out_root)}: {needle}")
+    return found
+
+
+def test_no_patient_data_in_any_output(sample_case, tmp_path):
+    case, _ = sample_case
+    folder = _patient_case(case, tmp_path / "studies")
+    out = tmp_path / "outputs"
+    ct, session = folder / "ct", folder / "session"
+    assert main(["phases", str(ct), "-o", str(out / "phases"), "-q"]) == 0
+    assert main(["model", str(ct), "-o", str(out / "model"), "-q"]) == 0
+    assert main(["register", str(out / "model"), str(session), "-o", str(out / "register"), "-q",
+                 "--step", "0.05", "--no-view"]) == 0
+    assert main(["pipeline", str(ct), str(session), "-o", str(out / "pipeline"), "-q", "--step", "0.05"]) == 0
+    # the study was timed by its ECG waveform: the source is named, by its file name only
+    phases = (out / "phases" / "phases.json").read_text()
+    assert '"source": "ECG waveform IM' in phases
+    needles = [NAME, NAME.replace("^", " "), PATIENT_ID, BIRTH, "1961-04-12", FOLDER, str(tmp_path),
+               str(tmp_path.resolve())]
+    assert _leaks(out, needles) == []
+
+
+@pytest.mark.parametrize("needle", [FOLDER, PATIENT_ID])
+def test_the_search_finds_a_leak(tmp_path, needle):
+    """The search above is not blind: a PNG with the folder in a compressed text
+    chunk and a JSON with the ID are both caught."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(1, 1))
+    fig.savefig(tmp_path / "a.png", metadata={"Description": f"/data/{needle}/ct" * 200})
+    plt.close(fig)
+    assert _leaks(tmp_path, [needle]) == ["a.png: " + needle]

@@ -1,0 +1,178 @@
+"""QRS detection (imaging/ecg.py) on real ECG: eight MIT-BIH Arrhythmia Database records.
+
+The records and their reference beats are in ``../shared/ecg/mitdb`` beside the
+repository checkout (see its README); the test is skipped when that folder is
+missing.  Scoring follows ANSI/AAMI EC57: a detection matches a reference beat
+within +-150 ms, one to one; sensitivity, positive predictivity and F1 over the
+whole record and from 5:00 on (the learning period left out).
+
+The bar (issue 10): F1 >= 99.5 % over the eight records together, and on each
+record at least what neurokit2's default detector reaches on it in the same run
+(``nk.ecg_peaks(signal, sampling_rate=fs)``, method "neurokit", on the record as
+given to ours), except 108 (large complexes of both polarities, much noise)
+where >= 95 % is asked.  (After ``nk.ecg_clean`` neurokit2 does better on 104,
+99.78 % against our 99.69 % over the whole record, and worse on the others;
+README, accuracy table.)
+
+Timing: a reference annotation at sample ``i`` is at ``i / fs`` s on the
+record's clock, the clock of ``detect_r_peaks(..., start_s=0)``; the timing
+error of a matched beat is detection time minus annotation time.  The median
+|error| over all matched beats must be <= 3 ms (about one sample at 360 Hz);
+the annotations mark the major local extremum of the QRS, which is what our
+sub-sample refinement places the R-peak on.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imaging.ecg import detect_r_peaks
+
+RECORDS = ("100", "102", "104", "105", "106", "108", "116", "119")
+TOL_S = 0.150  # EC57 matching window
+LATE_S = 300.0  # 5:00: the second score leaves out the learning period
+F1_ALL = 0.995
+F1_108 = 0.95
+MEDIAN_ERROR_S = 3e-3
+
+
+def _mitdb_dir() -> Path | None:
+    repo = Path(__file__).resolve().parents[2]
+    # the shared folder beside the checkout (a worktree sits one level deeper)
+    for base in (repo.parent, repo.parent.parent):
+        folder = base / "shared" / "ecg" / "mitdb"
+        if all((folder / f"{r}.npz").is_file() for r in RECORDS):
+            return folder
+    return None
+
+
+MITDB = _mitdb_dir()
+pytestmark = pytest.mark.skipif(MITDB is None, reason="../shared/ecg/mitdb (MIT-BIH records) not found")
+
+
+def match_beats(detected_s, reference_s, tol_s=TOL_S):
+    """One-to-one matching of two sorted beat lists within ``tol_s``.
+
+    Each reference beat, in time order, takes the nearest still unmatched
+    detection within ``tol_s`` (beats are >= 200 ms apart and the window is
+    +-150 ms, so at most two detections compete for one beat).
+
+    Returns
+    -------
+    det_matched : (n_det,) bool
+    errors_s : (n_ref,) float, detection minus reference time, NaN if unmatched
+    """
+    detected_s = np.asarray(detected_s, dtype=float)
+    used = np.zeros(detected_s.size, dtype=bool)
+    errors = np.full(len(reference_s), np.nan)
+    for k, r in enumerate(reference_s):
+        i = int(np.searchsorted(detected_s, r))
+        best = None
+        for c in (i - 1, i, i + 1):
+            if 0 <= c < detected_s.size and not used[c] and abs(detected_s[c] - r) <= tol_s:
+                if best is None or abs(detected_s[c] - r) < abs(detected_s[best] - r):
+                    best = c
+        if best is not None:
+            used[best] = True
+            errors[k] = detected_s[best] - r
+    return used, errors
+
+
+def f1(tp, fp, fn) -> float:
+    return 2 * tp / (2 * tp + fp + fn)
+
+
+def _load(record):
+    z = np.load(MITDB / f"{record}.npz")
+    fs = float(z["fs_hz"])
+    return z["ecg_uv"] / 1000.0, fs, z["r_peak_samples"] / fs
+
+
+def _scores(detected_s, reference_s):
+    """(whole record, from 5:00 on), each (tp, fp, fn, errors of the matched beats (s)).
+
+    One matching over the whole record; the second score counts the reference
+    beats and the detections from 5:00 on.
+    """
+    used, errors = match_beats(detected_s, reference_s)
+    out = []
+    for t0 in (-np.inf, LATE_S):
+        ref_in, det_in = reference_s >= t0, detected_s >= t0
+        hit = ref_in & np.isfinite(errors)
+        out.append((int(hit.sum()), int((det_in & ~used).sum()), int((ref_in & ~hit).sum()), errors[hit]))
+    return tuple(out)
+
+
+@pytest.fixture(scope="session")
+def mitdb_results():
+    """Our detections and neurokit2's on every record, computed once per session."""
+    nk = pytest.importorskip("neurokit2")
+    out = {}
+    for record in RECORDS:
+        x, fs, ref = _load(record)
+        ours = detect_r_peaks(x, fs).times_s
+        _, info = nk.ecg_peaks(x, sampling_rate=fs)
+        out[record] = (ref, ours, np.asarray(info["ECG_R_Peaks"], dtype=float) / fs)
+    return out
+
+
+def test_f1_over_the_eight_records_and_timing(mitdb_results):
+    """F1 >= 99.5 % over all beats of the eight records, whole and from 5:00; median |error| <= 3 ms."""
+    whole = np.zeros(3)
+    late = np.zeros(3)
+    errors = []
+    for ref, ours, _ in mitdb_results.values():
+        (tp, fp, fn, e), (tp5, fp5, fn5, _) = _scores(ours, ref)
+        whole += (tp, fp, fn)
+        late += (tp5, fp5, fn5)
+        errors.append(e)
+    assert f1(*whole) >= F1_ALL, whole
+    assert f1(*late) >= F1_ALL, late
+    err = np.abs(np.concatenate(errors))
+    assert np.median(err) <= MEDIAN_ERROR_S, np.median(err)
+
+
+@pytest.mark.parametrize("record", RECORDS)
+def test_each_record_at_least_neurokit2(mitdb_results, record):
+    """Per record, whole and from 5:00: F1 >= neurokit2's default on it (108: >= 95 %)."""
+    ref, ours, theirs = mitdb_results[record]
+    mine = _scores(ours, ref)
+    for part in (0, 1):
+        f_ours = f1(*mine[part][:3])
+        if record == "108":
+            assert f_ours >= F1_108, (part, f_ours)
+            continue
+        f_nk = f1(*_scores(theirs, ref)[part][:3])
+        assert f_ours >= f_nk - 1e-12, (part, f_ours, f_nk)
+
+
+def test_108_both_polarities_and_no_beats_at_the_edges(mitdb_results):
+    """108's large complexes of both polarities: >= 95 % with R-peaks on the right wave
+    (median |error| <= 5 ms, where refinement onto the wrong wave gave errors of tens of
+    ms); and on every record no beat within 50 ms of either end."""
+    ref, ours, _ = mitdb_results["108"]
+    (tp, fp, fn, e), _ = _scores(ours, ref)
+    assert f1(tp, fp, fn) >= F1_108
+    assert np.median(np.abs(e)) <= 5e-3
+    for record, (_, det, _) in mitdb_results.items():
+        x, fs, _ = _load(record)
+        assert det[0] >= 0.05 and det[-1] <= (x.size - 1) / fs - 0.05, record
+
+
+def test_recovers_after_a_large_transient():
+    """A 4 s, 20x-amplitude artefact inserted into record 100: the detector follows
+    the beats again within 3 s after it (the Pan-Tompkins threshold used to lock for
+    minutes, issue 10)."""
+    x, fs, ref = _load("100")
+    x = x[: int(120 * fs)].copy()
+    ref = ref[ref < 119.5]
+    t = np.arange(x.size) / fs
+    burst = (t >= 40.0) & (t < 44.0)
+    x[burst] += 20.0 * np.sin(2 * np.pi * 7.0 * t[burst])
+    det = detect_r_peaks(x, fs).times_s
+    used, errors = match_beats(det, ref)
+    for part_ref, part_det in ((ref < 40.0, det < 40.0), (ref >= 47.0, det >= 47.0)):
+        assert np.all(np.isfinite(errors[part_ref])) and np.all(used[part_det])
