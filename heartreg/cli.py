@@ -33,6 +33,10 @@ def _cmd_phantom(args) -> int:
         session=not args.no_session,
         progress=not args.quiet,
         overwrite=args.overwrite,
+        anatomy=args.anatomy,
+        fov_mm=args.fov_mm,
+        markers=False if args.no_markers else None,
+        stent=True if args.stent else None,
         **overrides,
     )
     out = Path(args.out_dir)
@@ -41,6 +45,12 @@ def _cmd_phantom(args) -> int:
     print(f"  image phase      phi_C* = {truth['cardiac_phase']:.4f}, phi_R* = {truth['respiration_phase']:.2f}")
     if "session" in truth:
         print(f"  session points   {len(truth['session']['points'])} in {out / 'session'}")
+    if "anatomy" in truth:
+        a = truth["anatomy"]
+        extras = [a["heart"]] + ([f"FOV {a['fov_mm']:g} mm"] if a["fov_mm"] else [])
+        extras += [] if a["markers"] else ["no skin markers"]
+        extras += ["stent in the descending aorta"] if "stent" in a else []
+        print(f"  anatomy          {', '.join(extras)}")
     print(f"  truth            {out / 'truth.json'}")
     return 0
 
@@ -267,6 +277,11 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--points", type=int, default=None, help="number of robot attachment points")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
+    p.add_argument("--anatomy", default=None, choices=("spheroid", "chambers"),
+                   help="heart: the paper's spheroid or four chambers with great vessels (default: the preset's)")
+    p.add_argument("--fov-mm", type=float, default=None, help="tight CT field of view centred on the heart (mm)")
+    p.add_argument("--no-markers", action="store_true", help="no skin staples (needs --no-session)")
+    p.add_argument("--stent", action="store_true", help="a metal stent in the descending aorta")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)
