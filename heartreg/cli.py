@@ -38,6 +38,10 @@ def _cmd_phantom(args) -> int:
         progress=not args.quiet,
         overwrite=args.overwrite,
         plus=args.plus,
+        anatomy=args.anatomy,
+        fov_mm=args.fov_mm,
+        markers=False if args.no_markers else None,
+        stent=True if args.stent else None,
         **overrides,
     )
     out = Path(args.out_dir)
@@ -53,6 +57,12 @@ def _cmd_phantom(args) -> int:
 
         nav = write_navigation(out)
         print(f"  navigation       {nav.time_s.size} samples in {out / 'navigation'}, truth {out / 'navigation_truth.csv'}")
+    if "anatomy" in truth:
+        a = truth["anatomy"]
+        extras = [a["heart"]] + ([f"FOV {a['fov_mm']:g} mm"] if a["fov_mm"] else [])
+        extras += [] if a["markers"] else ["no skin markers"]
+        extras += ["stent in the descending aorta"] if "stent" in a else []
+        print(f"  anatomy          {', '.join(extras)}")
     print(f"  truth            {out / 'truth.json'}")
     return 0
 
@@ -408,6 +418,11 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="also write the session with its poses in a PLUS sequence file (session_plus/)")
     p.add_argument("--navigation", action="store_true",
                    help="also a 60 s navigation session (the robot crawling) and its truth, for heartreg track")
+    p.add_argument("--anatomy", default=None, choices=("spheroid", "chambers"),
+                   help="heart: the paper's spheroid or four chambers with great vessels (default: the preset's)")
+    p.add_argument("--fov-mm", type=float, default=None, help="tight CT field of view centred on the heart (mm)")
+    p.add_argument("--no-markers", action="store_true", help="no skin staples (needs --no-session)")
+    p.add_argument("--stent", action="store_true", help="a metal stent in the descending aorta")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_phantom)

@@ -7,9 +7,10 @@ tags and an ECG waveform instance), a real intra-operative session and
 """
 
 from heartreg.phantom.chest import ChestModel, build_chest, render_slice
-from heartreg.phantom.config import PRESETS, SIZES, PhantomConfig, make_config
+from heartreg.phantom.config import PRESETS, SIZES, Anatomy, PhantomConfig, make_config
 from heartreg.phantom.ct import AcquisitionPlan, CTStudyExistsError, CTTruth, plan_acquisition, write_ct_study
-from heartreg.phantom.generate import PhantomError, make_phantom
+from heartreg.phantom.anatomy import ChamberHeart
+from heartreg.phantom.generate import PhantomError, heart_from_truth, make_phantom
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import make_heart
 from heartreg.phantom.plus import write_plus_sequence, write_plus_session
@@ -18,6 +19,8 @@ from heartreg.phantom.session import SessionPointTruth, SessionTruth, write_sess
 __all__ = [
     "AcquisitionPlan",
     "AnalyticHeart",
+    "Anatomy",
+    "ChamberHeart",
     "CTStudyExistsError",
     "CTTruth",
     "ChestModel",
@@ -28,6 +31,7 @@ __all__ = [
     "SessionPointTruth",
     "SessionTruth",
     "build_chest",
+    "heart_from_truth",
     "make_config",
     "make_heart",
     "make_phantom",

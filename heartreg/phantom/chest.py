@@ -45,6 +45,15 @@ from numbers import Real
 
 import numpy as np
 
+from heartreg.phantom.anatomy import (
+    ANATOMY_HU,
+    ChamberHeart,
+    Stent,
+    Vessel,
+    descending_stent,
+    great_vessels,
+)
+from heartreg.phantom.config import Anatomy
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import (
     BODY_SEMI_AP_MM,
@@ -135,7 +144,14 @@ class ChestModel:
         Bounding box of the epicardium over all cardiac phases at the breath-hold,
         patient frame.
     tubes : tuple of (name, _Tube)
-        Aorta, pulmonary arteries, trachea, oesophagus.
+        Aorta, pulmonary arteries, trachea, oesophagus (the spheroid's chest;
+        trachea and oesophagus only with a :class:`ChamberHeart`).
+    vessels : tuple of Vessel
+        The great vessels of a :class:`ChamberHeart` (empty for the spheroid).
+    stent : Stent or None
+        The metal stent, when the anatomy asks for one.
+    markers : bool
+        Whether the 9 skin staples are drawn.
     """
 
     heart: AnalyticHeart
@@ -144,6 +160,9 @@ class ChestModel:
     heart_lo_mm: np.ndarray
     heart_hi_mm: np.ndarray
     tubes: tuple
+    vessels: tuple = ()
+    stent: Stent | None = None
+    markers: bool = True
 
     def dome_z_mm(self, x_mm, y_mm):
         """Diaphragm height z (mm) at (x, y): a tilted paraboloid, right side higher."""
@@ -165,19 +184,27 @@ class ChestModel:
         """
         p = np.asarray(points_mm, dtype=float).reshape(-1, 3)
         d = np.full(len(p), np.inf)
+        for vessel in self.vessels:
+            d = np.minimum(d, vessel.lumen_distance(p))
         for name, tube in self.tubes:
             if name in ("aorta", "pulmonary"):
                 d = np.minimum(d, _tube_distance(p, tube))
         return d
 
 
-def build_chest(heart: AnalyticHeart) -> ChestModel:
+def build_chest(heart: AnalyticHeart, *, anatomy: Anatomy | None = None, phase_c: float = 0.7) -> ChestModel:
     """Place the chest's heart-dependent parts (dome, great vessels) around ``heart``.
 
     Parameters
     ----------
     heart : AnalyticHeart
-        The phantom heart in the CT patient frame (see ``layout.make_heart``).
+        The phantom heart in the CT patient frame (see ``layout.make_heart``);
+        a :class:`ChamberHeart` gets the anatomical great vessels.
+    anatomy : Anatomy, optional
+        Skin markers and stent (default: markers, no stent).
+    phase_c : float
+        Cardiac phase at which the great vessels of a :class:`ChamberHeart`
+        meet it (the gating's target phase).
 
     Returns
     -------
@@ -185,6 +212,7 @@ def build_chest(heart: AnalyticHeart) -> ChestModel:
     """
     if not isinstance(heart, AnalyticHeart):
         raise TypeError(f"heart must be an AnalyticHeart, got {type(heart).__name__}")
+    anatomy = Anatomy() if anatomy is None else anatomy
     shape = heart.shape
     mean_semi = 0.5 * (shape.semi_minor_mm + shape.semi_major_mm)
     blood_scale = float(np.clip(1.0 - shape.wall_thickness_mm / mean_semi, 0.3, 0.95))
@@ -192,13 +220,26 @@ def build_chest(heart: AnalyticHeart) -> ChestModel:
     # epicardium over a grid of (u, v) and all cardiac phases at the breath-hold
     u, v = np.meshgrid(np.linspace(0, 1, 72, endpoint=False), np.linspace(0, 1, 49))
     u, v = u.ravel(), v.ravel()
+    ref = heart.reference_points(u, v)
     pts = np.concatenate(
-        [heart.surface_points(u, v, ph, heart.image_resp_phase) for ph in np.linspace(0, 1, 24, endpoint=False)]
+        [heart.move(ref, ph, heart.image_resp_phase) for ph in np.linspace(0, 1, 24, endpoint=False)]
     )
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     # dome vertex: every epicardial point sits at least the fat shell above the dome
     lift = (pts[:, 0] ** 2 + pts[:, 1] ** 2) / (2.0 * DOME_RADIUS_MM) + DOME_TILT * pts[:, 0]
     dome_top = float(np.min(pts[:, 2] + lift) - PERICARDIAL_FAT_MM)
+
+    if isinstance(heart, ChamberHeart):
+        vessels = great_vessels(heart, phase_c=phase_c)
+        tubes = (
+            ("trachea", _Tube(np.array([[-12.0, 30.0, 75.0], [-12.0, 30.0, 300.0]]), 8.0)),
+            ("oesophagus", _Tube(np.array([[-6.0, 40.0, -200.0], [-6.0, 40.0, 300.0]]), 5.0)),
+        )
+        return ChestModel(
+            heart=heart, blood_scale=blood_scale, dome_top_mm=dome_top, heart_lo_mm=lo, heart_hi_mm=hi,
+            tubes=tubes, vessels=vessels, stent=descending_stent(vessels) if anatomy.stent else None,
+            markers=anatomy.markers,
+        )
 
     T = heart.T_patient_from_heart
 
@@ -230,6 +271,9 @@ def build_chest(heart: AnalyticHeart) -> ChestModel:
         ("trachea", trachea),
         ("oesophagus", oesophagus),
     )
+    stent = None
+    if anatomy.stent:
+        stent = descending_stent((Vessel("descending_aorta", np.stack([a4, a5]), aorta.radius_mm, 0.0, HU["blood"]),))
     return ChestModel(
         heart=heart,
         blood_scale=blood_scale,
@@ -237,6 +281,8 @@ def build_chest(heart: AnalyticHeart) -> ChestModel:
         heart_lo_mm=lo,
         heart_hi_mm=hi,
         tubes=tubes,
+        stent=stent,
+        markers=anatomy.markers,
     )
 
 
@@ -413,13 +459,19 @@ def render_slice(
     for tube in tubes.get("trachea", []):
         _tube_on_slice(img, tube, xs, ys, z, HU["air"], edge_mm)
 
-    # heart: pericardial fat shell, myocardium, contrast blood pool
-    _render_heart(img, chest, xs, ys, z, phase_c, edge_mm)
-    for name in ("aorta", "pulmonary"):
-        for tube in tubes.get(name, []):
-            _tube_on_slice(img, tube, xs, ys, z, HU["blood"], edge_mm)
+    if isinstance(chest.heart, ChamberHeart):
+        _render_chambers(img, chest, xs, ys, z, phase_c, edge_mm)
+    else:
+        # heart: pericardial fat shell, myocardium, contrast blood pool
+        _render_heart(img, chest, xs, ys, z, phase_c, edge_mm)
+        for name in ("aorta", "pulmonary"):
+            for tube in tubes.get(name, []):
+                _tube_on_slice(img, tube, xs, ys, z, HU["blood"], edge_mm)
 
-    _render_fiducials(img, xs, ys, z, edge_mm)
+    if chest.stent is not None:
+        _paint_window(img, xs, ys, z, chest.stent.bbox(edge_mm), chest.stent.distance, chest.stent.hu, edge_mm)
+    if chest.markers:
+        _render_fiducials(img, xs, ys, z, edge_mm)
 
     if noise_hu > 0:
         img += noise_hu * rng.standard_normal(img.shape)
@@ -448,6 +500,74 @@ def _render_heart(img, chest: ChestModel, xs, ys, z, phase_c, edge_mm):
     _paint(block, epi, HU["myocardium"], edge_mm)
     _paint(block, inner, HU["blood"], edge_mm)
     img[sub] = block
+
+
+def _slice_window(xs, ys, z, box):
+    """Pixel index arrays (rows, cols) of ``xs``/``ys`` inside the box (lo, hi), or None."""
+    lo, hi = box
+    if not lo[2] <= z <= hi[2]:
+        return None
+    ix, iy = _window(xs, lo[0], hi[0]), _window(ys, lo[1], hi[1])
+    if ix.size == 0 or iy.size == 0:
+        return None
+    return iy, ix
+
+
+def _paint_window(img, xs, ys, z, box, distance, hu, edge_mm):
+    """Paint a structure given by ``distance((..., 3) mm)`` inside its bounding box."""
+    win = _slice_window(xs, ys, z, box)
+    if win is None:
+        return
+    iy, ix = win
+    X, Y = np.meshgrid(xs[ix], ys[iy])
+    sub = np.ix_(iy, ix)
+    block = img[sub]
+    _paint(block, distance(np.stack([X, Y, np.full_like(X, z)], axis=-1)), hu, edge_mm)
+    img[sub] = block
+
+
+def _render_chambers(img, chest: ChestModel, xs, ys, z, phase_c, edge_mm):
+    """Four chambers, epicardial fat, pericardium and the great vessels (see
+    :mod:`heartreg.phantom.anatomy`).  Vessel walls stop at the epicardium; the
+    lumens run on into their chambers' blood pools."""
+    heart = chest.heart
+    epi_full = np.full((ys.size, xs.size), np.inf)
+    # fat around the vessels first (the heart's own layers paint over it)
+    for vessel in chest.vessels:
+        _paint_window(img, xs, ys, z, vessel.bbox(VESSEL_FAT_MM + edge_mm),
+                      lambda p, v=vessel: v.lumen_distance(p) - v.wall_mm - VESSEL_FAT_MM, HU["fat"], edge_mm)
+    margin = PERICARDIAL_FAT_MM + 8.0 + 2.0 * edge_mm
+    win = _slice_window(xs, ys, z, (chest.heart_lo_mm - margin, chest.heart_hi_mm + margin))
+    if win is not None:
+        iy, ix = win
+        X, Y = np.meshgrid(xs[ix], ys[iy])
+        P = np.stack([X, Y, np.full_like(X, z)], axis=-1)
+        q = heart.to_reference(P, phase_c) @ heart.local_axes.T
+        parts = heart.chambers_local(q)
+        sub = np.ix_(iy, ix)
+        block = img[sub]
+        hu = ANATOMY_HU
+        for name, value in (
+            ("pericardium", hu["pericardium"]), ("fat", hu["fat"]), ("epicardium", hu["myocardium"]),
+            ("lv_blood", hu["blood_left"]), ("la_blood", hu["blood_left"]),
+            ("rv_blood", hu["blood_right"]), ("ra_blood", hu["blood_right"]),
+        ):
+            _paint(block, parts[name], value, edge_mm)
+        img[sub] = block
+        epi_full[sub] = parts["epicardium"]
+    for vessel in chest.vessels:
+        box = vessel.bbox(edge_mm)
+        w = _slice_window(xs, ys, z, box)
+        if w is None:
+            continue
+        iy, ix = w
+        X, Y = np.meshgrid(xs[ix], ys[iy])
+        lumen = vessel.lumen_distance(np.stack([X, Y, np.full_like(X, z)], axis=-1))
+        sub = np.ix_(iy, ix)
+        block = img[sub]
+        _paint(block, np.maximum(lumen - vessel.wall_mm, -epi_full[sub]), ANATOMY_HU["vessel_wall"], edge_mm)
+        _paint(block, lumen, vessel.hu, edge_mm)
+        img[sub] = block
 
 
 def _render_fiducials(img, xs, ys, z, edge_mm):

@@ -17,11 +17,13 @@ __all__ = [
     "HeartMotion",
     "CTGeometry",
     "NoiseModel",
+    "Anatomy",
     "PhantomConfig",
     "PAPER_TABLE1",
     "PRESETS",
     "SIZES",
     "make_config",
+    "config_from_dict",
 ]
 
 
@@ -102,6 +104,34 @@ class NoiseModel:
     flow_noise_lpm: float = 0.4
 
 
+#: heart models of :class:`Anatomy`: the analytic spheroid or four chambers.
+HEART_KINDS = ("spheroid", "chambers")
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """What the CT shows beyond the paper's phantom (see ``heartreg.phantom.anatomy``).
+
+    ``heart``: ``"spheroid"`` (the analytic truncated spheroid with a
+    concentric blood pool) or ``"chambers"`` (four chambers, great vessels,
+    epicardial fat).  ``fov_mm``: the CT's reconstruction field of view
+    (square, centred on the heart; the matrix is kept, so the pixels shrink),
+    or None for the size's own field (250 mm, the whole body).  ``markers``:
+    the 9 skin staples.  ``stent``: a metal stent in the descending aorta.
+    """
+
+    heart: str = "spheroid"
+    fov_mm: float | None = None
+    markers: bool = True
+    stent: bool = False
+
+    def __post_init__(self):
+        if self.heart not in HEART_KINDS:
+            raise ValueError(f"anatomy heart must be one of {', '.join(HEART_KINDS)}, got {self.heart!r}")
+        if self.fov_mm is not None and not 100.0 <= self.fov_mm <= 500.0:
+            raise ValueError(f"fov_mm must be within 100..500 mm, got {self.fov_mm!r}")
+
+
 SIZES: dict[str, CTGeometry] = {
     # 128 x 128 x 72 int16 = 2.4 MB: small enough to commit.
     "sample": CTGeometry(n_rows=128, n_cols=128, pixel_mm=1.95, slice_mm=2.5, n_slices=72),
@@ -136,6 +166,7 @@ class PhantomConfig:
     heart: HeartShape = field(default_factory=HeartShape)
     motion: HeartMotion = field(default_factory=HeartMotion)
     noise: NoiseModel = field(default_factory=NoiseModel)
+    anatomy: Anatomy = field(default_factory=Anatomy)
 
     def __post_init__(self):
         _check_positive("n_points", self.n_points)
@@ -162,7 +193,12 @@ class PhantomConfig:
             )
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if self.anatomy == Anatomy():
+            # the paper's phantom: the same dict (and so the same UIDs and bytes)
+            # as before the anatomy option existed
+            del out["anatomy"]
+        return out
 
 
 def _check_positive(name: str, value: float) -> None:
@@ -215,6 +251,15 @@ def _preset(trial: int) -> PhantomConfig:
 
 PRESETS: dict[str, PhantomConfig] = {"default": PhantomConfig()}
 PRESETS.update({f"wood2018-trial{k}": _preset(k) for k in PAPER_TABLE1})
+#: a human chest: four chambers, the apex left-anterior-inferior (long axis
+#: apex -> base along LPS (-0.55, 0.40, 0.73)), the heart a little lower and
+#: more anterior than the porcine presets' so the atria clear the spine.
+PRESETS["human"] = PhantomConfig(
+    name="human",
+    euler_xyz_deg=(-28.6, -33.4, -60.0),
+    heart_origin_mm=(20.0, -24.0, -12.0),
+    anatomy=Anatomy(heart="chambers"),
+)
 
 #: Table 1's image phases, for reports that set the phantom beside the paper.
 PAPER_IMAGE_PHASE = {f"wood2018-trial{k}": v[3] for k, v in PAPER_TABLE1.items()}
@@ -226,3 +271,16 @@ def make_config(preset: str = "default", **overrides) -> PhantomConfig:
         names = ", ".join(sorted(PRESETS))
         raise ValueError(f"unknown preset {preset!r}; choose one of: {names}")
     return dataclasses.replace(PRESETS[preset], **overrides)
+
+
+def config_from_dict(d: dict) -> PhantomConfig:
+    """The :class:`PhantomConfig` of a ``to_dict()`` (e.g. ``truth.json``'s ``config``)."""
+    d = dict(d)
+    nested = {"heart": HeartShape, "motion": HeartMotion, "noise": NoiseModel, "anatomy": Anatomy}
+    for key, cls in nested.items():
+        if key in d:
+            d[key] = cls(**d[key])
+    for key in ("euler_xyz_deg", "heart_origin_mm", "fiducial_shift_mm", "fiducial_shift_deg"):
+        if key in d:
+            d[key] = tuple(d[key])
+    return PhantomConfig(**d)

@@ -35,6 +35,7 @@ Output folder layout of :func:`write_ct_study`::
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -57,6 +58,7 @@ __all__ = [
     "AcquisitionPlan",
     "CTTruth",
     "CTStudyExistsError",
+    "pixel_grid",
     "plan_acquisition",
     "write_ct_study",
     "Z_START_MM",
@@ -151,8 +153,30 @@ class AcquisitionPlan:
         return _pixel_centres(g.n_cols, g.pixel_mm)
 
 
-def _pixel_centres(n: int, pixel_mm: float) -> np.ndarray:
-    return np.round(-0.5 * n * pixel_mm + (np.arange(n) + 0.5) * pixel_mm, 4)
+def _pixel_centres(n: int, pixel_mm: float, centre_mm: float = 0.0) -> np.ndarray:
+    return np.round(centre_mm - 0.5 * n * pixel_mm + (np.arange(n) + 0.5) * pixel_mm, 4)
+
+
+def pixel_grid(config: PhantomConfig, geometry: CTGeometry):
+    """Pixel centres of the CT's axial grid (patient x of the columns, y of the rows).
+
+    The size's own field of view is centred on the body; a tight
+    ``config.anatomy.fov_mm`` is centred on the heart's origin (rounded to
+    0.1 mm) and keeps the matrix, so its pixels are ``fov_mm / n_cols``.
+
+    Returns
+    -------
+    xs_mm : (n_cols,) float64
+    ys_mm : (n_rows,) float64
+    pixel_mm : float
+    """
+    fov = config.anatomy.fov_mm
+    if fov is None:
+        return (_pixel_centres(geometry.n_cols, geometry.pixel_mm),
+                _pixel_centres(geometry.n_rows, geometry.pixel_mm), geometry.pixel_mm)
+    pixel = round(float(fov) / geometry.n_cols, 6)
+    cx, cy = (round(float(c), 1) for c in config.heart_origin_mm[:2])
+    return _pixel_centres(geometry.n_cols, pixel, cx), _pixel_centres(geometry.n_rows, pixel, cy), pixel
 
 
 def _check_args(config, size, seed):
@@ -271,7 +295,8 @@ class CTTruth:
     cardiac_phase : float
         phi_C*, the mean of the slice phases (paper section 2.3).
     circular_mean_phase : float
-    fiducials_patient_mm : (9, 3) float64, staple centres (layout order)
+    fiducials_patient_mm : (9, 3) float64, staple centres (layout order);
+        (0, 3) when the anatomy has no skin markers
     study_instance_uid, series_instance_uid, frame_of_reference_uid : str
     ecg_file, ecg_sop_instance_uid, ecg_series_instance_uid : str or None
         None when the ECG waveform instance was not written.
@@ -383,7 +408,7 @@ def write_ct_study(
     plan = plan_acquisition(config, size=size, seed=seed)
     g = plan.geometry
     heart = make_heart(config)
-    chest = build_chest(heart)
+    chest = build_chest(heart, anatomy=config.anatomy, phase_c=config.gating_target_phase)
     _, s_ecg, s_noise, s_names = _streams(seed)
 
     key = json.dumps(config.to_dict(), sort_keys=True)
@@ -404,7 +429,7 @@ def write_ct_study(
     files = tuple(f"IM{c:08X}.dcm" for c in codes[: g.n_slices])
     ecg_file = f"IM{codes[-1]:08X}.dcm"
 
-    xs = plan.pixel_centres_mm
+    xs, ys, pixel_mm = pixel_grid(config, g)
     origin = plan.scan_origin_s
     peaks_ms = np.round((plan.r_peaks_s - origin) * 1000.0, 3)
     nominal_ms = float(np.mean(np.diff(plan.r_peaks_s))) * 1000.0
@@ -425,7 +450,7 @@ def write_ct_study(
                 z_mm=z,
                 phase_c=float(plan.slice_cardiac_phase[k]),
                 xs_mm=xs,
-                ys_mm=xs,
+                ys_mm=ys,
                 rng=np.random.default_rng(noise_seeds[k]),
                 noise_hu=config.noise.ct_noise_hu,
             )
@@ -439,8 +464,8 @@ def write_ct_study(
                 sop_uid=sop_uids[k],
                 instance_number=int(plan.slice_instance_number[k]),
                 acquisition_number=stack + 1,
-                position_mm=(xs[0], xs[0], z),
-                pixel_mm=g.pixel_mm,
+                position_mm=(xs[0], ys[0], z),
+                pixel_mm=pixel_mm,
                 slice_mm=g.slice_mm,
                 origin_s=origin,
                 time_s=float(plan.slice_time_s[k]),
@@ -487,13 +512,14 @@ def write_ct_study(
         qrs_tmp.unlink(missing_ok=True)
         raise
 
-    T = np.diag([g.pixel_mm, g.pixel_mm, g.slice_mm, 1.0])
-    T[:3, 3] = [xs[0], xs[0], plan.slice_position_mm[0]]
+    T = np.diag([pixel_mm, pixel_mm, g.slice_mm, 1.0])
+    T[:3, 3] = [xs[0], ys[0], plan.slice_position_mm[0]]
+    fiducials = fiducials_patient_mm() if config.anatomy.markers else np.zeros((0, 3))
     return CTTruth(
         size=size,
         seed=seed,
         config_name=config.name,
-        geometry=g,
+        geometry=g if pixel_mm == g.pixel_mm else dataclasses.replace(g, pixel_mm=pixel_mm),
         T_patient_from_voxel=_frozen(T),
         scan_origin_s=origin,
         r_peaks_s=plan.r_peaks_s,
@@ -507,7 +533,7 @@ def write_ct_study(
         slice_sop_instance_uid=sop_uids,
         cardiac_phase=plan.cardiac_phase,
         circular_mean_phase=plan.circular_mean_phase,
-        fiducials_patient_mm=_frozen(fiducials_patient_mm()),
+        fiducials_patient_mm=_frozen(fiducials),
         study_instance_uid=study_uid,
         series_instance_uid=series_uid,
         frame_of_reference_uid=frame_uid,

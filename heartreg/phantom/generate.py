@@ -15,13 +15,14 @@ into place at the end, so a failure never leaves a half-written case.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 from heartreg import __version__
-from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, make_config
+from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, Anatomy, config_from_dict, make_config
 from heartreg.phantom.ct import write_ct_study
 from heartreg.phantom.layout import T_patient_from_probe, make_heart
 from heartreg.phantom.plus import write_plus_session
@@ -29,7 +30,7 @@ from heartreg.phantom.session import write_session
 from hrcore.errors import HeartregError
 from hrcore.output import staged_output
 
-__all__ = ["make_phantom", "PhantomError", "TRUTH_FORMAT_VERSION"]
+__all__ = ["make_phantom", "heart_from_truth", "PhantomError", "TRUTH_FORMAT_VERSION"]
 
 TRUTH_FORMAT_VERSION = 1
 _OUTPUTS = ("ct", "qrs.csv", "session", "session_plus", "truth.json")
@@ -63,6 +64,10 @@ def make_phantom(
     progress: bool = False,
     overwrite: bool = False,
     plus: bool = False,
+    anatomy: str | None = None,
+    fov_mm: float | None = None,
+    markers: bool | None = None,
+    stent: bool | None = None,
     **overrides,
 ) -> dict:
     """Write a complete phantom case to ``out_dir`` and return its truth.
@@ -83,6 +88,16 @@ def make_phantom(
     plus : bool
         Also write the session with its poses in a PLUS sequence file
         (``session_plus/``).
+    anatomy : {'spheroid', 'chambers'}, optional
+        The heart: the paper's analytic spheroid or four chambers with great
+        vessels (default: the preset's; ``human`` has chambers).
+    fov_mm : float, optional
+        A tight CT field of view (mm, square, centred on the heart).
+    markers : bool, optional
+        Draw the 9 skin staples (default: the preset's, True).  Without them
+        there is nothing to touch in surgery: pass ``session=False``.
+    stent : bool, optional
+        A metal stent in the descending aorta.
     **overrides
         Fields of :class:`~heartreg.phantom.config.PhantomConfig` to replace
         (e.g. ``n_points=20``).
@@ -98,8 +113,17 @@ def make_phantom(
         raise PhantomError(f"seed must be a non-negative integer, got {seed!r}")
     try:
         config = make_config(preset, **overrides)
+        choices = {"heart": anatomy, "fov_mm": fov_mm, "markers": markers, "stent": stent}
+        choices = {k: v for k, v in choices.items() if v is not None}
+        if choices:
+            config = dataclasses.replace(config, anatomy=dataclasses.replace(config.anatomy, **choices))
     except (ValueError, TypeError) as exc:
         raise PhantomError(str(exc)) from None
+    if session and not config.anatomy.markers:
+        raise PhantomError(
+            "a case without skin markers has no fiducials for the session to touch; "
+            "pass session=False (--no-session) with markers=False (--no-markers)"
+        )
 
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -136,6 +160,8 @@ def make_phantom(
                 "T_patient_from_probe": T_patient_from_probe(),
             }
         )
+        if config.anatomy != Anatomy():
+            truth["anatomy"] = _anatomy_truth(config, heart, truth["cardiac_phase"])
         if session:
             session_truth = write_session(staging, config, seed=int(seed), progress=progress)
             truth["session"] = session_truth.to_dict()
@@ -145,3 +171,55 @@ def make_phantom(
         truth = _jsonable(truth)
         (staging / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n")
     return truth
+
+
+def _anatomy_truth(config, heart, phase_c: float) -> dict:
+    """The ``anatomy`` block of ``truth.json`` (docs/formats.md)."""
+    from heartreg.phantom.anatomy import ANATOMY_HU, WALL_THICKNESS_MM, ChamberHeart, vessel_origins
+    from heartreg.phantom.chest import build_chest
+
+    a = config.anatomy
+    chest = build_chest(heart, anatomy=a, phase_c=config.gating_target_phase)
+    out = {"heart": a.heart, "fov_mm": a.fov_mm, "markers": a.markers}
+    if chest.stent is not None:
+        st = chest.stent
+        out["stent"] = {
+            "vessel": "descending_aorta",
+            "start_patient_mm": st.start_mm,
+            "end_patient_mm": st.end_mm,
+            "radius_mm": st.radius_mm,
+            "strut_mm": st.strut_mm,
+            "hu": st.hu,
+        }
+    if isinstance(heart, ChamberHeart):
+        phase_r = config.image_resp_phase
+        out.update({
+            "epicardium": {
+                "phase_c": phase_c,
+                "phase_r": phase_r,
+                "note": "the myocardium's outer surface without the great vessels (closed over their "
+                        "mouths); sample it with heartreg.phantom.heart_from_truth(truth)"
+                        ".sample_surface(phase_c, phase_r) or .surface_distance(points, phase_c, phase_r)",
+            },
+            "vessel_origins": vessel_origins(heart, chest.vessels, phase_c, phase_r),
+            "vessels": [
+                {"name": v.name, "chamber": v.chamber, "lumen_radius_mm": v.lumen_radius_mm,
+                 "wall_mm": v.wall_mm, "hu": v.hu, "centreline_patient_mm": v.points_mm}
+                for v in chest.vessels
+            ],
+            "wall_thickness_mm": dict(WALL_THICKNESS_MM),
+            "hu": dict(ANATOMY_HU),
+            "local_axes_patient": heart.T_patient_from_heart[:3, :3] @ heart.local_axes.T,
+            "local_axes_note": "columns anterior, left, long axis of the chambers' layout frame (LPS)",
+        })
+    return out
+
+
+def heart_from_truth(truth: dict):
+    """The phantom heart of a ``truth.json`` (as a dict): the exact epicardium.
+
+    ``heart.surface_distance(points, phase_c, phase_r)`` gives the signed
+    distance (mm, > 0 outside) of patient points to the true epicardium,
+    ``heart.sample_surface(phase_c, phase_r)`` (chambers) exact surface points.
+    """
+    return make_heart(config_from_dict(truth["config"]))

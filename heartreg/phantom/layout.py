@@ -92,8 +92,13 @@ def T_fiducial_shift(config: PhantomConfig) -> np.ndarray:
 
 
 def make_heart(config: PhantomConfig) -> AnalyticHeart:
-    """The analytic heart of ``config``, placed in the CT patient frame."""
-    return AnalyticHeart(
+    """The analytic heart of ``config``, placed in the CT patient frame
+    (a :class:`~heartreg.phantom.anatomy.ChamberHeart` when
+    ``config.anatomy.heart == "chambers"``)."""
+    from heartreg.phantom.anatomy import ChamberHeart
+
+    cls = ChamberHeart if config.anatomy.heart == "chambers" else AnalyticHeart
+    return cls(
         shape=config.heart,
         motion=config.motion,
         T_patient_from_heart=T_from_euler_xyz_deg(config.euler_xyz_deg, config.heart_origin_mm),
