@@ -45,6 +45,7 @@ __all__ = [
     "closest_points_on_triangles",
     "icp",
     "icp_sweep",
+    "icp_sweep_distances",
 ]
 
 
@@ -552,7 +553,25 @@ def _weights(d, n_keep, huber_mm):
     return w
 
 
-def icp_sweep(
+def icp_sweep(points, surface, **options):
+    """Point-to-plane :func:`icp` of many point sets at once, all from one seed.
+
+    See :func:`icp_sweep_distances` for the parameters (``T_init``, ``max_iterations``,
+    ``tol_mm``, ``tol_deg``, ``trim_fraction``, ``huber_mm``, ``k``).
+
+    Returns
+    -------
+    T_target_from_source : (m, 4, 4) float64
+    rms_mm : (m,) float64
+        RMS point-to-surface distance at each solution.
+    iterations : (m,) int64
+    converged : (m,) bool
+    """
+    T, d, iterations, converged = icp_sweep_distances(points, surface, **options)
+    return T, np.sqrt(np.mean(d**2, axis=1)), iterations, converged
+
+
+def icp_sweep_distances(
     points,
     surface,
     *,
@@ -586,8 +605,8 @@ def icp_sweep(
     Returns
     -------
     T_target_from_source : (m, 4, 4) float64
-    rms_mm : (m,) float64
-        RMS point-to-surface distance at each solution.
+    distances_mm : (m, n) float64
+        Point-to-surface distance of every point at each solution.
     iterations : (m,) int64
     converged : (m,) bool
     """
@@ -640,7 +659,7 @@ def icp_sweep(
 
     q = np.einsum("aij,anj->ani", T[:, :3, :3], src) + T[:, None, :3, 3]
     d = closest_points(surface, q.reshape(-1, 3), k=k).distances_mm.reshape(m, n)
-    return T, np.sqrt(np.mean(d**2, axis=1)), iterations, converged
+    return T, d, iterations, converged
 
 
 def _weights_batch(d, n_keep, huber_mm):
