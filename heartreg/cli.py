@@ -29,6 +29,10 @@ def _cmd_phantom(args) -> int:
     overrides = {}
     if args.points is not None:
         overrides["n_points"] = args.points
+    if args.resp_phase is not None:
+        overrides["image_resp_phase"] = args.resp_phase
+    if args.chest_wall_mm is not None:
+        overrides["chest_wall_ap_mm"] = args.chest_wall_mm
     truth = make_phantom(
         args.out_dir,
         preset=args.preset,
@@ -239,8 +243,10 @@ def _cmd_register(args) -> int:
         )
     session = read_session(args.session_dir)
     harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
+    icp_options = {} if args.icp_max_iterations is None else {"max_iterations": args.icp_max_iterations}
     result = register_session(
         model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
+        estimator=args.estimator, breath_hold_phase=args.breath_hold_phase, icp_options=icp_options,
     )
     # staged, then one rename: a failure or a signal leaves OUT_DIR as it was
     with staged_output(args.out_dir, inputs=inputs, overwrite=args.overwrite) as staging:
@@ -250,7 +256,9 @@ def _cmd_register(args) -> int:
     e = result.euler_xyz_deg
     print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")
     print(f"  phases            phi_C* = {result.phase_c:.4f} ({result.phase_c_source}), "
-          f"phi_R* = {result.phase_r:.2f} (eq. 10)")
+          f"phi_R* = {result.phase_r:.2f} ({result.phase_estimates[0].method})")
+    for estimate in result.phase_estimates:
+        print(f"  {estimate.method:<17} {estimate.summary()}")
     print(f"  T_heart_from_probe translation ({T[0, 3]:.2f}, {T[1, 3]:.2f}, {T[2, 3]:.2f}) mm, "
           f"Euler XYZ ({e[0]:.2f}, {e[1]:.2f}, {e[2]:.2f}) deg")
     print(f"  from T0           {result.translation_distance_mm:.2f} mm, {result.rotation_distance_deg:.2f} deg")
@@ -298,6 +306,21 @@ def _cmd_track(args) -> int:
             bar.close()
     print_summary(summary, args.log)
     return 130 if summary.interrupted else 0
+
+
+def _cmd_evaluate_temporal(args) -> int:
+    from heartreg.temporal_eval import GRID_PRESETS, evaluate
+
+    presets = [f"wood2018-trial{k}" for k in args.trials] if args.trials else list(GRID_PRESETS)
+    say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if not args.quiet else (lambda msg: None)
+    result = evaluate(args.out_dir, presets=presets, seeds=range(1, args.seeds + 1), size=args.size,
+                      run=not args.report_only, say=say)
+    if not result["cases"]:
+        print(f"no case in {args.out_dir}/cases yet")
+        return 1
+    print(result["table"], end="")
+    print(f"written to {args.out_dir} (temporal_eval.md, .csv, .json, .png)")
+    return 0
 
 
 def _cmd_pipeline(args) -> int:
@@ -413,6 +436,10 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", default="sample", choices=sorted(SIZES), help="CT grid size")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--points", type=int, default=None, help="number of robot attachment points")
+    p.add_argument("--resp-phase", type=float, default=None, metavar="PHASE",
+                   help="respiration phase of the CT breath-hold (default the preset's, 0.3)")
+    p.add_argument("--chest-wall-mm", type=float, default=None, metavar="MM",
+                   help="sternal excursion over a breath (default the preset's; 0: a still chest)")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
     p.add_argument("--plus", action="store_true",
                    help="also write the session with its poses in a PLUS sequence file (session_plus/)")
@@ -480,6 +507,13 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="the CT's cardiac phase (0..1), needed when the model's is unknown; replaces it otherwise")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
+    p.add_argument("--estimator", default="shape", choices=["shape", "eq10"],
+                   help="how phi_R* is chosen: chest and heart shape with a 90%% interval (default), "
+                        "or the paper's eq. 10")
+    p.add_argument("--breath-hold-phase", type=float, default=None, metavar="PHASE",
+                   help="the CT's breath-hold respiration phase if known (sd 0.05), used by --estimator shape")
+    p.add_argument("--icp-max-iterations", type=int, default=None, metavar="N",
+                   help="ICP iteration limit per phase (default 50)")
     p.set_defaults(func=_cmd_register)
 
     p = sub.add_parser("track", help="the robot on the map, live: causal phases, CSV log, OpenIGTLink to Slicer")
@@ -503,6 +537,17 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="seconds to wait for an OpenIGTLink client before the stream starts")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_track)
+
+    p = sub.add_parser("evaluate-temporal",
+                       help="phi_R* and final T of both estimators on a grid of phantom cases vs truth")
+    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (cases resume from OUT/cases)")
+    p.add_argument("--seeds", type=int, default=6, help="seeds 1..N per preset (default 6)")
+    p.add_argument("--trials", type=int, nargs="+", default=None, metavar="N",
+                   help="presets wood2018-trialN to run (default all six)")
+    p.add_argument("--size", default="sample", choices=sorted(SIZES), help="phantom CT grid (default sample)")
+    p.add_argument("--report-only", action="store_true", help="summarize the cases already run; run nothing")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_cmd_evaluate_temporal)
 
     p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (phantom cases reused)")

@@ -83,7 +83,7 @@ def truth_rows(run, truth: dict) -> list[tuple]:
     rows.append(("heart frame z axis (deg)", z_err, 0.0, z_err, TOL_Z_DEG, z_err <= TOL_Z_DEG))
     rows.append(("heart frame x axis (deg)", x_err, 0.0, x_err, TOL_X_DEG, x_err <= TOL_X_DEG))
 
-    heart = layout.make_heart(make_config(truth["preset"]))
+    heart = layout.make_heart(make_config(truth["preset"], image_resp_phase=truth["respiration_phase"]))
     T_patient_from_heart = np.linalg.inv(model.T_heart_from_patient)
     vertices = model.mesh.vertices @ T_patient_from_heart[:3, :3].T + T_patient_from_heart[:3, 3]
     d = np.abs(heart.surface_distance(vertices, truth["cardiac_phase"]))

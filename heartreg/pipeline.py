@@ -133,13 +133,15 @@ def run_pipeline(
     faces: int = 20000,
     fiducials: int = 9,
     phase_step: float = 0.01,
+    estimator: str = "shape",
     overwrite: bool = False,
     progress: bool = True,
     truth_rows=None,
 ) -> PipelineResult:
     """Run phases -> model -> registration and write every output.
 
-    ``truth_rows``, if given, is a callable ``(PipelineResult) -> list`` of
+    ``estimator`` chooses phi_R* (``"shape"`` or the paper's ``"eq10"``, see
+    :func:`registration.pipeline.register_session`).  ``truth_rows``, if given, is a callable ``(PipelineResult) -> list`` of
     recovered-vs-truth rows to put at the top of the HTML report (the demo).
     """
     from imaging import write_phase_report
@@ -187,7 +189,8 @@ def run_pipeline(
 
         t = time.perf_counter()
         log("[3/3] spatiotemporal registration")
-        result = register_session(build.model, session, phase_step=phase_step, progress=progress)
+        result = register_session(build.model, session, phase_step=phase_step, estimator=estimator,
+                                  progress=progress)
         paths["registration"] = write_registration(
             result, staging / "registration", model=build.model, fiducials_probe_mm=session.fiducials_probe_mm
         )

@@ -146,8 +146,15 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
 
     parts.append("<h2>3. Spatiotemporal registration (paper Figs. 2, 6-9)</h2>")
     t = reg.T_heart_from_probe[:3, 3]
+    phase_rows = [
+        (f"respiration phase phi_R* by {e.method}" + (" (used)" if k == 0 else ""),
+         f"{e.phase_r:.2f}, 90 % interval [{e.interval[0]:.2f}, {e.interval[1]:.2f}]; final T within "
+         f"{e.transform_mm:.1f} mm, {e.transform_deg:.1f} deg"
+         + ("" if e.decided else " — UNDECIDED: the data cannot decide phi_R*"))
+        for k, e in enumerate(reg.phase_estimates)
+    ] or [("respiration phase phi_R*", reg.phase_r)]
     parts.append(html_table(["quantity", "value"], [
-        ("respiration phase phi_R* (eq. 10)", reg.phase_r), ("cardiac phase phi_C*", reg.phase_c),
+        *phase_rows, ("cardiac phase phi_C*", reg.phase_c),
         ("translation (mm)", f"{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}"),
         ("Euler X-Y-Z (deg)", ", ".join(f"{a:.2f}" for a in reg.euler_xyz_deg)),
         ("RMS point-to-surface (mm)", reg.rms_mm), ("fiducial FRE (mm)", reg.fre_mm),
@@ -162,6 +169,7 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
         ("fig6_parameters.png", "Fig. 6: registration parameters across respiration phase"),
         ("fig7_distances.png", "Fig. 7: translation and rotation distance from the fiducial registration"),
         ("fig9_delta.png", "Fig. 9: static vs spatiotemporal registration, delta per point"),
+        ("fig10_phase.png", "The evidence behind phi_R* and its bootstrap interval"),
         ("fig8_view.png", "Fig. 8: points and predicted normals on the mesh, fiducial vs final registration"),
     ]:
         parts.append(_image(reg_dir / name, caption))

@@ -453,7 +453,7 @@ def _run_trial(k, trial_dir, *, size, seed, n_points, phase_step, progress, say)
     say(f"phantom {preset} {'reused' if reused else 'written'} ({t_phantom:.1f} s); running the pipeline")
     t = time.perf_counter()
     run = run_pipeline(trial_dir / "case" / "ct", trial_dir / "case" / "session", trial_dir / "run",
-                       phase_step=phase_step, overwrite=True, progress=progress)
+                       phase_step=phase_step, estimator="eq10", overwrite=True, progress=progress)
     t_pipeline = time.perf_counter() - t
     truth_rows = make_truth_rows(run, truth)
     timings = {"phantom": t_phantom, "pipeline": t_pipeline, **run.timings_s}

@@ -38,6 +38,10 @@ __all__ = [
 #: points: below it the points are (nearly) collinear and the rotation about
 #: their line is undetermined.
 COLLINEAR_RATIO = 1e-3
+#: another assignment replaces the documented order only when it fits at least
+#: this many times better (a wrong order of staples 40 mm apart fits tens of
+#: times worse; a noisy right order and its mirror fit alike).
+ORDER_MARGIN = 2.0
 
 
 class FiducialError(HeartregError, ValueError):
@@ -258,6 +262,13 @@ def register_fiducials(
         if key not in solutions:
             solutions[key] = (fre_o, T_o)
     ranked = sorted(solutions.items(), key=lambda kv: kv[1][0])
+    if ranked[0][1][0] * ORDER_MARGIN >= fre:
+        # no assignment fits clearly better than the documented order: a symmetric
+        # layout (the 3 x 3 grid turned by 180 degrees) fits about as well as the
+        # true one, so keep the order the user recorded and flag the ambiguity
+        ambiguous = any(np.abs(T_o[:3, :3] - T[:3, :3]).max() > 1e-2 and f <= ORDER_MARGIN * fre
+                        for _, (f, T_o) in ranked)
+        return FiducialRegistration(T, fre, res, identity, False, bool(ambiguous))
     (key, (fre_best, T_best)) = ranked[0]
     order = np.asarray(key)
     ambiguous = any(

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -50,9 +51,16 @@ from registration.result import IcpReport, PointFit, RegistrationResult, _frozen
 from registration.session import PointRecord, Session
 from registration.spatiotemporal import (
     compare_static,
-    register_spatiotemporal,
+    _points_at,
     surface_centroid,
     sweep_phase,
+)
+from registration.temporal import (
+    TemporalError,
+    TemporalEstimator,
+    estimate_phase,
+    fiducial_curve,
+    paper_phase,
 )
 from registration.transforms import euler_xyz_deg_from_matrix
 
@@ -206,6 +214,32 @@ class _Excluded(Exception):
     """Internal: a point left out, with the reason as message."""
 
 
+#: ICP's iteration limit when ``icp_options`` gives none (``registration.icp.icp``).
+ICP_MAX_ITERATIONS = 50
+
+
+@dataclass(frozen=True)
+class _Chosen:
+    phase_r: float
+    T_map_from_source: np.ndarray
+    rms_mm: float
+    translation_distance_mm: float
+    rotation_distance_deg: float
+    points_source_mm: np.ndarray
+
+
+def _trace_curve(trace, fid_model, phases, order):
+    """The traced staples over the breath (:func:`registration.temporal.fiducial_curve`)."""
+    onsets = expiration_onsets(
+        rate_hz=trace.rate_hz,
+        flow_exp_lpm=trace.flow_exp_lpm,
+        flow_insp_lpm=trace.flow_insp_lpm,
+        start_s=float(trace.time_s[0]),
+    )
+    phase_r = respiration_phase(trace.time_s, onsets)
+    return fiducial_curve(trace.fiducial, trace.stylus_probe_mm, phase_r, fid_model, phases, order=order)
+
+
 def _progress(enabled: bool, total: int, desc: str):
     if not enabled:
         return None
@@ -227,6 +261,9 @@ def register_session(
     min_breaths: int = MIN_BREATHS,
     coverage_bins: int = 10,
     max_fre_mm: float = 3.0,
+    estimator: TemporalEstimator | str = TemporalEstimator.SHAPE,
+    breath_hold_phase: float | None = None,
+    breath_hold_sd: float = 0.05,
     progress: bool = False,
 ) -> RegistrationResult:
     """Register a session to a heart model in space and in respiration phase.
@@ -257,6 +294,15 @@ def register_session(
     max_fre_mm : float, mm
         Above this FRE in the documented order the fiducial correspondence is
         searched (see :func:`registration.fiducial.register_fiducials`).
+    estimator : TemporalEstimator or {"shape", "eq10"}
+        How phi_R* is chosen: ``"shape"`` (default) from the chest's traced
+        staples and the heart's shape over the sweep, with a bootstrap interval;
+        ``"eq10"``, the paper's empirical metric (see :mod:`registration.temporal`).
+        Both are computed and reported; this one gives phi_R* and the final T.
+    breath_hold_phase : float, optional
+        The CT's breath-hold respiration phase if known (e.g. the ventilator was
+        held at end-expiration), with standard deviation ``breath_hold_sd``
+        (cycles); used by ``"shape"``.
     progress : bool
         A progress bar on stderr over the points.
 
@@ -281,6 +327,12 @@ def register_session(
             "give the CT's phase (0..1) with --cardiac-phase"
         )
     harmonics = _as_harmonics(harmonics)
+    try:
+        estimator = TemporalEstimator(estimator)
+    except ValueError:
+        raise ValueError(
+            f"estimator (--estimator) must be one of {[e.value for e in TemporalEstimator]}, got {estimator!r}"
+        ) from None
     phases = sweep_phases(phase_step)
     phases_c = phases if cardiac_phase_step is None else sweep_phases(cardiac_phase_step)
     for name, value in (("min_beats", min_beats), ("min_breaths", min_breaths)):
@@ -362,11 +414,43 @@ def register_session(
     pivot = surface_centroid(surface)
     timings["surface_index"] = time.perf_counter() - t
     t = time.perf_counter()
-    reg = register_spatiotemporal(
-        models, surface, T0, model.cardiac_phase,
-        phases_r=phases, pivot_mm=pivot, cardiac_sweep=False, icp_options=options,
+    resp = sweep_phase(
+        models, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
+        phases=phases, pivot_mm=pivot, icp_options=options,
     )
     timings["respiration_sweep"] = time.perf_counter() - t
+
+    # ---- phi_R*: both estimators, the chosen one decides
+    t = time.perf_counter()
+    curve = None
+    if session.fiducial_trace is not None:
+        try:
+            curve = _trace_curve(session.fiducial_trace, fid_model, phases, fid.order)
+        except (SignalError, TemporalError) as exc:
+            notes.append(f"the fiducial trace was not used: {exc}")
+    vertices = model.mesh.vertices
+    shape = estimate_phase(
+        phases, resp.distances_mm, resp.T_map_from_source, vertices, fiducials=curve,
+        breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd,
+    )
+    paper = paper_phase(phases, resp.T_map_from_source, fid_probe, fid_model, pivot, vertices, order=fid.order)
+    chosen, other = (shape, paper) if estimator is TemporalEstimator.SHAPE else (paper, shape)
+    timings["phase_estimate"] = time.perf_counter() - t
+    if not chosen.decided:
+        notes.append(
+            f"the data cannot decide phi_R* ({estimator.value}): its {100 * chosen.confidence:.0f} % "
+            f"interval is {chosen.width:.2f} of a cycle wide; trace the staples over a breath "
+            "(session format 2) or state the breath-hold phase (--breath-hold-phase)"
+        )
+    best = chosen.index
+    reg = _Chosen(
+        phase_r=float(chosen.phase_r),
+        T_map_from_source=resp.T_map_from_source[best].copy(),
+        rms_mm=float(resp.rms_mm[best]),
+        translation_distance_mm=float(resp.translation_distance_mm[best]),
+        rotation_distance_deg=float(resp.rotation_distance_deg[best]),
+        points_source_mm=_points_at(models, model.cardiac_phase, chosen.phase_r)[0],
+    )
     card = None
     if cardiac_sweep:
         t = time.perf_counter()
@@ -375,15 +459,13 @@ def register_session(
             phases=phases_c, pivot_mm=pivot, icp_options=options,
         )
         timings["cardiac_sweep"] = time.perf_counter() - t
-    resp = reg.respiration_sweep
     if not resp.converged.all():
         bad = resp.phases[~resp.converged]
+        limit = options.get("max_iterations", ICP_MAX_ITERATIONS)
         notes.append(
-            f"ICP did not converge at {bad.size} respiration phase(s) (e.g. {bad[0]:.2f}); "
-            "raise icp max_iterations"
+            f"ICP did not converge within {limit} iterations at {bad.size} respiration phase(s) "
+            f"(e.g. {bad[0]:.2f}); raise the limit (--icp-max-iterations)"
         )
-    if resp.best_index in (0, resp.phases.size - 1):
-        notes.append("phi_R* lies at the end of the sweep (0 and 1 are the same phase)")
 
     # ---- final ICP again, for its degeneracy report (same seed and points: same T)
     t = time.perf_counter()
@@ -423,6 +505,9 @@ def register_session(
         "min_breaths": int(min_breaths),
         "coverage_bins": int(coverage_bins),
         "max_fre_mm": float(max_fre_mm),
+        "estimator": estimator.value,
+        "breath_hold_phase": None if breath_hold_phase is None else float(breath_hold_phase),
+        "breath_hold_sd": float(breath_hold_sd),
         "session_format_version": int(session.format_version),
         "session_sample_rate_hz": float(session.sample_rate_hz),
         "session_pose_source": session.pose_source,
@@ -444,6 +529,7 @@ def register_session(
         respiration_sweep=resp,
         cardiac_sweep=card,
         static=static,
+        phase_estimates=(chosen, other),
         point_ids=_frozen(np.array([f.point_id for f in fits], dtype=np.int64)),
         points_probe_mm=_frozen(reg.points_source_mm),
         normals_probe=_frozen(normals),

@@ -20,8 +20,13 @@ no patient identity, UTF-8, ``\\n`` line ends):
 ``cardiac_sweep.csv``
     The same columns with ``phase_c`` first, phi_C swept at phi_R* (Fig. 2A);
     only when the cardiac sweep was run.
+``phase_evidence.csv``
+    The evidence behind phi_R* per swept phase (:func:`phase_evidence_csv_text`).
 ``fig2_rms.png``, ``fig6_parameters.png``, ``fig7_distances.png``, ``fig9_delta.png``
-    The paper's Figs. 2, 6, 7 and 9 for this registration (matplotlib, Agg).
+    The paper's Figs. 2, 6, 7 and 9 for this registration (matplotlib, Agg);
+    Fig. 7 shades each estimator's 90 % interval of phi_R*.
+``fig10_phase.png``
+    The shape estimator's cost terms over phi_R and the bootstrap phases.
 ``fig8_view.png``
     The 3-D view of :mod:`registration.view` when a model is given and
     offscreen OpenGL works.
@@ -35,13 +40,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 
 from imaging.files import atomic_path, write_text_atomic
 from registration.result import RegistrationResult
 from registration.slicer import write_slicer_files
 from registration.spatiotemporal import PhaseSweep
 
-__all__ = ["REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "write_registration", "sweep_csv_text"]
+__all__ = [
+    "REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "write_registration", "sweep_csv_text",
+    "phase_evidence_csv_text",
+]
 
 REPORT_FORMAT = "heartreg-registration"
 REPORT_VERSION = 1
@@ -113,6 +122,8 @@ def write_registration(
     payload = {"format": REPORT_FORMAT, "format_version": REPORT_VERSION}
     payload.update(result.to_dict())
     payload["files"] = {"sweep": "sweep.csv"}
+    if result.phase_estimates:
+        payload["files"]["phase_evidence"] = "phase_evidence.csv"
     if result.cardiac_sweep is not None:
         payload["files"]["cardiac_sweep"] = "cardiac_sweep.csv"
     paths["json"] = out / "registration.json"
@@ -122,6 +133,10 @@ def write_registration(
     if result.cardiac_sweep is not None:
         paths["cardiac_sweep"] = out / "cardiac_sweep.csv"
         write_text_atomic(paths["cardiac_sweep"], sweep_csv_text(result.cardiac_sweep))
+    if result.phase_estimates:
+        payload_files = "phase_evidence.csv"
+        paths["phase_evidence"] = out / payload_files
+        write_text_atomic(paths["phase_evidence"], phase_evidence_csv_text(result))
     paths.update(write_plots(result, out))
     paths["slicer"] = write_slicer_files(
         result, out, fiducials_probe_mm=fiducials_probe_mm,
@@ -138,6 +153,47 @@ def write_registration(
             notes.append(f"fig8_view.png skipped: {exc}")
     paths["notes"] = notes
     return paths
+
+
+def phase_evidence_csv_text(result: RegistrationResult) -> str:
+    """The evidence behind phi_R*, one row per swept phase.
+
+    Columns: ``phase_r``, then per estimator (``shape``, ``eq10``) its cost
+    (``J - min J`` for shape, unitless; translation distance minus its minimum,
+    mm, for eq. 10) and the share of bootstrap resamples that chose the phase;
+    then the shape estimator's terms ``cost_heart``, ``cost_fiducial``,
+    ``cost_prior``.
+    """
+    phases = result.respiration_sweep.phases
+    by = {e.method: e for e in result.phase_estimates}
+    cols, data = ["phase_r"], [phases]
+    for method in ("shape", "eq10"):
+        e = by.get(method)
+        if e is None:
+            continue
+        share = np.array([np.mean(np.isclose(e.bootstrap_phases, p % 1.0)) for p in phases])
+        cols += [f"{method}_cost", f"{method}_bootstrap_share"]
+        data += [e.cost, share]
+    if "shape" in by:
+        e = by["shape"]
+        cols += ["cost_heart", "cost_fiducial", "cost_prior"]
+        data += [e.cost_heart, e.cost_fiducial, e.cost_prior]
+    rows = np.column_stack(data)
+    lines = [",".join(cols)] + [",".join(f"{v:.6g}" for v in row) for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _shade_interval(ax, estimate, colour, label):
+    """Shade a phase interval (wrapping through 0 drawn as two spans)."""
+    lo, hi = (float(x) for x in estimate.interval)
+    if estimate.width >= 1.0 - 1e-9:
+        spans = [(0.0, 1.0)]
+    elif lo <= hi:
+        spans = [(lo, hi)]
+    else:
+        spans = [(lo, 1.0), (0.0, hi)]
+    for k, (a, b) in enumerate(spans):
+        ax.axvspan(a, b, color=colour, alpha=0.15, lw=0, label=label if k == 0 else None)
 
 
 # ------------------------------------------------------------------ plots
@@ -183,7 +239,8 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     ax_c.set_title(f"(A) cardiac phase swept at $\\varphi_R$ = {phi_r:.2f}", fontsize=10)
     ax_c.set_xlabel("cardiac phase $\\varphi_C$")
     ax_r.plot(resp.phases, resp.rms_mm, color="#2c3e50", marker=".", markersize=3)
-    _mark(ax_r, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f} (eq. 10)")
+    method = result.phase_estimates[0].method if result.phase_estimates else "eq10"
+    _mark(ax_r, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f} ({method})")
     ax_r.legend(loc="upper right", fontsize=8)
     ax_r.set_title(f"(B) respiration phase swept at $\\varphi_C^*$ = {phi_c:.2f}", fontsize=10)
     ax_r.set_xlabel("respiration phase $\\varphi_R$")
@@ -222,11 +279,21 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     fig, (ax_t, ax_r) = _figure(2)
     ax_t.plot(resp.phases, resp.translation_distance_mm, color="#2c3e50")
     ax_r.plot(resp.phases, resp.rotation_distance_deg, color="#2c3e50")
-    i = resp.best_index
+    estimates = {e.method: e for e in result.phase_estimates}
+    i = result.phase_estimates[0].index if result.phase_estimates else resp.best_index
+    j = resp.best_index
+    if i != j:
+        ax_t.plot([resp.phases[j]], [resp.translation_distance_mm[j]], "s", color="#e67e22",
+                  label=f"eq. 10 minimum at {resp.phases[j]:.2f}")
     ax_t.plot([phi_r], [resp.translation_distance_mm[i]], "o", color="#c0392b",
-              label=f"min at $\\varphi_R^*$ = {phi_r:.2f}: {resp.translation_distance_mm[i]:.2f} mm")
+              label=f"$\\varphi_R^*$ = {phi_r:.2f}: {resp.translation_distance_mm[i]:.2f} mm")
     ax_r.plot([phi_r], [resp.rotation_distance_deg[i]], "o", color="#c0392b",
               label=f"at $\\varphi_R^*$: {resp.rotation_distance_deg[i]:.2f} deg")
+    for method, colour in (("shape", "#2980b9"), ("eq10", "#e67e22")):
+        if method in estimates:
+            e = estimates[method]
+            for ax in (ax_t, ax_r):
+                _shade_interval(ax, e, colour, f"{method} 90 % interval" + ("" if e.decided else " (undecided)"))
     for ax, unit, title in ((ax_t, "mm", "(A) translation distance from $T_0$"),
                             (ax_r, "deg", "(B) rotation distance from $T_0$")):
         _mark(ax, phi_r, None)
@@ -254,4 +321,34 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     ax.set_title("Surface distance between spatiotemporal and static registration (cf. Fig. 9)",
                  fontsize=10)
     paths["fig9"] = _save(fig, out / "fig9_delta.png")
+
+    # Fig. 10 (ours): the evidence behind phi_R* and its bootstrap
+    if result.phase_estimates:
+        fig, (ax_j, ax_b) = _figure(2)
+        for e in result.phase_estimates:
+            if e.method == "shape":
+                ax_j.plot(resp.phases, e.cost, color="#2c3e50", label="J, all terms")
+                if "heart" in e.evidence:
+                    ax_j.plot(resp.phases, e.cost_heart, color="#c0392b", lw=1, label="heart shape")
+                if "fiducial_trace" in e.evidence:
+                    ax_j.plot(resp.phases, e.cost_fiducial, color="#27ae60", lw=1, label="chest staples (trace)")
+                if "breath_hold" in e.evidence:
+                    ax_j.plot(resp.phases, e.cost_prior, color="#8e44ad", lw=1, label="stated breath-hold")
+                _shade_interval(ax_j, e, "#2980b9", "90 % interval")
+            colour = "#2980b9" if e.method == "shape" else "#e67e22"
+            ax_b.hist(e.bootstrap_phases, bins=np.linspace(0, 1, 51), color=colour, alpha=0.6,
+                      label=f"{e.method}: {e.phase_r:.2f} [{e.interval[0]:.2f}, {e.interval[1]:.2f}]"
+                      + ("" if e.decided else " undecided"))
+        ax_j.set_ylabel("J - min J (chi-square units)")
+        ax_j.set_yscale("symlog", linthresh=10.0)
+        ax_j.set_title("(A) shape estimator: cost over the respiration phase", fontsize=10)
+        ax_b.set_ylabel("bootstrap resamples")
+        ax_b.set_title("(B) phi_R* of each bootstrap resample", fontsize=10)
+        for ax in (ax_j, ax_b):
+            ax.set_xlabel("respiration phase $\\varphi_R$")
+            ax.set_xlim(0, 1)
+            ax.legend(fontsize=8, loc="upper right")
+            ax.grid(alpha=0.3)
+        fig.suptitle("The image's respiration phase: evidence and uncertainty", fontsize=11)
+        paths["fig10"] = _save(fig, out / "fig10_phase.png")
     return paths

@@ -14,6 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from registration.spatiotemporal import PhaseSweep, StaticComparison
+from registration.temporal import TemporalEstimate
 from registration.transforms import euler_xyz_deg_from_matrix
 
 __all__ = ["PointFit", "IcpReport", "RegistrationResult"]
@@ -152,7 +153,7 @@ class RegistrationResult:
     phase_c_source : str
         Where phi_C* came from.
     phase_r : float
-        The estimated respiration phase phi_R* (paper eq. 10).
+        The estimated respiration phase phi_R* (``phase_estimates[0]``).
     T_heart_from_probe : (4, 4) float64
         Final spatiotemporal registration (ICP at (phi_C*, phi_R*)).
     T0_heart_from_probe : (4, 4) float64
@@ -190,6 +191,9 @@ class RegistrationResult:
         the session reader left out.
     icp : IcpReport
         Degeneracy report of the final ICP.
+    phase_estimates : tuple of TemporalEstimate
+        phi_R* with its 90 % interval by each estimator, the one used first
+        (:mod:`registration.temporal`).
     parameters : dict
         Everything that shaped the result (JSON values; treat as read-only).
     timings_s : dict
@@ -226,6 +230,7 @@ class RegistrationResult:
     point_fits: tuple[PointFit, ...]
     exclusions: tuple[tuple[int, str], ...]
     icp: IcpReport
+    phase_estimates: tuple[TemporalEstimate, ...] = ()
     parameters: Mapping = field(default_factory=dict)
     timings_s: Mapping = field(default_factory=dict)
     notes: tuple[str, ...] = ()
@@ -254,6 +259,8 @@ class RegistrationResult:
             "cardiac_phase": self.phase_c,
             "cardiac_phase_source": self.phase_c_source,
             "respiration_phase": self.phase_r,
+            "respiration_phase_estimate": self.phase_estimates[0].to_dict() if self.phase_estimates else None,
+            "respiration_phase_alternatives": [e.to_dict() for e in self.phase_estimates[1:]],
             "T_heart_from_probe": self.T_heart_from_probe.tolist(),
             "T0_heart_from_probe": self.T0_heart_from_probe.tolist(),
             "euler_xyz_deg": [float(x) for x in self.euler_xyz_deg],

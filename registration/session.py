@@ -1,11 +1,14 @@
-"""Read an intra-operative session folder (format ``heartreg-session`` v1).
+"""Read an intra-operative session folder (format ``heartreg-session`` v1 or v2).
 
 The format is documented in ``docs/formats.md`` (section *Session folder*).  In
 short: ``session.json`` (metadata and the list of point records),
 ``points/point_NNN.csv`` (one record per attachment point: time, robot and
 reference-probe poses in the tracker frame with scalar-first quaternions, ECG,
 inspiratory and expiratory flow) and ``fiducials.csv`` (the 9 chest staples as
-touched with the tracked stylus, reference-probe frame).
+touched with the tracked stylus, reference-probe frame).  Version 2 adds
+``fiducial_trace.csv`` (named by ``fiducial_trace_file``): the stylus held on
+each staple over at least a breath, with the probe pose and the airflow, so
+that the staples' positions are known as a function of the respiration phase.
 
 :func:`read_session` validates everything and returns the robot poses in the
 reference-probe frame, ``T_probe_from_robot = inv(T_tracker_from_probe) @
@@ -49,13 +52,14 @@ __all__ = [
     "SessionError",
     "SessionNotFoundError",
     "PointRecord",
+    "FiducialTrace",
     "Session",
     "read_session",
 ]
 
 SESSION_FORMAT = "heartreg-session"
-SUPPORTED_VERSIONS = (1,)
-#: the only units version 1 knows.
+SUPPORTED_VERSIONS = (1, 2)
+#: the only units versions 1 and 2 know.
 SESSION_UNITS = {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"}
 POINT_COLUMNS = (
     "time_s",
@@ -72,6 +76,13 @@ SIGNAL_COLUMNS = ("time_s", "ecg_mv", "flow_insp_lpm", "flow_exp_lpm")
 PLUS_TRANSFORMS = ("RobotToTracker", "ProbeToTracker")
 #: a PLUS frame matches a sample when their times differ by at most this share of a step.
 PLUS_TIME_TOL = 0.25
+FIDUCIAL_TRACE_COLUMNS = (
+    "time_s", "fiducial",
+    "stylus_x_mm", "stylus_y_mm", "stylus_z_mm",
+    "probe_x_mm", "probe_y_mm", "probe_z_mm",
+    "probe_qw", "probe_qx", "probe_qy", "probe_qz",
+    "flow_insp_lpm", "flow_exp_lpm",
+)  # fmt: skip
 FIDUCIAL_ORDER = "rows superior to inferior, within a row patient right to left"
 N_FIDUCIALS = 9
 #: a record shorter than this (two breaths at 12/min) cannot fit a respiratory model.
@@ -140,6 +151,33 @@ class PointRecord:
 
 
 @dataclass(frozen=True, eq=False)
+class FiducialTrace:
+    """The stylus held on each staple in turn (format 2), reference-probe frame.
+
+    Attributes
+    ----------
+    file : str
+        Relative to the session folder.
+    time_s : (n,) float64, s
+        Strictly increasing, the clock of the point records.
+    fiducial : (n,) int64
+        Staple 1..9 held at each sample (documented order), 0 in transit.
+    stylus_probe_mm : (n, 3) float64, mm
+        Stylus tip in the reference-probe frame.
+    flow_insp_lpm, flow_exp_lpm : (n,) float64, L/min
+    rate_hz : float
+    """
+
+    file: str
+    time_s: np.ndarray
+    fiducial: np.ndarray
+    stylus_probe_mm: np.ndarray
+    flow_insp_lpm: np.ndarray
+    flow_exp_lpm: np.ndarray
+    rate_hz: float
+
+
+@dataclass(frozen=True, eq=False)
 class Session:
     """A validated intra-operative session.
 
@@ -163,6 +201,8 @@ class Session:
     notes : tuple of str
         What the reader did that a user should know (e.g. samples dropped for
         an invalid PLUS pose).
+    fiducial_trace : FiducialTrace or None
+        The staples traced over a breath (format 2); None in format 1.
     """
 
     path: Path
@@ -174,6 +214,7 @@ class Session:
     generator: str = ""
     pose_source: str = "csv"
     notes: tuple[str, ...] = ()
+    fiducial_trace: FiducialTrace | None = None
 
     def point(self, point_id: int) -> PointRecord:
         """The usable record with id ``point_id``."""
@@ -251,6 +292,9 @@ def read_session(
             "lower min_duration_s"
         )
     fiducials = _read_fiducials(folder, meta["fiducials_file"])
+    trace = None
+    if meta.get("fiducial_trace_file") is not None:
+        trace = _read_fiducial_trace(folder, meta["fiducial_trace_file"], rate_hz)
     return Session(
         path=folder,
         format_version=int(meta["version"]),
@@ -261,6 +305,7 @@ def read_session(
         generator=str(meta.get("generator", "")),
         pose_source=f"PLUS sequence ({', '.join(sorted(plus_files))})" if plus_files else "csv",
         notes=tuple(notes),
+        fiducial_trace=trace,
     )
 
 
@@ -314,14 +359,14 @@ def _read_meta(folder: Path) -> dict:
             raise SessionError(f"{file}: 'units' has no {key!r} (expected {expected!r})")
         if units[key] != expected:
             raise SessionError(
-                f"{file}: unknown unit units.{key} = {units[key]!r}; version 1 accepts only "
+                f"{file}: unknown unit units.{key} = {units[key]!r}; the format accepts only "
                 f"{expected!r}: convert the data"
             )
     for key in sorted(set(units) - set(SESSION_UNITS)):
         raise SessionError(f"{file}: unknown quantity units.{key} = {units[key]!r}")
     if meta.get("quaternion_order") != "wxyz":
         raise SessionError(
-            f"{file}: 'quaternion_order' is {meta.get('quaternion_order')!r}; version 1 "
+            f"{file}: 'quaternion_order' is {meta.get('quaternion_order')!r}; the format "
             "stores scalar-first quaternions and needs 'wxyz'"
         )
     frames = meta.get("frames")
@@ -333,8 +378,15 @@ def _read_meta(folder: Path) -> dict:
     order = meta.get("fiducial_order")
     if order != FIDUCIAL_ORDER:
         raise SessionError(
-            f"{file}: 'fiducial_order' is {order!r}; version 1 requires {FIDUCIAL_ORDER!r}"
+            f"{file}: 'fiducial_order' is {order!r}; the format requires {FIDUCIAL_ORDER!r}"
         )
+    trace = meta.get("fiducial_trace_file")
+    if trace is not None:
+        if version < 2:
+            raise SessionError(f"{file}: 'fiducial_trace_file' needs format version 2, the file says {version}")
+        if not isinstance(trace, str) or not trace:
+            raise SessionError(f"{file}: 'fiducial_trace_file' must name a file, got {trace!r}")
+        _check_relative(file, "fiducial_trace_file", trace)
     fid = meta.get("fiducials_file")
     if not isinstance(fid, str) or not fid:
         raise SessionError(f"{file}: 'fiducials_file' must name a file, got {fid!r}")
@@ -635,6 +687,47 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
             f"got {labels.tolist()}"
         )
     return _frozen(data[:, 1:4])
+
+
+def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrace:
+    file = folder / rel
+    cols = _read_header(file, rel, FIDUCIAL_TRACE_COLUMNS)
+    data = _load_table(file, rel, cols, FIDUCIAL_TRACE_COLUMNS).reshape(-1, len(FIDUCIAL_TRACE_COLUMNS))
+    _check_finite(data, rel, FIDUCIAL_TRACE_COLUMNS)
+    time_s = data[:, 0]
+    steps = np.diff(time_s)
+    if (steps <= 0).any():
+        row = int(np.argmax(steps <= 0)) + 1
+        raise SessionError(f"{rel}: column 'time_s' is not strictly increasing at row {row + 1} (line {row + 2})")
+    labels = data[:, 1]
+    bad = (labels != np.round(labels)) | (labels < 0) | (labels > N_FIDUCIALS)
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise SessionError(
+            f"{rel}: column 'fiducial', row {row + 1} (line {row + 2}): {labels[row]!r} is not a staple "
+            f"number 1..{N_FIDUCIALS} (or 0 in transit)"
+        )
+    missing = sorted(set(range(1, N_FIDUCIALS + 1)) - set(labels.astype(int).tolist()))
+    if missing:
+        raise SessionError(f"{rel}: staple(s) {missing} never held; trace all {N_FIDUCIALS} staples")
+    q = _unit_quaternions(data[:, 8:12], rel, "probe", QUATERNION_TOL)
+    R_probe_T = np.swapaxes(_matrices(q), 1, 2)
+    tip = np.einsum("nij,nj->ni", R_probe_T, data[:, 2:5] - data[:, 5:8])
+    return FiducialTrace(
+        file=rel,
+        time_s=_frozen(time_s),
+        fiducial=_frozen_int(labels),
+        stylus_probe_mm=_frozen(tip),
+        flow_insp_lpm=_frozen(data[:, 12]),
+        flow_exp_lpm=_frozen(data[:, 13]),
+        rate_hz=rate_hz,
+    )
+
+
+def _frozen_int(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(np.round(a), dtype=np.int64)
+    a.setflags(write=False)
+    return a
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:

@@ -37,7 +37,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from registration.icp import IcpMethod, SurfaceIndex, closest_points, icp, icp_sweep
+from registration.icp import IcpMethod, SurfaceIndex, icp_sweep_distances, closest_points, icp
 from registration.motion_model import MotionModel, predict_positions
 from registration.transforms import (
     euler_xyz_deg_from_matrix,
@@ -89,6 +89,9 @@ class PhaseSweep:
     converged : (m,) bool
     pivot_mm : (3,) float64
         The map-frame pivot of the translation distance.
+    distances_mm : (m, n) float64
+        Point-to-surface distance of every point after ICP at each phase (the
+        per-point evidence of :mod:`registration.temporal`).
     """
 
     kind: str
@@ -104,6 +107,7 @@ class PhaseSweep:
     iterations: np.ndarray
     converged: np.ndarray
     pivot_mm: np.ndarray
+    distances_mm: np.ndarray | None = None
 
     @property
     def best_index(self) -> int:
@@ -279,16 +283,19 @@ def sweep_phase(
     if IcpMethod(options.get("method", IcpMethod.POINT_TO_PLANE)) is IcpMethod.POINT_TO_PLANE:
         # all phases in one batch: one closest-point query per iteration (same ICP)
         batch = {key: value for key, value in options.items() if key not in ("method", "degeneracy_ratio")}
-        Ts, rms, iterations, converged = icp_sweep(points, surface, T_init=T0, **batch)
+        Ts, distances, iterations, converged = icp_sweep_distances(points, surface, T_init=T0, **batch)
+        rms = np.sqrt(np.mean(distances**2, axis=1))
     else:
         Ts = np.empty((m, 4, 4))
         rms = np.empty(m)
+        distances = np.empty(points.shape[:2])
         iterations = np.empty(m, dtype=np.int64)
         converged = np.empty(m, dtype=bool)
         for i in range(m):
             result = icp(points[i], surface, T_init=T0, **options)
             Ts[i] = result.T_target_from_source
             rms[i] = result.rms_mm
+            distances[i] = result.distances_mm
             iterations[i] = result.iterations
             converged[i] = result.converged
     dT = Ts @ invert(T0)
@@ -307,6 +314,7 @@ def sweep_phase(
         iterations=iterations,
         converged=converged,
         pivot_mm=pivot,
+        distances_mm=distances,
     )
 
 

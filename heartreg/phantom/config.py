@@ -73,6 +73,12 @@ class HeartMotion:
     resp_ap_mm: float = 5.0
     resp_ap_lag: float = 0.25
     resp_rotation_deg: float = 2.0
+    #: non-rigid part of the respiratory motion: inspiration stretches the heart
+    #: along its long axis and narrows it (the narrowing lagging by
+    #: ``resp_nonrigid_lag`` of a cycle), the apex moving this much over a full
+    #: breath (0: rigid).
+    resp_nonrigid_mm: float = 4.0
+    resp_nonrigid_lag: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,8 @@ class NoiseModel:
     tracker_position_mm: float = 0.2
     tracker_rotation_deg: float = 0.15
     fiducial_touch_mm: float = 1.0
+    #: offset of the stylus seated on a staple while it is held (fiducial trace).
+    fiducial_hold_mm: float = 0.5
     ct_noise_hu: float = 25.0
     ecg_noise_mv: float = 0.03
     ecg_wander_mv: float = 0.15
@@ -160,6 +168,14 @@ class PhantomConfig:
     #: CT-to-surgery systematic shift (fiducials vs heart), patient frame, mm / deg.
     fiducial_shift_mm: tuple[float, float, float] = (9.0, 0.5, -0.4)
     fiducial_shift_deg: tuple[float, float, float] = (1.5, -1.0, 2.0)
+    #: chest-wall breathing: anterior excursion of the mid-sternum staple over a
+    #: breath (mm; 0 = a still chest), the inferior staples lagging the superior
+    #: ones by ``chest_wall_lag`` of a cycle (abdominal vs thoracic breathing).
+    chest_wall_ap_mm: float = 6.0
+    chest_wall_lag: float = 0.15
+    #: each staple is held with the tracked stylus for this many breaths (a
+    #: fiducial trace, session format 2); 0 writes a format-1 session (single touches).
+    fiducial_trace_breaths: float = 1.3
     session_duration_s: float = 30.0
     session_rate_hz: float = 100.0
     ecg_rate_hz: float = 500.0
@@ -186,6 +202,11 @@ class PhantomConfig:
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise ValueError(f"{name} must be a phase in [0, 1), got {value}")
+        if self.chest_wall_ap_mm < 0 or self.fiducial_trace_breaths < 0:
+            raise ValueError(
+                "chest_wall_ap_mm and fiducial_trace_breaths must be >= 0, got "
+                f"{self.chest_wall_ap_mm} and {self.fiducial_trace_breaths}"
+            )
         if self.session_duration_s * self.resp_rate_hz < 2.0:
             raise ValueError(
                 "session_duration_s must cover at least two breaths "
@@ -235,6 +256,11 @@ _SHIFTS = {
 }
 
 
+#: Sternal anterior-posterior excursion of each trial's chest wall over a breath
+#: (mm): within the few mm to ~10 mm reported for ventilated patients.
+_CHEST_WALL_AP_MM = {1: 6.0, 2: 8.0, 3: 5.0, 4: 9.0, 5: 4.0, 6: 7.0}
+
+
 def _preset(trial: int) -> PhantomConfig:
     points, hr, rr, _, euler = PAPER_TABLE1[trial]
     shift_mm, shift_deg = _SHIFTS[trial]
@@ -246,6 +272,7 @@ def _preset(trial: int) -> PhantomConfig:
         euler_xyz_deg=euler,
         fiducial_shift_mm=shift_mm,
         fiducial_shift_deg=shift_deg,
+        chest_wall_ap_mm=_CHEST_WALL_AP_MM[trial],
     )
 
 

@@ -309,6 +309,33 @@ class AnalyticHeart:
         T[..., 3, 3] = 1.0
         return T
 
+    def resp_stretch(self, points_heart_ref, phase_r) -> np.ndarray:
+        """Non-rigid respiratory displacement (patient frame, mm) of reference points.
+
+        The diaphragm pulls the heart long and the inflated lungs squeeze it
+        narrow later in the breath: a stretch about the heart origin of ``1 + e(0)``
+        along the heart's z and ``1 - e(lag) / 2`` across, with
+        ``e(l) = k (g(phi_R - l) - g(phi_R* - l))`` (``g`` the inspiration depth,
+        ``k`` set so that the apex moves ``resp_nonrigid_mm`` over a full breath,
+        ``lag = resp_nonrigid_lag``): the shape traces a loop over the breath, so
+        each phase has its own.  Zero at the CT breath-hold phase, so the CT is
+        unchanged.
+        """
+        m = self.motion
+        p = np.asarray(points_heart_ref, dtype=float)
+        if m.resp_nonrigid_mm == 0.0:
+            return np.zeros_like(p)
+        phase_r = np.asarray(phase_r, dtype=float)
+
+        def depth(lag):
+            g = respiratory_waveform(phase_r - lag) - respiratory_waveform(self.image_resp_phase - lag)
+            return (m.resp_nonrigid_mm / self.shape.apex_length_mm) * g[..., None]
+
+        # the diaphragm stretches at once; the lungs narrow the heart later in the breath
+        e_long, e_across = depth(0.0), depth(m.resp_nonrigid_lag)
+        d_heart = p * (e_long * np.array([0.0, 0.0, 1.0]) - 0.5 * e_across * np.array([1.0, 1.0, 0.0]))
+        return np.einsum("ij,...j->...i", self.T_patient_from_heart[:3, :3], d_heart)
+
     def move(self, points_heart_ref, phase_c, phase_r) -> np.ndarray:
         """Reference points (heart frame) to the patient frame at (phi_C, phi_R).
 
@@ -317,6 +344,7 @@ class AnalyticHeart:
         s = self.contraction(phase_c, phase_r)
         beaten = self.beat(points_heart_ref, s)
         patient = _apply(self.T_patient_from_heart, beaten.reshape(-1, 3)).reshape(beaten.shape)
+        patient = patient + self.resp_stretch(points_heart_ref, phase_r)
         T = self.T_resp(phase_r)
         if T.ndim == 2:
             return patient @ T[:3, :3].T + T[:3, 3]

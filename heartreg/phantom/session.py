@@ -1,4 +1,4 @@
-"""The phantom's intra-operative session: a ``heartreg-session`` v1 folder.
+"""The phantom's intra-operative session: a ``heartreg-session`` v2 (or v1) folder.
 
 The robot is attached in turn to ``n_points`` points of the epicardium that a
 subxiphoid approach reaches (paper section 2.2.4) and logs 30 s of 6-DOF poses
@@ -26,7 +26,12 @@ Physics and frames:
 - each measured pose gets independent tracker noise: position
   ``N(0, tracker_position_mm)`` per tracker axis, rotation ``exp([w]) R`` with
   the rotation vector ``w ~ N(0, tracker_rotation_deg)`` per component;
-- fiducials ``f_probe = inv(T*) @ T_fiducial_shift @ f_ct + N(0, fiducial_touch_mm)``.
+- fiducials ``f_probe = inv(T*) @ T_fiducial_shift @ (f_ct + c(phi_R)) + o``:
+  the CT-to-surgery skin shift, the chest wall's breathing ``c``
+  (:func:`chest_wall_displacement`, zero at the CT's phi_R*) and a touch offset
+  ``o ~ N(0, fiducial_touch_mm)`` per staple; format 2 records the stylus held on
+  each staple over ``fiducial_trace_breaths`` breaths (``fiducial_trace.csv``,
+  tracker noise per sample), ``fiducials.csv`` its mid-hold sample.
 """
 
 from __future__ import annotations
@@ -64,7 +69,9 @@ __all__ = [
     "SESSION_UNITS",
     "POINT_COLUMNS",
     "FIDUCIAL_COLUMNS",
+    "FIDUCIAL_TRACE_COLUMNS",
     "FIDUCIAL_ORDER",
+    "chest_wall_displacement",
     "SessionPointTruth",
     "SessionTruth",
     "reachable_patch",
@@ -72,7 +79,7 @@ __all__ = [
 ]
 
 SESSION_FORMAT = "heartreg-session"
-SESSION_VERSION = 1
+SESSION_VERSION = 2
 SESSION_UNITS = {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"}
 POINT_COLUMNS = (
     "time_s",
@@ -83,6 +90,15 @@ POINT_COLUMNS = (
     "ecg_mv", "flow_insp_lpm", "flow_exp_lpm",
 )  # fmt: skip
 FIDUCIAL_COLUMNS = ("fiducial", "x_mm", "y_mm", "z_mm")
+#: format 2: the stylus held on each staple over a breath, one continuous record.
+FIDUCIAL_TRACE_COLUMNS = (
+    "time_s", "fiducial",
+    "stylus_x_mm", "stylus_y_mm", "stylus_z_mm",
+    "probe_x_mm", "probe_y_mm", "probe_z_mm",
+    "probe_qw", "probe_qx", "probe_qy", "probe_qz",
+    "flow_insp_lpm", "flow_exp_lpm",
+)  # fmt: skip
+FIDUCIAL_TRACE_FILE = "fiducial_trace.csv"
 FIDUCIAL_ORDER = "rows superior to inferior, within a row patient right to left"
 
 #: written number formats: time, position, quaternion, ECG, flow.
@@ -105,6 +121,20 @@ _PROBE_BREATHING_MM = (2.0, 4.0)
 _DRIFT_MM = 1.5
 _DRIFT_DEG = 0.3
 _DRIFT_PERIOD_S = (600.0, 2400.0)
+_TRACE_ROW_FORMAT = ",".join(
+    [_FMT_TIME, "%d"] + [_FMT_POS] * 3 + [_FMT_POS] * 3 + [_FMT_QUAT] * 4 + [_FMT_FLOW, _FMT_FLOW]
+)
+#: stylus moves between staples in this long (s); a breath of lead-in and -out.
+_TRANSIT_S = 1.5
+#: chest-wall breathing of the 3 x 3 staples: excursion per row (superior to
+#: inferior) relative to the mid-sternum staple, the lateral columns' share, the
+#: lag of each row (in units of ``chest_wall_lag``), the lateral "bucket handle"
+#: and superior "pump handle" parts of the motion relative to the anterior one.
+_CHEST_ROW_GAIN = (0.7, 1.0, 1.25)
+_CHEST_LATERAL_GAIN = 0.75
+_CHEST_ROW_LAG = (0.0, 0.5, 1.0)
+_CHEST_LATERAL_SHARE = 0.3
+_CHEST_SUPERIOR_SHARE = 0.25
 #: separate random stream from the CT writer's, same user seed.
 _STREAM = 0x5E55
 
@@ -202,7 +232,14 @@ class SessionTruth:
         RMS per probe axis over all samples of all points.
     rotation_noise_rms_deg : float
     fiducial_touch_rms_mm : float
-        RMS per axis of touched minus true staples.
+        RMS per axis of touched minus true staples (true: where the CT saw them,
+        moved by the CT-to-surgery shift; the chest wall's breathing included).
+    chest_wall_ap_mm : float
+        Sternal anterior excursion over a breath.
+    fiducial_touch_phase_r : (9,) float64
+        Respiration phase of each single touch (``fiducials.csv``).
+    fiducial_trace_file : str
+        The stylus trace (format 2), or "" (format 1).
     heart_rate_hz, resp_rate_hz : float
         Means over points of the per-record rates (as the paper's Table 1).
     """
@@ -224,6 +261,9 @@ class SessionTruth:
     fiducial_touch_rms_mm: float
     heart_rate_hz: float
     resp_rate_hz: float
+    chest_wall_ap_mm: float = 0.0
+    fiducial_touch_phase_r: np.ndarray | None = None
+    fiducial_trace_file: str = ""
 
     @property
     def u(self) -> np.ndarray:
@@ -278,6 +318,11 @@ class SessionTruth:
             "fiducial_touch_rms_mm": self.fiducial_touch_rms_mm,
             "heart_rate_hz": self.heart_rate_hz,
             "resp_rate_hz": self.resp_rate_hz,
+            "chest_wall_ap_mm": self.chest_wall_ap_mm,
+            "fiducial_touch_phase_r": (
+                None if self.fiducial_touch_phase_r is None else self.fiducial_touch_phase_r.tolist()
+            ),
+            "fiducial_trace_file": self.fiducial_trace_file,
         }
 
 
@@ -419,6 +464,110 @@ def _format_rows(values: np.ndarray, fmt: str) -> str:
     return "".join(fmt % tuple(row) + "\n" for row in values.tolist())
 
 
+def chest_wall_displacement(config: PhantomConfig, phase_r) -> np.ndarray:
+    """Breathing motion of the 9 staples relative to where the CT saw them.
+
+    Staple ``j`` (documented order) moves by ``A a_j (g(phi_R - l_j) -
+    g(phi_R* - l_j)) e_j``: ``A = config.chest_wall_ap_mm``, ``a_j`` its row's
+    and column's share (:data:`_CHEST_ROW_GAIN`, :data:`_CHEST_LATERAL_GAIN`),
+    ``l_j`` its row's lag (inferior rows lag: abdominal breathing), ``g`` the
+    inspiration depth and ``e_j`` anterior with a lateral (outer columns) and a
+    superior (top row) part.  The motion is not rigid, so the staples' shape
+    changes over the breath and is that of the CT only at phi_R*.
+
+    Parameters
+    ----------
+    config : PhantomConfig
+    phase_r : (n,) float
+        Respiration phases.
+
+    Returns
+    -------
+    (n, 9, 3) float64, mm, patient frame (LPS)
+    """
+    phase_r = np.atleast_1d(np.asarray(phase_r, dtype=float))
+    out = np.zeros(phase_r.shape + (9, 3))
+    if config.chest_wall_ap_mm == 0.0:
+        return out
+    for j in range(9):
+        row, col = divmod(j, 3)
+        gain = _CHEST_ROW_GAIN[row] * (1.0 if col == 1 else _CHEST_LATERAL_GAIN)
+        lag = config.chest_wall_lag * _CHEST_ROW_LAG[row]
+        g = respiratory_waveform(phase_r - lag) - respiratory_waveform(config.image_resp_phase - lag)
+        direction = np.array(
+            [_CHEST_LATERAL_SHARE * (col - 1), -1.0, _CHEST_SUPERIOR_SHARE * (row == 0)]
+        )
+        out[:, j] = config.chest_wall_ap_mm * gain * g[:, None] * direction
+    return out
+
+
+def _fiducial_schedule(config: PhantomConfig, start_s: float, rate: float):
+    """Times and staple of the fiducial trace: a breath of lead-in, each staple
+    held ``fiducial_trace_breaths`` breaths with a transit between, a breath out.
+
+    Returns time_s (n,) and fiducial (n,) int (0 while the stylus is in transit).
+    """
+    period = 1.0 / config.resp_rate_hz
+    hold = config.fiducial_trace_breaths * period
+    spans = [(0, period + 1.0)]
+    for k in range(1, 10):
+        spans.append((k, hold))
+        spans.append((0, _TRANSIT_S if k < 9 else period + 1.0))
+    labels = np.concatenate([np.full(int(round(d * rate)), k) for k, d in spans])
+    time_s = np.round(start_s + np.arange(labels.size) / rate, 3)
+    return time_s, labels
+
+
+def _write_fiducial_trace(folder, rng, config, T_star, T_tracker_from_patient, drift, breathing_mm,
+                          r_peaks, onsets, time_s, labels, offsets_mm):
+    """Write the stylus trace; return the staples as measured, probe frame, (n, 3) mm."""
+    noise = config.noise
+    rate = config.session_rate_hz
+    T_probe_from_patient = np.linalg.inv(T_star)
+    phase_r = phase_from_events(time_s, onsets)
+    f_ct = fiducials_patient_mm()
+    disp = chest_wall_displacement(config, phase_r)  # (n, 9, 3)
+    staples = f_ct[None] + disp  # patient frame at the CT's placement of the skin
+    shift = T_fiducial_shift(config)
+    staples = staples @ shift[:3, :3].T + shift[:3, 3]
+    # between staples (and before / after) the stylus glides 20 mm above the skin
+    target = np.zeros((labels.size, 3))
+    idx = np.clip(labels - 1, 0, 8)
+    held = labels > 0
+    # in transit: from the last staple held to the next one
+    last = np.maximum.accumulate(np.where(held, np.arange(labels.size), 0))
+    prev = np.where(held, labels, labels[last])
+    prev = np.where(prev == 0, 1, prev)
+    target[held] = staples[np.flatnonzero(held), idx[held]]
+    free = ~held
+    nxt = np.minimum(prev + 1, 9)
+    rows = np.flatnonzero(free)
+    target[free] = 0.5 * (staples[rows, prev[free] - 1] + staples[rows, nxt[free] - 1]) + [0.0, -20.0, 0.0]
+    tip_probe = target @ T_probe_from_patient[:3, :3].T + T_probe_from_patient[:3, 3]
+    tip_probe[held] += offsets_mm[idx[held]]
+    breath = np.zeros((time_s.size, 4, 4))
+    breath[:] = np.eye(4)
+    breath[:, 2, 3] = breathing_mm * respiratory_waveform(np.nan_to_num(phase_r))
+    T_tracker_from_probe = _T_drift(time_s, drift) @ (T_tracker_from_patient @ T_star) @ breath
+    tip_tracker = np.einsum("nij,nj->ni", T_tracker_from_probe[:, :3, :3], tip_probe) + T_tracker_from_probe[:, :3, 3]
+    tip_meas = tip_tracker + noise.tracker_position_mm * rng.standard_normal(tip_tracker.shape)
+    probe_meas = _add_noise(rng, T_tracker_from_probe, noise.tracker_position_mm, noise.tracker_rotation_deg)
+    insp, expi = synthesize_airflow(
+        rng, onsets, r_peaks, start_s=time_s[0], duration_s=time_s.size / rate, rate_hz=rate,
+        noise_lpm=noise.flow_noise_lpm,
+    )
+    probe_cols = _pose_columns(probe_meas)
+    table = np.column_stack([time_s, labels, tip_meas, probe_cols, insp, expi])
+    with open(folder / FIDUCIAL_TRACE_FILE, "w", newline="") as fh:
+        fh.write(",".join(FIDUCIAL_TRACE_COLUMNS) + "\n")
+        fh.write(_format_rows(table, _TRACE_ROW_FORMAT))
+    # as a reader sees them: tip in the measured probe frame
+    Tp = _parse_pose_columns(_as_written(probe_cols))
+    tip_w = np.round(tip_meas, 4)
+    measured = np.einsum("nji,nj->ni", Tp[:, :3, :3], tip_w - Tp[:, :3, 3])
+    return measured, phase_r
+
+
 # -------------------------------------------------------------------- writer
 def write_session(
     out_dir: Path,
@@ -518,16 +667,22 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
         starts.append(round(starts[-1] + (n_samples - 1) / rate + gap, 2))
     starts = np.asarray(starts)
     end_all = starts[-1] + (n_samples - 1) / rate
+    trace = config.fiducial_trace_breaths > 0
+    span_start = starts[0]
+    if trace:  # the staples are traced before the robot goes in
+        t_fid, labels = _fiducial_schedule(config, 0.0, rate)
+        span_start = round(starts[0] - t_fid[-1] - rng.uniform(30.0, 90.0), 2)
+        t_fid = np.round(t_fid + span_start, 3)
     r_peaks = r_peak_times(
         rng,
-        start_s=starts[0],
+        start_s=span_start,
         end_s=end_all,
         heart_rate_hz=config.heart_rate_hz,
         hrv_fraction=config.hrv_fraction,
         ectopic_probability=config.ectopic_probability,
         resp_rate_hz=config.resp_rate_hz,
     )
-    onsets = expiration_onsets(rng, start_s=starts[0], end_s=end_all, resp_rate_hz=config.resp_rate_hz)
+    onsets = expiration_onsets(rng, start_s=span_start, end_s=end_all, resp_rate_hz=config.resp_rate_hz)
     breathing_mm = float(rng.uniform(*_PROBE_BREATHING_MM))
     drift = _drift_params(rng)
 
@@ -535,7 +690,23 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
     f_ct = fiducials_patient_mm()
     T_probe_from_staples = T_probe_from_patient @ T_fiducial_shift(config)
     f_clean = f_ct @ T_probe_from_staples[:3, :3].T + T_probe_from_staples[:3, 3]
-    f_probe = np.round(f_clean + noise.fiducial_touch_mm * rng.standard_normal(f_ct.shape), 4)
+    touch_phase = np.full(9, float(config.image_resp_phase))
+    if trace:
+        offsets = noise.fiducial_hold_mm * rng.standard_normal(f_ct.shape)
+        measured, phase_fid = _write_fiducial_trace(
+            folder, rng, config, T_star, T_tracker_from_patient, drift, breathing_mm,
+            r_peaks, onsets, t_fid, labels, offsets,
+        )
+        # the single touch of each staple (format 1's fiducials.csv): mid-hold
+        f_probe = np.empty_like(f_ct)
+        for k in range(9):
+            rows = np.flatnonzero(labels == k + 1)
+            mid = rows[rows.size // 2]
+            touch = noise.fiducial_touch_mm * rng.standard_normal(3) - offsets[k]
+            f_probe[k] = np.round(measured[mid] + touch, 4)
+            touch_phase[k] = phase_fid[mid]
+    else:
+        f_probe = np.round(f_clean + noise.fiducial_touch_mm * rng.standard_normal(f_ct.shape), 4)
     T0 = _svd_register(f_probe, f_ct)
 
     (folder / "points").mkdir()
@@ -633,7 +804,7 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
 
     meta = {
         "format": SESSION_FORMAT,
-        "version": SESSION_VERSION,
+        "version": SESSION_VERSION if trace else 1,
         "units": SESSION_UNITS,
         "quaternion_order": "wxyz",
         "frames": {"poses": "tracker"},
@@ -643,6 +814,8 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
         "fiducial_order": FIDUCIAL_ORDER,
         "generator": f"heartreg phantom {__version__}",
     }
+    if trace:
+        meta["fiducial_trace_file"] = FIDUCIAL_TRACE_FILE
     (folder / "session.json").write_text(json.dumps(meta, indent=2) + "\n")
 
     hr = np.array([p.heart_rate_hz for p in point_truths])
@@ -665,4 +838,7 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
         fiducial_touch_rms_mm=float(np.sqrt(np.mean((f_probe - f_clean) ** 2))),
         heart_rate_hz=float(np.nanmean(hr)),
         resp_rate_hz=float(np.nanmean(rr)),
+        chest_wall_ap_mm=float(config.chest_wall_ap_mm),
+        fiducial_touch_phase_r=touch_phase,
+        fiducial_trace_file=FIDUCIAL_TRACE_FILE if trace else "",
     )

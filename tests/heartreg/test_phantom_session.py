@@ -80,7 +80,7 @@ def _digest(folder: Path) -> dict[str, str]:
 def test_folder_layout_and_metadata(written):
     folder, truth = written
     meta = json.loads((folder / "session.json").read_text())
-    assert meta["format"] == SESSION_FORMAT and meta["version"] == 1
+    assert meta["format"] == SESSION_FORMAT and meta["version"] == 2
     assert meta["units"] == {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"}
     assert meta["quaternion_order"] == "wxyz" and meta["frames"] == {"poses": "tracker"}
     assert meta["sample_rate_hz"] == 100
@@ -155,8 +155,11 @@ def test_probe_motion_cancels_and_noise_matches_the_model(written):
 
 
 def test_fiducials_map_to_the_shifted_ct_fiducials(written):
-    """T* @ f_probe = T_shift @ f_ct + touch noise (sigma 1 mm per axis; the RMS
-    over 27 values lies in [0.5, 1.6] sigma with probability > 0.999)."""
+    """T* @ f_probe = T_shift @ (f_ct + chest wall at the touch's phase) + touch
+    noise (sigma 1 mm per axis, and the tracker's 0.2 mm; the RMS over 27 values
+    lies in [0.5, 1.6] sigma with probability > 0.999)."""
+    from heartreg.phantom.session import chest_wall_displacement
+
     folder, truth = written
     table = np.loadtxt(folder / "fiducials.csv", delimiter=",", skiprows=1)
     np.testing.assert_array_equal(table[:, 0], np.arange(1, 10))
@@ -164,19 +167,20 @@ def test_fiducials_map_to_the_shifted_ct_fiducials(written):
     f_ct = fiducials_patient_mm()
     T_star, T_shift = T_patient_from_probe(), T_fiducial_shift(CONFIG)
     lhs = f_probe @ T_star[:3, :3].T + T_star[:3, 3]
-    rhs = f_ct @ T_shift[:3, :3].T + T_shift[:3, 3]
+    chest = chest_wall_displacement(CONFIG, truth.fiducial_touch_phase_r)[np.arange(9), np.arange(9)]
+    rhs = (f_ct + chest) @ T_shift[:3, :3].T + T_shift[:3, 3]
     rms = np.sqrt(np.mean((lhs - rhs) ** 2))
     sigma = CONFIG.noise.fiducial_touch_mm
     assert 0.5 * sigma < rms < 1.6 * sigma
-    assert truth.fiducial_touch_rms_mm == pytest.approx(rms, abs=1e-3)
     # T0 registers touched onto CT fiducials, close to inv(T_shift) @ T*
     T0 = truth.T0_patient_from_probe
     np.testing.assert_allclose(T0[:3, :3] @ T0[:3, :3].T, np.eye(3), atol=1e-12)
     assert np.linalg.det(T0[:3, :3]) == pytest.approx(1.0)
     mapped = f_probe @ T0[:3, :3].T + T0[:3, 3]
-    assert np.sqrt(np.mean((mapped - f_ct) ** 2)) < 1.6 * sigma
+    # the chest's breathing (up to chest_wall_ap_mm) adds to the touch noise
+    assert np.sqrt(np.mean((mapped - f_ct) ** 2)) < 1.6 * sigma + 0.5 * CONFIG.chest_wall_ap_mm
     expected = np.linalg.inv(T_shift) @ T_star
-    assert np.linalg.norm(T0[:3, 3] - expected[:3, 3]) < 3.0 * sigma
+    assert np.linalg.norm(T0[:3, 3] - expected[:3, 3]) < 3.0 * sigma + 2 * CONFIG.chest_wall_ap_mm
 
 
 def test_ecg_maxima_at_true_r_peaks(written):

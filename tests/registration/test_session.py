@@ -70,6 +70,7 @@ def _edit_cell(file: Path, row: int, column: str, value: str) -> None:
 def test_reader_and_writer_agree_on_the_format():
     assert reader.POINT_COLUMNS == writer.POINT_COLUMNS
     assert reader.FIDUCIAL_COLUMNS == writer.FIDUCIAL_COLUMNS
+    assert reader.FIDUCIAL_TRACE_COLUMNS == writer.FIDUCIAL_TRACE_COLUMNS
     assert reader.SESSION_UNITS == writer.SESSION_UNITS
     assert reader.SESSION_FORMAT == writer.SESSION_FORMAT
     assert writer.SESSION_VERSION in reader.SUPPORTED_VERSIONS
@@ -82,7 +83,7 @@ def test_round_trip_equals_truth_within_tracker_noise(phantom):
     before = _digest(folder)
     session = read_session(folder)
     assert _digest(folder) == before  # reading never modifies the folder
-    assert session.format_version == 1 and session.sample_rate_hz == 100
+    assert session.format_version == 2 and session.sample_rate_hz == 100
     assert session.exclusions == ()
     assert [p.point_id for p in session.points] == [p.point_id for p in truth.points]
     assert session.generator.startswith("heartreg phantom")
@@ -117,6 +118,51 @@ def test_round_trip_equals_truth_within_tracker_noise(phantom):
     with pytest.raises(ValueError):
         session.points[0].time_s[0] = 0.0  # results are read-only
     assert session.point(2) is session.points[2]
+
+
+def test_fiducial_trace_follows_the_breathing_chest(phantom):
+    folder, truth = phantom
+    trace = read_session(folder).fiducial_trace
+    assert trace is not None and set(np.unique(trace.fiducial)) == set(range(10))
+    phase = phase_from_events(trace.time_s, truth.expiration_onsets_s)
+    staples = writer.fiducials_patient_mm()[None] + writer.chest_wall_displacement(CONFIG, phase)
+    T = np.linalg.inv(truth.T_patient_from_probe) @ truth.T_fiducial_shift
+    clean = staples @ T[:3, :3].T + T[:3, 3]
+    for k in range(1, 10):
+        held = trace.fiducial == k
+        assert np.ptp(phase[held]) > 0.9  # held over (nearly) a whole breath
+        err = trace.stylus_probe_mm[held] - clean[held, k - 1]
+        # a constant seated offset (N(0, 0.5 mm) per axis: < 2.5 mm, 5 sd in 3-D) plus
+        # the tracker noise of stylus and probe (0.2 mm per axis each, lever arm of
+        # the probe's 0.15 deg at ~250 mm: below 0.8 mm RMS in 3-D)
+        assert np.linalg.norm(err.mean(axis=0)) < 2.5
+        assert np.sqrt(np.mean(np.sum((err - err.mean(axis=0)) ** 2, axis=1))) < 0.8
+    # the chest breathes: the staples move by millimetres over the breath, not rigidly
+    d = writer.chest_wall_displacement(CONFIG, np.linspace(0, 1, 50))
+    assert 0.5 * CONFIG.chest_wall_ap_mm < np.ptp(d[:, 4, 1]) <= 1.01 * CONFIG.chest_wall_ap_mm
+    assert np.ptp(d[:, 6, 1] - d[:, 0, 1]) > 1.0
+
+
+def test_format_1_sessions_are_still_read(tmp_path):
+    config = PhantomConfig(fiducial_trace_breaths=0.0)
+    writer.write_session(tmp_path, config, seed=3, n_points=3, duration_s=DURATION_S)
+    meta = json.loads((tmp_path / "session" / "session.json").read_text())
+    assert meta["version"] == 1 and "fiducial_trace_file" not in meta
+    session = read_session(tmp_path / "session")
+    assert session.format_version == 1 and session.fiducial_trace is None
+
+
+def test_a_trace_in_a_format_1_file_or_a_staple_never_held_is_refused(copy):
+    _edit_meta(copy, version=1)
+    with pytest.raises(SessionError, match="'fiducial_trace_file' needs format version 2"):
+        read_session(copy)
+    _edit_meta(copy, version=2)
+    file = copy / "fiducial_trace.csv"
+    lines = file.read_text().splitlines()
+    kept = [lines[0]] + [ln for ln in lines[1:] if ln.split(",")[1] != "5"]
+    file.write_text("\n".join(kept) + "\n")
+    with pytest.raises(SessionError, match=r"fiducial_trace.csv: staple\(s\) \[5\] never held"):
+        read_session(copy)
 
 
 def test_parent_folder_is_accepted(phantom):
@@ -214,7 +260,7 @@ def test_not_json(copy):
     ("changes", "match"),
     [
         ({"format": "other-format"}, "'format' is 'other-format'.*not a heartreg session"),
-        ({"version": 2}, "version 2 is not supported.*upgrade heartreg"),
+        ({"version": 3}, "version 3 is not supported.*upgrade heartreg"),
         ({"version": "1"}, "'version' must be an integer"),
         ({"units": {"position": "cm", "time": "s", "ecg": "mV", "flow": "L/min"}}, r"unknown unit units.position = 'cm'"),
         ({"units": {"position": "mm", "time": "ms", "ecg": "mV", "flow": "L/min"}}, r"units.time = 'ms'"),

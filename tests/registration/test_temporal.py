@@ -1,0 +1,152 @@
+"""phi_R* estimators on synthetic evidence whose answer is known: the shape
+estimator and its bootstrap interval, the traced staples' fit over the breath,
+and the paper's eq. 10 with its fiducial bootstrap."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from registration.temporal import (
+    TemporalError,
+    estimate_phase,
+    fiducial_curve,
+    paper_phase,
+)
+
+PHASES = np.linspace(0.0, 1.0, 101)
+
+
+def _wrap(d):
+    return (np.asarray(d) + 0.5) % 1.0 - 0.5
+
+
+def _identity_sweep(m):
+    return np.broadcast_to(np.eye(4), (m, 4, 4)).copy()
+
+
+def _distances(rng, phase_true, *, n=60, noise_mm=0.2, signal_mm=2.0):
+    """Per-point distances after ICP: noise, plus a misfit that grows away from phase_true."""
+    eps = rng.standard_normal((1, n))  # each point's own (phase-independent) error
+    a = rng.uniform(0.0, signal_mm, (1, n))
+    jitter = 0.05 * rng.standard_normal((PHASES.size, n))  # ICP's small phase-to-phase noise
+    misfit = a * np.sin(np.pi * _wrap(PHASES - phase_true))[:, None]
+    return np.sqrt((noise_mm * (eps + jitter)) ** 2 + misfit**2)
+
+
+def test_shape_estimate_recovers_the_phase_and_its_interval_covers_it():
+    rng = np.random.default_rng(1)
+    vertices = rng.normal(0, 40, (500, 3))
+    for phase_true in (0.05, 0.62, 0.97):
+        est = estimate_phase(PHASES, _distances(rng, phase_true), _identity_sweep(101), vertices)
+        # the misfit's minimum is exactly at the truth; 0.02 allows for the 0.05 mm jitter
+        assert abs(_wrap(est.phase_r - phase_true)) <= 0.02
+        assert est.contains(phase_true) and est.decided
+        assert est.width < 0.15
+        assert est.interval_offsets[0] <= 0 <= est.interval_offsets[1]
+        assert est.transform_mm == 0.0 and est.transform_deg == 0.0  # every phase has the same T
+        assert est.evidence == ("heart",) and est.cost.min() == 0.0
+
+
+def test_flat_evidence_is_undecided_and_a_stated_breath_hold_decides():
+    rng = np.random.default_rng(2)
+    d = 0.2 * np.abs(rng.standard_normal((101, 60)))  # no phase carries more evidence than another
+    vertices = rng.normal(0, 40, (200, 3))
+    est = estimate_phase(PHASES, d, _identity_sweep(101), vertices)
+    assert not est.decided and est.width > 0.3
+    assert "cannot decide" in est.summary()
+    held = estimate_phase(PHASES, d, _identity_sweep(101), vertices, breath_hold_phase=0.4, breath_hold_sd=0.02)
+    # the prior (sd 0.02) against the flat term's chance wiggles (a few chi-square units)
+    assert held.decided and held.contains(0.4) and abs(_wrap(held.phase_r - 0.4)) <= 0.1
+    assert "breath_hold" in held.evidence
+
+
+def test_transform_uncertainty_is_the_spread_of_T_over_the_interval():
+    rng = np.random.default_rng(3)
+    Ts = _identity_sweep(101)
+    Ts[:, 2, 3] = 10.0 * np.sin(2 * np.pi * PHASES)  # the registration moves 10 mm over the breath
+    vertices = rng.normal(0, 40, (300, 3))
+    est = estimate_phase(PHASES, _distances(rng, 0.3, signal_mm=0.6), Ts, vertices)
+    z = Ts[np.round(est.bootstrap_phases * 100).astype(int), 2, 3] - Ts[est.index, 2, 3]
+    # a pure translation moves every vertex by the same amount
+    assert est.transform_mm == pytest.approx(np.percentile(np.abs(z), 90), abs=1e-9)
+
+
+def _staples():
+    x, z = np.meshgrid([-40.0, 0.0, 40.0], [50.0, 10.0, -30.0])
+    return np.stack([x.ravel(), -95 + 0.002 * x.ravel() ** 2, z.ravel()], axis=1)
+
+
+def _breathing(phase):
+    """Non-rigid chest motion (mm): the lower rows move more, and later."""
+    rows = np.repeat([0.7, 1.0, 1.3], 3)
+    lag = np.repeat([0.0, 0.08, 0.16], 3)
+    g = 0.5 - 0.5 * np.cos(2 * np.pi * (phase[:, None] - lag))
+    out = np.zeros(phase.shape + (9, 3))
+    out[..., 1] = -6.0 * rows * g
+    return out
+
+
+def _trace(rng, phase_true, T_source_from_map, *, hold_fraction=1.2, noise_mm=0.2):
+    target = _staples() + _breathing(np.array([phase_true]))[0]
+    labels, phase = [], []
+    start = 0.0
+    for k in range(1, 10):
+        ph = (start + np.arange(0, hold_fraction, 0.01)) % 1.0
+        labels.append(np.full(ph.size, k))
+        phase.append(ph)
+        start += 0.37
+    labels, phase = np.concatenate(labels), np.concatenate(phase)
+    staples = _staples()[None] + _breathing(phase)
+    held = staples[np.arange(labels.size), labels - 1]
+    tip = held @ T_source_from_map[:3, :3].T + T_source_from_map[:3, 3] + noise_mm * rng.standard_normal(held.shape)
+    return labels, tip, phase, target
+
+
+def test_traced_staples_find_the_phase_at_which_the_chest_had_the_ct_shape():
+    rng = np.random.default_rng(4)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [20, -10, 35], degrees=True).as_matrix()
+    T[:3, 3] = [30.0, -150.0, 80.0]
+    for phase_true in (0.25, 0.7):
+        labels, tip, phase, target = _trace(rng, phase_true, T)
+        curve = fiducial_curve(labels, tip, phase, target, PHASES)
+        best = int(np.argmin(curve.sse_mm2))
+        # 0.2 mm tracker noise over ~120 samples per staple: the shape is known to
+        # ~0.02 mm, the phase to about a percent of the breath
+        assert abs(_wrap(PHASES[best] - phase_true)) <= 0.02
+        at_truth = int(round(phase_true * 100))
+        # at the true phase the rigid fit is T's inverse up to the noise (0.2 mm / sqrt(9 staples))
+        np.testing.assert_allclose(curve.T_map_from_source[at_truth][:3, :3], np.linalg.inv(T)[:3, :3], atol=0.005)
+        np.testing.assert_allclose(curve.T_map_from_source[at_truth][:3, 3], np.linalg.inv(T)[:3, 3], atol=0.3)
+        assert np.all(curve.trace_rms_mm < 0.45)  # 0.2 mm per axis: 0.35 mm in 3-D
+        assert curve.residuals_mm[best].max() < 0.3
+
+
+def test_a_staple_held_for_half_a_breath_is_refused():
+    rng = np.random.default_rng(5)
+    labels, tip, phase, target = _trace(rng, 0.3, np.eye(4), hold_fraction=0.45)
+    with pytest.raises(TemporalError, match="staple 1 is held over .* of 4 quarters of the breath"):
+        fiducial_curve(labels, tip, phase, target, PHASES)
+
+
+def test_paper_eq10_picks_the_registration_closest_to_T0():
+    rng = np.random.default_rng(6)
+    staples_map = _staples()
+    T_true = np.eye(4)
+    T_true[:3, 3] = [5.0, -3.0, 2.0]
+    Ts = np.repeat(T_true[None], 101, axis=0)
+    path = 8.0 * np.sin(2 * np.pi * (PHASES - 0.42))  # the heart's respiratory path, z
+    Ts[:, 2, 3] += path
+    source = (staples_map - T_true[:3, 3]) + 0.3 * rng.standard_normal((9, 3))
+    est = paper_phase(PHASES, Ts, source, staples_map, np.zeros(3), rng.normal(0, 40, (100, 3)))
+    # T0 is T_true up to 0.3 mm touch noise; |path| < 0.5 mm only within ~0.01 of 0.42
+    assert abs(_wrap(est.phase_r - 0.42)) <= 0.02 and est.contains(0.42)
+    # a T0 error of 4 mm along the path moves the minimum where the path makes up for it
+    shifted = source - np.array([0.0, 0.0, 4.0])
+    biased = paper_phase(PHASES, Ts, shifted, staples_map, np.zeros(3), rng.normal(0, 40, (100, 3)))
+    # 8 sin(2 pi (phi - 0.42)) = 4 twice a cycle: 0.42 + 1/12 and 0.42 + 5/12
+    expected = 0.42 + np.array([1.0, 5.0]) / 12
+    assert np.abs(_wrap(biased.phase_r - expected)).min() <= 0.02
+    assert not biased.contains(0.42)  # resampling the staples cannot reveal a shift of them all
