@@ -96,9 +96,19 @@ from registration.report import (
 from registration.view import (
     render_registration_png,
 )
+from registration.online import (
+    CausalPhases,
+    StreamError,
+)
+from registration.localise import (
+    LocaliseError,
+    Localiser,
+    MapPositions,
+)
 
 __all__ = [
     "ClosestPoints",
+    "CausalPhases",
     "CoverageWarning",
     "FIDUCIAL_COLUMNS",
     "FIDUCIAL_ORDER",
@@ -108,9 +118,12 @@ __all__ = [
     "IcpMethod",
     "IcpReport",
     "IcpResult",
+    "LocaliseError",
+    "Localiser",
     "MIN_BEATS",
     "MIN_BREATHS",
     "MIN_DURATION_S",
+    "MapPositions",
     "MotionModel",
     "MotionModelError",
     "POINT_COLUMNS",
@@ -130,6 +143,7 @@ __all__ = [
     "SessionError",
     "SessionNotFoundError",
     "SpatiotemporalRegistration",
+    "StreamError",
     "StaticComparison",
     "SurfaceIndex",
     "TransformError",

@@ -12,6 +12,7 @@ from heartreg.phantom.ct import AcquisitionPlan, CTStudyExistsError, CTTruth, pl
 from heartreg.phantom.generate import PhantomError, make_phantom
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import make_heart
+from heartreg.phantom.navigation import NavigationTruth, write_navigation
 from heartreg.phantom.session import SessionPointTruth, SessionTruth, write_session
 
 __all__ = [
@@ -19,6 +20,7 @@ __all__ = [
     "AnalyticHeart",
     "CTStudyExistsError",
     "CTTruth",
+    "NavigationTruth",
     "ChestModel",
     "PRESETS",
     "PhantomConfig",
@@ -33,5 +35,6 @@ __all__ = [
     "plan_acquisition",
     "render_slice",
     "write_ct_study",
+    "write_navigation",
     "write_session",
 ]
