@@ -17,23 +17,25 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
-from heartreg.phantom.layout import make_heart
-from heartreg.phantom.navigation import NavigationTruth, write_navigation
-from heartreg.track import (
+from heartreg.igtl import (
     DEVICE_PROBE,
     DEVICE_ROBOT,
     DEVICE_SIGNALS,
+    IgtlSink,
+    igtl_client_chunks,
+    lossless_client,
+    unpack_polydata,
+)
+from heartreg.phantom.layout import make_heart
+from heartreg.phantom.navigation import NavigationTruth, write_navigation
+from heartreg.track import (
     T_RAS_FROM_LPS,
     TRACK_COLUMNS,
-    IgtlSink,
     RateLimiter,
     Tracker,
-    igtl_client_chunks,
     load_tracker,
-    lossless_client,
     run_track,
     session_chunks,
-    unpack_polydata,
 )
 from registration.online import CausalPhases
 from registration.pipeline import point_phases
