@@ -167,7 +167,11 @@ def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):
     replay = read_session(root / "navigation")
     mesh = model.mesh
     T_ras = T_RAS_FROM_LPS @ model.T_patient_from_heart
+    import signal
+
+    ctrl_c = signal.getsignal(signal.SIGINT)
     sink = IgtlSink(0, mesh.vertices @ T_ras[:3, :3].T + T_ras[:3, 3], mesh.faces)  # ephemeral port
+    assert signal.getsignal(signal.SIGINT) is ctrl_c  # pyigtl's server does not take Ctrl-C away
     client, received = lossless_client("127.0.0.1", sink.port)
     try:
         assert sink.wait_for_client(10.0)
