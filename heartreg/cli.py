@@ -275,7 +275,8 @@ def _cmd_register(args) -> int:
 def _cmd_track(args) -> int:
     from registration.session import read_session
 
-    from heartreg.track import igtl_client_chunks, load_tracker, print_summary, run_track, session_chunks
+    from heartreg.igtl import igtl_client_chunks
+    from heartreg.track import load_tracker, print_summary, run_track, session_chunks
 
     if args.speed is not None and not args.speed > 0:
         raise ValueError(f"--speed must be positive (1 = real time), got {args.speed}")

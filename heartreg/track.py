@@ -8,7 +8,7 @@ static map (:mod:`registration.online` for the causal phases,
 
 - a CSV log, one row per sample (``docs/formats.md``, *Track log*), written
   under a temporary name and renamed when the stream ends or is interrupted;
-- over OpenIGTLink (pyigtl, as a server Slicer's OpenIGTLinkIF connects to):
+- over OpenIGTLink (:mod:`heartreg.igtl`, a pyigtl server Slicer's OpenIGTLinkIF connects to):
   the model once per connection as ``POLYDATA`` ``HeartModel``, then per
   sample a ``TRANSFORM`` ``RobotToRAS`` and a ``STRING`` ``RobotStatus``
   (phases, quality), in Slicer's RAS scene (the CT's patient frame, LPS
@@ -19,14 +19,13 @@ Pose sources are iterables of :class:`StreamChunk` (arrays of samples):
 :func:`session_chunks` replays a session folder; a PLUS sequence reader or an
 OpenIGTLink receiver plugs in the same way (:func:`chunks_from_samples`
 groups ``(time, T_tracker_from_robot, T_tracker_from_probe, status, ecg,
-flow_insp, flow_exp)`` samples).
+flow_insp, flow_exp)`` samples; :func:`heartreg.igtl.igtl_client_chunks` is one).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import signal
 import sys
 import tempfile
 import time
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from heartreg.igtl import IgtlSink
 from hrcore.errors import HeartregError
 from registration.localise import FAR_MM, Localiser, registered_models
 from registration.motion_model import Harmonics
@@ -45,7 +45,6 @@ from registration.online import CausalPhases, PhaseFlag
 __all__ = [
     "TRACK_COLUMNS",
     "T_RAS_FROM_LPS",
-    "IgtlSink",
     "RateLimiter",
     "StreamChunk",
     "TrackError",
@@ -62,7 +61,6 @@ T_RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 OFF_SURFACE_MM = 5.0
 #: a gap between samples longer than this many sample intervals restarts the phases.
 GAP_SAMPLES = 10
-DEVICE_MODEL, DEVICE_TRANSFORM, DEVICE_STATUS = "HeartModel", "RobotToRAS", "RobotStatus"
 TRACK_COLUMNS = (
     "time_s", "phase_c", "phase_r", "quality", "flags",
     "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
@@ -162,111 +160,6 @@ class RateLimiter:
             return True
         self.dropped += 1
         return False
-
-
-class IgtlSink:
-    """An OpenIGTLink server (pyigtl) that Slicer's OpenIGTLinkIF connects to.
-
-    pyigtl 0.3 has a ``PolyDataMessage`` that packs points and polygons
-    (it cannot unpack one: a pyigtl *client* drops POLYDATA messages, see
-    :func:`unpack_polydata`).  The model goes once per (re)connection.
-
-    Parameters
-    ----------
-    port : int
-        TCP port; 0 picks a free one (``port`` tells which).
-    vertices_ras : (V, 3) float, mm
-    faces : (F, 3) int
-    """
-
-    def __init__(self, port: int, vertices_ras, faces):
-        import pyigtl
-
-        self._pyigtl = pyigtl
-        previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            self._server = pyigtl.OpenIGTLinkServer(port=int(port), local_server=True)
-        except OSError as exc:
-            raise TrackError(f"--igtl-port {port}: cannot listen ({exc}); choose another port") from None
-        finally:
-            for s, h in previous.items():  # pyigtl installs its own; Ctrl-C stays ours
-                if signal.getsignal(s) is not h:
-                    signal.signal(s, h)
-        self.port = int(self._server.server_address[1])
-        faces = np.asarray(faces, dtype=np.uint32)
-        polys = np.concatenate([np.full((faces.shape[0], 1), 3, np.uint32), faces], axis=1).ravel()
-        self._model = pyigtl.PolyDataMessage(points=np.asarray(vertices_ras, dtype=np.float32),
-                                             polygons=polys, device_name=DEVICE_MODEL)
-        self._was_connected = False
-        self.models_sent = 0
-
-    @property
-    def connected(self) -> bool:
-        return bool(self._server.is_connected())
-
-    def wait_for_client(self, timeout_s: float) -> bool:
-        end = time.monotonic() + timeout_s
-        while not self.connected and time.monotonic() < end:
-            time.sleep(0.005)
-        return self.connected
-
-    def poll(self) -> bool:
-        """Send the model on a new connection; True while a client is connected."""
-        now = self.connected
-        if now and not self._was_connected:
-            self._server.send_message(self._model, wait=False)
-            self.models_sent += 1
-        self._was_connected = now
-        return now
-
-    def send(self, time_s: float, T_ras_from_robot, text: str) -> None:
-        """Queue one sample's TRANSFORM and STRING (timestamp: the sample time).
-
-        pyigtl's queue holds 100 messages and drops the oldest beyond; when it
-        is 80 % full this waits (at most 0.5 s) for it to drain instead.
-        """
-        pyigtl = self._pyigtl
-        server = self._server
-        if len(server.outgoing_messages) > 80:
-            end = time.monotonic() + 0.5
-            while len(server.outgoing_messages) > 20 and time.monotonic() < end and self.connected:
-                time.sleep(0.0005)
-        self._server.send_message(pyigtl.TransformMessage(T_ras_from_robot, timestamp=time_s,
-                                                          device_name=DEVICE_TRANSFORM), wait=False)
-        self._server.send_message(pyigtl.StringMessage(text, timestamp=time_s, device_name=DEVICE_STATUS),
-                                  wait=False)
-
-    def flush(self, timeout_s: float = 2.0) -> None:
-        """Wait (bounded) until the queued messages have gone out."""
-        end = time.monotonic() + timeout_s
-        while self.connected and time.monotonic() < end:
-            with self._server.lock_outgoing_messages:
-                if not self._server.outgoing_messages:
-                    return
-            time.sleep(0.002)
-
-    def close(self) -> None:
-        self._server.communication_thread_stop_requested = True
-        self._server.shutdown()
-        self._server.server_close()
-
-
-def unpack_polydata(content: bytes):
-    """Points (V, 3) float32 and triangles (F, 3) of a POLYDATA body (no attributes).
-
-    pyigtl 0.3 cannot unpack POLYDATA; this reads what :class:`IgtlSink` sends
-    (OpenIGTLink v2 POLYDATA: ten uint32 counts, float32 points, uint32 cells).
-    """
-    head = np.frombuffer(content[:40], dtype=">u4")
-    n_points = int(head[0])
-    sizes = head[[2, 4, 6, 8]]
-    off = 40
-    points = np.frombuffer(content[off:off + 12 * n_points], dtype=">f4").reshape(-1, 3)
-    off += 12 * n_points + int(sizes[0]) + int(sizes[1])
-    polys = np.frombuffer(content[off:off + int(sizes[2])], dtype=">u4").reshape(-1, 4)
-    if np.any(polys[:, 0] != 3):
-        raise ValueError("POLYDATA polygons are not all triangles")
-    return points.astype(np.float32), polys[:, 1:].astype(np.int64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -592,93 +485,3 @@ def print_summary(summary: TrackSummary, csv_path, *, file=sys.stdout) -> None:
     print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
           f"model sent {s.models_sent} time(s)", file=file)
     print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
-
-
-# ------------------------------------------------------------ OpenIGTLink in
-#: device names of an OpenIGTLink pose stream (PLUS's naming).
-DEVICE_ROBOT, DEVICE_PROBE, DEVICE_SIGNALS = "RobotToTracker", "ProbeToTracker", "Signals"
-
-
-def lossless_client(host: str, port: int):
-    """A pyigtl client that keeps every message (pyigtl keeps only the latest
-    per device); POLYDATA bodies are kept raw (pyigtl 0.3 cannot unpack them:
-    read them with :func:`unpack_polydata`).
-
-    Returns
-    -------
-    client, messages
-        ``messages`` is a ``collections.deque`` the client appends to.
-    """
-    import collections
-
-    import pyigtl
-    from pyigtl import messages as pm
-
-    received = collections.deque()
-
-    class _RawPolyData(pyigtl.MessageBase):
-        def __init__(self):
-            super().__init__()
-            self._message_type = "POLYDATA"
-            self.content = b""
-
-        def _unpack_content(self, content):
-            self.content = bytes(content)
-
-    class _Client(pyigtl.OpenIGTLinkClient):
-        def _receive_message_from_socket(self, ssocket):
-            added = pm.message_type_to_class_constructor.setdefault("POLYDATA", _RawPolyData) is _RawPolyData
-            try:
-                got = super()._receive_message_from_socket(ssocket)
-            finally:
-                if added:
-                    pm.message_type_to_class_constructor.pop("POLYDATA", None)
-            if got:
-                with self.lock_incoming_messages:
-                    received.extend(self.incoming_messages.values())
-                    self.incoming_messages.clear()
-            return got
-
-    return _Client(host=host, port=int(port)), received
-
-
-def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0) -> Iterator[StreamChunk]:
-    """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample.
-
-    A sample is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM``
-    ``ProbeToTracker`` and a ``STRING`` ``Signals`` (``"ecg_mv,flow_insp_lpm,
-    flow_exp_lpm"``) with the same timestamp (the sample time, s).  A sample
-    missing a part is skipped; the stream ends after ``idle_timeout_s``
-    without a message.
-    """
-    client, received = lossless_client(host, port)
-    pending: dict[float, dict] = {}
-    last = time.monotonic()
-    try:
-        while True:
-            if not received:
-                if time.monotonic() - last > idle_timeout_s:
-                    return
-                time.sleep(0.001)
-                continue
-            last = time.monotonic()
-            msg = received.popleft()
-            key = round(float(msg.timestamp), 6)
-            slot = pending.setdefault(key, {})
-            if msg.device_name in (DEVICE_ROBOT, DEVICE_PROBE) and msg.message_type == "TRANSFORM":
-                slot[msg.device_name] = np.asarray(msg.matrix, dtype=float)
-            elif msg.device_name == DEVICE_SIGNALS and msg.message_type == "STRING":
-                try:
-                    slot[DEVICE_SIGNALS] = [float(x) for x in msg.string.split(",")]
-                except ValueError:
-                    pending.pop(key)
-                    continue
-            if len(slot) == 3:
-                pending.pop(key)
-                for old in [k for k in pending if k < key]:
-                    pending.pop(old)  # an incomplete earlier sample will not complete now
-                ecg, fi, fe = slot[DEVICE_SIGNALS]
-                yield next(chunks_from_samples(
-                    [(key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE], True, ecg, fi, fe)]))
-    finally:
-        client.stop()

@@ -101,9 +101,19 @@ from registration.plus import (
     PlusSequence,
     read_plus_sequence,
 )
+from registration.online import (
+    CausalPhases,
+    StreamError,
+)
+from registration.localise import (
+    LocaliseError,
+    Localiser,
+    MapPositions,
+)
 
 __all__ = [
     "ClosestPoints",
+    "CausalPhases",
     "CoverageWarning",
     "FIDUCIAL_COLUMNS",
     "FIDUCIAL_ORDER",
@@ -113,9 +123,12 @@ __all__ = [
     "IcpMethod",
     "IcpReport",
     "IcpResult",
+    "LocaliseError",
+    "Localiser",
     "MIN_BEATS",
     "MIN_BREATHS",
     "MIN_DURATION_S",
+    "MapPositions",
     "MotionModel",
     "MotionModelError",
     "POINT_COLUMNS",
@@ -135,6 +148,7 @@ __all__ = [
     "SessionError",
     "SessionNotFoundError",
     "SpatiotemporalRegistration",
+    "StreamError",
     "StaticComparison",
     "SurfaceIndex",
     "TransformError",

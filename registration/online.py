@@ -135,6 +135,17 @@ class CausalPhase:
             return x - np.floor(x), True
         return float("nan"), False
 
+    def phases(self, time_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`phase` of many times with the events so far: (phase, predicted), (m,) each."""
+        m = time_s.shape[0]
+        if self._last is None or self._period is None:
+            return np.full(m, np.nan), np.zeros(m, dtype=bool)
+        x = (time_s - self._last) / self._period
+        predicted = (x >= 1.0) & (x < self._max_gap)
+        phase = np.where(predicted, x - np.floor(x), x)
+        phase[(x < 0.0) | (x >= self._max_gap)] = np.nan
+        return phase, predicted
+
 
 class _Ring:
     """Fixed-size history of (time, value) samples addressed by global index."""
@@ -470,29 +481,21 @@ class CausalPhases:
         # events are confirmed at a sample; phases from that sample on use them
         peaks = self.r_detector.update(t, ecg)
         onsets = self.resp_detector.update(t, expi, insp)
-        pk = iter(peaks)
-        on = iter(onsets)
-        next_pk = next(pk, None)
-        next_on = next(on, None)
-        for k, tk in enumerate(t.tolist()):
-            while next_pk is not None and next_pk[1] <= tk:
-                self.cardiac.add_event(next_pk[0])
-                next_pk = next(pk, None)
-            while next_on is not None and next_on[1] <= tk:
-                self.respiration.add_event(next_on[0])
-                next_on = next(on, None)
-            pc, pred_c = self.cardiac.phase(tk)
-            pr, pred_r = self.respiration.phase(tk)
-            phase_c[k] = pc
-            phase_r[k] = pr
-            f = 0
-            if math.isnan(pc):
-                f |= PhaseFlag.NO_CARDIAC
-            elif pred_c:
-                f |= PhaseFlag.CARDIAC_PREDICTED
-            if math.isnan(pr):
-                f |= PhaseFlag.NO_RESPIRATION
-            elif pred_r:
-                f |= PhaseFlag.RESPIRATION_PREDICTED
-            flags[k] = f
+        pred_c = np.zeros(m, dtype=bool)
+        pred_r = np.zeros(m, dtype=bool)
+        for events, phase, out, pred in ((peaks, self.cardiac, phase_c, pred_c),
+                                         (onsets, self.respiration, phase_r, pred_r)):
+            # between confirmations the state is fixed: fill each run at once
+            start = 0
+            active = np.searchsorted(t, [c for _, c in events], side="left")
+            for (event, _), i in zip(events, active.tolist()):
+                if i > start:
+                    out[start:i], pred[start:i] = phase.phases(t[start:i])
+                    start = i
+                phase.add_event(event)
+            out[start:], pred[start:] = phase.phases(t[start:])
+        no_c, no_r = np.isnan(phase_c), np.isnan(phase_r)
+        flags = (np.where(no_c, PhaseFlag.NO_CARDIAC, np.where(pred_c, PhaseFlag.CARDIAC_PREDICTED, 0))
+                 | np.where(no_r, PhaseFlag.NO_RESPIRATION, np.where(pred_r, PhaseFlag.RESPIRATION_PREDICTED, 0)))
+        flags = flags.astype(np.int64)
         return PhaseChunk(phase_c, phase_r, flags, tuple(peaks), tuple(onsets))

@@ -14,6 +14,7 @@ from heartreg.phantom.generate import PhantomError, heart_from_truth, make_phant
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import make_heart
 from heartreg.phantom.plus import write_plus_sequence, write_plus_session
+from heartreg.phantom.navigation import NavigationTruth, write_navigation
 from heartreg.phantom.session import SessionPointTruth, SessionTruth, write_session
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "ChamberHeart",
     "CTStudyExistsError",
     "CTTruth",
+    "NavigationTruth",
     "ChestModel",
     "PRESETS",
     "PhantomConfig",
@@ -40,5 +42,6 @@ __all__ = [
     "write_ct_study",
     "write_plus_sequence",
     "write_plus_session",
+    "write_navigation",
     "write_session",
 ]

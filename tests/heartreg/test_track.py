@@ -17,23 +17,25 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
-from heartreg.phantom.layout import make_heart
-from heartreg.phantom.navigation import NavigationTruth, write_navigation
-from heartreg.track import (
+from heartreg.igtl import (
     DEVICE_PROBE,
     DEVICE_ROBOT,
     DEVICE_SIGNALS,
+    IgtlSink,
+    igtl_client_chunks,
+    lossless_client,
+    unpack_polydata,
+)
+from heartreg.phantom.layout import make_heart
+from heartreg.phantom.navigation import NavigationTruth, write_navigation
+from heartreg.track import (
     T_RAS_FROM_LPS,
     TRACK_COLUMNS,
-    IgtlSink,
     RateLimiter,
     Tracker,
-    igtl_client_chunks,
     load_tracker,
-    lossless_client,
     run_track,
     session_chunks,
-    unpack_polydata,
 )
 from registration.online import CausalPhases
 from registration.pipeline import point_phases
@@ -165,7 +167,11 @@ def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):
     replay = read_session(root / "navigation")
     mesh = model.mesh
     T_ras = T_RAS_FROM_LPS @ model.T_patient_from_heart
+    import signal
+
+    ctrl_c = signal.getsignal(signal.SIGINT)
     sink = IgtlSink(0, mesh.vertices @ T_ras[:3, :3].T + T_ras[:3, 3], mesh.faces)  # ephemeral port
+    assert signal.getsignal(signal.SIGINT) is ctrl_c  # pyigtl's server does not take Ctrl-C away
     client, received = lossless_client("127.0.0.1", sink.port)
     try:
         assert sink.wait_for_client(10.0)
