@@ -34,7 +34,7 @@ from registration.session import read_session
 #: a reader that takes longer than this on a few-kB input is hanging, s.
 TIME_BOX_S = 10
 FUZZ = settings(
-    max_examples=15,
+    max_examples=25,
     deadline=None,  # the SIGALRM box below is the hard limit; the loaded CI machine varies
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
     derandomize=True,  # the same examples every run: a failure is reproducible
