@@ -102,7 +102,8 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
         u = np.asarray(o["direction_patient"])
         radius = o["outer_radius_mm"]
 
-        def extent(p):
+        def extent(p, c=c, u=u, radius=radius):
+            """How far past the mouth plane points of ``p`` run inside the vessel's cylinder."""
             s = (p - c) @ u
             r = np.linalg.norm((p - c) - s[:, None] * u, axis=1)
             inside = (s > 0) & (r <= radius)

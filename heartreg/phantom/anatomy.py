@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from itertools import pairwise
 
 import numpy as np
 
@@ -52,13 +53,13 @@ from heartreg.phantom.heart import AnalyticHeart
 
 __all__ = [
     "ANATOMY_HU",
+    "WALL_THICKNESS_MM",
     "ChamberHeart",
-    "Vessel",
     "Stent",
+    "Vessel",
+    "descending_stent",
     "great_vessels",
     "vessel_origins",
-    "descending_stent",
-    "WALL_THICKNESS_MM",
 ]
 
 #: Hounsfield units of the anatomical heart (contrast in the arterial phase:
@@ -158,7 +159,7 @@ def _smax(a, b, k):
 def _polyline_distance(p, points, radius):
     """Distance (mm, negative inside) to a tube of constant radius around a polyline."""
     d = np.full(p.shape[:-1], np.inf)
-    for a, b in zip(points[:-1], points[1:]):
+    for a, b in pairwise(points):
         ab = b - a
         t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
         d = np.minimum(d, np.linalg.norm(p - (a + t[..., None] * ab), axis=-1))
@@ -595,7 +596,7 @@ def vessel_origins(heart: ChamberHeart, vessels, phase_c: float, phase_r=None, *
             continue
         found = None
         pts = vessel.points_mm
-        for a, b in zip(pts[:-1], pts[1:]):
+        for a, b in pairwise(pts):
             n = max(2, int(np.ceil(np.linalg.norm(b - a) / step_mm)))
             t = np.linspace(0.0, 1.0, n + 1)
             f = heart.epicardium_at(a + t[:, None] * (b - a), phase_c, phase_r)
@@ -626,5 +627,5 @@ def descending_stent(vessels, *, z_range_mm=(-40.0, 20.0)) -> Stent:
     """A 60 mm stent in the descending aorta at the heart's level."""
     desc = next(v for v in vessels if v.name == "descending_aorta")
     a, b = desc.points_mm[0], desc.points_mm[-1]
-    at = lambda z: a + (z - a[2]) / (b[2] - a[2]) * (b - a)  # noqa: E731
-    return Stent(start_mm=at(z_range_mm[0]), end_mm=at(z_range_mm[1]), radius_mm=desc.lumen_radius_mm - 0.3)
+    ends = [a + (z - a[2]) / (b[2] - a[2]) * (b - a) for z in z_range_mm]
+    return Stent(start_mm=ends[0], end_mm=ends[1], radius_mm=desc.lumen_radius_mm - 0.3)

@@ -111,7 +111,7 @@ def test_vessel_lumens_have_their_contrast(case):
     found = {v.name: [] for v in c["chest"].vessels}
     for k in range(len(c["zs"])):
         P = _slice_points(c, k)
-        if k % 3 and c["zs"][k] < 40:  # every third slice, every slice above the heart
+        if k % 4 and c["zs"][k] < 40:  # every fourth slice, every slice above the heart
             continue
         d = {v.name: v.lumen_distance(P) for v in c["chest"].vessels}
         epi = c["heart"].epicardium_at(P, c["truth"]["slice_cardiac_phase"][k])
@@ -209,7 +209,7 @@ def test_myocardium_thickness_on_the_rendered_volume(case, wall, lo, hi):
     t = np.arange(-1.0, hi + 4.0, 0.02)
     thickness = []
     for i in idx:
-        prof = _profile(chest, pts[i], -normals[i], phase, t)
+        prof = _profile(chest, pts[i], -normals[i], phase, t, step_mm=0.15)
         epi = _nearest(_crossings(t, prof, 0.5 * (ANATOMY_HU["fat"] + ANATOMY_HU["myocardium"])))
         endo = _crossings(t, prof, 0.5 * (ANATOMY_HU["myocardium"] + blood_hu))
         assert abs(epi) < 0.05, f"epicardium at {epi:.3f} mm from the true surface"
