@@ -1,6 +1,6 @@
 """Accuracy of ``modeling`` on the anatomical phantom (four chambers, great vessels).
 
-Writes (once, reused) a ``human``-preset phantom case (``--anatomy chambers``)
+Writes (``--reuse``: once) a ``human``-preset phantom case (``--anatomy chambers``)
 into ``bench/out/anatomy/<size>/``, builds the heart model from its CT with the
 library exactly as ``heartreg model`` does, and reports against the phantom's
 exact epicardium (without the great vessels) at the volume's phase phi_C*:
@@ -46,9 +46,9 @@ from heartreg.phantom import heart_from_truth, make_phantom  # noqa: E402
 MOUTH_CLEARANCE_MM = 3.0
 
 
-def _case(out: Path, size: str, seed: int, fov_mm, stent: bool, markers: bool) -> dict:
+def _case(out: Path, size: str, seed: int, fov_mm, stent: bool, markers: bool, reuse: bool) -> dict:
     truth_path = out / "truth.json"
-    if truth_path.exists():
+    if reuse and truth_path.exists():
         truth = json.loads(truth_path.read_text())
         a = truth.get("anatomy", {})
         if (truth["size"], truth["seed"], a.get("fov_mm"), "stent" in a, a.get("markers", True)) == (
@@ -148,11 +148,13 @@ def main(argv=None) -> int:
     ap.add_argument("--stent", action="store_true")
     ap.add_argument("--no-markers", action="store_true")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "anatomy")
+    ap.add_argument("--reuse", action="store_true",
+                    help="reuse the case written by an earlier run with the same options (same phantom code only)")
     args = ap.parse_args(argv)
     tag = args.size + (f"-fov{args.fov_mm:g}" if args.fov_mm else "") + ("-stent" if args.stent else "") + (
         "-nomarkers" if args.no_markers else "")
     case = args.out / tag
-    truth = _case(case, args.size, args.seed, args.fov_mm, args.stent, not args.no_markers)
+    truth = _case(case, args.size, args.seed, args.fov_mm, args.stent, not args.no_markers, args.reuse)
     try:
         r = measure(case, truth)
     except Exception as exc:  # a measurement: report why the model could not be built
