@@ -123,7 +123,7 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
 
         s_t = (pts - c) @ u
         r_t = np.linalg.norm((pts - c) - s_t[:, None] * u, axis=1)
-        mouth = r_t <= o["lumen_radius_mm"]
+        mouth = (r_t <= o["lumen_radius_mm"]) & (np.abs(s_t) <= MOUTH_CLEARANCE_MM + 2.0)  # the true cap
         vessels.append({
             "name": o["name"],
             "lumen_diameter_mm": 2 * o["lumen_radius_mm"],
