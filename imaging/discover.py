@@ -494,6 +494,10 @@ def _check_pixel_extent(fp, ds, size: int) -> tuple[str | None, tuple[int, int] 
         fp.seek(item_len, os.SEEK_CUR)
 
 
+#: (0002,0010) Deflated Explicit VR Little Endian: the whole dataset is zlib-deflated.
+DEFLATED_UID = "1.2.840.10008.1.2.1.99"
+
+
 def _read_header(path: str):
     """Read one file's header.
 
@@ -515,6 +519,8 @@ def _read_header(path: str):
                 return None, "not-dicom", None
         except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds here
             return None, f"unreadable header ({type(exc).__name__}: {exc})", None
+        if getattr(ds, "file_meta", None) is not None and ds.file_meta.get("TransferSyntaxUID") == DEFLATED_UID:
+            return ds, None, None  # the dataset was inflated in memory: no file offsets to check
         try:
             reason, native = _check_pixel_extent(fp, ds, size)
         except Exception as exc:  # noqa: BLE001

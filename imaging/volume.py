@@ -27,11 +27,12 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+import pydicom
 from pydicom.errors import InvalidDicomError
 
 from hrcore.errors import HeartregError
 
-from .discover import _Frame
+from .discover import DEFLATED_UID, _Frame
 
 logger = logging.getLogger(__name__)
 
@@ -490,6 +491,11 @@ def _decode(frame: _Frame, plugin: str) -> np.ndarray:
     if plugin:
         kwargs["decoding_plugin"] = plugin
     try:
+        if frame.transfer_syntax_uid == DEFLATED_UID:
+            # pydicom's file-path decoder does not inflate: read (and inflate) the dataset
+            ds = pydicom.dcmread(frame.path)
+            arr = ds.pixel_array if frame.frame is None else pixel_array(ds, index=frame.frame)
+            return _checked_shape(arr, frame)
         try:
             arr = pixel_array(frame.path, **kwargs)
         except (InvalidDicomError, AttributeError):
@@ -500,6 +506,10 @@ def _decode(frame: _Frame, plugin: str) -> np.ndarray:
             f"{frame.path}: cannot decode pixel data ({type(exc).__name__}: {exc}); "
             "the file may be truncated or corrupt: remove it or re-export the series"
         ) from exc
+    return _checked_shape(arr, frame)
+
+
+def _checked_shape(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     if arr.shape != (frame.rows, frame.columns):
         raise PixelDataError(
             f"{frame.path}: decoded frame has shape {arr.shape}, expected "
