@@ -121,3 +121,25 @@ def test_deflated_explicit_vr_is_read(tmp_path):
         ds.save_as(folder / f.name, enforce_file_format=True)
         assert pydicom.dcmread(folder / f.name).file_meta.TransferSyntaxUID == DeflatedExplicitVRLittleEndian
     np.testing.assert_array_equal(_load(folder).hu, _load(plain).hu)
+
+
+def test_jpeg_lossless_process_14_read_with_gdcm(tmp_path):
+    """JPEG Lossless process 14 (not SV1): 693_UNCR re-encoded by python-gdcm reads
+    back to the same HU as the uncompressed original."""
+    gdcm = pytest.importorskip("gdcm")
+    reader = gdcm.ImageReader()
+    reader.SetFileName(str(DATA / "693_UNCR.dcm"))
+    assert reader.Read()
+    change = gdcm.ImageChangeTransferSyntax()
+    change.SetTransferSyntax(gdcm.TransferSyntax(gdcm.TransferSyntax.JPEGLosslessProcess14))
+    change.SetInput(reader.GetImage())
+    assert change.Change()
+    folder = tmp_path / "p14"
+    folder.mkdir()
+    writer = gdcm.ImageWriter()
+    writer.SetFileName(str(folder / "693_P14.dcm"))
+    writer.SetFile(reader.GetFile())
+    writer.SetImage(change.GetOutput())
+    assert writer.Write()
+    assert pydicom.dcmread(folder / "693_P14.dcm").file_meta.TransferSyntaxUID == "1.2.840.10008.1.2.4.57"
+    np.testing.assert_array_equal(_load(folder).hu, _load(_study(tmp_path / "u", "693_UNCR.dcm")).hu)
