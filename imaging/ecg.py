@@ -442,11 +442,12 @@ def detect_r_peaks(
         )
     deriv = ndimage.convolve1d(band, np.array([-1.0, -2.0, 0.0, 2.0, 1.0]) * (rate / 8.0), mode="nearest")
     win = max(1, int(round(INTEGRATION_S * rate)))
-    # Mean over the in-record part of the window, so a QRS at an edge keeps its level.
-    ones = np.ones_like(deriv)
-    energy = ndimage.uniform_filter1d(deriv**2, win, mode="constant") / ndimage.uniform_filter1d(
-        ones, win, mode="constant"
-    )
+    energy = ndimage.uniform_filter1d(deriv * deriv, win, mode="constant")
+    # mean over the in-record part of the window only, at both ends
+    edge = min(win, energy.size // 2)
+    coverage = ndimage.uniform_filter1d(np.ones(min(3 * win, energy.size)), win, mode="constant")
+    energy[:edge] /= coverage[:edge]
+    energy[energy.size - edge :] /= coverage[coverage.size - edge :]
     refractory = int(round(float(refractory_s) * rate))
     pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
     peaks, _ = signal.find_peaks(np.concatenate([np.zeros(pad), energy, np.zeros(pad)]), distance=pad)
@@ -455,7 +456,7 @@ def detect_r_peaks(
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
     values = energy[peaks]
     half = max(2, int(round(0.075 * rate)))
-    slopes = ndimage.maximum_filter1d(np.abs(deriv), 2 * half + 1)[peaks]
+    slopes = np.abs(deriv[np.clip(peaks[:, None] + np.arange(-half, half + 1), 0, deriv.size - 1)]).max(axis=1)
 
     # --- classification: initial levels from the first seconds -------------
     learn_n = min(x.size, int(LEARN_S * rate))
