@@ -689,8 +689,6 @@ def _onto_grid(hu: np.ndarray, dj: float, di: float, grid_shape) -> np.ndarray:
 
 
 def _resample_into(out, plan: _Plan, plugins, bar) -> None:
-    from scipy import ndimage
-
     frames, pos = plan.frames, plan.positions_mm
     m = plan.spacing_mm[2]
     cache: dict[int, np.ndarray] = {}

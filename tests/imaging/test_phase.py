@@ -180,7 +180,7 @@ def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
 
 def test_unreadable_waveform_is_named_by_file_in_the_notes(sample_case, tmp_path):
     """A broken ECG waveform instance: the report falls back and its note names the file only."""
-    case, truth = sample_case
+    case, _ = sample_case
     ct = _copy_without(case, tmp_path, private=True)
     wave = next(f for f in ct.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "ECG")
     ds = pydicom.dcmread(wave)
