@@ -89,7 +89,7 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
     """
     from imaging import compute_phase_report, load_study, read_qrs_file
 
-    volume = load_study(study_dir, series=series, progress=progress)
+    volume = load_study(study_dir, series=series, progress=progress, prefer_gated=True)
     qrs_s = read_qrs_file(qrs) if qrs else None
     from imaging import GatingError
 
@@ -102,6 +102,9 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
             raise
         return volume, f"no ECG gating ({str(exc).split(';')[0]})"
     if warn is not None:
+        for note in volume.notes:
+            if note.startswith("chose series"):
+                warn(f"note: {note}")
         for note in report.notes:
             if "unreadable" in note:
                 warn(f"note: {note}")

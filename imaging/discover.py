@@ -512,6 +512,9 @@ def _looks_like_bare_dicom(head: bytes) -> bool:
     group, _ = struct.unpack("<HH", head[:4])
     return group in (0x0002, 0x0008)
 
+#: (0002,0010) Deflated Explicit VR Little Endian: the whole dataset is zlib-deflated.
+DEFLATED_UID = "1.2.840.10008.1.2.1.99"
+
 
 def _read_header(path: str):
     """Read one file's header.
@@ -537,6 +540,8 @@ def _read_header(path: str):
                 return None, "not-dicom", None
         except Exception as exc:  # noqa: BLE001 - pydicom raises many kinds here
             return None, f"unreadable header ({type(exc).__name__}: {exc})", None
+        if getattr(ds, "file_meta", None) is not None and ds.file_meta.get("TransferSyntaxUID") == DEFLATED_UID:
+            return ds, None, None  # the dataset was inflated in memory: no file offsets to check
         try:
             reason, native = _check_pixel_extent(fp, ds, size)
         except Exception as exc:  # noqa: BLE001

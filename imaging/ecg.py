@@ -220,6 +220,7 @@ class _Classifier:
     def run(self, spk0: float, npk0: float) -> list[int]:
         peaks, values, slopes = self.peaks, self.values, self.slopes
         self.recent = [spk0]  # energies of the last accepted QRS complexes
+        self.spk = spk0  # their median: the signal level
         self.npk = npk0
         self.limit = SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
         self.dead = self.refractory
@@ -248,7 +249,7 @@ class _Classifier:
                 continue
             if v > th1:
                 if qrs and p - peaks[qrs[-1]] < EARLY_FRACTION * self.limit / SEARCH_BACK_FACTOR and v < (
-                    EARLY_ENERGY_RATIO * _median(self.recent)
+                    EARLY_ENERGY_RATIO * self.spk
                 ):
                     self.npk = 0.125 * v + 0.875 * self.npk  # noise: too early for a weak beat
                     continue
@@ -275,7 +276,7 @@ class _Classifier:
         lead whose QRS complexes shrank (after a transient, a lead change) is
         followed again within seconds.
         """
-        spk = _median(self.recent)
+        spk = self.spk
         over = gap - self.limit
         if over > 0:
             spk = max(spk * 0.5 ** (over / (DECAY_HALF_LIFE_S * self.rate)), NOISE_FLOOR_RATIO * self.npk)
@@ -294,9 +295,10 @@ class _Classifier:
         if len(gap) < 2:
             return False
         top, typical = max(gap), _median(gap)
-        if top < NOISE_FLOOR_RATIO * typical or top >= _median(self.recent):
+        if top < NOISE_FLOOR_RATIO * typical or top >= self.spk:
             return False
         self.recent = [top]
+        self.spk = top
         self.npk = min(self.npk, typical)
         return True
 
@@ -315,8 +317,9 @@ class _Classifier:
         j = qrs.pop()
         if rr:
             rr.pop()
-        if self.recent and self.recent[-1] == self.values[j]:
+        if len(self.recent) > 1 and self.recent[-1] == self.values[j]:
             self.recent.pop()
+            self.spk = _median(self.recent)
         self.npk = 0.125 * self.values[j] + 0.875 * self.npk
         self._update_limits(rr)
 
@@ -331,6 +334,7 @@ class _Classifier:
         self.recent.append(self.values[j])
         if len(self.recent) > SPK_MEMORY:
             del self.recent[0]
+        self.spk = _median(self.recent)
 
     def _update_limits(self, rr) -> None:
         self.limit = self._rr_limit(rr)
@@ -343,7 +347,13 @@ class _Classifier:
             return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
         recent = rr[-8:]
         avg1 = sum(recent) / len(recent)
-        regular = [r for r in rr[-32:] if 0.92 * avg1 <= r <= 1.16 * avg1][-8:]
+        lo, hi = 0.92 * avg1, 1.16 * avg1
+        regular = []
+        for r in reversed(rr[-32:]):
+            if lo <= r <= hi:
+                regular.append(r)
+                if len(regular) == 8:
+                    break
         avg = sum(regular) / len(regular) if regular else avg1
         return SEARCH_BACK_FACTOR * avg
 
@@ -432,11 +442,12 @@ def detect_r_peaks(
         )
     deriv = ndimage.convolve1d(band, np.array([-1.0, -2.0, 0.0, 2.0, 1.0]) * (rate / 8.0), mode="nearest")
     win = max(1, int(round(INTEGRATION_S * rate)))
-    # Mean over the in-record part of the window, so a QRS at an edge keeps its level.
-    ones = np.ones_like(deriv)
-    energy = ndimage.uniform_filter1d(deriv**2, win, mode="constant") / ndimage.uniform_filter1d(
-        ones, win, mode="constant"
-    )
+    energy = ndimage.uniform_filter1d(deriv * deriv, win, mode="constant")
+    # mean over the in-record part of the window only, at both ends
+    edge = min(win, energy.size // 2)
+    coverage = ndimage.uniform_filter1d(np.ones(min(3 * win, energy.size)), win, mode="constant")
+    energy[:edge] /= coverage[:edge]
+    energy[energy.size - edge :] /= coverage[coverage.size - edge :]
     refractory = int(round(float(refractory_s) * rate))
     pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
     peaks, _ = signal.find_peaks(np.concatenate([np.zeros(pad), energy, np.zeros(pad)]), distance=pad)
@@ -445,7 +456,7 @@ def detect_r_peaks(
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
     values = energy[peaks]
     half = max(2, int(round(0.075 * rate)))
-    slopes = ndimage.maximum_filter1d(np.abs(deriv), 2 * half + 1)[peaks]
+    slopes = np.abs(deriv[np.clip(peaks[:, None] + np.arange(-half, half + 1), 0, deriv.size - 1)]).max(axis=1)
 
     # --- classification: initial levels from the first seconds -------------
     learn_n = min(x.size, int(LEARN_S * rate))

@@ -379,7 +379,23 @@ def _choices(groups: list[_Group]) -> str:
     return "; ".join(lines)  # one line: the CLI prints one line per error
 
 
-def _select(groups: list[_Group], series) -> tuple[_Group, str]:
+def _gating(group: _Group, ecg_studies: set) -> str:
+    """What could time the cardiac phase of every image of ``group`` ('' if nothing)."""
+    frames = group.frames
+    if any(f.rpeak_timestamps_ms for f in frames) and all(f.mid_scan_time_s is not None for f in frames):
+        return "GE RpeakTimeStamps"
+    if frames and frames[0].study_instance_uid in ecg_studies and all(
+        f.acquisition_time_s is not None for f in frames
+    ):
+        return "the study's ECG waveform"
+    if all(f.trigger_time_ms is not None and (f.nominal_interval_ms or f.heart_rate_bpm) for f in frames):
+        return "TriggerTime"
+    if all(f.nominal_cardiac_percent is not None for f in frames):
+        return "NominalPercentageOfCardiacPhase"
+    return ""
+
+
+def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_studies=frozenset()) -> tuple[_Group, str]:
     loadable = [g for g in groups if g.summary.kind in _LOADABLE]
     if series is None:
         ranked = [g for g in loadable if g.summary.modality == "CT" and g.summary.kind == "volume"]
@@ -390,8 +406,14 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
                 "no CT image stack found automatically; choose one with series=<index or "
                 "SeriesInstanceUID> among: " + _choices(groups)
             )
+        gating = {id(g): _gating(g, ecg_studies) for g in ranked} if prefer_gated else {}
         ranked.sort(
-            key=lambda g: (g.summary.orientation != "axial", -g.summary.n_slices, g.summary.index)
+            key=lambda g: (
+                prefer_gated and not gating[id(g)],
+                g.summary.orientation != "axial",
+                -g.summary.n_slices,
+                g.summary.index,
+            )
         )
         best = ranked[0].summary
         why = (
@@ -399,6 +421,18 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
             + (f", {best.subset}" if best.subset else "")
             + f"): {best.orientation} CT, {best.n_slices} image(s)"
         )
+        if prefer_gated:
+            g0 = gating[id(ranked[0])]
+            why += f", cardiac gating from {g0}" if g0 else ", no cardiac gating in any CT series"
+            bigger = [
+                g.summary for g in ranked[1:]
+                if not gating[id(g)] and g.summary.n_slices > best.n_slices and g0
+            ]
+            if bigger:
+                why += (
+                    "; preferred to the larger series without cardiac gating "
+                    + ", ".join(f"[{b.index}] ({b.n_slices} image(s))" for b in bigger[:3])
+                )
         rivals = [
             g.summary for g in ranked[1:]
             if g.summary.orientation == best.orientation and g.summary.n_slices == best.n_slices
@@ -455,7 +489,9 @@ def _select(groups: list[_Group], series) -> tuple[_Group, str]:
     return chosen, f"series [{chosen.summary.index}] {chosen.summary.uid} chosen by the caller"
 
 
-def load_study(path, *, series=None, progress: bool = False, resample: bool = True) -> Volume:
+def load_study(
+    path, *, series=None, progress: bool = False, resample: bool = True, prefer_gated: bool = False
+) -> Volume:
     """Load one image stack of a DICOM study as a `Volume`.
 
     Parameters
@@ -470,6 +506,11 @@ def load_study(path, *, series=None, progress: bool = False, resample: bool = Tr
     resample : bool
         Resample uneven, gapped or sheared stacks onto a regular orthogonal grid
         (default, said in ``notes``); False refuses them with `SeriesError`.
+    prefer_gated : bool
+        With ``series=None``: prefer a CT stack whose cardiac phase can be timed
+        (GE R-peak stamps, the study's ECG waveform, TriggerTime, nominal phase)
+        over a larger one that cannot (for the commands that need a phase); the
+        note says which was taken and which were passed over.
 
     Returns
     -------
@@ -491,7 +532,10 @@ def load_study(path, *, series=None, progress: bool = False, resample: bool = Tr
     if not isinstance(progress, (bool, np.bool_)):
         raise TypeError(f"progress must be a bool, got {type(progress).__name__}")
     found, groups, notes = _scan_groups(path, progress)
-    group, why = _select(groups, series)
+    ecg_studies = {
+        o.study_instance_uid for o in found.others if o.sop_class_uid.startswith("1.2.840.10008.5.1.4.1.1.9.1.")
+    }
+    group, why = _select(groups, series, prefer_gated=prefer_gated, ecg_studies=ecg_studies)
     notes.append(why)
     summary = group.summary
     label = f"[{summary.index}] {summary.uid}" + (f" ({summary.subset})" if summary.subset else "")

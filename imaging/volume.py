@@ -27,11 +27,12 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+import pydicom
 from pydicom.errors import InvalidDicomError
 
 from hrcore.errors import HeartregError
 
-from .discover import _Frame
+from .discover import DEFLATED_UID, _Frame
 
 logger = logging.getLogger(__name__)
 
@@ -246,6 +247,7 @@ class _Plan:
     resample_k: bool
     resample_plane: bool
     notes: tuple[str, ...]
+    grid_shape: tuple[int, int] | None = None  # (rows, cols) of the output; None: the slices'
 
 
 def _unit_axes(frames: list[_Frame], label: str):
@@ -357,7 +359,8 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
             f"not along the slice normal; in-plane offsets up to {shear_mm.max():.3f} mm "
             f"(file {frames[worst].path}), about {tilt:.2f} deg"
             + (f", GantryDetectorTilt {gantry:g} deg" if gantry else "")
-            + "; each slice resampled in-plane (linear) onto an orthogonal grid, voxels "
+            + "; each slice resampled in-plane (linear) onto an orthogonal grid widened to "
+            "the bounding box of every slice's pixels (no acquired pixel dropped; GRID), voxels "
             f"outside the acquired slice set to {OUTSIDE_HU:g}"
         )
     if (resample_k or resample_plane) and not resample:
@@ -380,6 +383,21 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
     T[:3, 2] = n * m
     T[:3, 3] = ipp[0]
     shifts = np.column_stack([d_j_mm / dr, d_i_mm / dc])
+    grid_shape = None
+    if resample_plane:
+        # widen the first slice's grid to hold every slice's pixels: slice pixel
+        # (j, i) lands on grid (j + dj, i + di)
+        rows, cols = frames[0].rows, frames[0].columns
+        lo = np.ceil(np.maximum(0.0, -shifts.min(axis=0)) - 1e-6).astype(int)
+        hi = np.ceil(np.maximum(0.0, shifts.max(axis=0)) - 1e-6).astype(int)
+        shifts = shifts + lo
+        T[:3, 3] = ipp[0] - lo[1] * dc * r - lo[0] * dr * c
+        grid_shape = (int(rows + lo[0] + hi[0]), int(cols + lo[1] + hi[1]))
+        notes = [n.replace(
+            "GRID",
+            f"{grid_shape[0]} x {grid_shape[1]} pixels at the slices' spacing, the first slice's grid "
+            f"extended by {lo[0]} / {hi[0]} rows and {lo[1]} / {hi[1]} columns",
+        ) for n in notes]
     return _Plan(
         frames=tuple(frames),
         positions_mm=pos,
@@ -390,6 +408,7 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
         resample_k=resample_k,
         resample_plane=resample_plane,
         notes=tuple(notes),
+        grid_shape=grid_shape,
     )
 
 
@@ -490,6 +509,11 @@ def _decode(frame: _Frame, plugin: str) -> np.ndarray:
     if plugin:
         kwargs["decoding_plugin"] = plugin
     try:
+        if frame.transfer_syntax_uid == DEFLATED_UID:
+            # pydicom's file-path decoder does not inflate: read (and inflate) the dataset
+            ds = pydicom.dcmread(frame.path)
+            arr = ds.pixel_array if frame.frame is None else pixel_array(ds, index=frame.frame)
+            return _checked_shape(arr, frame)
         try:
             arr = pixel_array(frame.path, **kwargs)
         except (InvalidDicomError, AttributeError):
@@ -500,6 +524,10 @@ def _decode(frame: _Frame, plugin: str) -> np.ndarray:
             f"{frame.path}: cannot decode pixel data ({type(exc).__name__}: {exc}); "
             "the file may be truncated or corrupt: remove it or re-export the series"
         ) from exc
+    return _checked_shape(arr, frame)
+
+
+def _checked_shape(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     if arr.shape != (frame.rows, frame.columns):
         raise PixelDataError(
             f"{frame.path}: decoded frame has shape {arr.shape}, expected "
@@ -608,7 +636,7 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
         )
     resampling = plan.resample_k or plan.resample_plane
     use_int16 = not resampling and _int16_possible(frames)
-    out = np.empty((plan.n_out, rows, cols), dtype=np.int16 if use_int16 else np.float32)
+    out = np.empty((plan.n_out, *(plan.grid_shape or (rows, cols))), dtype=np.int16 if use_int16 else np.float32)
 
     bar = None
     if progress:
@@ -643,9 +671,24 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
     return out, tuple(notes)
 
 
-def _resample_into(out, plan: _Plan, plugins, bar) -> None:
+def _onto_grid(hu: np.ndarray, dj: float, di: float, grid_shape) -> np.ndarray:
+    """One slice (rows, cols) on the widened grid: grid pixel (j, i) is the slice's
+    own pixel (j - dj, i - di), linearly interpolated.  The slice is extended by its
+    edge values for one pixel, so a grid pixel within one pixel of an acquired one
+    keeps acquired values; farther out it is OUTSIDE_HU."""
     from scipy import ndimage
 
+    rows, cols = hu.shape
+    canvas = np.pad(hu.astype(np.float32), ((1, grid_shape[0] - rows + 1), (1, grid_shape[1] - cols + 1)), mode="edge")
+    moved = ndimage.shift(canvas, (dj, di), order=1, mode="nearest", prefilter=False)[1:-1, 1:-1]
+    j = np.arange(grid_shape[0]) - dj
+    i = np.arange(grid_shape[1]) - di
+    inside = ((j >= -1) & (j <= rows))[:, None] & ((i >= -1) & (i <= cols))[None, :]
+    moved[~inside] = OUTSIDE_HU
+    return moved
+
+
+def _resample_into(out, plan: _Plan, plugins, bar) -> None:
     frames, pos = plan.frames, plan.positions_mm
     m = plan.spacing_mm[2]
     cache: dict[int, np.ndarray] = {}
@@ -655,11 +698,8 @@ def _resample_into(out, plan: _Plan, plugins, bar) -> None:
             f = frames[idx]
             hu = _slice_hu_float(_decode(f, plugins[f.transfer_syntax_uid]), f)
             dj, di = plan.shifts_px[idx]
-            if plan.resample_plane and (abs(dj) > 1e-6 or abs(di) > 1e-6):
-                # grid pixel (j, i) is this slice's own pixel (j - dj, i - di)
-                hu = ndimage.shift(
-                    hu, (dj, di), order=1, mode="constant", cval=OUTSIDE_HU, prefilter=False
-                )
+            if plan.resample_plane:
+                hu = _onto_grid(hu, dj, di, plan.grid_shape)
             for old in [key for key in cache if key < idx - 1]:
                 del cache[old]
             cache[idx] = hu

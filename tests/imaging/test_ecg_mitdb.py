@@ -72,9 +72,9 @@ def match_beats(detected_s, reference_s, tol_s=TOL_S):
         i = int(np.searchsorted(detected_s, r))
         best = None
         for c in (i - 1, i, i + 1):
-            if 0 <= c < detected_s.size and not used[c] and abs(detected_s[c] - r) <= tol_s:
-                if best is None or abs(detected_s[c] - r) < abs(detected_s[best] - r):
-                    best = c
+            near = 0 <= c < detected_s.size and not used[c] and abs(detected_s[c] - r) <= tol_s
+            if near and (best is None or abs(detected_s[c] - r) < abs(detected_s[best] - r)):
+                best = c
         if best is not None:
             used[best] = True
             errors[k] = detected_s[best] - r

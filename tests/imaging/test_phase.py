@@ -183,7 +183,7 @@ def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
 
 def test_unreadable_waveform_is_named_by_file_in_the_notes(sample_case, tmp_path):
     """A broken ECG waveform instance: the report falls back and its note names the file only."""
-    case, truth = sample_case
+    case, _ = sample_case
     ct = _copy_without(case, tmp_path, private=True)
     wave = next(f for f in ct.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "ECG")
     ds = pydicom.dcmread(wave)
@@ -241,3 +241,47 @@ def test_scan_across_midnight(sample_case, tmp_path):
     report = compute_phase_report(moved)
     assert report.source.startswith("ECG waveform")
     _check(report, truth)
+
+
+def test_automatic_choice_prefers_the_gated_series(sample_case, tmp_path, capsys):
+    """Issue 10: a larger series without any cardiac gating beside the gated one.
+    The phase commands take the gated one and say so (and how to choose another);
+    plain ``load_study`` still takes the largest."""
+    case, truth = sample_case
+    study = tmp_path / "study"
+    study.mkdir()
+    cts = []
+    for f in sorted((case / "ct").iterdir()):
+        ds = pydicom.dcmread(f)
+        if ds.Modality == "ECG":
+            continue
+        cts.append((float(ds.ImagePositionPatient[2]), f, ds))
+    cts.sort(key=lambda c: c[0])
+    ungated_uid = pydicom.uid.generate_uid(entropy_srcs=["ungated"])
+    for i, (_, f, ds) in enumerate(cts):
+        if 10 <= i < 50:
+            shutil.copy(f, study / f"gated_{f.name}")  # 40 contiguous gated slices (GE stamps)
+        ds.remove_private_tags()
+        for kw in ("TriggerTime", "NominalInterval", "HeartRate", "AcquisitionTime", "ContentTime",
+                   "AcquisitionDateTime"):
+            if kw in ds:
+                delattr(ds, kw)
+        ds.SeriesInstanceUID = ungated_uid
+        ds.SOPInstanceUID = pydicom.uid.generate_uid(entropy_srcs=[f.name])
+        ds.SeriesDescription = "ungated"
+        ds.save_as(study / f"plain_{f.name}")
+    assert load_study(study).series.series_instance_uid == ungated_uid
+    volume = load_study(study, prefer_gated=True)
+    assert volume.series.series_instance_uid != ungated_uid and volume.hu.shape[0] == 40
+    note = next(n for n in volume.notes if n.startswith("chose series"))
+    assert "cardiac gating from GE RpeakTimeStamps" in note and "larger series without cardiac gating" in note
+    out = tmp_path / "out"
+    assert main(["phases", str(study), "-o", str(out), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "chose series" in err and "--series" in err
+    report = json.loads((out / "phases.json").read_text())
+    assert report["n_slices"] == 40
+    np.testing.assert_allclose(
+        json.loads((out / "phases.json").read_text())["volume_cardiac_phase"],
+        np.mean(np.asarray(truth["slice_cardiac_phase"])[10:50]), atol=VOLUME_TOL,
+    )

@@ -1,0 +1,145 @@
+"""Reading real files nobody here wrote: pydicom-data's CT files and pydicom's DICOMDIR folders.
+
+Each file is read by ``imaging.load_study`` and compared with pydicom's own
+decoding (with python-gdcm for JPEG Lossless) mapped to HU by the file's
+rescale, exactly (stored integers, integer rescale: no tolerance is needed).
+"""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+from pydicom.pixels import get_decoder
+from pydicom.uid import DeflatedExplicitVRLittleEndian, JPEGLosslessSV1
+
+from imaging import SeriesError, list_series, load_study
+
+data_store = pytest.importorskip("data_store")
+DATA = Path(data_store.__file__).parent / "data"
+DICOMDIR_TESTS = Path(pydicom.__file__).parent / "data" / "test_files" / "dicomdirtests"
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_dicom" / "ct"
+
+
+def _study(tmp_path, *names) -> Path:
+    folder = tmp_path / "study"
+    folder.mkdir(parents=True)
+    for name in names:
+        shutil.copy(DATA / name, folder / name)
+    return folder
+
+
+def _hu(ds) -> np.ndarray:
+    return ds.pixel_array * float(ds.RescaleSlope) + float(ds.RescaleIntercept)
+
+
+def _load(folder, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # single-slice studies warn that they are one slice
+        return load_study(folder, **kw)
+
+
+def test_jpeg_lossless_sv1_bad_sequence_read_with_gdcm(tmp_path):
+    """pydicom's real ``bad_sequence.dcm`` (JPEG Lossless process 14 SV1, the
+    commonest compressed CT in archives): decoded out of the box by python-gdcm (BSD)."""
+    ds = pydicom.dcmread(DATA / "bad_sequence.dcm")
+    assert ds.file_meta.TransferSyntaxUID == JPEGLosslessSV1
+    assert "gdcm" in get_decoder(JPEGLosslessSV1).available_plugins
+    volume = _load(_study(tmp_path, "bad_sequence.dcm"))
+    assert volume.hu.shape == (1, 512, 512)
+    np.testing.assert_array_equal(volume.hu[0], _hu(ds))
+
+
+def test_693_set_same_image_in_three_syntaxes(tmp_path):
+    """693_UNCR (uncompressed) and 693_J2KR (JPEG 2000 lossless) give the same HU;
+    693_UNCI is the lossy version (differs).  All three in one folder share one
+    position: the series is refused with the files named."""
+    uncr = _load(_study(tmp_path / "a", "693_UNCR.dcm"))
+    j2kr = _load(_study(tmp_path / "b", "693_J2KR.dcm"))
+    unci = _load(_study(tmp_path / "c", "693_UNCI.dcm"))
+    np.testing.assert_array_equal(uncr.hu, j2kr.hu)
+    np.testing.assert_array_equal(uncr.hu[0], _hu(pydicom.dcmread(DATA / "693_UNCR.dcm")))
+    assert np.abs(unci.hu.astype(float) - uncr.hu).max() > 0
+    both = _study(tmp_path / "d", "693_UNCR.dcm", "693_J2KR.dcm", "693_UNCI.dcm")
+    with pytest.raises(SeriesError, match=r"repeated slice positions.*693_"):
+        _load(both)
+
+
+def test_enhanced_ct_two_frames(tmp_path):
+    """eCT_Supplemental.dcm: Enhanced CT, 2 frames 10 mm apart, per-frame positions."""
+    ds = pydicom.dcmread(DATA / "eCT_Supplemental.dcm")
+    volume = _load(_study(tmp_path, "eCT_Supplemental.dcm"))
+    assert volume.hu.shape == (2, 512, 512)
+    assert [s.position_mm for s in volume.slices] == pytest.approx([149.0, 159.0])
+    t = ds.SharedFunctionalGroupsSequence[0].PixelValueTransformationSequence[0]
+    expected = ds.pixel_array * float(t.RescaleSlope) + float(t.RescaleIntercept)
+    iop = np.asarray(ds.SharedFunctionalGroupsSequence[0].PlaneOrientationSequence[0].ImageOrientationPatient, float)
+    normal = np.cross(iop[:3], iop[3:])
+    along = [float(np.dot(f.PlanePositionSequence[0].ImagePositionPatient, normal))
+             for f in ds.PerFrameFunctionalGroupsSequence]  # slices are ordered along the normal
+    np.testing.assert_array_equal(volume.hu, expected[np.argsort(along)])
+
+
+def test_dicomdir_folders(tmp_path):
+    """pydicom's DICOMDIR test folders (CT, MR, CR; DICOMDIR files of several
+    encodings beside the images): every series listed, the DICOMDIR files not
+    taken for images, and the automatic choice is the gated CT stack."""
+    series = list_series(DICOMDIR_TESTS)
+    assert len(series) == 25
+    assert sum(s.kind == "volume" for s in series) == 2
+    volume = _load(DICOMDIR_TESTS)
+    assert volume.series.description == "SmartScore - Gated 0.5 sec"
+    assert volume.hu.shape == (5, 16, 16)
+    files = sorted({s.file for s in volume.slices}, key=str)
+    ds = pydicom.dcmread(files[0])
+    k = [Path(s.file) for s in volume.slices].index(Path(files[0]))
+    np.testing.assert_array_equal(volume.hu[k], _hu(ds))
+
+
+def test_deflated_explicit_vr_is_read(tmp_path):
+    """Deflated Explicit VR Little Endian (the whole dataset zlib-compressed): read,
+    with the same HU as the uncompressed original (it used to fail with an
+    AttributeError text)."""
+    sources = []
+    for f in sorted(SAMPLE.iterdir()):
+        ds = pydicom.dcmread(f, stop_before_pixels=True)
+        if ds.Modality == "CT":
+            sources.append((float(ds.ImagePositionPatient[2]), f))
+    sources = [f for _, f in sorted(sources)]  # four neighbouring slices
+    folder = tmp_path / "deflated"
+    folder.mkdir()
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for f in sources[:4]:
+        shutil.copy(f, plain / f.name)
+        ds = pydicom.dcmread(f)
+        ds.file_meta.TransferSyntaxUID = DeflatedExplicitVRLittleEndian
+        ds.save_as(folder / f.name, enforce_file_format=True)
+        assert pydicom.dcmread(folder / f.name).file_meta.TransferSyntaxUID == DeflatedExplicitVRLittleEndian
+    np.testing.assert_array_equal(_load(folder).hu, _load(plain).hu)
+
+
+def test_jpeg_lossless_process_14_read_with_gdcm(tmp_path):
+    """JPEG Lossless process 14 (not SV1): 693_UNCR re-encoded by python-gdcm reads
+    back to the same HU as the uncompressed original."""
+    gdcm = pytest.importorskip("gdcm")
+    reader = gdcm.ImageReader()
+    reader.SetFileName(str(DATA / "693_UNCR.dcm"))
+    assert reader.Read()
+    change = gdcm.ImageChangeTransferSyntax()
+    change.SetTransferSyntax(gdcm.TransferSyntax(gdcm.TransferSyntax.JPEGLosslessProcess14))
+    change.SetInput(reader.GetImage())
+    assert change.Change()
+    folder = tmp_path / "p14"
+    folder.mkdir()
+    writer = gdcm.ImageWriter()
+    writer.SetFileName(str(folder / "693_P14.dcm"))
+    writer.SetFile(reader.GetFile())
+    writer.SetImage(change.GetOutput())
+    assert writer.Write()
+    assert pydicom.dcmread(folder / "693_P14.dcm").file_meta.TransferSyntaxUID == "1.2.840.10008.1.2.4.57"
+    np.testing.assert_array_equal(_load(folder).hu, _load(_study(tmp_path / "u", "693_UNCR.dcm")).hu)
