@@ -57,7 +57,9 @@ def _dashboard_link(client) -> str:
             return ""
         link = client.dashboard_link
         with urllib.request.urlopen(link, timeout=2) as response:
-            return link if response.status == 200 else ""
+            page = response.read(4096)
+        # without bokeh the scheduler serves a page that says so instead of the dashboard
+        return "" if b"needs bokeh" in page else link
     except Exception:  # noqa: BLE001 - the link is a courtesy: no page, no link
         return ""
 
@@ -99,14 +101,9 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
         n = default_workers() if workers is None else int(workers)
         if n < 1:
             raise ClusterError(f"--workers must be at least 1, got {n}")
-        try:
-            import bokeh  # noqa: F401 - the dashboard needs it
-            dashboard = "127.0.0.1:0"
-        except ImportError:
-            dashboard = None
-        try:
+        try:  # the scheduler's http server (the dashboard's, with bokeh) on a free loopback port
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, memory_limit=memory_limit,
-                                   host="127.0.0.1", dashboard_address=dashboard, silence_logs=logging.ERROR)
+                                   host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
         except ValueError as exc:
             raise ClusterError(f"cannot start {n} local worker(s) with memory limit {memory_limit!r}: {exc}") from None
         client = Client(cluster, set_as_default=False)

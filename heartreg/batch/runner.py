@@ -80,6 +80,9 @@ def _check_out(out: Path, cases) -> Path:
             if out == p or p in out.parents:
                 raise CohortError(f"the output folder {out} is inside case {case.name}'s {role} {p}; "
                                   "choose an output folder outside the inputs")
+            if out in p.parents:
+                raise CohortError(f"case {case.name}'s {role} {p} is inside the output folder {out}; "
+                                  "choose an output folder outside the cohort's folders")
     return check_out_dir(out, what="batch output folder")
 
 
