@@ -28,7 +28,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -164,9 +164,9 @@ def summarize(cases: Sequence[dict]) -> dict:
 def _table(summary: dict, n_cases: int, size: str) -> str:
     names = {"shape": "shape (default)", "eq10": "eq. 10 (paper)"}
     lines = [
-        f"| estimator ({n_cases} cases, {size}) | phi_R* within ±0.05 | final T within 2 mm and 2° "
-        "| 90 % interval covers truth | median interval width | undecided | median phase error "
-        "| median T error |",
+        (f"| estimator ({n_cases} cases, {size}) | phi_R* within ±0.05 | final T within 2 mm and 2° "
+         "| 90 % interval covers truth | median interval width | undecided | median phase error "
+         "| median T error |"),
         "|---|---|---|---|---|---|---|---|",
     ]
     for method, s in summary.items():

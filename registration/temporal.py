@@ -245,7 +245,8 @@ class TemporalEstimate:
     bootstrap_phases : (B,) float64
         phi_R* of every resample.
     cost : (m,) float64
-        ``J - min J`` over the sweep (unitless, chi-square-like).
+        ``J - min J`` over the sweep (unitless, chi-square-like); for ``eq10``
+        the translation distance from T0 minus its minimum (mm).
     cost_heart, cost_fiducial, cost_prior : (m,) float64
         Its terms (zeros where a term is not used), each minus its own minimum.
     transform_mm, transform_deg : float

