@@ -6,6 +6,7 @@ affines and frozen dataclasses.
 
 from imaging.ecg import RPeaks, cardiac_phase, detect_r_peaks
 from imaging.events import SignalError, phase_from_events
+from imaging.nifti import is_nifti_path, read_nifti_volume
 from imaging.phase import GatingError, GatingWarning, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
 from imaging.phase_io import plot_phases, write_phase_report
 from imaging.respiration import expiration_onsets, respiration_phase
@@ -44,7 +45,9 @@ __all__ = [
     "expiration_onsets",
     "list_series",
     "load_study",
+    "is_nifti_path",
     "phase_from_events",
+    "read_nifti_volume",
     "plot_phases",
     "read_ecg_waveform",
     "read_qrs_file",

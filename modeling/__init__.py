@@ -11,6 +11,7 @@ from modeling.segment import (
 )
 from modeling.build import (
     ModelBuild,
+    ModelingWarning,
     build_heart_model,
 )
 from modeling.fiducials import (
@@ -43,7 +44,9 @@ from modeling.frame import (
     ANTERIOR_LPS,
 )
 from modeling.vessels import (
+    APEX_LAI_LPS,
     VesselTrim,
+    base_direction,
     trim_vessel_stubs,
 )
 from modeling.model import (
@@ -71,6 +74,9 @@ from modeling.slicer import (
 )
 
 __all__ = [
+    "APEX_LAI_LPS",
+    "ModelingWarning",
+    "base_direction",
     "VesselTrim",
     "trim_vessel_stubs",
     "ModelBuild",

@@ -31,6 +31,9 @@ __all__ = ["ModelingWarning", "ModelBuild", "build_heart_model"]
 AUTO = "auto"
 #: Whole-heart volumes (ml) of adults; an automatic segmentation outside this range is flagged.
 HEART_ML = (250.0, 1500.0)
+#: Largest rightward component (LPS -x) of a unit apex direction not warned about: a heart
+#: whose apex points straight down (as the phantom's, or a vertical heart) is usual too.
+APEX_RIGHT_MAX = 0.25
 #: The vessels' mouths must lie this far along the long axis (|cosine|) to say which end is the base.
 BASE_HINT_MIN_COSINE = 0.2
 
@@ -181,10 +184,11 @@ def build_heart_model(
         mask = seg.mask
         mask_source = "automatic segmentation"
         seg_params = seg.parameters
-        notes.extend(seg.notes)
         for note in seg.notes:
             if note.startswith("vessel cut skipped"):
                 fallback(note)
+            else:
+                notes.append(note)
         if not HEART_ML[0] <= seg.volume_ml <= HEART_ML[1]:
             fallback(
                 f"the segmented heart is {seg.volume_ml:.0f} ml, outside the usual {HEART_ML[0]:.0f}-"
@@ -279,7 +283,7 @@ def build_heart_model(
         base_hint=base_hint,
     )
     apex = -model.frame.axes_patient[:, 2]
-    if apex[0] <= 0 or apex @ APEX_LAI_LPS <= 0:  # to the patient's right, or away from left-anterior-inferior
+    if apex[0] < -APEX_RIGHT_MAX or apex @ APEX_LAI_LPS <= 0:  # to the patient's right, or away from L-A-I
         fallback(
             f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
             "as usual: check the model (dextrocardia, or a segmentation error)"

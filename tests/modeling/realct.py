@@ -62,7 +62,11 @@ def write_ct_series(hu, T_patient_from_voxel, out_dir) -> Path:
 def mesh_to_mask(vertices_patient, faces, shape_kji, T_patient_from_voxel) -> np.ndarray:
     """Voxel centres inside a closed mesh (VTK stencil; the grid must be axis-aligned in LPS)."""
     import vtk
-    from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
+    from vtk.util.numpy_support import (
+        numpy_to_vtk,
+        numpy_to_vtkIdTypeArray,
+        vtk_to_numpy,
+    )
 
     T = np.asarray(T_patient_from_voxel, dtype=float)
     if not np.allclose(T[:3, :3], np.diag(np.diag(T[:3, :3]))) or np.any(np.diag(T[:3, :3]) <= 0):

@@ -127,7 +127,7 @@ def test_model_with_no_options(realct, auto_model):
 
 def test_model_from_reference_mask(realct, mask_model, auto_model):
     volume, _, reference = realct
-    rc, caught, out = mask_model
+    rc, _, out = mask_model
     assert rc == 0
     payload = json.loads((out / "model.json").read_text())
     assert payload["parameters"]["trim_vessels"] is False  # a given mask is meshed as it is
