@@ -237,8 +237,13 @@ def build_heart_model(
             fallback(f"fiducial search skipped: {exc}")
         else:
             notes.extend(fiducials.notes)
-            if auto and len(fiducials.centres_patient_mm) == 0:
+            n_found = len(fiducials.centres_patient_mm)
+            if auto and n_found == 0:
                 fallback("no skin markers found: the model has no fiducials (registration will need them from elsewhere)")
+            elif auto and n_found % fiducial_rows:
+                fallback(f"{n_found} skin marker(s) found, which cannot form {fiducial_rows} equal rows: the model has "
+                         "no fiducials (give --fiducials N to insist on a count)")
+                fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
     done("fiducials")
 
     stage("frame")

@@ -110,6 +110,68 @@ def _opening_mm(mask, spacing_kji, radius_mm):
     return outside <= radius_mm
 
 
+def _blood_pool(coarse, cspacing, blood_hu, min_radius_mm):
+    """The largest contrast-blood component, or None if it is no chamber (no contrast)."""
+    blood = (coarse > blood_hu[0]) & (coarse < blood_hu[1])
+    labels, n = ndimage.label(blood)
+    if n == 0:
+        return None
+    sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
+    pool = labels == int(np.argmax(sizes)) + 1
+    box = ndimage.find_objects(pool.astype(np.uint8))[0]
+    padded = np.pad(pool[box], 1)
+    if ndimage.distance_transform_edt(padded, sampling=cspacing).max() < min_radius_mm:
+        return None
+    return pool
+
+
+def _mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
+    """Seed of a CT without contrast: the thickest soft tissue lying between the lungs.
+
+    Lungs are the air components enclosed in the body (not touching the
+    volume's sides in-plane) larger than 100 ml.  A voxel lies *between the
+    lungs* when it is inside the convex hull of the lungs in its slice (the
+    mediastinum, and the heart in it).  The soft-tissue voxel of that
+    region farthest from anything else is the heart's centre (the great
+    vessels, oesophagus and chest wall are thinner; the liver lies below the
+    lungs).
+
+    Returns
+    -------
+    seed : bool array like ``coarse`` (one voxel)
+    between : bool array like ``coarse``
+
+    Raises
+    ------
+    SegmentationError
+        If no lungs or no soft tissue between them are found.
+    """
+    from skimage.morphology import convex_hull_image
+
+    air = coarse < lung_hu
+    labels, n = ndimage.label(air)
+    sides = np.unique(np.concatenate([labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
+    sizes = ndimage.sum_labels(air, labels, index=np.arange(1, n + 1)) * np.prod(cspacing) / 1000.0
+    is_lung = np.zeros(n + 1, bool)
+    is_lung[1:] = sizes > 100.0
+    is_lung[sides] = False
+    lung = is_lung[labels]
+    between = np.zeros_like(lung)
+    for k in np.flatnonzero(lung.any(axis=(1, 2))):
+        between[k] = convex_hull_image(lung[k])
+    between &= ~lung
+    candidate = between & (coarse > soft_hu[0]) & (coarse < soft_hu[1])
+    if not candidate.any():
+        raise SegmentationError(
+            "no contrast blood pool and no soft tissue between two lungs in the volume; "
+            "give a heart mask with --mask (or segment_heart a seed point)"
+        )
+    depth = ndimage.distance_transform_edt(candidate, sampling=cspacing)
+    seed = np.zeros(coarse.shape, bool)
+    seed[np.unravel_index(int(np.argmax(depth)), depth.shape)] = True
+    return seed, between
+
+
 def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm):
     """Cut the tubes leaving the heart body at their root, whatever their calibre.
 
@@ -171,6 +233,9 @@ def segment_heart(
     smooth_mm: float = 0.6,
     coarse_mm: float = 2.0,
     min_volume_ml: float = 50.0,
+    min_pool_radius_mm: float = 15.0,
+    lung_hu: float = -400.0,
+    soft_hu: tuple[float, float] = (-50.0, 150.0),
 ) -> HeartSegmentation:
     """Segment the whole heart (epicardial surface inward) in a contrast CT.
 
@@ -208,6 +273,17 @@ def segment_heart(
         resolution within ``margin_mm`` of the opened core.
     min_volume_ml : float
         Smaller results are refused as not heart-like.
+    min_pool_radius_mm : float
+        The largest ``blood_hu`` component is a contrast blood pool only if it
+        holds a ball of this radius (a cardiac chamber's lumen: 12-25 mm); in a
+        CT without contrast that component is the skeleton, whose marrow and
+        cortex are thinner.
+    lung_hu : float
+        Air below this HU, enclosed by the body, is lung (for the seed without contrast).
+    soft_hu : (float, float)
+        Soft tissue of a non-contrast heart (blood and myocardium 30-60 HU);
+        without contrast the seed is the thickest such tissue lying between the
+        lungs, and tissue above ``soft_hu[1]`` (bone) is not heart.
 
     Raises
     ------
@@ -234,20 +310,25 @@ def segment_heart(
         coarse = ndimage.gaussian_filter(coarse, sigma=smooth_mm / cspacing)
     tissue = (coarse > hu_low) & (coarse < hu_high)
 
-    # ---- seed: the contrast blood pool
+    # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
+    contrast = True
     if seed_patient_mm is None:
-        blood = (coarse > blood_hu[0]) & (coarse < blood_hu[1])
-        labels, n = ndimage.label(blood)
-        if n == 0:
-            raise SegmentationError(
-                f"no contrast-enhanced blood ({blood_hu[0]:.0f}-{blood_hu[1]:.0f} HU) in the volume; "
-                "is this a contrast CT? give a seed point inside the heart (--seed-mm X Y Z)"
+        pool = _blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm)
+        if pool is not None:
+            seed_mask = pool
+            kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
+            notes.append(f"seed: largest blood-pool component ({seed_mask.sum() * voxel_ml * step.prod():.0f} ml)")
+        else:
+            seed_mask, between = _mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
+            contrast = False
+            tissue &= (coarse < soft_hu[1]) & ndimage.binary_dilation(between, iterations=1)
+            kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
+            notes.append(
+                f"no contrast blood pool (none holds a ball of {min_pool_radius_mm:.0f} mm radius at "
+                f"{blood_hu[0]:.0f}-{blood_hu[1]:.0f} HU): seeded in the thickest soft tissue between the lungs, "
+                f"tissue up to {soft_hu[1]:.0f} HU"
             )
-        sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
-        seed_mask = labels == int(np.argmax(sizes)) + 1
-        kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
         seed_mm = T[:3, :3] @ kji[::-1] + T[:3, 3]
-        notes.append(f"seed: largest blood-pool component ({sizes.max() * voxel_ml * step.prod():.0f} ml)")
     else:
         seed_mm = np.asarray(seed_patient_mm, dtype=float).reshape(3)
         ijk = np.linalg.solve(T[:3, :3], seed_mm - T[:3, 3])
@@ -304,7 +385,7 @@ def segment_heart(
     ]
     near_full = near[nbox][np.ix_(*idx)]
     sub = hu[full_box]
-    heart = near_full & (sub > hu_low) & (sub < hu_high)
+    heart = near_full & (sub > hu_low) & (sub < (hu_high if contrast else soft_hu[1]))
     heart = _largest_component(_fill_holes(heart))
 
     mask = np.zeros(hu.shape, bool)
@@ -319,6 +400,8 @@ def segment_heart(
         hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), vessel_radius_mm=vessel_radius_mm,
         heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm, vessel_root_mm=vessel_root_mm,
         margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
+        min_pool_radius_mm=min_pool_radius_mm, lung_hu=lung_hu, soft_hu=list(soft_hu), contrast=contrast,
         seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),
     )
     return HeartSegmentation(mask, seed_mm, volume_ml, parameters, tuple(notes))
+

@@ -163,8 +163,8 @@ def test_bad_inputs(sample_case, tmp_path):
     nib.save(nib.Nifti1Image(np.ones((5, 5, 5), np.uint8), far), str(other))
     with pytest.raises(LabelMapError, match="does not overlap"):
         _build(volume, truth, mask_path=other)
-    # no heart-like region: water everywhere
-    with pytest.raises(SegmentationError, match="no contrast-enhanced blood"):
+    # no heart-like region: water everywhere (no contrast pool, no lungs to seed between)
+    with pytest.raises(SegmentationError, match="no contrast blood pool and no soft tissue between two lungs"):
         segment_heart(np.zeros((20, 30, 30), np.int16), T)
     # the wrong fiducial count
     with pytest.raises(FiducialError, match="found 9 metal marker.*expected 8"):

@@ -1,0 +1,75 @@
+"""The model on a real chest CT *without contrast*: ``CTChest4.nrrd`` of the slicerio package.
+
+128 x 128 x 34 voxels of 3 x 3 x 10 mm, no reference mask: a coarse smoke case.
+Without contrast there is no blood pool to start from (the largest 200-650 HU
+component is the skeleton); the segmentation must say so and start from the
+soft tissue between the lungs.  The CT is converted to NIfTI (LPS -> RAS) and
+read through :func:`imaging.nifti.read_nifti_volume`, as a user's file would be.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from imaging.nifti import read_nifti_volume
+from modeling.build import ModelingWarning, build_heart_model
+from modeling.segment import segment_heart
+from modeling.vessels import APEX_LAI_LPS
+
+nrrd = pytest.importorskip("nrrd")
+slicerio = pytest.importorskip("slicerio")
+CTCHEST4 = Path(slicerio.__file__).parent / "data" / "CTChest4.nrrd"
+pytestmark = pytest.mark.skipif(not CTCHEST4.is_file(), reason="slicerio's CTChest4.nrrd is missing")
+
+
+@pytest.fixture(scope="module")
+def chest4(tmp_path_factory):
+    """(volume, segmentation, build, ModelingWarning messages): the CLI's defaults."""
+    data, header = nrrd.read(str(CTCHEST4))
+    assert header["space"] == "left-posterior-superior"
+    A = np.eye(4)
+    A[:3, :3] = np.asarray(header["space directions"], float).T
+    A[:3, 3] = header["space origin"]
+    path = tmp_path_factory.mktemp("chest4") / "ct.nii.gz"
+    nib.save(nib.Nifti1Image(data.astype(np.int16), np.diag([-1.0, -1.0, 1.0, 1.0]) @ A), str(path))
+    volume = read_nifti_volume(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        build = build_heart_model(volume, cardiac_phase=None, cardiac_phase_source="a NIfTI volume has no slice clock",
+                                  expected_fiducials="auto", target_faces=4000)
+    seg = segment_heart(volume.hu, volume.T_patient_from_voxel)  # 2 s: its seed and volume
+    return volume, seg, build, [str(w.message) for w in caught if issubclass(w.category, ModelingWarning)]
+
+
+def test_no_contrast_seeds_between_the_lungs(chest4):
+    volume, seg, build, caught = chest4
+    notes = " ".join(build.notes)
+    assert "no contrast blood pool" in notes and "between the lungs" in notes
+    assert build.model.parameters["segmentation"]["contrast"] is False
+    T = volume.T_patient_from_voxel
+    i, j, k = np.rint(np.linalg.solve(T[:3, :3], seg.seed_patient_mm - T[:3, 3])).astype(int)
+    # the seed is soft tissue (blood and myocardium without contrast, 0-100 HU), not the spine (round 1's
+    # start: bone marrow at 200-650 HU)
+    assert 0 <= volume.hu[k, j, i] <= 100
+    # ... at least 40 mm in front of the vertebral bodies (bone of the seed's slice, behind the seed's row)
+    bone_j = np.flatnonzero((volume.hu[k, :, max(i - 5, 0) : i + 6] > 300).any(axis=1))
+    bone_y = T[1, 1] * bone_j + T[1, 3]
+    assert np.max(bone_y) > seg.seed_patient_mm[1] + 40.0
+    # the model is made (no abort); its odd findings are warnings
+    assert any("cannot form 3 equal rows" in w or "no skin markers" in w for w in caught)
+    assert any("no contrast vessels leave the heart" in w for w in caught)
+
+
+@pytest.mark.xfail(strict=True, reason="not reached: without contrast the heart (10 mm slices) is found only in part "
+                   "(~280 ml: the lower ventricles; the atria are lost with the upper mediastinum in the vessel cut) "
+                   "and its apex then points right")
+def test_heart_volume_and_apex(chest4):
+    _, seg, build, _ = chest4
+    assert 400.0 <= seg.volume_ml <= 1100.0  # issue 9: an adult heart with the 10 mm slices' partial volume
+    apex = -build.model.frame.axes_patient[:, 2]
+    assert apex @ APEX_LAI_LPS > 0.5
