@@ -23,13 +23,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from hrcore.errors import HeartregError
-from heartreg.phantom import config as phantom_config
-from heartreg.phantom import layout
 from imaging import list_series, load_study, read_qrs_file
-from modeling import make_heart_model, write_model
 from modeling.model import read_model
-from modeling.surface import Mesh
 from registration.session import read_session
+from tests.heartreg.small_case import small_case
 
 #: a reader that takes longer than this on a few-kB input is hanging, s.
 TIME_BOX_S = 10
@@ -96,25 +93,12 @@ MUTATION = st.tuples(
 def material(sample_case, tmp_path_factory):
     src, truth = sample_case
     root = tmp_path_factory.mktemp("fuzz")
-    heart = layout.make_heart(phantom_config.PRESETS["wood2018-trial1"])
-    from tests.registration.conftest import heart_grid_mesh
-
-    vertices, faces = heart_grid_mesh(heart, truth["cardiac_phase"], truth["respiration_phase"], n_u=20, n_v=20)
-    built = make_heart_model(
-        Mesh(vertices, faces), cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
-        fiducials_patient_mm=truth["fiducials_patient_mm"],
-    )
-    write_model(built, root / "model")
-    session = root / "session"
-    shutil.copytree(src / "session", session)
-    meta = json.loads((session / "session.json").read_text())
-    meta["points"] = meta["points"][:1]
-    (session / "session.json").write_text(json.dumps(meta))
+    model, session = small_case(src, truth, root, grid=20, points=1)
     for extra in sorted((session / "points").iterdir())[1:]:
         extra.unlink()
     dicom = sorted((src / "ct").rglob("*"))
     slices = [p for p in dicom if p.is_file() and p.stat().st_size > 10_000][:3]
-    return {"model": root / "model", "session": session, "qrs": src / "qrs.csv", "slices": slices}
+    return {"model": model, "session": session, "qrs": src / "qrs.csv", "slices": slices}
 
 
 def _copy(src: Path, dst: Path) -> Path:

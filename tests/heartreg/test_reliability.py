@@ -21,15 +21,16 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
-from heartreg.phantom import config as phantom_config
-from heartreg.phantom import layout
 from imaging import list_series, read_qrs_file
 from imaging.phase import GatingError
-from modeling import make_heart_model, write_model
 from modeling.model import read_model
-from modeling.surface import Mesh
-from registration.plausibility import PlausibilityWarning, assess_coverage, outlier_samples
+from registration.plausibility import (
+    PlausibilityWarning,
+    assess_coverage,
+    outlier_samples,
+)
 from registration.session import SessionError, read_session
+from tests.heartreg.small_case import small_case
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -55,21 +56,8 @@ def case(sample_case, tmp_path_factory):
     session of 5 points (the registration then takes seconds)."""
     src, truth = sample_case
     root = tmp_path_factory.mktemp("reliability")
-    heart = layout.make_heart(phantom_config.PRESETS["wood2018-trial1"])
-    from tests.registration.conftest import heart_grid_mesh
-
-    vertices, faces = heart_grid_mesh(heart, truth["cardiac_phase"], truth["respiration_phase"], n_u=60, n_v=60)
-    built = make_heart_model(
-        Mesh(vertices, faces), cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
-        fiducials_patient_mm=truth["fiducials_patient_mm"],
-    )
-    write_model(built, root / "model")
-    session = root / "session"
-    shutil.copytree(src / "session", session)
-    meta = json.loads((session / "session.json").read_text())
-    meta["points"] = meta["points"][:5]
-    (session / "session.json").write_text(json.dumps(meta))
-    return {"ct": src / "ct", "qrs": src / "qrs.csv", "model": root / "model", "session": session, "truth": truth}
+    model, session = small_case(src, truth, root, grid=60, points=5)
+    return {"ct": src / "ct", "qrs": src / "qrs.csv", "model": model, "session": session, "truth": truth}
 
 
 # ------------------------------------------------------------------ writing into an input

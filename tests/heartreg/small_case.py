@@ -1,0 +1,38 @@
+"""A quick model and a short session cut from the shared sample phantom.
+
+The model is meshed straight from the phantom's analytic heart (no segmentation)
+and the session keeps only its first points, so a registration on them takes
+seconds: for tests of contracts and readers, not of accuracy.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from heartreg.phantom import config as phantom_config
+from heartreg.phantom import layout
+from modeling import make_heart_model, write_model
+from modeling.surface import Mesh
+
+
+def small_case(src: Path, truth: dict, root: Path, *, grid: int, points: int) -> tuple[Path, Path]:
+    """Write ``root/model`` (a ``grid`` x ``grid`` mesh of the true heart) and
+    ``root/session`` (the sample session's first ``points`` records); return both."""
+    from tests.registration.conftest import heart_grid_mesh
+
+    heart = layout.make_heart(phantom_config.PRESETS["wood2018-trial1"])
+    vertices, faces = heart_grid_mesh(heart, truth["cardiac_phase"], truth["respiration_phase"], n_u=grid, n_v=grid)
+    built = make_heart_model(
+        Mesh(vertices, faces), cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
+        fiducials_patient_mm=truth["fiducials_patient_mm"],
+    )
+    write_model(built, root / "model")
+    session = root / "session"
+    shutil.copytree(src / "session", session)
+    meta = json.loads((session / "session.json").read_text())
+    kept = meta["points"][:points]
+    meta["points"] = kept
+    (session / "session.json").write_text(json.dumps(meta))
+    return root / "model", session
