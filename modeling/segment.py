@@ -8,7 +8,10 @@ Classical tools only (scipy.ndimage), in four steps:
 2. *seed*: the contrast blood pool, the largest connected component of
    ``blood_hu`` voxels — vertebrae are cut apart by their discs, the liver and
    muscle stay below it — or the component at a seed point the user gives in
-   patient mm;
+   patient mm.  Without contrast (that component holds no ball of
+   ``min_pool_radius_mm``: it is then the skeleton) the seed is the thickest
+   soft tissue inside the convex hull of the lungs, slice by slice, and the
+   tissue is limited to that hull and to ``soft_hu`` (bone is not heart);
 3. *heart region*: the tissue component touching the seed;
 4. *cut the bridges*: a morphological opening with a ball of radius
    ``vessel_radius_mm`` (computed with distance transforms on a ~2 mm grid)

@@ -103,7 +103,8 @@ def test_invariant_to_rigid_motion(rotvec, shift, phantom_meshes):
     R = Rotation.from_rotvec(rotvec).as_matrix()
     moved = fit_heart_frame(v @ R.T + np.asarray(shift))
     a, b = R @ ref.axes_patient, moved.axes_patient
-    assert _angle_deg(a[:, 2], b[:, 2]) < 1e-6
+    # 1e-5 deg: arccos of a cosine one float64 ulp below 1 is already 8.5e-7 deg (1.2e-6 was seen)
+    assert _angle_deg(a[:, 2], b[:, 2]) < 1e-5
     assert abs(abs(a[:, 0] @ b[:, 0]) - 1.0) < 1e-10
     assert np.allclose(R @ ref.origin_patient_mm + np.asarray(shift), moved.origin_patient_mm, atol=1e-6)
     assert moved.iterations == ref.iterations
