@@ -283,7 +283,16 @@ class ChamberHeart(AnalyticHeart):
         p = p @ T[:3, :3].T + T[:3, 3]
         Th = self.T_heart_from_patient
         h = p @ Th[:3, :3].T + Th[:3, 3]
-        return self.unbeat(h, self.contraction(phase_c, phase_r))
+        s = self.contraction(phase_c, phase_r)
+        ref = self.unbeat(h, s)
+        if self.motion.resp_nonrigid_mm:
+            # move() adds the respiratory stretch of the reference point itself
+            # (linear in it, a few % at most): h = beat(ref) + stretch(ref), solved
+            # by fixed-point iteration, which contracts by that few % per step.
+            R = self.T_patient_from_heart[:3, :3]
+            for _ in range(10):
+                ref = self.unbeat(h - self.resp_stretch(ref, phase_r) @ R, s)
+        return ref
 
     def epicardium_at(self, points_patient, phase_c, phase_r=None) -> np.ndarray:
         """F of patient points at (phi_C, phi_R): exact zero set, sign inside < 0."""

@@ -177,6 +177,8 @@ def write_plus_session(session_dir, out_dir, *, sequence_name: str = "tracking.s
         write_plus_sequence(tmp / sequence_name, time_s[order],
                             {name: np.concatenate(p)[order] for name, p in poses.items()})
         shutil.copyfile(src / meta["fiducials_file"], tmp / meta["fiducials_file"])
+        if meta.get("fiducial_trace_file"):  # session format 2: the staples traced over a breath
+            shutil.copyfile(src / meta["fiducial_trace_file"], tmp / meta["fiducial_trace_file"])
         meta["generator"] = f"{meta.get('generator', 'heartreg phantom')}; poses in PLUS sequence {sequence_name}"
         (tmp / "session.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
         if out.exists():

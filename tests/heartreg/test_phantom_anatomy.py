@@ -295,9 +295,11 @@ def test_truth_surface_sampler_is_exact_and_moves_with_the_heart(case):
     systole, _ = heart.sample_surface(0.3, 0.3)
     breath, _ = heart.sample_surface(0.7, 0.6)
     assert np.percentile(np.linalg.norm(diastole - systole, axis=1), 90) > 3.0
-    # respiration: the rigid T_resp plus the heartbeat's small respiratory modulation
+    # respiration: the rigid T_resp and the non-rigid respiratory stretch (both
+    # exact), plus the heartbeat's small respiratory modulation
     T = heart.T_resp(0.6)
-    moved = diastole @ T[:3, :3].T + T[:3, 3]
+    stretched = diastole + heart.resp_stretch(heart.to_reference(diastole, 0.7, 0.3), 0.6)
+    moved = stretched @ T[:3, :3].T + T[:3, 3]
     assert np.linalg.norm(T[:3, 3]) > 3.0
     assert np.percentile(np.linalg.norm(breath - moved, axis=1), 95) < 0.5
 
