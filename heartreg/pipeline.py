@@ -103,8 +103,8 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
         return volume, f"no ECG gating ({str(exc).split(';')[0]})"
     if warn is not None:
         for note in volume.notes:
-            if note.startswith("chose series"):
-                warn(f"note: {note}")
+            if note.startswith("chose series") and "other CT candidate" in note:
+                warn(f"note: {note}")  # said when there was a choice to make
         for note in report.notes:
             if "unreadable" in note:
                 warn(f"note: {note}")

@@ -375,7 +375,10 @@ def estimate_phase(
     if phases.shape != (m,):
         raise ValueError(f"phases must have shape ({m},), got {phases.shape}")
     if n < 7:
-        raise TemporalError(f"the heart term needs at least 7 points, got {n}")
+        raise TemporalError(
+            f"the shape estimator of phi_R* needs at least 7 registered points, got {n}: "
+            "record more points, or choose the paper's eq. 10 (estimator='eq10', --estimator eq10)"
+        )
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
     if not breath_hold_sd > 0:

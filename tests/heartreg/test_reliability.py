@@ -53,10 +53,11 @@ def _one_error_line(err: str) -> str:
 @pytest.fixture(scope="module")
 def case(sample_case, tmp_path_factory):
     """The shared phantom with a model made from its analytic heart (fast) and a
-    session of 5 points (the registration then takes seconds)."""
+    session of 8 points (the fewest the default phi_R* estimator takes; the
+    registration then takes seconds)."""
     src, truth = sample_case
     root = tmp_path_factory.mktemp("reliability")
-    model, session = small_case(src, truth, root, grid=60, points=5)
+    model, session = small_case(src, truth, root, grid=60, points=8)
     return {"ct": src / "ct", "qrs": src / "qrs.csv", "model": model, "session": session, "truth": truth}
 
 
@@ -199,7 +200,7 @@ def test_kill_9_during_the_write_leaves_the_previous_output(case, tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["reg"]  # stale staging of the killed runs removed
     assert _complete_registration(out) and not (out / "marker_of_the_earlier_run").exists()
     notes = json.loads((out / "registration.json").read_text())["notes"]
-    assert any("registration on 5 point(s), fewer than 30" in n for n in notes)  # the few-points warning
+    assert any("registration on 8 point(s), fewer than 30" in n for n in notes)  # the few-points warning
 
 
 # ------------------------------------------------------------------ readers that must not hang
@@ -237,7 +238,7 @@ def test_session_with_bom_is_read_and_a_pose_of_1e30_is_refused_at_read_time(cas
     shutil.copytree(case["session"], session)
     raw = (session / "session.json").read_bytes()
     (session / "session.json").write_bytes(b"\xef\xbb\xbf" + raw)
-    assert len(read_session(session).points) == 5
+    assert len(read_session(session).points) == 8
     csv = session / "points" / "point_002.csv"
     lines = csv.read_text().splitlines()
     cells = lines[40].split(",")
