@@ -233,9 +233,11 @@ def test_mirrored_heart_warns(realct, tmp_path):
 
 def test_register_asks_for_the_phase(mask_model, tmp_path, capsys):
     out = mask_model[2]
-    assert main(["register", str(out), str(tmp_path), "-o", str(tmp_path / "reg"), "-q"]) == 1
+    session = tmp_path / "session"  # never read: the phase is asked for first
+    session.mkdir()
+    assert main(["register", str(out), str(session), "-o", str(tmp_path / "reg"), "-q"]) == 1
     err = capsys.readouterr().err
     assert "cardiac phase of model" in err and "--cardiac-phase" in err and len(err.strip().splitlines()) == 1
-    assert main(["register", str(out), str(tmp_path), "-o", str(tmp_path / "reg"), "-q", "--cardiac-phase", "1.5"]) == 1
+    assert main(["register", str(out), str(session), "-o", str(tmp_path / "reg"), "-q", "--cardiac-phase", "1.5"]) == 1
     assert "--cardiac-phase must be a phase in [0, 1)" in capsys.readouterr().err
 

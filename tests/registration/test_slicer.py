@@ -50,6 +50,8 @@ def _first_points(src: Path, dst: Path, n: int) -> Path:
     for entry in meta["points"]:
         shutil.copyfile(src / entry["file"], dst / entry["file"])
     shutil.copyfile(src / meta["fiducials_file"], dst / meta["fiducials_file"])
+    if meta.get("fiducial_trace_file"):  # session format 2
+        shutil.copyfile(src / meta["fiducial_trace_file"], dst / meta["fiducial_trace_file"])
     (dst / "session.json").write_text(json.dumps(meta, indent=2) + "\n")
     return dst
 
