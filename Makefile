@@ -29,7 +29,7 @@ demo: sysdeps $(STAMP)
 	$(VENV)/bin/heartreg demo -o demo_out
 
 test: sysdeps $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile  # one test file per worker: its module fixtures stay shared
 
 bench: sysdeps $(STAMP)
 	$(PY) bench/run_all.py
