@@ -29,6 +29,7 @@ import numpy as np
 
 from hrcore.errors import HeartregError
 from imaging.files import write_text_atomic
+from modeling.surface import _check_affine
 
 __all__ = [
     "MARKUPS_SCHEMA",
@@ -223,17 +224,9 @@ def read_markups(path) -> Markups:
 
 
 def _check_rigid(T, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"{name} must be a (4, 4) matrix, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} contains NaN or infinity")
+    T = _check_affine(T, name)  # shape, finite values, last row
     R = T[:3, :3]
-    if (
-        not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0])
-        or np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL
-        or np.linalg.det(R) <= 0
-    ):
+    if np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or np.linalg.det(R) <= 0:
         raise ValueError(f"{name} must be a rigid transform (rotation and translation)")
     return T
 
