@@ -172,6 +172,16 @@ class Localiser:
         pr = np.asarray(phase_r, dtype=float).reshape(-1)
         if pc.shape != (m,) or pr.shape != (m,):
             raise ValueError(f"phase_c and phase_r must have shape ({m},), got {pc.shape} and {pr.shape}")
+        Th = self.T_heart_from_probe
+        static = T[:, :3, 3] @ Th[:3, :3].T + Th[:3, 3]
+        if m == 1 and math.isfinite(pc[0] + pr[0]) and np.isfinite(T).all():
+            # a live sample: the same maths with less set-up per call
+            Tm, near = self._locate_one(T[0], float(pc[0]), float(pr[0]))
+            p = Tm[0, :3, 3]
+            cp, normal = self._nearest_one(p)
+            return MapPositions(T_heart_from_robot=Tm, position_mm=Tm[:, :3, 3], static_mm=static,
+                                surface_mm=cp[None], distance_mm=np.array([np.dot(p - cp, normal)]),
+                                nearest_point_mm=near)
         ok = np.isfinite(pc) & np.isfinite(pr) & np.all(np.isfinite(T), axis=(1, 2))
         nan3 = np.full((m, 3), np.nan)
         out = {
@@ -181,18 +191,8 @@ class Localiser:
             "distance_mm": np.full(m, np.nan),
             "nearest_point_mm": np.full(m, np.nan),
         }
-        Th = self.T_heart_from_probe
-        static = T[:, :3, 3] @ Th[:3, :3].T + Th[:3, 3]
         idx = np.flatnonzero(ok)
-        if idx.size == 1:  # a live sample: the same maths with less set-up per call
-            Tm = self._locate_one(T[idx[0]], float(pc[idx[0]]), float(pr[idx[0]]))
-            cp, normal = self._nearest_one(Tm[0][0, :3, 3])
-            out["T_heart_from_robot"][idx] = Tm[0]
-            out["position_mm"][idx] = Tm[0][:, :3, 3]
-            out["nearest_point_mm"][idx] = Tm[1]
-            out["surface_mm"][idx] = cp
-            out["distance_mm"][idx] = float(np.dot(Tm[0][0, :3, 3] - cp, normal))
-        elif idx.size:
+        if idx.size:
             Tm = self._locate(T[idx], pc[idx], pr[idx])
             out["T_heart_from_robot"][idx] = Tm[0]
             out["position_mm"][idx] = Tm[0][:, :3, 3]
@@ -253,33 +253,37 @@ class Localiser:
     def _nearest_one(self, q):
         """Exact closest surface point and face normal of one point, plain floats.
 
-        Faces are tried in order of their search site's distance until no
-        unseen face can be closer (the bound of :mod:`registration.icp`); if
-        the 32 nearest sites do not prove it, :func:`closest_points` does.
+        The faces of the 32 nearest search sites are tried in order of distance
+        until no unseen face can be closer (the bound of :mod:`registration.icp`:
+        a face is at least its site's distance less ``site_radius_mm`` away).
+        Where they do not prove it (a robot more than a millimetre or so off
+        the surface), the best so far, ``d``, bounds the answer: every face
+        closer has a site within ``d + site_radius_mm``, and those are tried.
         """
         s = self.surface
-        kc = int(min(32, s._site_face.shape[0]))
-        dist_s, idx = s.tree.query(q, k=kc)
-        faces = s._site_face[idx].tolist()
-        dist_s = dist_s.tolist()
         r = s.site_radius_mm
+        kc = min(32, s._site_face.shape[0])
+        dist_s, idx = s.tree.query(q, k=kc)
         qx, qy, qz = q.tolist()
-        best_d2, best_f, best_p = math.inf, -1, None
+        best = [math.inf, -1, None]
         seen = set()
-        for ds, f in zip(dist_s, faces):
-            if best_f >= 0 and ds - r > math.sqrt(best_d2):
+
+        def try_faces(faces):
+            for f in faces:
+                if f not in seen:
+                    seen.add(f)
+                    d2, cp = _point_triangle(qx, qy, qz, self._tri[f])
+                    if d2 < best[0]:
+                        best[:] = d2, f, cp
+
+        for ds, f in zip(dist_s.tolist(), s._site_face[idx].tolist()):
+            if best[1] >= 0 and ds - r > math.sqrt(best[0]):
                 break  # every face not tried yet is farther than the best
-            if f in seen:
-                continue
-            seen.add(f)
-            d2, cp = _point_triangle(qx, qy, qz, self._tri[f])
-            if d2 < best_d2:
-                best_d2, best_f, best_p = d2, f, cp
-        best = math.sqrt(best_d2)
-        if kc < s._site_face.shape[0] and best > dist_s[-1] - r:
-            full = closest_points(s, q[None])
-            return full.points[0], full.normals[0]
-        return np.array(best_p), s.normals[best_f]
+            try_faces((f,))
+        if kc < s._site_face.shape[0] and math.sqrt(best[0]) > dist_s[-1] - r:
+            ball = s.tree.query_ball_point(q, math.sqrt(best[0]) + r)
+            try_faces(s._site_face[ball].tolist())
+        return np.array(best[2]), s.normals[best[1]]
 
     def _locate(self, T, pc, pr):
         m, n, k = T.shape[0], self.n_points, self.k

@@ -466,12 +466,27 @@ class CausalPhases:
                 f"time_s, ecg_mv and the flows must be 1-D of one length, got {t.shape} and "
                 f"{[a.shape for a in arrays]}"
             )
-        if t.size and (not np.all(np.diff(t) > 0) or t[0] <= self._last_t):
+        if t.size and (t[0] <= self._last_t or (t.size > 1 and not np.all(t[1:] > t[:-1]))):
             raise StreamError("sample times must increase strictly across the stream")
-        if not (np.all(np.isfinite(t)) and all(np.all(np.isfinite(a)) for a in arrays)):
+        if not np.isfinite(np.sum(arrays, axis=0) + t).all():
             raise StreamError("time, ECG and flow samples must be finite")
         ecg, insp, expi = arrays
         m = t.size
+        if m == 1:  # a live sample: the events confirmed at it count for it
+            self._last_t = float(t[0])
+            peaks = self.r_detector.update(t, ecg)
+            onsets = self.resp_detector.update(t, expi, insp)
+            flags = 0
+            out = []
+            for events, phase, no, predicted in ((peaks, self.cardiac, PhaseFlag.NO_CARDIAC, PhaseFlag.CARDIAC_PREDICTED),
+                                                 (onsets, self.respiration, PhaseFlag.NO_RESPIRATION,
+                                                  PhaseFlag.RESPIRATION_PREDICTED)):
+                for event, _ in events:
+                    phase.add_event(event)
+                value, pred = phase.phase(self._last_t)
+                flags |= no if math.isnan(value) else (predicted if pred else 0)
+                out.append(np.array([value]))
+            return PhaseChunk(out[0], out[1], np.array([flags], dtype=np.int64), tuple(peaks), tuple(onsets))
         phase_c = np.empty(m)
         phase_r = np.empty(m)
         flags = np.zeros(m, dtype=np.int64)

@@ -155,10 +155,12 @@ def test_phases_do_not_depend_on_the_chunking(nav):
     n = 1500
     args = (record.time_s[:n], record.ecg_mv[:n], record.flow_insp_lpm[:n], record.flow_exp_lpm[:n])
     whole = CausalPhases(100.0, rr_prior_s=0.9, breath_prior_s=5.0).update(*args)
-    cp = CausalPhases(100.0, rr_prior_s=0.9, breath_prior_s=5.0)
-    parts = [cp.update(*(a[i:i + 7] for a in args)) for i in range(0, n, 7)]
-    np.testing.assert_array_equal(np.concatenate([p.phase_c for p in parts]), whole.phase_c)
-    np.testing.assert_array_equal(np.concatenate([p.phase_r for p in parts]), whole.phase_r)
+    for size in (7, 1):  # 1: a live stream's sample at a time
+        cp = CausalPhases(100.0, rr_prior_s=0.9, breath_prior_s=5.0)
+        parts = [cp.update(*(a[i:i + size] for a in args)) for i in range(0, n, size)]
+        for name in ("phase_c", "phase_r", "flags"):
+            np.testing.assert_array_equal(np.concatenate([getattr(p, name) for p in parts]), getattr(whole, name))
+        assert sum((p.r_peaks for p in parts), ()) == whole.r_peaks
 
 
 def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):

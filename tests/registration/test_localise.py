@@ -67,6 +67,27 @@ def test_an_affine_motion_is_interpolated_exactly_anywhere():
     assert np.isnan(none.position_mm[0]).all() and np.allclose(none.position_mm[1], truth[1])
 
 
+def test_single_sample_nearest_point_is_the_exact_one_near_and_far():
+    """The live path's escalating search (32, 512 sites, then all) gives the
+    batch path's exact closest point, close to the surface and far from it."""
+    import trimesh
+
+    rng = np.random.default_rng(5)
+    models, _, _ = _affine_models(rng)
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=50.0)  # 20 480 faces
+    loc = Localiser(models, np.eye(4), 0.7, 0.3, (np.asarray(sphere.vertices), np.asarray(sphere.faces)))
+    d = rng.standard_normal((60, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radii = np.concatenate([rng.uniform(45.0, 55.0, 20), rng.uniform(60.0, 90.0, 20), rng.uniform(0.0, 30.0, 20)])
+    from registration.icp import closest_points
+
+    for q in d * radii[:, None]:
+        cp, normal = loc._nearest_one(q)
+        ref = closest_points(loc.surface, q[None])
+        assert np.linalg.norm(cp - q) == pytest.approx(np.linalg.norm(ref.points[0] - q), abs=1e-9)
+        np.testing.assert_allclose(cp, ref.points[0], atol=1e-6)
+
+
 def test_localiser_refuses_too_few_points():
     rng = np.random.default_rng(0)
     models, _, _ = _affine_models(rng, n=3)
