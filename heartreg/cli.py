@@ -14,18 +14,19 @@ import sys
 from pathlib import Path
 
 from heartreg import __version__
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, UsageError
 
 __all__ = ["CommandLineError", "command_parser", "main"]
 
 EXIT_USAGE = 2
+EXIT_BUG = 70  # EX_SOFTWARE
 
 
 def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
     if args.navigation and args.no_session:
-        raise ValueError("--navigation needs the session: drop --no-session")
+        raise UsageError("--navigation needs the session: drop --no-session")
     overrides = {}
     if args.points is not None:
         overrides["n_points"] = args.points
@@ -112,7 +113,7 @@ def _cmd_phases(args) -> int:
     if args.list_series:
         return _print_series(args.study_dir)
     if args.out_dir is None:
-        raise ValueError("give an output folder with -o OUT_DIR (or --list-series)")
+        raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")
     inputs = (args.study_dir, args.qrs)
     check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite)
     volume, report = _open_study(args)
@@ -133,7 +134,7 @@ def _cmd_phases(args) -> int:
 
 def _check_fiducials(count: int | None) -> None:
     if count is not None and count < 0:
-        raise ValueError(f"--fiducials {count}: give the number of skin fiducials expected (0 for none)")
+        raise UsageError(f"--fiducials {count}: give the number of skin fiducials expected (0 for none)")
 
 
 def _open_model_input(args):
@@ -148,7 +149,7 @@ def _open_model_input(args):
 
     if is_nifti_path(args.study_dir):
         if args.qrs is not None or args.series is not None:
-            raise ValueError(f"--qrs and --series apply to DICOM studies, not to the NIfTI file {args.study_dir}")
+            raise UsageError(f"--qrs and --series apply to DICOM studies, not to the NIfTI file {args.study_dir}")
         return read_nifti_volume(args.study_dir), None, "a NIfTI volume has no slice clock"
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
@@ -167,7 +168,7 @@ def _cmd_model(args) -> int:
     from hrcore.output import check_output_path, staged_output
 
     if args.label is not None and args.mask is None:
-        raise ValueError("--label chooses a label of --mask; give the label map with --mask FILE")
+        raise UsageError("--label chooses a label of --mask; give the label map with --mask FILE")
     _check_fiducials(args.fiducials)
     inputs = (args.study_dir, args.qrs, args.mask)
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
@@ -234,10 +235,10 @@ def _cmd_register(args) -> int:
     model = read_model(args.model_dir)
     if args.cardiac_phase is not None:
         if not 0.0 <= args.cardiac_phase < 1.0:
-            raise ValueError(f"--cardiac-phase must be a phase in [0, 1), got {args.cardiac_phase}")
+            raise UsageError(f"--cardiac-phase must be a phase in [0, 1), got {args.cardiac_phase}")
         model = dataclasses.replace(model, cardiac_phase=args.cardiac_phase, cardiac_phase_source="--cardiac-phase")
     elif model.cardiac_phase is None:
-        raise ValueError(
+        raise UsageError(
             f"the cardiac phase of model {args.model_dir} is unknown (its CT was not ECG-gated); "
             "give the CT's phase with --cardiac-phase P (0..1, e.g. 0.7 for mid-diastole)"
         )
@@ -279,12 +280,12 @@ def _cmd_track(args) -> int:
     from heartreg.track import load_tracker, print_summary, run_track, session_chunks
 
     if args.speed is not None and not args.speed > 0:
-        raise ValueError(f"--speed must be positive (1 = real time), got {args.speed}")
+        raise UsageError(f"--speed must be positive (1 = real time), got {args.speed}")
     tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
     if args.igtl_in is not None:
         host, _, port = args.igtl_in.rpartition(":")
         if not port.isdigit():
-            raise ValueError(f"--igtl-in must be HOST:PORT, got {args.igtl_in!r}")
+            raise UsageError(f"--igtl-in must be HOST:PORT, got {args.igtl_in!r}")
         chunks = igtl_client_chunks(host or "127.0.0.1", int(port), idle_timeout_s=args.idle_timeout)
         speed = None  # a live stream paces itself
     else:
@@ -577,7 +578,7 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class CommandLineError(HeartregError, ValueError):
+class CommandLineError(UsageError):
     """A command line that does not parse (``heartreg batch`` checks its cases' lines with it)."""
 
 
@@ -626,8 +627,10 @@ def _error_line(exc: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status.
 
-    Errors are one line on stderr and status 1; SIGINT (Ctrl-C) gives 130 and
-    SIGTERM 143, after every staged output has been removed.
+    Refusals of bad input (:class:`HeartregError`) and OS errors are one line on
+    stderr and status 1; any other exception is a bug: its traceback and status
+    70. SIGINT (Ctrl-C) gives 130 and SIGTERM 143, after every staged output has
+    been removed.
     """
     import signal
     import threading
@@ -646,11 +649,18 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (HeartregError, ValueError, OSError, RuntimeError) as exc:
+    except (HeartregError, OSError) as exc:
         if args.debug:
             raise
         print(f"heartreg {args.command}: error: {_error_line(exc)}", file=sys.stderr)
         return 1
+    except Exception:  # not a refusal of bad input: a bug, shown in full
+        import traceback
+
+        traceback.print_exc()
+        print(f"heartreg {args.command}: internal error (a bug in heartreg {__version__}); please report it "
+              "with the traceback above and the command line", file=sys.stderr)
+        return EXIT_BUG
     except Terminated:
         print("heartreg: terminated (SIGTERM); nothing was written", file=sys.stderr)
         return 143

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.errors import UsageError
 from imaging.files import write_text_atomic
 
 __all__ = ["SAMPLE_DIR", "format_table", "pose_error", "run_demo", "truth_rows"]
@@ -139,14 +140,14 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     if sample_dir is not None:  # checked before anything is created
         sample = Path(sample_dir)
         if not (sample / "truth.json").exists() or not (sample / "ct").is_dir():
-            raise ValueError(
+            raise UsageError(
                 f"--sample {sample} is not a phantom case (needs ct/ and truth.json, "
                 "as 'heartreg phantom OUT --no-session' writes)"
             )
     out_path = Path(out_dir)
     if out_path.is_dir() and any(out_path.iterdir()) and not (out_path / "demo.json").exists() \
             and not (out_path / "session_case").exists():
-        raise ValueError(f"demo folder {out_path} holds other files; choose an empty folder or an earlier demo's")
+        raise UsageError(f"demo folder {out_path} holds other files; choose an empty folder or an earlier demo's")
     out_dir = check_out_dir(out_dir, what="demo folder")
     if sample_dir is None:
         sample = SAMPLE_DIR

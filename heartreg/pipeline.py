@@ -19,6 +19,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hrcore.errors import UsageError
+
 __all__ = ["PARTS", "PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "run_pipeline"]
 
 #: what a run writes into OUT_DIR (anything else there is left alone).
@@ -31,9 +33,9 @@ def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = Fa
     ``create`` is false."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise ValueError(f"{what} {path} exists and is not a folder; choose a folder")
+        raise UsageError(f"{what} {path} exists and is not a folder; choose a folder")
     if must_be_empty and path.is_dir() and any(path.iterdir()):
-        raise ValueError(f"{what} {path} is not empty; choose an empty folder or pass --overwrite")
+        raise UsageError(f"{what} {path} is not empty; choose an empty folder or pass --overwrite")
     if not create:
         return path
     try:

@@ -6,7 +6,7 @@
 one rename, nothing left behind, never into an input).
 """
 
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, UsageError
 from hrcore.output import OutputError, check_output_path, staged_output
 
-__all__ = ["HeartregError", "OutputError", "check_output_path", "staged_output"]
+__all__ = ["HeartregError", "OutputError", "UsageError", "check_output_path", "staged_output"]

@@ -24,3 +24,8 @@ class HeartregError(Exception):
     The message is one line that names the file or argument at fault and says
     what to do.
     """
+
+
+class UsageError(HeartregError, ValueError):
+    """A bad argument or option value: the message names the keyword argument
+    (and the command-line flag, where there is one) and the values it takes."""

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.errors import UsageError
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
@@ -154,7 +155,7 @@ def build_heart_model(
         A mask far smaller than a heart (the message gives its volume in ml).
     """
     if target_faces < 100:
-        raise ValueError(f"target_faces must be at least 100, got {target_faces}")
+        raise UsageError(f"target_faces (--faces) must be at least 100, got {target_faces}")
     T = np.asarray(volume.T_patient_from_voxel, dtype=float)
     timings: dict[str, float] = {}
     notes: list[str] = []
@@ -225,7 +226,9 @@ def build_heart_model(
     if expected_fiducials is not None:
         auto = expected_fiducials == AUTO
         if not auto and (isinstance(expected_fiducials, str) or int(expected_fiducials) < 0):
-            raise ValueError(f"expected_fiducials must be a count >= 0, {AUTO!r} or None, got {expected_fiducials!r}")
+            raise UsageError(
+                f"expected_fiducials (--fiducials) must be a count >= 0, {AUTO!r} or None, got {expected_fiducials!r}"
+            )
         kwargs = {} if fiducial_floor_hu is None else {"floor_hu": fiducial_floor_hu}
         try:
             fiducials = find_fiducials(

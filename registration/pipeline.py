@@ -32,7 +32,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, UsageError
 from imaging.ecg import cardiac_phase, detect_r_peaks
 from imaging.events import SignalError
 from imaging.respiration import expiration_onsets, respiration_phase
@@ -99,10 +99,10 @@ def sweep_phases(step: float) -> np.ndarray:
     """
     step = float(step)
     if not (0.0 < step <= 0.5):
-        raise ValueError(f"step must be in (0, 0.5] cycles, got {step}")
+        raise UsageError(f"step (--step) must be in (0, 0.5] cycles, got {step}")
     n = 1.0 / step
     if abs(n - round(n)) > 1e-6:
-        raise ValueError(f"step must divide one cycle evenly (e.g. 0.01, 0.02, 0.05), got {step}")
+        raise UsageError(f"step (--step) must divide one cycle evenly (e.g. 0.01, 0.02, 0.05), got {step}")
     return np.linspace(0.0, 1.0, int(round(n)) + 1)
 
 
@@ -110,14 +110,14 @@ def _as_harmonics(harmonics) -> Harmonics:
     if not isinstance(harmonics, Harmonics):
         values = tuple(harmonics)
         if len(values) != 4:
-            raise ValueError(f"harmonics must be a Harmonics or (Hc, Hr, Hmc, Hmr), got {harmonics!r}")
+            raise UsageError(f"harmonics (--harmonics) must be a Harmonics or (Hc, Hr, Hmc, Hmr), got {harmonics!r}")
         hc, hr, hmc, hmr = values
         try:
             harmonics = Harmonics(cardiac=hc, respiratory=hr, coupled_cardiac=hmc, coupled_respiratory=hmr)
         except ValueError as exc:
-            raise ValueError(f"harmonics (--harmonics HC HR HMC HMR): {exc}") from None
+            raise UsageError(f"harmonics (--harmonics HC HR HMC HMR): {exc}") from None
     if harmonics.respiratory < 1 or harmonics.cardiac < 1:
-        raise ValueError(
+        raise UsageError(
             "harmonics (--harmonics HC HR HMC HMR): the sweeps need at least one cardiac and one "
             f"respiratory harmonic, got Hc={harmonics.cardiac}, Hr={harmonics.respiratory}"
         )
@@ -330,14 +330,14 @@ def register_session(
     try:
         estimator = TemporalEstimator(estimator)
     except ValueError:
-        raise ValueError(
+        raise UsageError(
             f"estimator (--estimator) must be one of {[e.value for e in TemporalEstimator]}, got {estimator!r}"
         ) from None
     phases = sweep_phases(phase_step)
     phases_c = phases if cardiac_phase_step is None else sweep_phases(cardiac_phase_step)
     for name, value in (("min_beats", min_beats), ("min_breaths", min_breaths)):
         if int(value) != value or value < 1:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            raise UsageError(f"{name} must be a positive integer, got {value!r}")
     options = dict(icp_options or {})
     options.pop("T_init", None)
     timings: dict[str, float] = {}

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, UsageError
 
 __all__ = [
     "TemporalEstimator",
@@ -398,7 +398,7 @@ def estimate_phase(
     prior = np.zeros(usable.size)
     if breath_hold_phase is not None:
         if not 0.0 <= breath_hold_phase <= 1.0:
-            raise ValueError(f"breath_hold_phase must be a phase in [0, 1], got {breath_hold_phase}")
+            raise UsageError(f"breath_hold_phase (--breath-hold-phase) must be a phase in [0, 1], got {breath_hold_phase}")
         prior = (_wrap(phases[usable] - breath_hold_phase) / breath_hold_sd) ** 2
         evidence.append("breath_hold")
     J_h, J_f = e_h.sum(axis=1), e_f.sum(axis=1)

@@ -231,5 +231,5 @@ def test_options_are_checked():
     with pytest.raises(ValueError, match="divide one cycle"):
         sweep_phases(0.03)
     assert sweep_phases(0.01).shape == (101,)
-    with pytest.raises(ValueError, match="step must be in"):
+    with pytest.raises(ValueError, match=r"step \(--step\) must be in"):
         sweep_phases(0.0)

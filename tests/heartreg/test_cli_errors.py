@@ -1,0 +1,39 @@
+"""The command's error contract: a refusal of bad input is one line and status 1;
+anything else is a bug, shown with its traceback and status 70."""
+
+from __future__ import annotations
+
+import pytest
+
+from heartreg import cli
+from hrcore.errors import HeartregError, UsageError
+
+
+def _run_phases_raising(monkeypatch, tmp_path, exc):
+    def boom(args):
+        raise exc
+
+    monkeypatch.setattr(cli, "_cmd_phases", boom)
+    return cli.main(["phases", str(tmp_path)])
+
+
+def test_a_refusal_is_one_line(monkeypatch, tmp_path, capsys):
+    status = _run_phases_raising(monkeypatch, tmp_path, UsageError("step (--step) must be in (0, 0.5] cycles, got 2"))
+    err = capsys.readouterr().err
+    assert status == 1
+    assert err == "heartreg phases: error: step (--step) must be in (0, 0.5] cycles, got 2\n"
+
+
+@pytest.mark.parametrize("exc", [ZeroDivisionError("division by zero"), ValueError("operands could not be broadcast"),
+                                 KeyError("rr_s")])
+def test_a_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, exc):
+    status = _run_phases_raising(monkeypatch, tmp_path, exc)
+    err = capsys.readouterr().err
+    assert status == cli.EXIT_BUG == 70
+    assert "Traceback (most recent call last)" in err and type(exc).__name__ in err
+    assert err.rstrip().splitlines()[-1].startswith("heartreg phases: internal error (a bug in heartreg")
+
+
+def test_usage_errors_are_heartreg_errors_and_value_errors():
+    assert issubclass(UsageError, HeartregError) and issubclass(UsageError, ValueError)
+    assert issubclass(cli.CommandLineError, UsageError)
