@@ -614,16 +614,6 @@ def _on_sigterm(signum, frame):
     raise Terminated
 
 
-def _error_line(exc: BaseException) -> str:
-    """One line for an error: OS errors translated (file, reason, what to do)."""
-    from hrcore.output import os_error_message
-
-    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
-        return os_error_message(exc)
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status.
 
@@ -645,14 +635,14 @@ def main(argv: list[str] | None = None) -> int:
     warnings.formatwarning = _one_line_warning
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
-    from hrcore.errors import HeartregError
+    from hrcore.output import refusal_line
 
     try:
         return args.func(args)
     except (HeartregError, OSError) as exc:
         if args.debug:
             raise
-        print(f"heartreg {args.command}: error: {_error_line(exc)}", file=sys.stderr)
+        print(f"heartreg {args.command}: error: {refusal_line(exc)}", file=sys.stderr)
         return 1
     except Exception:  # not a refusal of bad input: a bug, shown in full
         import traceback

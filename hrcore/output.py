@@ -239,6 +239,16 @@ def os_error_message(exc: OSError, *, what: str = "") -> str:
     return f"{name}: {reason}; {hint}"
 
 
+def refusal_line(exc: BaseException) -> str | None:
+    """The one line a command prints for a refusal (a :class:`HeartregError` or an
+    OS error, translated); None for anything else, which is a bug."""
+    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
+        return os_error_message(exc)
+    if isinstance(exc, (HeartregError, OSError)):
+        return " ".join(str(exc).split()) or type(exc).__name__
+    return None
+
+
 def _size_mb(path: Path) -> float:
     total = 0
     for dirpath, _, files in os.walk(path):

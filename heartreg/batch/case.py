@@ -237,11 +237,14 @@ def _run_command(argv: list[str], notes: list[str]) -> None:
 
 
 def _error_line(exc: BaseException) -> str:
-    """One line for the summary: the project's errors as they are, anything else with its type."""
+    """One line for the summary: a refusal as the command prints it, anything else with its type."""
+    from hrcore.output import refusal_line
+
+    line = refusal_line(exc)
+    if line is not None:
+        return line
     text = " ".join(str(exc).split()) or type(exc).__name__
-    if isinstance(exc, (HeartregError, ValueError, OSError, RuntimeError)):
-        return text
-    return f"internal error ({type(exc).__name__}: {text}); please report it"
+    return f"internal error ({type(exc).__name__}: {text}); a bug in heartreg, please report it"
 
 
 def _remove_leftovers(out: Path, name: str) -> None:
