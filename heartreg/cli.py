@@ -132,9 +132,42 @@ def _cmd_phases(args) -> int:
     return 0
 
 
-def _check_fiducials(count: int | None) -> None:
-    if count is not None and count < 0:
-        raise UsageError(f"--fiducials {count}: give the number of skin fiducials expected (0 for none)")
+def _model_options(args):
+    """The model options the flags give (their defaults written once, in ModelOptions)."""
+    from modeling.options import ModelOptions
+
+    if args.fiducials is not None and args.fiducials < 0:
+        raise UsageError(f"--fiducials {args.fiducials}: give the number of skin fiducials expected (0 for none)")
+    kw = {}
+    if args.faces is not None:
+        kw["target_faces"] = args.faces
+    if args.fiducials is not None:
+        kw["expected_fiducials"] = None if args.fiducials == 0 else args.fiducials
+    if args.fiducial_floor_hu is not None:
+        kw["fiducial_floor_hu"] = args.fiducial_floor_hu
+    if args.keep_vessels and args.trim_vessels:
+        raise UsageError("--keep-vessels and --trim-vessels contradict each other; give one")
+    if args.keep_vessels or args.trim_vessels:
+        kw["trim_vessels"] = bool(args.trim_vessels)
+    return ModelOptions(**kw)
+
+
+def _registration_options(args):
+    """The registration options the flags give (defaults written once, in RegistrationOptions)."""
+    from registration.options import RegistrationOptions
+
+    kw = {"estimator": args.estimator}
+    if args.step is not None:
+        kw["phase_step"] = args.step
+    if args.harmonics is not None:
+        kw["harmonics"] = tuple(args.harmonics)
+    if args.breath_hold_phase is not None:
+        kw["breath_hold_phase"] = args.breath_hold_phase
+    if args.icp_max_iterations is not None:
+        if args.icp_max_iterations < 1:
+            raise UsageError(f"--icp-max-iterations must be at least 1, got {args.icp_max_iterations}")
+        kw["icp_options"] = {"max_iterations": args.icp_max_iterations}
+    return RegistrationOptions(**kw)
 
 
 def _open_model_input(args):
@@ -169,7 +202,7 @@ def _cmd_model(args) -> int:
 
     if args.label is not None and args.mask is None:
         raise UsageError("--label chooses a label of --mask; give the label map with --mask FILE")
-    _check_fiducials(args.fiducials)
+    options = _model_options(args)
     inputs = (args.study_dir, args.qrs, args.mask)
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
     volume, phase, phase_source = _open_model_input(args)
@@ -188,10 +221,7 @@ def _cmd_model(args) -> int:
         cardiac_phase_source=phase_source,
         mask_path=args.mask,
         label=args.label,
-        target_faces=args.faces,
-        expected_fiducials="auto" if args.fiducials is None else (None if args.fiducials == 0 else args.fiducials),
-        fiducial_floor_hu=args.fiducial_floor_hu,
-        trim_vessels=False if args.keep_vessels else (True if args.trim_vessels else None),
+        options=options,
         progress=stage,
     )
     stage("write")
@@ -230,6 +260,7 @@ def _cmd_register(args) -> int:
 
     from hrcore.output import check_output_path, staged_output
 
+    options = _registration_options(args)
     inputs = (args.model_dir, args.session_dir)
     check_output_path(args.out_dir, inputs=inputs, overwrite=args.overwrite)
     model = read_model(args.model_dir)
@@ -243,12 +274,7 @@ def _cmd_register(args) -> int:
             "give the CT's phase with --cardiac-phase P (0..1, e.g. 0.7 for mid-diastole)"
         )
     session = read_session(args.session_dir)
-    harmonics = tuple(args.harmonics) if args.harmonics else (5, 4, 2, 1)
-    icp_options = {} if args.icp_max_iterations is None else {"max_iterations": args.icp_max_iterations}
-    result = register_session(
-        model, session, harmonics=harmonics, phase_step=args.step, progress=not args.quiet,
-        estimator=args.estimator, breath_hold_phase=args.breath_hold_phase, icp_options=icp_options,
-    )
+    result = register_session(model, session, options=options, progress=not args.quiet)
     # staged, then one rename: a failure or a signal leaves OUT_DIR as it was
     with staged_output(args.out_dir, inputs=inputs, overwrite=args.overwrite) as staging:
         paths = write_registration(result, staging, model=model, view=not args.no_view,
@@ -328,11 +354,10 @@ def _cmd_evaluate_temporal(args) -> int:
 def _cmd_pipeline(args) -> int:
     from heartreg.pipeline import run_pipeline
 
-    _check_fiducials(args.fiducials)
     run = run_pipeline(
         args.study_dir, args.session_dir, args.out_dir, series=args.series, qrs=args.qrs, mask=args.mask,
-        label=args.label, faces=args.faces, fiducials=args.fiducials, phase_step=args.step,
-        overwrite=args.overwrite, progress=not args.quiet,
+        label=args.label, model_options=_model_options(args), registration_options=_registration_options(args),
+        view=not args.no_view, overwrite=args.overwrite, progress=not args.quiet,
     )
     reg = run.registration
     print(f"pipeline written to {run.out_dir}")
@@ -411,6 +436,46 @@ def _add_cluster_options(p) -> None:
                    help="run on this Dask scheduler instead of a local cluster")
 
 
+def _add_model_options(p) -> None:
+    """The flags of :class:`modeling.ModelOptions` (model and pipeline)."""
+    from modeling.options import ModelOptions
+
+    p.add_argument("--mask", type=Path, default=None,
+                   help="external label map (NIfTI, NRRD, DICOM SEG or a TotalSegmentator folder) instead of the "
+                        "automatic segmentation")
+    p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart)")
+    p.add_argument("--faces", type=int, default=None,
+                   help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
+    p.add_argument("--fiducials", type=int, default=None,
+                   help="skin fiducials expected, insisted on (default: those found on the skin; 0: none)")
+    p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
+    p.add_argument("--keep-vessels", action="store_true",
+                   help="keep the great-vessel stubs (do not trim them off the base)")
+    p.add_argument("--trim-vessels", action="store_true",
+                   help="trim vessel stubs off a --mask too (by default a given mask is meshed as it is)")
+
+
+def _add_registration_options(p) -> None:
+    """The flags of :class:`registration.RegistrationOptions` (register and pipeline)."""
+    from registration.options import ESTIMATORS, RegistrationOptions
+
+    defaults = RegistrationOptions()
+    p.add_argument("--step", type=float, default=None,
+                   help=f"phase step of the sweeps (default {defaults.phase_step})")
+    p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
+                   help="Fourier harmonics of the motion models (default "
+                        + " ".join(str(v) for v in dataclasses.astuple(defaults.harmonics)) + ")")
+    p.add_argument("--estimator", default=defaults.estimator, choices=list(ESTIMATORS),
+                   help="how phi_R* is chosen: chest and heart shape with a 90%% interval (default), "
+                        "or the paper's eq. 10")
+    p.add_argument("--breath-hold-phase", type=float, default=None, metavar="PHASE",
+                   help=f"the CT's breath-hold respiration phase if known (sd {defaults.breath_hold_sd}), "
+                        "used by --estimator shape")
+    p.add_argument("--icp-max-iterations", type=int, default=None, metavar="N",
+                   help="ICP iteration limit per phase (default that of registration.icp)")
+    p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
+
+
 def _add_study_options(p) -> None:
     p.add_argument("study_dir", type=Path, help="folder holding the DICOM study (searched recursively)")
     p.add_argument("--qrs", type=Path, default=None,
@@ -465,17 +530,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("model", help="CT study (DICOM folder or NIfTI file) -> heart model in the heart-centric frame")
     _add_study_options(p)
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="model folder to write")
-    p.add_argument("--mask", type=Path, default=None,
-                   help="external label map (NIfTI, NRRD or DICOM SEG) instead of the automatic segmentation")
-    p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart)")
-    p.add_argument("--faces", type=int, default=20000, help="faces of the decimated mesh")
-    p.add_argument("--fiducials", type=int, default=None,
-                   help="skin fiducials expected, insisted on (default: those found on the skin; 0: none)")
-    p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
-    p.add_argument("--keep-vessels", action="store_true",
-                   help="keep the great-vessel stubs (do not trim them off the base)")
-    p.add_argument("--trim-vessels", action="store_true",
-                   help="trim vessel stubs off a --mask too (by default a given mask is meshed as it is)")
+    _add_model_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.set_defaults(func=_cmd_model)
 
@@ -483,12 +538,9 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_study_options(p)
     p.add_argument("session_dir", type=Path, help="intra-operative session folder (docs/formats.md)")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder")
-    p.add_argument("--mask", type=Path, default=None, help="external label map instead of the segmentation")
-    p.add_argument("--label", type=int, default=None, help="heart label in --mask")
-    p.add_argument("--faces", type=int, default=20000, help="faces of the decimated mesh")
-    p.add_argument("--fiducials", type=int, default=9, help="skin fiducials expected")
-    p.add_argument("--step", type=float, default=0.01, help="respiration phase step of the sweep")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    _add_model_options(p)
+    _add_registration_options(p)
+    p.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in OUT_DIR")
     p.set_defaults(func=_cmd_pipeline)
 
     p = sub.add_parser("demo", help="the whole chain on the bundled sample, recovered vs truth")
@@ -501,21 +553,11 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("model_dir", type=Path, help="heart model folder (heartreg model)")
     p.add_argument("session_dir", type=Path, help="session folder (heartreg-session)")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="folder for registration.json, CSVs, PNGs")
-    p.add_argument("--step", type=float, default=0.01, help="phase step of the sweeps (default 0.01)")
-    p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
-                   help="Fourier harmonics of the motion models (default 5 4 2 1)")
-    p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
+    _add_registration_options(p)
     p.add_argument("--cardiac-phase", type=float, default=None, metavar="P",
                    help="the CT's cardiac phase (0..1), needed when the model's is unknown; replaces it otherwise")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
-    p.add_argument("--estimator", default="shape", choices=["shape", "eq10"],
-                   help="how phi_R* is chosen: chest and heart shape with a 90%% interval (default), "
-                        "or the paper's eq. 10")
-    p.add_argument("--breath-hold-phase", type=float, default=None, metavar="PHASE",
-                   help="the CT's breath-hold respiration phase if known (sd 0.05), used by --estimator shape")
-    p.add_argument("--icp-max-iterations", type=int, default=None, metavar="N",
-                   help="ICP iteration limit per phase (default 50)")
     p.set_defaults(func=_cmd_register)
 
     p = sub.add_parser("track", help="the robot on the map, live: causal phases, CSV log, OpenIGTLink to Slicer")

@@ -135,19 +135,21 @@ def run_pipeline(
     qrs=None,
     mask=None,
     label=None,
-    faces: int = 20000,
-    fiducials: int = 9,
-    phase_step: float = 0.01,
-    estimator: str = "shape",
+    model_options=None,
+    registration_options=None,
+    view: bool = True,
     overwrite: bool = False,
     progress: bool = True,
     truth_rows=None,
 ) -> PipelineResult:
     """Run phases -> model -> registration and write every output.
 
-    ``estimator`` chooses phi_R* (``"shape"`` or the paper's ``"eq10"``, see
-    :func:`registration.pipeline.register_session`).  ``truth_rows``, if given, is a callable ``(PipelineResult) -> list`` of
-    recovered-vs-truth rows to put at the top of the HTML report (the demo).
+    ``model_options`` (:class:`modeling.ModelOptions`) and ``registration_options``
+    (:class:`registration.RegistrationOptions`) are those of ``heartreg model`` and
+    ``heartreg register`` (default: their defaults); ``view`` draws the
+    registration's 3-D view (``--no-view``). ``truth_rows``, if given, is a
+    callable ``(PipelineResult) -> list`` of recovered-vs-truth rows to put at the
+    top of the HTML report (the demo).
     """
     from imaging import write_phase_report
     from modeling import build_heart_model, offscreen_available, render_model_png, write_model
@@ -183,8 +185,7 @@ def run_pipeline(
             cardiac_phase_source=report.source,
             mask_path=mask,
             label=label,
-            target_faces=faces,
-            expected_fiducials=None if fiducials == 0 else fiducials,
+            options=model_options,
         )
         model_dir = write_model(build.model, staging / "model")
         paths["model"] = model_dir
@@ -194,10 +195,10 @@ def run_pipeline(
 
         t = time.perf_counter()
         log("[3/3] spatiotemporal registration")
-        result = register_session(build.model, session, phase_step=phase_step, estimator=estimator,
-                                  progress=progress)
+        result = register_session(build.model, session, options=registration_options, progress=progress)
         paths["registration"] = write_registration(
-            result, staging / "registration", model=build.model, fiducials_probe_mm=session.fiducials_probe_mm
+            result, staging / "registration", model=build.model, view=view,
+            fiducials_probe_mm=session.fiducials_probe_mm,
         )
         timings["registration"] = time.perf_counter() - t
 

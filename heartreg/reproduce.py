@@ -453,6 +453,7 @@ def _run_trial(k, trial_dir, *, size, seed, n_points, phase_step, progress, say)
     """Make (or reuse) trial ``k``'s phantom case, run the pipeline on it, write ``trial.json``."""
     from heartreg.demo import truth_rows as make_truth_rows
     from heartreg.pipeline import run_pipeline
+    from registration.options import RegistrationOptions
 
     preset = f"wood2018-trial{k}"
     t = time.perf_counter()
@@ -461,7 +462,8 @@ def _run_trial(k, trial_dir, *, size, seed, n_points, phase_step, progress, say)
     say(f"phantom {preset} {'reused' if reused else 'written'} ({t_phantom:.1f} s); running the pipeline")
     t = time.perf_counter()
     run = run_pipeline(trial_dir / "case" / "ct", trial_dir / "case" / "session", trial_dir / "run",
-                       phase_step=phase_step, estimator="eq10", overwrite=True, progress=progress)
+                       registration_options=RegistrationOptions(phase_step=phase_step, estimator="eq10"),
+                       overwrite=True, progress=progress)
     t_pipeline = time.perf_counter() - t
     truth_rows = make_truth_rows(run, truth)
     timings = {"phantom": t_phantom, "pipeline": t_pipeline, **run.timings_s}

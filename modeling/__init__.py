@@ -9,6 +9,7 @@ from modeling.segment import (
     HeartSegmentation,
     segment_heart,
 )
+from modeling.options import ModelOptions
 from modeling.build import (
     ModelBuild,
     ModelingWarning,
@@ -74,6 +75,7 @@ from modeling.slicer import (
 )
 
 __all__ = [
+    "ModelOptions",
     "APEX_LAI_LPS",
     "ModelingWarning",
     "base_direction",

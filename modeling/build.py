@@ -18,18 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from hrcore.errors import UsageError
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
+from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
 from modeling.surface import MeshError, decimate, mask_to_mesh
 from modeling.vessels import APEX_LAI_LPS, base_direction, trim_vessel_stubs
 
-__all__ = ["ModelingWarning", "ModelBuild", "build_heart_model"]
+__all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]
 
-#: ``expected_fiducials`` value: take the markers found on the skin, however many (none: a warning).
-AUTO = "auto"
 #: Whole-heart volumes (ml) of adults; an automatic segmentation outside this range is flagged.
 HEART_ML = (250.0, 1500.0)
 #: Largest rightward component (LPS -x) of a unit apex direction not warned about: a heart
@@ -67,8 +65,6 @@ class ModelBuild:
     notes: tuple[str, ...] = ()
 
 
-#: an adult heart (epicardial surface) holds some 300-1000 ml; a mask below this is not one.
-MIN_HEART_ML = 100.0
 #: the share of an external label that may lie outside the CT before a note says so.
 OUTSIDE_NOTE_FRACTION = 0.05
 
@@ -100,14 +96,9 @@ def build_heart_model(
     cardiac_phase_source: str,
     mask_path=None,
     label: int | str | None = None,
-    target_faces: int = 20000,
-    expected_fiducials: int | str | None = 9,
-    fiducial_rows: int = 3,
-    fiducial_floor_hu: float | None = None,
-    segmentation: dict | None = None,
-    trim_vessels: bool | None = None,
-    min_heart_ml: float = MIN_HEART_ML,
+    options: ModelOptions | None = None,
     progress=None,
+    **overrides,
 ) -> ModelBuild:
     """Build the heart model of ``volume``.
 
@@ -125,27 +116,12 @@ def build_heart_model(
     label : int or str, optional
         The label of the heart in ``mask_path``, by value or by name (needed if
         it holds several).
-    target_faces : int
-        Faces of the decimated mesh.
-    expected_fiducials : int, "auto" or None
-        Skin fiducials expected (a different count is an error); ``"auto"``:
-        the markers found on the skin, however many (none: a warning); None: no
-        fiducials are looked for.
-    fiducial_rows : int
-        Rows of the fiducial grid (for their order).
-    fiducial_floor_hu : float, optional
-        HU above which fiducial excess density counts (default: modeling.fiducials.FLOOR_HU).
-    segmentation : dict, optional
-        Keyword arguments of :func:`modeling.segment.segment_heart`.
-    trim_vessels : bool, optional
-        Remove the great-vessel stubs the segmentation leaves over the vessels'
-        mouths and close the surface across them (:mod:`modeling.vessels`).
-        Default: for the automatic segmentation only (an external mask is
-        trusted as given). A trim that fails falls back to the untrimmed surface
-        with a warning.
-    min_heart_ml : float, ml
-        A mask smaller than this is refused: it is not a heart (see
-        :data:`MIN_HEART_ML`).
+    options : ModelOptions, optional
+        How the model is built (:class:`modeling.options.ModelOptions`: faces,
+        fiducials, vessel trim, ...); default: its defaults.
+    **overrides
+        Fields of :class:`ModelOptions` replaced for this call, e.g.
+        ``target_faces=5000``.
     progress : callable, optional
         Called with a stage name as each stage starts (e.g. to advance a bar).
 
@@ -154,8 +130,10 @@ def build_heart_model(
     LabelMapError, SegmentationError
         A mask far smaller than a heart (the message gives its volume in ml).
     """
-    if target_faces < 100:
-        raise UsageError(f"target_faces (--faces) must be at least 100, got {target_faces}")
+    opts = ModelOptions.of(options, **overrides)
+    target_faces, expected_fiducials, fiducial_rows = opts.target_faces, opts.expected_fiducials, opts.fiducial_rows
+    fiducial_floor_hu, segmentation, trim_vessels = opts.fiducial_floor_hu, opts.segmentation, opts.trim_vessels
+    min_heart_ml = opts.min_heart_ml
     T = np.asarray(volume.T_patient_from_voxel, dtype=float)
     timings: dict[str, float] = {}
     notes: list[str] = []
@@ -225,10 +203,6 @@ def build_heart_model(
     fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
     if expected_fiducials is not None:
         auto = expected_fiducials == AUTO
-        if not auto and (isinstance(expected_fiducials, str) or int(expected_fiducials) < 0):
-            raise UsageError(
-                f"expected_fiducials (--fiducials) must be a count >= 0, {AUTO!r} or None, got {expected_fiducials!r}"
-            )
         kwargs = {} if fiducial_floor_hu is None else {"floor_hu": fiducial_floor_hu}
         try:
             fiducials = find_fiducials(

@@ -78,6 +78,7 @@ from registration.result import (
     IcpReport,
     RegistrationResult,
 )
+from registration.options import RegistrationOptions
 from registration.pipeline import (
     RegistrationError,
     sweep_phases,
@@ -112,6 +113,7 @@ from registration.localise import (
 )
 
 __all__ = [
+    "RegistrationOptions",
     "ClosestPoints",
     "CausalPhases",
     "CoverageWarning",

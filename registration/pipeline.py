@@ -38,6 +38,7 @@ from imaging.events import SignalError
 from imaging.respiration import expiration_onsets, respiration_phase
 from modeling.model import HeartModel
 from registration.fiducial import FiducialError, register_fiducials
+from registration.options import MIN_BEATS, MIN_BREATHS, RegistrationOptions
 from registration.icp import SurfaceIndex, icp
 from registration.motion_model import (
     CoverageWarning,
@@ -71,14 +72,9 @@ __all__ = [
     "register_session",
     "MIN_BEATS",
     "MIN_BREATHS",
+    "RegistrationOptions",
 ]
 
-#: Fewest complete heartbeats (R-peak to R-peak) a record must hold.
-MIN_BEATS = 4
-#: Fewest complete breaths (start of expiration to the next) a record must hold.
-MIN_BREATHS = 2
-#: The paper's sweep step (0, 0.01, ..., 1).
-DEFAULT_STEP = 0.01
 
 
 class RegistrationError(HeartregError, ValueError):
@@ -252,19 +248,9 @@ def register_session(
     model: HeartModel,
     session: Session,
     *,
-    harmonics: Harmonics | Sequence[int] = Harmonics(),
-    phase_step: float = DEFAULT_STEP,
-    cardiac_sweep: bool = True,
-    cardiac_phase_step: float | None = None,
-    icp_options: Mapping | None = None,
-    min_beats: int = MIN_BEATS,
-    min_breaths: int = MIN_BREATHS,
-    coverage_bins: int = 10,
-    max_fre_mm: float = 3.0,
-    estimator: TemporalEstimator | str = TemporalEstimator.SHAPE,
-    breath_hold_phase: float | None = None,
-    breath_hold_sd: float = 0.05,
+    options: RegistrationOptions | None = None,
     progress: bool = False,
+    **overrides,
 ) -> RegistrationResult:
     """Register a session to a heart model in space and in respiration phase.
 
@@ -275,34 +261,13 @@ def register_session(
         the documented order).
     session : Session
         From :func:`registration.session.read_session`.
-    harmonics : Harmonics or (Hc, Hr, Hmc, Hmr)
-        Fourier harmonics of the motion models (paper: 5, 4, 2, 1).
-    phase_step : float, cycles
-        Step of both sweeps (0.01: 101 phases, as the paper).
-    cardiac_sweep : bool
-        Also sweep phi_C at phi_R* (paper Fig. 2A).
-    cardiac_phase_step : float, cycles, optional
-        Step of the cardiac sweep when other than ``phase_step`` (its systolic
-        phases, far from the map's shape, take the most ICP iterations).
-    icp_options : mapping, optional
-        Keyword arguments of :func:`registration.icp.icp` (method, trim_fraction,
-        huber_mm, tolerances ...).
-    min_beats, min_breaths : int
-        Fewest complete heartbeats and breaths a record must hold to be used.
-    coverage_bins : int
-        Phase bins checked for coverage (a note per point with empty bins).
-    max_fre_mm : float, mm
-        Above this FRE in the documented order the fiducial correspondence is
-        searched (see :func:`registration.fiducial.register_fiducials`).
-    estimator : TemporalEstimator or {"shape", "eq10"}
-        How phi_R* is chosen: ``"shape"`` (default) from the chest's traced
-        staples and the heart's shape over the sweep, with a bootstrap interval;
-        ``"eq10"``, the paper's empirical metric (see :mod:`registration.temporal`).
-        Both are computed and reported; this one gives phi_R* and the final T.
-    breath_hold_phase : float, optional
-        The CT's breath-hold respiration phase if known (e.g. the ventilator was
-        held at end-expiration), with standard deviation ``breath_hold_sd``
-        (cycles); used by ``"shape"``.
+    options : RegistrationOptions, optional
+        How to register (:class:`registration.options.RegistrationOptions`:
+        harmonics, sweep steps, ICP options, the phi_R* estimator, ...);
+        default: its defaults.
+    **overrides
+        Fields of :class:`RegistrationOptions` replaced for this call, e.g.
+        ``harmonics=(3, 2, 1, 1)``.
     progress : bool
         A progress bar on stderr over the points.
 
@@ -326,18 +291,15 @@ def register_session(
             f"the model's cardiac phase is unknown ({model.cardiac_phase_source}); "
             "give the CT's phase (0..1) with --cardiac-phase"
         )
-    harmonics = _as_harmonics(harmonics)
-    try:
-        estimator = TemporalEstimator(estimator)
-    except ValueError:
-        raise UsageError(
-            f"estimator (--estimator) must be one of {[e.value for e in TemporalEstimator]}, got {estimator!r}"
-        ) from None
+    opts = RegistrationOptions.of(options, **overrides)
+    harmonics = _as_harmonics(opts.harmonics)
+    estimator = TemporalEstimator(opts.estimator)
+    phase_step, cardiac_sweep, cardiac_phase_step = opts.phase_step, opts.cardiac_sweep, opts.cardiac_phase_step
+    icp_options, min_beats, min_breaths = opts.icp_options, opts.min_beats, opts.min_breaths
+    coverage_bins, max_fre_mm = opts.coverage_bins, opts.max_fre_mm
+    breath_hold_phase, breath_hold_sd = opts.breath_hold_phase, opts.breath_hold_sd
     phases = sweep_phases(phase_step)
     phases_c = phases if cardiac_phase_step is None else sweep_phases(cardiac_phase_step)
-    for name, value in (("min_beats", min_beats), ("min_breaths", min_breaths)):
-        if int(value) != value or value < 1:
-            raise UsageError(f"{name} must be a positive integer, got {value!r}")
     options = dict(icp_options or {})
     options.pop("T_init", None)
     timings: dict[str, float] = {}

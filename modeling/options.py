@@ -1,0 +1,85 @@
+"""The options of a heart model, written once: the library, the pipeline and the
+command all take a :class:`ModelOptions` (the command's flags fill one).
+
+Examples
+--------
+>>> from modeling.options import ModelOptions
+>>> opts = ModelOptions(target_faces=5000)
+>>> opts.target_faces, opts.expected_fiducials
+(5000, 'auto')
+>>> ModelOptions.of(opts, trim_vessels=False).trim_vessels
+False
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from types import MappingProxyType
+
+from hrcore.errors import UsageError
+
+__all__ = ["AUTO", "MIN_HEART_ML", "ModelOptions"]
+
+#: ``expected_fiducials`` value: take the markers found on the skin, however many (none: a warning).
+AUTO = "auto"
+#: an adult heart (epicardial surface) holds some 300-1000 ml; a mask below this is not one.
+MIN_HEART_ML = 100.0
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """How a heart model is built (:func:`modeling.build_heart_model`).
+
+    Attributes
+    ----------
+    target_faces : int
+        Faces of the decimated mesh (``--faces``).
+    expected_fiducials : int, "auto" or None
+        Skin fiducials expected, a different count being an error
+        (``--fiducials N``); ``"auto"``: the markers found on the skin, however
+        many (none: a warning); None (``--fiducials 0``): none looked for.
+    fiducial_rows : int
+        Rows of the fiducial grid (for their order).
+    fiducial_floor_hu : float, optional
+        HU above which fiducial excess density counts (``--fiducial-floor-hu``;
+        default :data:`modeling.fiducials.FLOOR_HU`).
+    segmentation : mapping, optional
+        Keyword arguments of :func:`modeling.segment.segment_heart`.
+    trim_vessels : bool, optional
+        Remove the great-vessel stubs over the vessels' mouths and close the
+        surface (``--trim-vessels`` / ``--keep-vessels``); default: for the
+        automatic segmentation only (an external mask is trusted as given).
+    min_heart_ml : float, ml
+        A mask smaller than this is refused: it is not a heart.
+    """
+
+    target_faces: int = 20000
+    expected_fiducials: int | str | None = AUTO
+    fiducial_rows: int = 3
+    fiducial_floor_hu: float | None = None
+    segmentation: MappingProxyType | None = None
+    trim_vessels: bool | None = None
+    min_heart_ml: float = MIN_HEART_ML
+
+    def __post_init__(self):
+        if isinstance(self.target_faces, bool) or int(self.target_faces) != self.target_faces \
+                or self.target_faces < 100:
+            raise UsageError(f"target_faces (--faces) must be an integer of at least 100, got {self.target_faces!r}")
+        e = self.expected_fiducials
+        if not (e is None or e == AUTO or (not isinstance(e, (str, bool)) and int(e) == e and e >= 0)):
+            raise UsageError(f"expected_fiducials (--fiducials) must be a count >= 0, {AUTO!r} or None, got {e!r}")
+        if int(self.fiducial_rows) != self.fiducial_rows or self.fiducial_rows < 1:
+            raise UsageError(f"fiducial_rows must be a positive integer, got {self.fiducial_rows!r}")
+        if not self.min_heart_ml > 0:
+            raise UsageError(f"min_heart_ml must be positive, got {self.min_heart_ml!r}")
+        if self.segmentation is not None:
+            object.__setattr__(self, "segmentation", MappingProxyType(dict(self.segmentation)))
+
+    @classmethod
+    def of(cls, options: ModelOptions | None = None, **overrides) -> ModelOptions:
+        """``options`` (default: the defaults) with some fields replaced."""
+        base = cls() if options is None else options
+        if not isinstance(base, cls):
+            raise TypeError(f"options must be a {cls.__name__}, got {type(base).__name__}")
+        return dataclasses.replace(base, **overrides) if overrides else base

@@ -1,0 +1,113 @@
+"""The options of a registration, written once: the library, the pipeline and the
+command all take a :class:`RegistrationOptions` (the command's flags fill one).
+
+Examples
+--------
+>>> from registration.options import RegistrationOptions
+>>> opts = RegistrationOptions(harmonics=(3, 2, 1, 1), phase_step=0.02)
+>>> opts.harmonics.cardiac, opts.estimator
+(3, 'shape')
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from types import MappingProxyType
+
+from hrcore.errors import UsageError
+from registration.motion_model import Harmonics
+
+__all__ = ["DEFAULT_STEP", "MIN_BEATS", "MIN_BREATHS", "RegistrationOptions"]
+
+#: fewest complete heartbeats a point's record must hold to be used.
+MIN_BEATS = 4
+#: fewest complete breaths.
+MIN_BREATHS = 2
+#: step of the sweeps (cycles): 101 phases, as the paper.
+DEFAULT_STEP = 0.01
+#: how phi_R* is chosen by default (see :mod:`registration.temporal`).
+ESTIMATORS = ("shape", "eq10")
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """How a session is registered (:func:`registration.register_session`).
+
+    Attributes
+    ----------
+    harmonics : Harmonics or (Hc, Hr, Hmc, Hmr)
+        Fourier harmonics of the motion models (``--harmonics``; paper: 5, 4, 2, 1).
+    phase_step : float, cycles
+        Step of both sweeps (``--step``; 0.01: 101 phases, as the paper).
+    cardiac_sweep : bool
+        Also sweep phi_C at phi_R* (paper Fig. 2A).
+    cardiac_phase_step : float, cycles, optional
+        Step of the cardiac sweep when other than ``phase_step``.
+    icp_options : mapping, optional
+        Keyword arguments of :func:`registration.icp.icp` (``max_iterations``:
+        ``--icp-max-iterations``; method, trim_fraction, huber_mm, tolerances ...).
+    min_beats, min_breaths : int
+        Fewest complete heartbeats and breaths a record must hold to be used.
+    coverage_bins : int
+        Phase bins checked for coverage (a note per point with empty bins).
+    max_fre_mm : float, mm
+        Above this FRE in the documented order the fiducial correspondence is
+        searched.
+    estimator : {"shape", "eq10"}
+        How phi_R* is chosen (``--estimator``): the chest's traced staples and
+        the heart's shape over the sweep, with a bootstrap interval, or the
+        paper's empirical metric (eq. 10).
+    breath_hold_phase : float, optional
+        The CT's breath-hold respiration phase if known (``--breath-hold-phase``),
+        with standard deviation ``breath_hold_sd`` (cycles); used by ``"shape"``.
+    """
+
+    harmonics: Harmonics = Harmonics()
+    phase_step: float = DEFAULT_STEP
+    cardiac_sweep: bool = True
+    cardiac_phase_step: float | None = None
+    icp_options: MappingProxyType | None = None
+    min_beats: int = MIN_BEATS
+    min_breaths: int = MIN_BREATHS
+    coverage_bins: int = 10
+    max_fre_mm: float = 3.0
+    estimator: str = "shape"
+    breath_hold_phase: float | None = None
+    breath_hold_sd: float = 0.05
+
+    def __post_init__(self):
+        h = self.harmonics
+        if not isinstance(h, Harmonics):
+            values = tuple(h)
+            if len(values) != 4:
+                raise UsageError(f"harmonics (--harmonics) must be a Harmonics or (Hc, Hr, Hmc, Hmr), got {h!r}")
+            try:
+                h = Harmonics(*values)
+            except ValueError as exc:
+                raise UsageError(f"harmonics (--harmonics HC HR HMC HMR): {exc}") from None
+            object.__setattr__(self, "harmonics", h)
+        estimator = getattr(self.estimator, "value", self.estimator)
+        if estimator not in ESTIMATORS:
+            raise UsageError(f"estimator (--estimator) must be one of {list(ESTIMATORS)}, got {self.estimator!r}")
+        object.__setattr__(self, "estimator", estimator)
+        for name in ("min_beats", "min_breaths", "coverage_bins"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise UsageError(f"{name} must be a positive integer, got {value!r}")
+        if self.breath_hold_phase is not None and not 0.0 <= self.breath_hold_phase <= 1.0:
+            raise UsageError(
+                f"breath_hold_phase (--breath-hold-phase) must be a phase in [0, 1], got {self.breath_hold_phase}"
+            )
+        if not self.breath_hold_sd > 0:
+            raise UsageError(f"breath_hold_sd must be positive, got {self.breath_hold_sd!r}")
+        if self.icp_options is not None:
+            object.__setattr__(self, "icp_options", MappingProxyType(dict(self.icp_options)))
+
+    @classmethod
+    def of(cls, options: RegistrationOptions | None = None, **overrides) -> RegistrationOptions:
+        """``options`` (default: the defaults) with some fields replaced."""
+        base = cls() if options is None else options
+        if not isinstance(base, cls):
+            raise TypeError(f"options must be a {cls.__name__}, got {type(base).__name__}")
+        return dataclasses.replace(base, **overrides) if overrides else base
