@@ -340,8 +340,11 @@ def staged_output(
         probe = probe.parent
     stage = home / f".{absolute.name}.{_MARK}-{os.getpid()}-{secrets.token_hex(4)}.tmp"
     try:
-        for d in reversed(created):
-            os.mkdir(d)
+        for d in reversed(list(created)):
+            try:
+                os.mkdir(d)
+            except FileExistsError:  # another process (a parallel trial) made it first: not ours to remove
+                created.remove(d)
         clean_stale_staging(home)
         if folder or parts is not None:
             os.mkdir(stage)
