@@ -291,6 +291,7 @@ def _cmd_register(args) -> int:
     print(f"  from T0           {result.translation_distance_mm:.2f} mm, {result.rotation_distance_deg:.2f} deg")
     print(f"  errors            RMS {result.rms_mm:.3f} mm, FRE {result.fre_mm:.2f} mm, "
           f"static delta mean {result.delta_static_mean_mm:.2f} mm")
+    print(f"  trust             {result.trust.summary()}" + ("; see the notes" if result.trust.reasons else ""))
     print(f"  exclusions        {len(result.exclusions)}"
           + "".join(f"\n    point {i}: {why}" for i, why in result.exclusions))
     for note in list(session.notes) + list(result.notes) + list(paths["notes"]):
@@ -364,6 +365,7 @@ def _cmd_pipeline(args) -> int:
     print(f"  phi_C* = {run.phase_report.volume_cardiac_phase:.4f} ({run.phase_report.source})")
     print(f"  phi_R* = {reg.phase_r:.2f}, RMS {reg.rms_mm:.2f} mm, FRE {reg.fre_mm:.2f} mm, "
           f"mean delta vs static {reg.static.mean_delta_mm:.2f} mm")
+    print(f"  trust  {reg.trust.summary()}")
     print(f"  report {run.paths['report']}")
     return 0
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from imaging.files import write_text_atomic
 
-__all__ = ["html_table", "registration_view_html", "write_html_report"]
+__all__ = ["html_table", "registration_view_html", "trust_html", "write_html_report"]
 
 _STYLE = """
 body { font-family: -apple-system, Segoe UI, Helvetica, Arial, sans-serif; margin: 2em auto;
@@ -23,6 +23,10 @@ th { background: #f3f3f3; } td.num { text-align: right; font-variant-numeric: ta
 .ok { color: #1a7f37; font-weight: 600; } .miss { color: #b42318; font-weight: 600; }
 img { max-width: 100%; border: 1px solid #eee; margin: .5em 0; }
 .note { color: #555; font-size: .9em; }
+.trust { border-left: 6px solid; padding: .4em .9em; margin: 1em 0; }
+.trust-ok { border-color: #1a7f37; background: #eef8f0; }
+.trust-caution { border-color: #b7791f; background: #fdf6e7; }
+.trust-poor { border-color: #b42318; background: #fdeeee; }
 """
 
 
@@ -98,6 +102,16 @@ def _on_surface(vertices, points, steps: int = 16):
     return path
 
 
+def trust_html(trust) -> str:
+    """How far to trust the registration (:class:`registration.plausibility.Trust`), as a box."""
+    level = trust.level.value
+    words = {"ok": "no weakness found", "caution": "usable, but check it",
+             "poor": "may be several mm or degrees off"}[level]
+    items = "".join(f"<li><b>{html.escape(r.level.value)}</b>: {html.escape(r.message)}</li>" for r in trust.reasons)
+    return (f'<div class="trust trust-{level}"><b>Trust in this registration: {level.upper()}</b> '
+            f"({words}).{'<ul>' + items + '</ul>' if items else ''}</div>")
+
+
 def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run") -> Path:
     """Write the run's report page.
 
@@ -118,6 +132,7 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
         "gated CT, heart model in the heart-centric frame, and spatiotemporal registration of the robot's "
         "points. Frames: patient = DICOM LPS, heart = fitted heart-centric frame; mm, phases in [0, 1).</p>"
     )
+    parts.append(trust_html(reg.trust))
     parts.append("<h2>Overview: the registration in 3-D</h2>")
     parts.append(registration_view_html(model, reg))
     if truth_rows:

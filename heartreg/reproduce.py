@@ -42,7 +42,7 @@ from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT
 from heartreg.demo import pose_error
 from heartreg.phantom.config import PAPER_TABLE1
 from hrcore.errors import HeartregError
-from imaging.files import write_text_atomic
+from hrcore.output import staged_output
 
 __all__ = [
     "COLUMNS",
@@ -65,6 +65,13 @@ TRIALS = (1, 2, 3, 4, 5, 6)
 #: breathing chest and the fiducial traces are evaluated by
 #: ``heartreg evaluate-temporal`` (:mod:`heartreg.temporal_eval`).
 PAPER_CONDITIONS = {"chest_wall_ap_mm": 0.0, "fiducial_trace_breaths": 0.0}
+
+#: What a trial writes into ``OUT_DIR/trialN`` beside its phantom case, staged and
+#: moved in in this order: a trial is finished when its ``trial.json`` is there.
+TRIAL_PARTS = ("run", "trial.json")
+#: What the reproduction writes into ``OUT_DIR`` beside the trial folders.
+REPORT_PARTS = ("figures.json", "fig2_rms.png", "fig4_phases.png", "fig6_parameters.png", "fig7_distances.png",
+                "fig9_delta.png", "reproduction.csv", "reproduction.md", "reproduction.json", "reproduction.html")
 
 #: |phi_R* - truth| within this counts as "near the image phase" (cycles).
 TOL_PHASE_R = 0.05
@@ -461,18 +468,20 @@ def _run_trial(k, trial_dir, *, size, seed, n_points, phase_step, progress, say)
     t_phantom = time.perf_counter() - t
     say(f"phantom {preset} {'reused' if reused else 'written'} ({t_phantom:.1f} s); running the pipeline")
     t = time.perf_counter()
-    run = run_pipeline(trial_dir / "case" / "ct", trial_dir / "case" / "session", trial_dir / "run",
-                       registration_options=RegistrationOptions(phase_step=phase_step, estimator="eq10"),
-                       overwrite=True, progress=progress)
-    t_pipeline = time.perf_counter() - t
-    truth_rows = make_truth_rows(run, truth)
-    timings = {"phantom": t_phantom, "pipeline": t_pipeline, **run.timings_s}
-    del run  # the volume and the mesh: free them before the next trial
-    extra = {"case_reused": reused, "time_phantom_s": t_phantom, "time_pipeline_s": t_pipeline}
-    result = _trial_result(k, trial_dir, truth, truth_rows, extra, timings)
-    write_text_atomic(trial_dir / "trial.json", json.dumps(
-        {"row": {key: _plain(v) for key, v in result.row.items()}, "truth_rows": result.truth_rows,
-         "timings_s": result.timings_s}, indent=1) + "\n")
+    # the run and trial.json staged beside the case, moved in at the end (trial.json last)
+    with staged_output(trial_dir, parts=TRIAL_PARTS, overwrite=True, what="trial folder") as stage:
+        run = run_pipeline(trial_dir / "case" / "ct", trial_dir / "case" / "session", stage / "run",
+                           registration_options=RegistrationOptions(phase_step=phase_step, estimator="eq10"),
+                           progress=progress)
+        t_pipeline = time.perf_counter() - t
+        truth_rows = make_truth_rows(run, truth)
+        timings = {"phantom": t_phantom, "pipeline": t_pipeline, **run.timings_s}
+        del run  # the volume and the mesh: free them before the next trial
+        extra = {"case_reused": reused, "time_phantom_s": t_phantom, "time_pipeline_s": t_pipeline}
+        result = _trial_result(k, stage, truth, truth_rows, extra, timings)
+        (stage / "trial.json").write_text(json.dumps(
+            {"row": {key: _plain(v) for key, v in result.row.items()}, "truth_rows": result.truth_rows,
+             "timings_s": result.timings_s}, indent=1) + "\n", encoding="utf-8")
     r = result.row
     say(f"phi_R* {r['phi_r']:.2f} (truth {r['phi_r_truth']:.2f}), min translation {r['min_translation_mm']:.2f} mm, "
         f"mean delta {r['mean_delta_mm']:.2f} mm, pipeline {t_pipeline:.1f} s")
@@ -607,7 +616,8 @@ def reproduce(
         raise ReproduceError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     say = log if log is not None else (lambda msg: None)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ReproduceError(f"{out} exists and is not a folder; choose an output folder")
     t_all = time.perf_counter()
 
     if rerun:
@@ -619,39 +629,42 @@ def reproduce(
 
     summary = _summary(results)
     figs = figure_data(results)
-    paths = {"figures_json": out / "figures.json"}
-    write_text_atomic(paths["figures_json"], json.dumps(figs) + "\n")
-    paths.update(plot_figures(figs, out))
     timings = {"total": time.perf_counter() - t_all}
     timings.update({f"trial{t.trial}": t.timings_s["phantom"] + t.timings_s["pipeline"] for t in results})
     if not rerun:
         timings["trials (earlier run)"] = sum(t.timings_s["phantom"] + t.timings_s["pipeline"] for t in results)
-
-    paths["csv"] = out / "reproduction.csv"
-    write_text_atomic(paths["csv"], csv_text(results))
-    paths["markdown"] = out / "reproduction.md"
-    write_text_atomic(paths["markdown"], markdown(results, summary, size=size, seed=seed, command=command))
-    paths["json"] = out / "reproduction.json"
-    write_text_atomic(paths["json"], json.dumps({
-        "format": "heartreg-reproduction",
-        "version": 1,
-        "command": command,
-        "size": size,
-        "seed": seed,
-        "n_points": n_points,
-        "phase_step": phase_step,
-        "trials": [{k2: _plain(v) for k2, v in t.row.items()} for t in results],
-        "columns": {k2: {"header": h, "meaning": m} for k2, h, m in COLUMNS},
-        "summary": summary,
-        "paper": {"table1": {str(k2): {"points": v[0], "heart_rate_hz": v[1], "resp_rate_hz": v[2],
-                                       "image_phase": v[3], "euler_xyz_deg": list(v[4])}
-                             for k2, v in PAPER_TABLE1.items()},
-                  **{k2: (list(v) if isinstance(v, tuple) else v) for k2, v in PAPER.items()}},
-        "timings_s": timings,
-    }, indent=1) + "\n")
-    timings["total"] = time.perf_counter() - t_all
-    paths["html"] = out / "reproduction.html"
-    write_text_atomic(paths["html"], page_html(results, summary, paths, size=size, seed=seed, command=command,
-                                           timings=timings))
+    # the report files staged together and moved in at the end, the page last
+    with staged_output(out, parts=REPORT_PARTS, overwrite=True, what="reproduction folder") as stage:
+        staged = {"figures_json": stage / "figures.json"}
+        staged["figures_json"].write_text(json.dumps(figs) + "\n", encoding="utf-8")
+        staged.update(plot_figures(figs, stage))
+        staged["csv"] = stage / "reproduction.csv"
+        staged["csv"].write_text(csv_text(results), encoding="utf-8")
+        staged["markdown"] = stage / "reproduction.md"
+        staged["markdown"].write_text(markdown(results, summary, size=size, seed=seed, command=command),
+                                      encoding="utf-8")
+        staged["json"] = stage / "reproduction.json"
+        staged["json"].write_text(json.dumps({
+            "format": "heartreg-reproduction",
+            "version": 1,
+            "command": command,
+            "size": size,
+            "seed": seed,
+            "n_points": n_points,
+            "phase_step": phase_step,
+            "trials": [{k2: _plain(v) for k2, v in t.row.items()} for t in results],
+            "columns": {k2: {"header": h, "meaning": m} for k2, h, m in COLUMNS},
+            "summary": summary,
+            "paper": {"table1": {str(k2): {"points": v[0], "heart_rate_hz": v[1], "resp_rate_hz": v[2],
+                                           "image_phase": v[3], "euler_xyz_deg": list(v[4])}
+                                 for k2, v in PAPER_TABLE1.items()},
+                      **{k2: (list(v) if isinstance(v, tuple) else v) for k2, v in PAPER.items()}},
+            "timings_s": timings,
+        }, indent=1) + "\n", encoding="utf-8")
+        timings["total"] = time.perf_counter() - t_all
+        staged["html"] = stage / "reproduction.html"
+        staged["html"].write_text(page_html(results, summary, staged, size=size, seed=seed, command=command,
+                                            timings=timings), encoding="utf-8")
+    paths = {key: out / p.name for key, p in staged.items()}
     return Reproduction(out_dir=out, size=size, seed=seed, trials=tuple(results), summary=summary,
                         paths=paths, timings_s=timings)

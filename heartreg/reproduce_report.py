@@ -19,7 +19,6 @@ from typing import Sequence
 import numpy as np
 
 from heartreg.reproduce import COLUMNS, PAPER, TOL_PHASE_R, TrialResult, _mean_curve, _wrap
-from imaging.files import atomic_path
 
 __all__ = ["figure_data", "plot_figures", "csv_text", "markdown", "page_html"]
 
@@ -275,8 +274,7 @@ def _colours(n):
 
 
 def _save(fig, path: Path) -> Path:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    fig.savefig(path, format="png")  # into the caller's staging folder (hrcore.output)
     return path
 
 
@@ -296,6 +294,8 @@ def _draw_curves(ax, panel, colours):
 
 
 def plot_figures(figs: dict, out: Path) -> dict:
+    """Draw the figures of :func:`figure_data` into ``out`` (a staging folder:
+    :func:`hrcore.output.staged_output`); ``{name: Path}``."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     paths = {}

@@ -261,6 +261,11 @@ def _size_mb(path: Path) -> float:
 
 
 # ------------------------------------------------------------------ staging
+def _holds_only(folder: Path, parts) -> bool:
+    """True when ``folder`` holds nothing but entries named in ``parts``."""
+    return all(entry.name in parts for entry in os.scandir(folder))
+
+
 def _check_parts(out: Path, parts, inputs, what: str, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
@@ -298,10 +303,13 @@ def staged_output(
     parts : iterable of str, optional
         Names of the entries this output owns inside an ``out`` folder that
         may hold other things (the pipeline's ``phases/``, ``model/``, ...).
-        When ``out`` does not exist or is empty, the whole folder is still
-        staged and renamed once; otherwise each part is swapped into place
-        atomically, one after the other, and nothing else in ``out`` is
-        touched.  ``overwrite`` then applies to the parts.
+        When ``out`` does not exist or holds nothing but these parts (an
+        earlier run's output), the whole folder is still staged and swapped
+        in one step: a kill at any moment leaves the earlier output or the
+        new one.  When ``out`` holds other things too (the demo's folder),
+        each part is swapped into place atomically, one after the other, and
+        nothing else in ``out`` is touched.  ``overwrite`` applies to the
+        parts.
 
     Yields
     ------
@@ -326,7 +334,7 @@ def staged_output(
     """
     out = Path(out)
     parts = tuple(parts) if parts is not None else None
-    whole = parts is None or not out.exists() or (out.is_dir() and not any(out.iterdir()))
+    whole = parts is None or not out.exists() or (out.is_dir() and _holds_only(out, parts))
     if parts is not None:
         _check_parts(out, parts, inputs, what, overwrite)
         if whole:
@@ -342,8 +350,11 @@ def staged_output(
         probe = probe.parent
     stage = home / f".{absolute.name}.{_MARK}-{os.getpid()}-{secrets.token_hex(4)}.tmp"
     try:
-        for d in reversed(created):
-            os.mkdir(d)
+        for d in reversed(list(created)):
+            try:
+                os.mkdir(d)
+            except FileExistsError:  # another process (a parallel trial) made it first: not ours to remove
+                created.remove(d)
         clean_stale_staging(home)
         if folder or parts is not None:
             os.mkdir(stage)

@@ -47,7 +47,7 @@ from registration.motion_model import (
     MotionModelError,
     fit_motion_model,
 )
-from registration.plausibility import assess_coverage, outlier_samples
+from registration.plausibility import assess_coverage, assess_trust, outlier_samples
 from registration.result import IcpReport, PointFit, RegistrationResult, _frozen
 from registration.session import PointRecord, Session
 from registration.spatiotemporal import (
@@ -202,6 +202,7 @@ def _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins):
         residual_rms_deg=float(model.residual_rms_deg),
         condition_number=float(model.condition_number),
         notes=tuple(notes),
+        n_outlier_samples=int(outliers.sum()),
     )
     return model, fit
 
@@ -368,7 +369,8 @@ def register_session(
     if exclusions:
         notes.append(f"{len(exclusions)} point(s) excluded (see exclusions)")
     means = np.stack([m.mean_position_mm for m in models])
-    notes.extend(assess_coverage(means @ T0[:3, :3].T + T0[:3, 3], model.mesh.vertices).notes)
+    coverage = assess_coverage(means @ T0[:3, :3].T + T0[:3, 3], model.mesh.vertices)
+    notes.extend(coverage.notes)
 
     # ---- sweeps
     t = time.perf_counter()
@@ -446,6 +448,11 @@ def register_session(
             "the final ICP is degenerate: the points can slide along the surface "
             "(see icp.weakest_direction); spread the points over more of the heart"
         )
+    if not report.converged:
+        notes.append(
+            f"the final ICP did not converge within {options.get('max_iterations', ICP_MAX_ITERATIONS)} "
+            "iterations; raise the limit (--icp-max-iterations)"
+        )
     static = compare_static(models, surface, T0, reg.T_map_from_source, reg.points_source_mm,
                             icp_options=options)
     timings["static"] = time.perf_counter() - t
@@ -499,6 +506,12 @@ def register_session(
         point_fits=tuple(fits),
         exclusions=tuple((int(i), str(r)) for i, r in exclusions),
         icp=report,
+        trust=assess_trust(
+            coverage=coverage, outlier_samples_per_point={f.point_id: f.n_outlier_samples for f in fits},
+            n_excluded=len(exclusions), phase_estimate=chosen, icp_converged=report.converged,
+            icp_degenerate=report.degenerate, sweep_unconverged=int(np.count_nonzero(~resp.converged)),
+            fre_mm=float(fid.fre_rms_mm), max_fre_mm=max_fre_mm, fiducials_ambiguous=bool(fid.ambiguous),
+        ),
         parameters=params,
         timings_s={k: float(v) for k, v in timings.items()},
         notes=tuple(notes),

@@ -1,6 +1,6 @@
-"""How far to trust a registration: point coverage and outlier samples.
+"""How far to trust a registration: point coverage, outlier samples, the verdict.
 
-Two checks that do not change a good registration but say when one is weak:
+Checks that do not change a good registration but say when one is weak:
 
 - :func:`assess_coverage`: a registration on few attachment points, or on
   points bunched on one side of the heart, can slide along the surface (the
@@ -10,10 +10,15 @@ Two checks that do not change a good registration but say when one is weak:
 - :func:`outlier_samples`: single tracker glitches in a point's record (a
   sample far from its neighbours) are found against a running median, so that
   they can be left out of that point's motion model and reported.
+- :func:`assess_trust`: the verdict written with every registration
+  (``registration.json``'s ``trust``): a :class:`TrustLevel` and the reasons
+  for it, from the checks above and the registration's own diagnostics
+  (phi_R*'s interval, the ICP's convergence and degeneracy, the fiducials).
 """
 
 from __future__ import annotations
 
+import enum
 import warnings
 from dataclasses import dataclass
 
@@ -26,7 +31,11 @@ __all__ = [
     "MIN_SPREAD_RATIO",
     "Coverage",
     "PlausibilityWarning",
+    "Trust",
+    "TrustLevel",
+    "TrustReason",
     "assess_coverage",
+    "assess_trust",
     "outlier_samples",
 ]
 
@@ -75,6 +84,16 @@ class Coverage:
     def weak(self) -> bool:
         return bool(self.notes)
 
+    @property
+    def few_points(self) -> bool:
+        """Fewer points than :data:`MIN_POINTS`."""
+        return self.n_points < MIN_POINTS
+
+    @property
+    def narrow(self) -> bool:
+        """The points cover too few sectors or spread too little along an axis."""
+        return self.sector_fraction < MIN_SECTOR_FRACTION or self.spread_ratio < MIN_SPREAD_RATIO
+
 
 def assess_coverage(points_heart_mm, vertices_heart_mm, *, warn: bool = True) -> Coverage:
     """Judge how many points there are and how they spread over the surface.
@@ -102,13 +121,14 @@ def assess_coverage(points_heart_mm, vertices_heart_mm, *, warn: bool = True) ->
     spread_v = np.std((v - centre) @ axes, axis=0)
     spread_p = np.std((p - centre) @ axes, axis=0) if p.shape[0] > 1 else np.zeros(3)
     spread_ratio = float(np.min(spread_p / np.maximum(spread_v, 1e-9)))
+    found = Coverage(int(p.shape[0]), float(sector_fraction), spread_ratio, ())
     notes = []
-    if p.shape[0] < MIN_POINTS:
+    if found.few_points:
         notes.append(
             f"registration on {p.shape[0]} point(s), fewer than {MIN_POINTS}: the result may be several mm "
             "and degrees off; record more points"
         )
-    if sector_fraction < MIN_SECTOR_FRACTION or spread_ratio < MIN_SPREAD_RATIO:
+    if found.narrow:
         notes.append(
             f"the points cover a narrow part of the heart ({sectors.size} of {_SECTORS} sectors around "
             f"its long axis, spread {spread_ratio:.2f} of the surface's along its thinnest axis): "
@@ -117,7 +137,7 @@ def assess_coverage(points_heart_mm, vertices_heart_mm, *, warn: bool = True) ->
     if warn:
         for note in notes:
             warnings.warn(note, PlausibilityWarning, stacklevel=2)
-    return Coverage(int(p.shape[0]), float(sector_fraction), spread_ratio, tuple(notes))
+    return Coverage(found.n_points, found.sector_fraction, found.spread_ratio, tuple(notes))
 
 
 def outlier_samples(positions_mm, rate_hz: float) -> np.ndarray:
@@ -144,3 +164,159 @@ def outlier_samples(positions_mm, rate_hz: float) -> np.ndarray:
     sigma = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
     limit = max(OUTLIER_SIGMAS * sigma + float(np.median(residual)), OUTLIER_FLOOR_MM)
     return residual > limit
+
+
+# ------------------------------------------------------------------ the verdict
+class TrustLevel(str, enum.Enum):
+    """How far to trust a registration.
+
+    ``ok``: no weakness found.  ``caution``: usable, but it rests on weaker
+    evidence than it could (an undecided phi_R*, points left out, outlier
+    samples, a bunched layout ...): check it, e.g. on the 3-D view.  ``poor``:
+    the data are known to let the result be several mm or degrees off (too
+    few points, a degenerate or unconverged final ICP): record again or do not
+    navigate on it unchecked.
+    """
+
+    OK = "ok"
+    CAUTION = "caution"
+    POOR = "poor"
+
+    @property
+    def rank(self) -> int:
+        return ("ok", "caution", "poor").index(self.value)
+
+
+@dataclass(frozen=True)
+class TrustReason:
+    """One reason to trust a registration less.
+
+    Attributes
+    ----------
+    code : str
+        Stable name: ``few_points``, ``narrow_coverage``, ``outlier_samples``,
+        ``excluded_points``, ``phase_undecided``, ``sweep_not_converged``,
+        ``icp_not_converged``, ``icp_degenerate``, ``fiducial_error``,
+        ``fiducials_ambiguous``.
+    level : TrustLevel
+        What this reason alone makes of the result.
+    message : str
+        One line: what was found and what to do.
+    """
+
+    code: str
+    level: TrustLevel
+    message: str
+
+    def to_dict(self) -> dict:
+        return {"code": self.code, "level": self.level.value, "message": self.message}
+
+
+@dataclass(frozen=True)
+class Trust:
+    """The verdict on a registration: the worst of its reasons' levels.
+
+    Attributes
+    ----------
+    level : TrustLevel
+    reasons : tuple of TrustReason
+        Empty when ``level`` is ``ok``.
+    """
+
+    level: TrustLevel
+    reasons: tuple[TrustReason, ...] = ()
+
+    def to_dict(self) -> dict:
+        return {"level": self.level.value, "reasons": [r.to_dict() for r in self.reasons]}
+
+    def summary(self) -> str:
+        """One line: the level and the reasons' codes."""
+        if not self.reasons:
+            return self.level.value
+        return f"{self.level.value} ({', '.join(r.code for r in self.reasons)})"
+
+
+def assess_trust(
+    *,
+    coverage: Coverage,
+    outlier_samples_per_point: dict,
+    n_excluded: int,
+    phase_estimate,
+    icp_converged: bool,
+    icp_degenerate: bool,
+    sweep_unconverged: int,
+    fre_mm: float,
+    max_fre_mm: float,
+    fiducials_ambiguous: bool,
+) -> Trust:
+    """The verdict on a registration from its checks and diagnostics.
+
+    Parameters
+    ----------
+    coverage : Coverage
+        From :func:`assess_coverage`.
+    outlier_samples_per_point : dict of int to int
+        Outlier samples left out of each point's motion model (point id: count).
+    n_excluded : int
+        Points of the session not registered.
+    phase_estimate : registration.temporal.TemporalEstimate
+        The phi_R* estimate used (its ``decided``, ``width``, ``confidence``,
+        ``method``).
+    icp_converged, icp_degenerate : bool
+        Of the final ICP (:class:`registration.result.IcpReport`).
+    sweep_unconverged : int
+        Respiration-sweep phases whose ICP did not converge.
+    fre_mm, max_fre_mm : float, mm
+        The fiducial registration error and its limit.
+    fiducials_ambiguous : bool
+        The touched fiducials fit the model in more than one order.
+
+    Returns
+    -------
+    Trust
+    """
+    poor, caution = TrustLevel.POOR, TrustLevel.CAUTION
+    reasons = []
+    if coverage.few_points:
+        reasons.append(TrustReason("few_points", poor, (
+            f"{coverage.n_points} point(s), fewer than {MIN_POINTS}: the registration may be several mm "
+            "and degrees off; record more points")))
+    if coverage.narrow:
+        reasons.append(TrustReason("narrow_coverage", caution, (
+            f"the points cover {coverage.sector_fraction:.0%} of the sectors around the heart's long axis "
+            f"and {coverage.spread_ratio:.2f} of its spread along the thinnest axis: the registration can "
+            "slide along the surface; spread the points over the heart")))
+    if icp_degenerate:
+        reasons.append(TrustReason("icp_degenerate", poor, (
+            "the final ICP is degenerate: the points can slide along the surface (icp.weakest_direction); "
+            "spread the points over more of the heart")))
+    if not icp_converged:
+        reasons.append(TrustReason("icp_not_converged", poor, (
+            "the final ICP did not converge: the transform may not be the best fit; raise the limit "
+            "(--icp-max-iterations)")))
+    if not phase_estimate.decided:
+        reasons.append(TrustReason("phase_undecided", caution, (
+            f"the data cannot decide phi_R* ({phase_estimate.method}): its {phase_estimate.confidence:.0%} "
+            f"interval is {phase_estimate.width:.2f} of a cycle wide; trace the staples over a breath or "
+            "state the breath-hold phase")))
+    if sweep_unconverged:
+        reasons.append(TrustReason("sweep_not_converged", caution, (
+            f"the ICP did not converge at {sweep_unconverged} phase(s) of the respiration sweep; raise the "
+            "limit (--icp-max-iterations)")))
+    bad = {int(k): int(v) for k, v in outlier_samples_per_point.items() if v}
+    if bad:
+        reasons.append(TrustReason("outlier_samples", caution, (
+            f"{sum(bad.values())} outlier sample(s) (tracker glitches) in {len(bad)} point(s) "
+            f"({', '.join(str(k) for k in sorted(bad))}) were left out of their motion models; check the tracker")))
+    if n_excluded:
+        reasons.append(TrustReason("excluded_points", caution, (
+            f"{n_excluded} point(s) of the session could not be registered (see exclusions)")))
+    if fre_mm > max_fre_mm:
+        reasons.append(TrustReason("fiducial_error", caution, (
+            f"fiducial registration error {fre_mm:.2f} mm exceeds {max_fre_mm:g} mm: the seed T0 is poor; "
+            "check the staples touched and their order")))
+    if fiducials_ambiguous:
+        reasons.append(TrustReason("fiducials_ambiguous", caution, (
+            "the touched fiducials fit the model in more than one order: check T0 visually")))
+    level = max((r.level for r in reasons), key=lambda x: x.rank, default=TrustLevel.OK)
+    return Trust(level, tuple(reasons))

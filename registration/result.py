@@ -13,6 +13,7 @@ from typing import Mapping
 
 import numpy as np
 
+from registration.plausibility import Trust
 from registration.spatiotemporal import PhaseSweep, StaticComparison
 from registration.temporal import TemporalEstimate
 from registration.transforms import euler_xyz_deg_from_matrix
@@ -64,6 +65,9 @@ class PointFit:
         Of the column-scaled design matrix.
     notes : tuple of str
         Coverage warnings and the like.
+    n_outlier_samples : int
+        Samples far from their running median (tracker glitches), left out of
+        the fit (:func:`registration.plausibility.outlier_samples`).
     """
 
     point_id: int
@@ -80,6 +84,7 @@ class PointFit:
     residual_rms_deg: float
     condition_number: float
     notes: tuple[str, ...] = ()
+    n_outlier_samples: int = 0
 
     def to_dict(self) -> dict:
         return {
@@ -96,6 +101,7 @@ class PointFit:
             "residual_rms_3d_mm": self.residual_rms_3d_mm,
             "residual_rms_deg": self.residual_rms_deg,
             "condition_number": _finite_or_none(self.condition_number),
+            "n_outlier_samples": self.n_outlier_samples,
             "notes": list(self.notes),
         }
 
@@ -191,6 +197,9 @@ class RegistrationResult:
         the session reader left out.
     icp : IcpReport
         Degeneracy report of the final ICP.
+    trust : Trust
+        How far to trust the result: ``ok``, ``caution`` or ``poor`` and why
+        (:func:`registration.plausibility.assess_trust`).
     phase_estimates : tuple of TemporalEstimate
         phi_R* with its 90 % interval by each estimator, the one used first
         (:mod:`registration.temporal`).
@@ -230,6 +239,7 @@ class RegistrationResult:
     point_fits: tuple[PointFit, ...]
     exclusions: tuple[tuple[int, str], ...]
     icp: IcpReport
+    trust: Trust
     phase_estimates: tuple[TemporalEstimate, ...] = ()
     parameters: Mapping = field(default_factory=dict)
     timings_s: Mapping = field(default_factory=dict)
@@ -256,6 +266,7 @@ class RegistrationResult:
         return {
             "version": self.version,
             "frames": "T_heart_from_probe maps reference-probe mm to the model's heart frame mm",
+            "trust": self.trust.to_dict(),
             "cardiac_phase": self.phase_c,
             "cardiac_phase_source": self.phase_c_source,
             "respiration_phase": self.phase_r,

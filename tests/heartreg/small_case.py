@@ -2,11 +2,13 @@
 
 The model is meshed straight from the phantom's analytic heart (no segmentation)
 and the session keeps only its first points, so a registration on them takes
-seconds: for tests of contracts and readers, not of accuracy.
+seconds: for tests of contracts and readers, not of accuracy.  :func:`digest`
+fingerprints a folder (inputs must not change; outputs are the old or the new).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -36,3 +38,11 @@ def small_case(src: Path, truth: dict, root: Path, *, grid: int, points: int) ->
     meta["points"] = kept
     (session / "session.json").write_text(json.dumps(meta))
     return root / "model", session
+
+
+def digest(root: Path) -> dict:
+    """Every file under ``root`` (relative path) with the SHA-1 of its bytes."""
+    return {
+        str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*")) if p.is_file()
+    }

@@ -7,7 +7,6 @@ status, that nothing is left behind and that the inputs are unchanged.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -30,17 +29,9 @@ from registration.plausibility import (
     outlier_samples,
 )
 from registration.session import SessionError, read_session
-from tests.heartreg.small_case import small_case
+from tests.heartreg.small_case import digest, small_case
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _digest(root: Path) -> dict:
-    """Every file under root with the hash of its bytes (inputs must not change)."""
-    return {
-        str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*")) if p.is_file()
-    }
 
 
 def _one_error_line(err: str) -> str:
@@ -64,20 +55,20 @@ def case(sample_case, tmp_path_factory):
 # ------------------------------------------------------------------ writing into an input
 @pytest.mark.parametrize("where", ["study", "inside"])
 def test_phases_never_writes_into_the_study(case, capsys, where):
-    before = _digest(case["ct"])
+    before = digest(case["ct"])
     out = case["ct"] if where == "study" else case["ct"] / "phases_out"
     assert main(["phases", str(case["ct"]), "-o", str(out), "-q", "--overwrite"]) == 1
     line = _one_error_line(capsys.readouterr().err)
     assert "-o" in line and ("is the input" in line or "lies inside the input" in line)
-    assert _digest(case["ct"]) == before
+    assert digest(case["ct"]) == before
 
 
 def test_register_overwrite_refuses_an_input_as_output(case, capsys):
-    before = _digest(case["model"])
+    before = digest(case["model"])
     rc = main(["register", str(case["model"]), str(case["session"]), "-o", str(case["model"]), "--overwrite", "-q"])
     assert rc == 1
     assert "is the input" in _one_error_line(capsys.readouterr().err)
-    assert _digest(case["model"]) == before
+    assert digest(case["model"]) == before
 
 
 def test_pipeline_refuses_an_input_as_output(case, tmp_path, capsys):
@@ -176,31 +167,6 @@ def test_sigterm_and_sigint_during_the_write_stop_cleanly(case, tmp_path, sig, s
     assert proc.returncode == status, err
     assert "Traceback" not in err and "nothing was written" in err
     assert list(tmp_path.iterdir()) == []
-
-
-def test_kill_9_during_the_write_leaves_the_previous_output(case, tmp_path):
-    """kill -9 of `register --overwrite` while it writes its staging folder (at two
-    moments): the earlier run's folder stays whole; the next run removes the
-    killed runs' staging folders and replaces the output in one step."""
-    out = tmp_path / "reg"
-    out.mkdir()  # an earlier run's folder (its content does not matter to the contract)
-    (out / "registration.json").write_text('{"earlier": true}')
-    (out / "marker_of_the_earlier_run").write_text("old")
-    before = _digest(out)
-    for files in (1, 4):
-        proc = _start_and_wait_for_staging(_register_cmd(case, out) + ["--overwrite"], tmp_path, files=files)
-        proc.kill()
-        proc.communicate()
-        if proc.returncode == 0:  # finished first: then the new output is complete
-            assert _complete_registration(out) and not (out / "marker_of_the_earlier_run").exists()
-            break
-        assert _digest(out) == before, files
-    assert main(["register", str(case["model"]), str(case["session"]), "-o", str(out), "-q",
-                 "--step", "0.1", "--no-view", "--overwrite"]) == 0
-    assert [p.name for p in tmp_path.iterdir()] == ["reg"]  # stale staging of the killed runs removed
-    assert _complete_registration(out) and not (out / "marker_of_the_earlier_run").exists()
-    notes = json.loads((out / "registration.json").read_text())["notes"]
-    assert any("registration on 8 point(s), fewer than 30" in n for n in notes)  # the few-points warning
 
 
 # ------------------------------------------------------------------ readers that must not hang

@@ -203,6 +203,22 @@ def test_report_only_redraws_the_same_tables_from_the_run_files(repro):
         assert (out / name).read_bytes() == data, name
 
 
-def test_report_only_without_a_run_says_so(tmp_path):
+def test_report_only_without_a_run_says_so_and_creates_nothing(tmp_path):
     with pytest.raises(ReproduceError, match="no finished run of trial 2"):
-        reproduce(tmp_path, size="sample", trials=[2], rerun=False)
+        reproduce(tmp_path / "out", size="sample", trials=[2], rerun=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_outputs_are_staged_with_the_one_output_contract(repro):
+    """Every trial's run and trial.json, and the report files, came through
+    hrcore.output's staging: no staging path or temporary file is left anywhere."""
+    out = repro[0]
+    leftovers = [p for p in out.rglob(".*") if ".heartreg-" in p.name or p.suffix == ".tmp"]
+    assert leftovers == []
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"trial{k}" for k in TRIALS] + ["fig2_rms.png", "fig4_phases.png", "fig6_parameters.png",
+                                         "fig7_distances.png", "fig9_delta.png", "figures.json",
+                                         "reproduction.csv", "reproduction.html", "reproduction.json",
+                                         "reproduction.md"])
+    for k in TRIALS:
+        assert sorted(p.name for p in (out / f"trial{k}").iterdir()) == ["case", "run", "trial.json"]

@@ -169,3 +169,19 @@ def test_kill_9_at_many_moments_leaves_old_or_complete_new(tmp_path):
             assert texts == {letter}
     subprocess.run([sys.executable, "-c", _WRITER, str(out), "z"], env=env, check=True, timeout=60)
     assert [p.name for p in tmp_path.iterdir()] == ["out"] and _state(out) == (40, {"z"})
+
+
+def test_parts_alone_in_their_folder_are_swapped_whole(tmp_path):
+    """An earlier run's folder holding nothing but the parts is replaced in one
+    step (a kill leaves the old or the new run, never a mix of their parts)."""
+    out = tmp_path / "run"
+    (out / "model").mkdir(parents=True)
+    (out / "model" / "old").write_text("old")
+    (out / "report.html").write_text("<p>old")
+    inode = out.stat().st_ino
+    with staged_output(out, parts=("model", "report.html", "phases"), overwrite=True) as stage:
+        assert stage.parent == tmp_path  # staged beside the folder, not inside it
+        (stage / "model").mkdir()
+        (stage / "model" / "new").write_text("new")
+    assert out.stat().st_ino != inode
+    assert _listing(tmp_path) == ["run", "run/model", "run/model/new"]  # no part of the old run left
