@@ -124,9 +124,12 @@ def ct_only_folder(study_dir: str, out_dir: str) -> dict:
 
 
 def _run_stages(study_dir: str, out_dir: str, meter: _Meter | None, picture: bool = True) -> dict:
+    from hrcore.memory import release_free_memory
     from imaging import compute_phase_report, load_study, read_ecg_waveform
-    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling import build_heart_model, offscreen_available, render_model_png, start_offscreen_probe, write_model
 
+    if picture:
+        start_offscreen_probe()  # as the CLI: at the start, beside the work
     meter = meter or _Meter()
     meter.start("load")
     volume = load_study(study_dir)
@@ -137,15 +140,19 @@ def _run_stages(study_dir: str, out_dir: str, meter: _Meter | None, picture: boo
     build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase,
                               cardiac_phase_source=report.source, progress=meter.start)
     meter.start("write")
+    volume_info = {"volume_nbytes": int(volume.hu.nbytes), "volume_shape": list(volume.hu.shape),
+                   "volume_dtype": str(volume.hu.dtype)}
+    del volume  # as the CLI: the CT is freed before the files and the picture
+    release_free_memory()
     out = write_model(build.model, out_dir, overwrite=True)
     rendered = False
-    if picture and offscreen_available():
-        meter.start("picture")
-        render_model_png(build.model, Path(out) / "model.png")
-        rendered = True
+    if picture:
+        meter.start("picture")  # the probe's answer (if not in yet) is waited for here
+        if offscreen_available():
+            render_model_png(build.model, Path(out) / "model.png")
+            rendered = True
     meter.stop()
-    return {"volume_nbytes": int(volume.hu.nbytes), "volume_shape": list(volume.hu.shape),
-            "volume_dtype": str(volume.hu.dtype), "build_timings_s": dict(build.timings_s),
+    return {**volume_info, "build_timings_s": dict(build.timings_s),
             "n_faces": int(build.model.mesh.faces.shape[0]), "picture": rendered}
 
 

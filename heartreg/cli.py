@@ -194,10 +194,11 @@ def _open_model_input(args):
 
 
 def _cmd_model(args) -> int:
-    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling import build_heart_model, offscreen_available, render_model_png, start_offscreen_probe, write_model
 
     if args.list_series:
         return _print_series(args.study_dir)
+    from hrcore.memory import release_free_memory
     from hrcore.output import check_output_path, staged_output
 
     if args.label is not None and args.mask is None:
@@ -205,6 +206,7 @@ def _cmd_model(args) -> int:
     options = _model_options(args)
     inputs = (args.study_dir, args.qrs, args.mask)
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
+    start_offscreen_probe()  # beside the work: the picture needs its answer only at the end
     volume, phase, phase_source = _open_model_input(args)
     from tqdm import tqdm
 
@@ -226,6 +228,9 @@ def _cmd_model(args) -> int:
     )
     stage("write")
     model = build.model
+    series_uid = volume.series.series_instance_uid
+    del volume  # the CT is done with: the picture's memory comes on top of what is left
+    release_free_memory()
     out = Path(args.out_dir)
     picture = "skipped (no offscreen OpenGL: install libosmesa6 or libegl1)"
     # the picture is drawn inside the staging folder: the model appears complete or not at all
@@ -237,7 +242,7 @@ def _cmd_model(args) -> int:
     bar.update(1)
     bar.close()
     e = model.frame.euler_xyz_deg
-    print(f"heart model of series {volume.series.series_instance_uid} written to {out}")
+    print(f"heart model of series {series_uid} written to {out}")
     print(f"  mask              {build.mask_source}")
     print(f"  mesh              {model.mesh.faces.shape[0]} faces, watertight, heart frame (mm)")
     shown = "unknown" if model.cardiac_phase is None else f"{model.cardiac_phase:.4f}"

@@ -152,7 +152,7 @@ def run_pipeline(
     top of the HTML report (the demo).
     """
     from imaging import write_phase_report
-    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling import build_heart_model, offscreen_available, render_model_png, start_offscreen_probe, write_model
     from registration import read_session
     from registration.pipeline import register_session
     from registration.report import write_registration
@@ -169,6 +169,7 @@ def run_pipeline(
     with staged_output(
         out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS,
     ) as staging:
+        start_offscreen_probe()  # beside the work: the picture needs its answer only after the model
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")
         volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)

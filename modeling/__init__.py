@@ -64,6 +64,7 @@ from modeling.render import (
     RenderError,
     offscreen_available,
     render_model_png,
+    start_offscreen_probe,
 )
 from modeling.slicer import (
     Markups,
@@ -115,6 +116,7 @@ __all__ = [
     "read_ply",
     "render_model_png",
     "segment_heart",
+    "start_offscreen_probe",
     "transform_mesh",
     "write_mesh",
     "write_model",

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.memory import release_free_memory
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
@@ -197,6 +198,7 @@ def build_heart_model(
                 )
     else:
         mesh = mask_to_mesh(mask, T, target_faces=target_faces)
+    release_free_memory()  # the dense mesh's arrays: later stages' peaks need not sit on them
     done("mesh")
 
     stage("fiducials")

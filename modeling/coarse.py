@@ -18,25 +18,57 @@ def coarse_step(spacing_kji, target_mm: float) -> np.ndarray:
     return np.maximum(1, np.round(target_mm / np.asarray(spacing_kji, dtype=float))).astype(int)
 
 
+#: Coarse planes (along k) reduced at a time: bounds the temporary arrays to a few MB.
+_CHUNK_BLOCKS = 8
+
+
+def _reduce_blocks(a, axis: int, step: int, ufunc, dtype=None):
+    """``ufunc`` over consecutive runs of ``step`` along ``axis`` (the last run may be short)."""
+    n = a.shape[axis]
+    index = [slice(None)] * a.ndim
+    index[axis] = slice(0, None, step)
+    out = a[tuple(index)].astype(dtype or a.dtype, copy=True)
+    for d in range(1, step):
+        index[axis] = slice(d, None, step)
+        part = a[tuple(index)]
+        index[axis] = slice(0, -(-(n - d) // step))
+        ufunc(out[tuple(index)], part, out=out[tuple(index)])
+    return out
+
+
 def block_mean_max(hu, step) -> tuple[np.ndarray, np.ndarray]:
     """Mean and maximum over blocks of ``step`` voxels (k, j, i); edge blocks are partial.
+
+    Each axis is reduced in turn over a slab of a few coarse planes at a time,
+    so the volume is read once and the temporaries stay small. Integer HU are
+    summed exactly, others in float64.
 
     Returns
     -------
     mean, maximum : (ceil(n_k/s_k), ceil(n_j/s_j), ceil(n_i/s_i)) float32
     """
     hu = np.asarray(hu)
-    step = np.asarray(step, dtype=int)
-    shape = tuple(int(n) for n in -(-np.array(hu.shape) // step))
-    total = np.zeros(shape, np.float32)
-    peak = np.full(shape, -np.inf, np.float32)
-    count = np.zeros(shape, np.float32)
-    for dk in range(step[0]):
-        for dj in range(step[1]):
-            for di in range(step[2]):
-                part = hu[dk :: step[0], dj :: step[1], di :: step[2]]
-                view = (slice(0, part.shape[0]), slice(0, part.shape[1]), slice(0, part.shape[2]))
-                total[view] += part
-                np.maximum(peak[view], part, out=peak[view])
-                count[view] += 1
-    return total / count, peak
+    step = [int(s) for s in step]
+    shape = tuple(-(-n // s) for n, s in zip(hu.shape, step))
+    if np.issubdtype(hu.dtype, np.integer):  # exact sums, as wide as the blocks need
+        acc = np.int32 if hu.dtype.itemsize <= 2 and np.prod(step) < 2**15 else np.int64
+    else:
+        acc = np.float64
+    mean = np.empty(shape, np.float32)
+    peak = np.empty(shape, np.float32)
+    count = np.ones(shape, np.float32)
+    for axis, (n, s) in enumerate(zip(hu.shape, step)):
+        per_block = np.minimum(s, n - s * np.arange(shape[axis])).astype(np.float32)
+        count *= per_block.reshape([-1 if a == axis else 1 for a in range(3)])
+    rows = _CHUNK_BLOCKS * step[0]
+    for k0 in range(0, hu.shape[0], rows):
+        part = hu[k0 : k0 + rows]
+        out = slice(k0 // step[0], k0 // step[0] + -(-part.shape[0] // step[0]))
+        total, top = part, part
+        for axis in range(3):
+            total = _reduce_blocks(total, axis, step[axis], np.add, acc)
+            top = _reduce_blocks(top, axis, step[axis], np.maximum)
+        mean[out] = total
+        peak[out] = top
+    mean /= count
+    return mean, peak

@@ -19,6 +19,7 @@ in a subprocess; when it fails :func:`render_model_png` raises
 
 from __future__ import annotations
 
+import atexit
 import functools
 import os
 import signal
@@ -32,7 +33,10 @@ from hrcore.errors import HeartregError
 from imaging.files import atomic_path
 from modeling.model import HeartModel
 
-__all__ = ["RenderError", "compose_figure", "offscreen_available", "render_model_png", "render_panel", "render_png"]
+__all__ = [
+    "RenderError", "compose_figure", "offscreen_available", "render_model_png", "render_panel", "render_png",
+    "start_offscreen_probe",
+]
 
 
 def _choose_offscreen_window() -> None:
@@ -65,23 +69,52 @@ class RenderError(HeartregError, RuntimeError):
     """No offscreen OpenGL, or VTK failed to draw: skip the picture."""
 
 
+_probe: subprocess.Popen | None = None
+
+
+def start_offscreen_probe() -> None:
+    """Start probing offscreen OpenGL in a subprocess, in the background.
+
+    A command that will draw calls this first: the probe (a fresh interpreter
+    importing pyvista and drawing a sphere, a second or two) then runs beside the
+    command's own work, and :func:`offscreen_available` only collects its answer.
+    """
+    global _probe
+    if _probe is not None or offscreen_available.cache_info().currsize:
+        return
+    try:
+        _probe = subprocess.Popen(
+            [sys.executable, "-c", _PROBE], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            stdin=subprocess.DEVNULL, text=True, env=os.environ.copy(),
+        )
+    except OSError:
+        return
+    atexit.register(_stop_probe)
+
+
+def _stop_probe() -> None:
+    if _probe is not None and _probe.poll() is None:
+        _probe.kill()
+        _probe.wait()
+
+
 @functools.lru_cache(maxsize=1)
 def offscreen_available(timeout_s: float = 60.0) -> bool:
-    """Whether pyvista can draw offscreen here (probed once, in a subprocess)."""
-    try:
-        res = subprocess.run(
-            [sys.executable, "-c", _PROBE],
-            capture_output=True,
-            text=True,
-            timeout=timeout_s,
-            env=os.environ.copy(),
-        )
-    except (OSError, subprocess.SubprocessError):
+    """Whether pyvista can draw offscreen here (probed once, in a subprocess,
+    started by :func:`start_offscreen_probe` or now)."""
+    if _probe is None:
+        start_offscreen_probe()
+    if _probe is None:
         return False
-    if res.returncode in (-signal.SIGINT, -signal.SIGTERM):
+    try:
+        out, _ = _probe.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        _stop_probe()
+        return False
+    if _probe.returncode in (-signal.SIGINT, -signal.SIGTERM):
         # Ctrl-C or a SIGTERM reached the probe too: stop, do not report "no OpenGL" and exit 0
         raise KeyboardInterrupt
-    return res.returncode == 0 and res.stdout.strip().endswith("ok")
+    return _probe.returncode == 0 and out.strip().endswith("ok")
 
 
 def render_model_png(
@@ -324,7 +357,7 @@ def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
 
     scene = np.vstack([mesh.vertices, fid]) if len(fid) else mesh.vertices
     focus = 0.5 * (scene.min(axis=0) + scene.max(axis=0))
-    panel = (max(size[0] // 2, 64) * 2, max(size[1], 64) * 2)  # rendered at twice the size, then cut
+    panel = (max(size[0] // 2, 64), max(size[1], 64))  # each view at about the size it is shown, then cut
     views = [
         ("coronal, seen from anterior", (0.0, -1.0, 0.0), ("patient's left", "superior")),
         ("sagittal, seen from the patient's left", (1.0, 0.0, 0.0), ("posterior", "superior")),

@@ -3,8 +3,9 @@
 Pipeline of :func:`mask_to_mesh` (paper section 2.2.3, "meshed, smoothed, holes
 closed, decimated"):
 
-1. crop the mask to its bounding box, fill internal cavities, pad with empty
-   voxels so the isosurface is closed where the mask touches the volume's edge;
+1. crop the mask to its bounding box, pad it with empty voxels so the
+   isosurface is closed where the mask touches the volume's edge, fill internal
+   cavities (background not connected to the padding);
 2. isosurface at level 0.5 of the lightly Gaussian-smoothed float mask
    (``skimage.measure.marching_cubes``), in voxel indices ``(k, j, i)``;
 3. reorder to ``(i, j, k)`` *before* mapping through ``T_patient_from_voxel``
@@ -12,10 +13,14 @@ closed, decimated"):
    reflection, so that normals point out of the mask;
 4. keep the largest connected component;
 5. repair with pymeshlab (duplicate vertices and faces, null faces,
-   non-manifold edges and vertices, small holes, unreferenced vertices);
+   non-manifold edges and vertices, small holes, unreferenced vertices), unless
+   the surface is already closed and manifold with nothing to repair, as
+   marching cubes' usually is (checked in numpy);
 6. Taubin lambda/mu smoothing, which does not shrink the surface the way plain
-   Laplacian smoothing does;
-7. quadric decimation to ``target_faces`` with fast_simplification;
+   Laplacian smoothing does (uniform weights; in numpy on a surface that
+   needed no repair, else in pymeshlab: the same steps);
+7. quadric decimation to ``target_faces`` with fast_simplification (and
+   repair as in 5. when it left something to repair);
 8. verification: watertight, manifold, consistently wound, enclosed volume > 0,
    else :class:`MeshError`.
 
@@ -176,24 +181,26 @@ def check_mesh(mesh: Mesh) -> MeshCheck:
     n = max(int(mesh.n_vertices), 1)
     a = faces.ravel()
     b = faces[:, [1, 2, 0]].ravel()
-    directed = a * n + b
-    undirected = np.minimum(a, b) * n + np.maximum(a, b)
-    _, counts = np.unique(undirected, return_counts=True)
-    watertight = bool(len(faces)) and bool(np.all(counts == 2))
-    # consistent winding: no directed edge twice, and every edge's reverse present
-    directed_sorted = np.sort(directed)
-    unique_directed = directed_sorted.size == 0 or bool(np.all(np.diff(directed_sorted) > 0))
-    reverse = np.sort(b * n + a)
-    winding = unique_directed and bool(np.array_equal(directed_sorted, reverse))
-    labels = _vertex_components(mesh.faces, mesh.n_vertices)
-    used = np.unique(labels[mesh.faces.ravel()]) if mesh.n_faces else np.array([])
-    n_used_vertices = int(np.unique(a).size)
+    directed = np.sort(a * n + b)
+    unique_directed = directed.size == 0 or bool(np.all(directed[1:] != directed[:-1]))
+    if unique_directed and not np.any(a == b):
+        # each undirected edge is there once or twice, twice exactly when its reverse is
+        # there too: closed under reversal <=> watertight <=> consistently wound
+        winding = bool(np.array_equal(directed, np.sort(b * n + a)))
+        watertight = winding and bool(len(faces))
+        n_edges = directed.size // 2 if winding else int(np.unique(np.minimum(a, b) * n + np.maximum(a, b)).size)
+    else:  # repeated directed edges, or a face that repeats a vertex
+        _, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)
+        watertight, n_edges = bool(len(faces)) and bool(np.all(counts == 2)), int(counts.size)
+        winding = unique_directed and bool(np.array_equal(directed, np.sort(b * n + a)))
+    used = np.bincount(a, minlength=mesh.n_vertices) > 0
+    labels = _vertex_components(faces, mesh.n_vertices)
     return MeshCheck(
         watertight=watertight,
         winding_consistent=winding,
         volume_mm3=mesh.volume_mm3,
-        euler_number=n_used_vertices - int(counts.size) + int(len(faces)),
-        n_components=int(len(used)),
+        euler_number=int(used.sum()) - n_edges + int(len(faces)),
+        n_components=int(np.count_nonzero(np.bincount(labels[used]))) if len(faces) else 0,
     )
 
 
@@ -289,11 +296,15 @@ def mask_to_mesh(
         nz = np.nonzero(mask.any(axis=other))[0]
         lo.append(nz[0])
         hi.append(nz[-1] + 1)
-    sub = mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+    solid = np.pad(mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]], pad, mode="constant")
     if fill_cavities:
-        sub = ndimage.binary_fill_holes(sub)
-    field = np.pad(sub.astype(np.float32), pad, mode="constant")
-    del sub
+        # the background reached from the padding is outside; the rest is solid
+        background = np.empty(solid.shape, np.int32)
+        ndimage.label(~solid, output=background)
+        solid = background != background[0, 0, 0]
+        del background
+    field = solid.astype(np.float32)
+    del solid
     if sigma_vox > 0:
         ndimage.gaussian_filter(field, sigma_vox, mode="constant", output=field)  # in place
 
@@ -440,14 +451,119 @@ def _largest_component(verts: np.ndarray, faces: np.ndarray):
     face_label = labels[faces[:, 0]]
     keep = face_label == np.bincount(face_label).argmax()
     faces = faces[keep]
-    used = np.unique(faces)
+    used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(verts)))
     remap = np.full(len(verts), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     return verts[used], remap[faces]
 
 
+def _clean_adjacency(verts: np.ndarray, faces: np.ndarray):
+    """The vertex adjacency of a mesh that :func:`_repair`'s clean-up would leave as it is.
+
+    Such a mesh is closed, consistently wound, edge- and vertex-manifold, with
+    no degenerate face, no unused vertex, no face of zero area and no two
+    vertices at one position: what marching cubes on a padded field and most
+    decimations give. The clean-up through pymeshlab can then be skipped.
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix (n, n) or None
+        1 where two vertices share an edge (each edge in both directions);
+        None when the mesh needs the clean-up.
+    """
+    n, m = len(verts), len(faces)
+    if m == 0:
+        return None
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    valence = np.bincount(a, minlength=n)
+    if np.any(a == b) or np.count_nonzero(valence) != n:
+        return None
+    key = a * n + b  # the half-edge a -> b leaving corner c = 3 * face + position
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    if np.any(sorted_key[1:] == sorted_key[:-1]):
+        return None  # a non-manifold edge, or faces wound inconsistently
+    twin_key = b * n + a
+    twin_order = np.argsort(twin_key, kind="stable")
+    if not np.array_equal(twin_key[twin_order], sorted_key):
+        return None  # an open edge
+    twin = np.empty_like(order)  # the half-edge b -> a of each a -> b
+    twin[twin_order] = order
+    # the corner at the same vertex across that edge: stepping through them goes
+    # round the vertex's fan of faces; one fan of all its faces = vertex-manifold
+    turn = twin - twin % 3 + (twin + 1) % 3
+    first = np.empty(n, dtype=np.int64)
+    first[a[::-1]] = np.arange(len(a) - 1, -1, -1)
+    at, fan = turn[first], np.ones(n, dtype=np.int64)
+    walking = np.flatnonzero(at != first)
+    while walking.size:
+        at[walking] = turn[at[walking]]
+        fan[walking] += 1
+        walking = walking[at[walking] != first[walking]]
+    if not np.array_equal(fan, valence):
+        return None
+    if not np.all(_cross_edges(verts, faces).any(axis=0)):
+        return None  # a face of zero area
+    if _has_coincident(verts):
+        return None
+    # the half-edges sorted by (a, b) are the rows of the adjacency, in order
+    indptr = np.concatenate([[0], np.cumsum(valence)])
+    return sparse.csr_matrix((np.ones(len(key)), b[order], indptr), shape=(n, n))
+
+
+def _cross_edges(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(3, m) float64: (b - a) x (c - a) of every face (a, b, c), twice its area vector."""
+    x, y, z = (np.ascontiguousarray(verts[:, k]) for k in range(3))
+    f0, f1, f2 = (np.ascontiguousarray(faces[:, k]) for k in range(3))
+    ux, uy, uz = x[f1] - x[f0], y[f1] - y[f0], z[f1] - z[f0]
+    wx, wy, wz = x[f2] - x[f0], y[f2] - y[f0], z[f2] - z[f0]
+    return np.stack([uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx])
+
+
+def _has_coincident(verts: np.ndarray) -> bool:
+    """Whether two rows of ``verts`` are equal (exact; a hash of the bits first)."""
+    bits = np.ascontiguousarray(verts, dtype=np.float64).view(np.uint64)
+    mixed = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+    mixed ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
+    mixed.sort()
+    if not np.any(mixed[1:] == mixed[:-1]):
+        return False
+    return len(np.unique(verts, axis=0)) != len(verts)
+
+
+def _taubin(verts: np.ndarray, adjacency, iterations: int) -> np.ndarray:
+    """Taubin lambda/mu smoothing with uniform weights.
+
+    The same steps as pymeshlab's ``apply_coord_taubin_smoothing`` (vcglib
+    ``VertexCoordTaubin``) on a closed mesh: each vertex moves ``TAUBIN_LAMBDA``,
+    then ``TAUBIN_MU``, times the way to the mean of its edge neighbours,
+    ``iterations`` times.
+
+    Parameters
+    ----------
+    verts : (n, 3) float64, mm
+    adjacency : (n, n) scipy.sparse matrix
+        Edge neighbours (:func:`_clean_adjacency`).
+    iterations : int
+    """
+    count = np.asarray(adjacency.sum(axis=1))  # (n, 1)
+    p = np.array(verts, dtype=np.float64)
+    for _ in range(iterations):
+        for factor in (TAUBIN_LAMBDA, TAUBIN_MU):
+            p += factor * (adjacency @ p / count - p)
+    return p
+
+
 def _repair(verts: np.ndarray, faces: np.ndarray, *, smooth_iterations: int):
-    """pymeshlab clean-up, hole closing and Taubin smoothing."""
+    """Clean-up, hole closing and Taubin smoothing.
+
+    A mesh that needs no clean-up (:func:`_clean_adjacency`) is only smoothed, in
+    numpy; any other goes through pymeshlab.
+    """
+    adjacency = _clean_adjacency(verts, faces)
+    if adjacency is not None:
+        return _taubin(verts, adjacency, smooth_iterations), faces
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
