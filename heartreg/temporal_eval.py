@@ -131,6 +131,7 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     t0_mm, t0_deg = _transform_error(np.asarray(result.T0_heart_from_probe), T_true, vertices)
     shape = result.phase_estimates[0] if result.phase_estimates[0].method == "shape" else result.phase_estimates[1]
     evidence = {
+        **_trace_evidence(model, session, sweep.phases),
         "phases": sweep.phases, "distances_mm": sweep.distances_mm, "T_map_from_source": sweep.T_map_from_source,
         "cost_fiducial": shape.cost_fiducial, "cost_heart": shape.cost_heart, "T_true": T_true,
         "vertices_mm": vertices[:: max(1, vertices.shape[0] // 2000)], "pivot_mm": sweep.pivot_mm,
@@ -138,6 +139,19 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     }
     return {"preset": preset, "seed": int(seed), "phase_true": float(phase_r), "size": size,
             "T0_mm": t0_mm, "T0_deg": t0_deg, "fre_mm": result.fre_mm, "estimates": rows, "_evidence": evidence}
+
+
+def _trace_evidence(model, session, phases) -> dict:
+    """The traced staples' fit residuals over the sweep (to re-score an estimator offline)."""
+    from registration.fiducial import register_fiducials
+    from registration.pipeline import _trace_curve
+
+    if session.fiducial_trace is None:
+        return {}
+    fid = register_fiducials(session.fiducials_probe_mm, model.fiducials_heart_mm)
+    curve = _trace_curve(session.fiducial_trace, model.fiducials_heart_mm, phases, fid.order)
+    return {"fiducial_residuals_mm": curve.residuals_mm, "fiducial_trace_rms_mm": curve.trace_rms_mm,
+            "fiducial_curve_T": curve.T_map_from_source, "fiducial_curve_source_mm": curve.positions_source_mm}
 
 
 def summarize(cases: Sequence[dict]) -> dict:
