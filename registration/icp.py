@@ -593,6 +593,7 @@ def icp_sweep_distances(
     k: int = 24,
     warm_start: bool = False,
     warm_stride: int = 10,
+    signed: bool = False,
 ):
     """:func:`icp` of many point sets at once.
 
@@ -621,6 +622,9 @@ def icp_sweep_distances(
         Seed each set by its registered neighbour (see above).
     warm_stride : int
         Sets registered from ``T_init`` when warm starting: every this many.
+    signed : bool
+        Signed distances: negative inside the surface (by the closest face's
+        outward normal).
 
     Returns
     -------
@@ -647,9 +651,15 @@ def icp_sweep_distances(
     options = dict(method=IcpMethod(method), max_iterations=max_iterations, tol_mm=tol_mm, tol_deg=tol_deg,
                    tol_loss=tol_loss, n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))), huber_mm=huber_mm,
                    k=k)
+    def distances(fit, points):
+        if not signed:
+            return fit.distances_mm
+        q = np.einsum("aij,anj->ani", fit.T[:, :3, :3], points) + fit.T[:, None, :3, 3]
+        return np.where(np.einsum("ani,ani->an", q - fit.closest_mm, fit.normals) < 0, -1.0, 1.0) * fit.distances_mm
+
     if not warm_start or m <= 2:
         fit = _icp_batch(src, surface, seeds, **options)
-        return fit.T, fit.distances_mm, fit.iterations, fit.converged
+        return fit.T, distances(fit, src), fit.iterations, fit.converged
     T = np.empty((m, 4, 4))
     d = np.empty((m, n))
     iterations = np.zeros(m, dtype=np.int64)
@@ -661,7 +671,7 @@ def icp_sweep_distances(
     while wave.size:
         seed = np.stack([seeds[i] if source_of[int(i)] is None else T[source_of[int(i)]] for i in wave])
         fit = _icp_batch(src[wave], surface, seed, **options)
-        T[wave], d[wave], iterations[wave], converged[wave] = fit.T, fit.distances_mm, fit.iterations, fit.converged
+        T[wave], d[wave], iterations[wave], converged[wave] = fit.T, distances(fit, src[wave]), fit.iterations, fit.converged
         done[wave] = True
         nxt = {}
         for i in wave:

@@ -100,6 +100,8 @@ class PhaseSweep:
     distances_mm : (m, n) float64
         Point-to-surface distance of every point after ICP at each phase (the
         per-point evidence of :mod:`registration.temporal`).
+    signed_distances_mm : (m, n) float64
+        The same, negative inside the surface.
     """
 
     kind: str
@@ -116,6 +118,7 @@ class PhaseSweep:
     converged: np.ndarray
     pivot_mm: np.ndarray
     distances_mm: np.ndarray | None = None
+    signed_distances_mm: np.ndarray | None = None
 
     @property
     def best_index(self) -> int:
@@ -292,7 +295,8 @@ def sweep_phase(
     # all phases in one batch: one closest-point query per iteration (the same ICP as ``icp``)
     options.pop("degeneracy_ratio", None)
     options.setdefault("warm_start", WARM_START)
-    Ts, distances, iterations, converged = icp_sweep_distances(points, surface, T_init=T0, **options)
+    Ts, signed, iterations, converged = icp_sweep_distances(points, surface, T_init=T0, signed=True, **options)
+    distances = np.abs(signed)
     rms = np.sqrt(np.mean(distances**2, axis=1))
     dT = Ts @ invert(T0)
     shift = dT[:, :3, :3] @ pivot + dT[:, :3, 3] - pivot
@@ -311,6 +315,7 @@ def sweep_phase(
         converged=converged,
         pivot_mm=pivot,
         distances_mm=distances,
+        signed_distances_mm=signed,
     )
 
 
