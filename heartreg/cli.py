@@ -348,13 +348,16 @@ def _cmd_evaluate_temporal(args) -> int:
     presets = [f"wood2018-trial{k}" for k in args.trials] if args.trials else list(GRID_PRESETS)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if not args.quiet else (lambda msg: None)
     result = evaluate(args.out_dir, presets=presets, seeds=range(1, args.seeds + 1), size=args.size,
-                      run=not args.report_only, say=say)
+                      run=not args.report_only, workers=args.workers, scheduler=args.scheduler,
+                      memory_limit=args.memory_limit, progress=not args.quiet, say=say)
+    for name, error in result["failed"].items():
+        print(f"  {name} failed: {error}")
     if not result["cases"]:
         print(f"no case in {args.out_dir}/cases yet")
         return 1
     print(result["table"], end="")
     print(f"written to {args.out_dir} (temporal_eval.md, .csv, .json, .png)")
-    return 0
+    return 1 if result["failed"] else 0
 
 
 def _cmd_pipeline(args) -> int:
@@ -432,11 +435,12 @@ def _cmd_batch(args) -> int:
     return 1 if result.count("failed") else 0
 
 
-def _add_cluster_options(p) -> None:
+def _add_cluster_options(p, local_help: str = "") -> None:
     from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT
 
     p.add_argument("--workers", type=int, default=None,
-                   help="local worker processes, one thread each (default: the usable cores)")
+                   help="local worker processes, one thread each (default: the usable cores"
+                   + (f"; {local_help})" if local_help else ")"))
     p.add_argument("--memory-limit", default=DEFAULT_MEMORY_LIMIT,
                    help=f"memory limit of each local worker (default {DEFAULT_MEMORY_LIMIT})")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
@@ -593,11 +597,12 @@ def _build_parser() -> argparse.ArgumentParser:
                        help="phi_R* and final T of both estimators on a grid of phantom cases vs truth")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (cases resume from OUT/cases)")
     p.add_argument("--seeds", type=int, default=6, help="seeds 1..N per preset (default 6)")
-    p.add_argument("--trials", type=int, nargs="+", default=None, metavar="N",
-                   help="presets wood2018-trialN to run (default all six)")
+    p.add_argument("--trials", type=int, nargs="+", default=None, metavar="N", choices=range(1, 7),
+                   help="presets wood2018-trialN to run, N in 1..6 (default all six)")
     p.add_argument("--size", default="sample", choices=sorted(SIZES), help="phantom CT grid (default sample)")
     p.add_argument("--report-only", action="store_true", help="summarize the cases already run; run nothing")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    _add_cluster_options(p, local_help="0: one by one in this process")
     p.set_defaults(func=_cmd_evaluate_temporal)
 
     p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")

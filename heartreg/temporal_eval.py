@@ -8,7 +8,9 @@ the result is set against the truth, for both estimators of phi_R*
 The grid (:func:`evaluate`) is the six ``wood2018-trial*`` presets x seeds,
 with ``phase_r`` drawn per case away from the paper's 0.3 (:func:`true_phase`);
 each case's row is kept in ``OUT/cases/`` so that a run resumes where it
-stopped, and the cases can be mapped on any executor (e.g. Dask)::
+stopped; the cases run on the batch machinery (``--workers``, ``--scheduler``:
+a local Dask cluster or a running scheduler, one task and one record per
+case)::
 
     OUT/cases/<preset>_s<seed>.json   one case: its row per estimator
     OUT/temporal_eval.csv             every case x estimator
@@ -131,13 +133,28 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     t0_mm, t0_deg = _transform_error(np.asarray(result.T0_heart_from_probe), T_true, vertices)
     shape = result.phase_estimates[0] if result.phase_estimates[0].method == "shape" else result.phase_estimates[1]
     evidence = {
-        "phases": sweep.phases, "distances_mm": sweep.distances_mm, "T_map_from_source": sweep.T_map_from_source,
+        **_trace_evidence(model, session, sweep.phases),
+        "phases": sweep.phases, "distances_mm": sweep.distances_mm, "signed_distances_mm": sweep.signed_distances_mm, "T_map_from_source": sweep.T_map_from_source,
         "cost_fiducial": shape.cost_fiducial, "cost_heart": shape.cost_heart, "T_true": T_true,
         "vertices_mm": vertices[:: max(1, vertices.shape[0] // 2000)], "pivot_mm": sweep.pivot_mm,
         "fiducials_probe_mm": np.asarray(session.fiducials_probe_mm), "fiducials_heart_mm": model.fiducials_heart_mm,
     }
     return {"preset": preset, "seed": int(seed), "phase_true": float(phase_r), "size": size,
-            "T0_mm": t0_mm, "T0_deg": t0_deg, "fre_mm": result.fre_mm, "estimates": rows, "_evidence": evidence}
+            "T0_mm": t0_mm, "T0_deg": t0_deg, "fre_mm": result.fre_mm,
+            "phase_c": float(model.cardiac_phase), "phase_c_true": float(truth["cardiac_phase"]), "estimates": rows, "_evidence": evidence}
+
+
+def _trace_evidence(model, session, phases) -> dict:
+    """The traced staples' fit residuals over the sweep (to re-score an estimator offline)."""
+    from registration.fiducial import register_fiducials
+    from registration.pipeline import _trace_curve
+
+    if session.fiducial_trace is None:
+        return {}
+    fid = register_fiducials(session.fiducials_probe_mm, model.fiducials_heart_mm)
+    curve = _trace_curve(session.fiducial_trace, model.fiducials_heart_mm, phases, fid.order)
+    return {"fiducial_residuals_mm": curve.residuals_mm, "fiducial_trace_rms_mm": curve.trace_rms_mm,
+            "fiducial_curve_T": curve.T_map_from_source, "fiducial_curve_source_mm": curve.positions_source_mm}
 
 
 def summarize(cases: Sequence[dict]) -> dict:
@@ -233,7 +250,10 @@ def evaluate(
     seeds: Sequence[int] = (1, 2, 3, 4, 5, 6),
     size: str = "sample",
     run: bool = True,
-    mapper: Callable | None = None,
+    workers: int | None = 0,
+    scheduler: str | None = None,
+    memory_limit: str | None = None,
+    progress: bool = False,
     say: Callable[[str], None] = lambda msg: None,
 ) -> dict:
     """Run (or resume) the grid and write the table and the figure.
@@ -246,16 +266,26 @@ def evaluate(
     size : {"sample", "full"}
     run : bool
         False: summarize the cases already in ``out_dir/cases`` only.
-    mapper : callable, optional
-        ``mapper(function, list_of_argument_tuples)`` returning the results
-        (e.g. a Dask client's map and gather); in-process, one by one, by default.
+    workers : int or None
+        0 (default): the cases run one by one in this process.  Otherwise on
+        the batch machinery (:func:`heartreg.batch.open_client`,
+        :func:`heartreg.batch.run_tasks`): a local Dask cluster of this many
+        worker processes (None: the usable cores), or ``scheduler``'s.
+    scheduler : str, optional
+        Address of a running Dask scheduler.
+    memory_limit : str, optional
+        Memory limit of each local worker (the batch default).
+    progress : bool
+        A progress bar on stderr (Dask runs).
     say : callable
-        Progress messages.
+        Progress messages: a line per finished case, one per failed case.
 
     Returns
     -------
     dict
-        ``{"summary", "cases", "paths"}``.
+        ``{"summary", "cases", "paths", "table", "failed"}``; ``failed`` maps a
+        case's name to its one-line error (a failed case is left out of the
+        table and runs again next time).
     """
     out = Path(out_dir)
     (out / "cases").mkdir(parents=True, exist_ok=True)
@@ -265,17 +295,27 @@ def evaluate(
             path = out / "cases" / f"{preset}_s{seed}.json"
             if not path.exists():
                 todo.append((preset, int(seed), true_phase(preset, int(seed)), size))
+    failed = {}
     if run and todo:
-        if mapper is None:
+        if workers == 0 and scheduler is None:
             for k, args in enumerate(todo, 1):
                 t = time.perf_counter()
                 case = _run_and_save(out, *args)
-                shape = case["estimates"][0]
-                say(f"[{k}/{len(todo)}] {args[0]} seed {args[1]}: truth {args[2]:.2f}, shape {shape['phase']:.2f} "
-                    f"[{shape['interval_low']:.2f}, {shape['interval_high']:.2f}], T {shape['transform_mm']:.2f} mm "
-                    f"({time.perf_counter() - t:.0f} s)")
+                say(f"[{k}/{len(todo)}] {_case_line(case)} ({time.perf_counter() - t:.0f} s)")
         else:
-            mapper(lambda a: _run_and_save(out, *a), todo)
+            from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT, TaskFailure, open_client, run_tasks
+
+            with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit or DEFAULT_MEMORY_LIMIT,
+                             log=say) as client:
+                names = [f"{a[0]}_s{a[1]}" for a in todo]
+                for k, (name, value) in enumerate(run_tasks(client, _case_task, todo, names=names,
+                                                            args=(str(out.resolve()),), progress=progress,
+                                                            desc="temporal cases"), 1):
+                    if isinstance(value, TaskFailure):
+                        failed[name] = value.error
+                        say(f"[{k}/{len(todo)}] {name} FAILED: {value.error}")
+                    else:
+                        say(f"[{k}/{len(todo)}] {_case_line(value)}")
     cases = []
     for preset in presets:
         for seed in seeds:
@@ -283,7 +323,7 @@ def evaluate(
             if path.exists():
                 cases.append(json.loads(path.read_text()))
     if not cases:
-        return {"summary": {}, "cases": [], "paths": {}}
+        return {"summary": {}, "cases": [], "paths": {}, "table": "", "failed": failed}
     summary = summarize(cases)
     table = _table(summary, len(cases), size)
     paths = {"md": out / "temporal_eval.md", "json": out / "temporal_eval.json",
@@ -302,7 +342,19 @@ def evaluate(
                                   (f"{v:.6g}" if isinstance(v, float) else str(v)) for v in (row[h] for h in header)))
     write_text_atomic(paths["csv"], "\n".join(lines) + "\n")
     _figure(cases, paths["png"])
-    return {"summary": summary, "cases": cases, "paths": paths, "table": table}
+    return {"summary": summary, "cases": cases, "paths": paths, "table": table, "failed": failed}
+
+
+def _case_line(case: dict) -> str:
+    shape = case["estimates"][0]
+    return (f"{case['preset']} seed {case['seed']}: truth {case['phase_true']:.2f}, {shape['estimator']} "
+            f"{shape['phase']:.2f} [{shape['interval_low']:.2f}, {shape['interval_high']:.2f}], "
+            f"T {shape['transform_mm']:.2f} mm")
+
+
+def _case_task(args, out_dir: str) -> dict:
+    """One case as a Dask task (:func:`heartreg.batch.run_tasks`): its record out, its files in ``out_dir``."""
+    return _run_and_save(Path(out_dir), *args)
 
 
 def _run_and_save(out: Path, preset, seed, phase_r, size) -> dict:

@@ -5,20 +5,25 @@ Closest points
 :func:`closest_points` returns the exact closest point on the mesh (not on a
 sampled cloud): the point-triangle closest point (Ericson, *Real-Time Collision
 Detection*, 5.1.5) is evaluated, vectorised, on a candidate set that provably
-contains the closest triangle.  A triangle lies inside the ball of radius
-``r_i = max_v |v - centroid_i|`` about its centroid; with ``r_max`` the largest
-such radius over the mesh and ``d`` an upper bound on the distance from a query
-point to the mesh, the closest triangle's centroid lies within ``d + r_max`` of
-the query.  The search takes the ``k`` nearest centroids (KD-tree), computes the
-best distance ``d`` among them and accepts it when ``d <= d_k - r_max`` (``d_k``
-the k-th centroid distance: every other triangle is then at least ``d`` away);
-otherwise it repeats with all centroids within ``d + r_max``.
+contains the closest triangle.  Search sites (the faces' centroids, and those
+of sub-triangles of the few large faces) sit in a KD-tree; every point of a
+face lies within its site's radius ``r_s`` of one of the face's sites, and
+within ``r_max`` (the largest) of one.  A face can therefore hold a point
+nearer than ``d`` to the query only if one of its sites lies within
+``d + r_s``.  The search takes the ``k`` nearest sites, bounds ``d`` by the
+nearest site's face, evaluates only the candidates within that bound, and
+accepts the best when ``d <= d_k - r_max`` (``d_k`` the k-th site distance:
+every other face is then at least ``d`` away); otherwise it searches every site
+within ``d + r_max`` (a ball query).
 
 ICP
 ---
 Point-to-point (closed-form SVD step) and point-to-plane (Gauss-Newton on the
 linearised rotation, using the closest faces' normals) variants, with optional
-trimming (keep the best fraction) and Huber weights.  Sliding along a surface
+trimming (keep the best fraction) and Huber weights; one implementation, run
+on many point sets at once (a phase sweep makes one closest-point query per
+iteration for all its phases).  It stops on a small step or on a loss that no
+longer falls (:func:`icp`), keeping the best iterate.  Sliding along a surface
 with a symmetry (sphere, cylinder, a flat patch) leaves directions of the rigid
 motion undetermined: the result reports the eigenvalues of the point-to-plane
 normal matrix at the solution (rotations scaled by the points' RMS radius so
@@ -30,6 +35,7 @@ below ``degeneracy_ratio``.
 from __future__ import annotations
 
 import enum
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +52,7 @@ __all__ = [
     "icp",
     "icp_sweep",
     "icp_sweep_distances",
+    "kabsch_batch",
 ]
 
 
@@ -135,6 +142,8 @@ class SurfaceIndex:
             owners.append(np.repeat(ids, bary.shape[0]))
         self.site_radius_mm = float(max(site_radius, (radii / m).max()))
         self._site_face = np.concatenate(owners)
+        # each site's own radius: every point of its (sub-)triangle lies within it
+        self._site_radius = (radii / m)[self._site_face]
         self.tree = cKDTree(np.concatenate(sites))
 
     @property
@@ -251,56 +260,46 @@ class ClosestPoints:
     normals: np.ndarray
 
 
-def _best_among(surface, q, cand):
-    """Closest point of q (n, 3) among candidate faces cand (n, k)."""
-    a, ab, ac = surface._a[cand], surface._ab[cand], surface._ac[cand]
-    qq = q[:, None, :]
-    v, w = _closest_barycentric(qq, a, ab, ac, surface._dots[cand])
-    diff = qq - a - v[..., None] * ab - w[..., None] * ac
-    d2 = np.einsum("nki,nki->nk", diff, diff)
-    j = np.argmin(d2, axis=1)
-    rows = np.arange(q.shape[0])
-    return q - diff[rows, j], np.sqrt(d2[rows, j]), cand[rows, j]
-
-
-def _best_pruned(surface, q, sites, dist_s):
-    """Closest point of q (n, 3) among the faces of candidate sites (n, k).
-
-    Only the sites within ``d0 + site_radius_mm`` of a query are evaluated
-    (and the nearest one), ``d0`` being the exact distance to the face of its
-    nearest candidate site: a face closer than ``d0`` has a site within
-    ``d0 + site_radius_mm`` (module docstring), so a candidate farther than
-    that cannot reveal it.  Same answer as evaluating every candidate, in the
-    same column order.
-    """
-    n, kc = sites.shape
-    rows = np.arange(n)
-    faces = surface._site_face[sites]
-    j0 = np.argmin(dist_s, axis=1)
-    _, d0, _ = _best_among(surface, q, faces[rows, j0][:, None])
-    # "not farther" so that a NaN bound (degenerate face) keeps every candidate; the
-    # nearest site's own face is always kept (its closest point may lie nearer
-    # another site of the same face, one outside this candidate list)
-    mask = ~(dist_s > (d0 + surface.site_radius_mm)[:, None])
-    mask[rows, j0] = True
-    rr, cc = np.nonzero(mask)
-    fc = faces[rr, cc]
-    a, ab, ac = surface._a[fc], surface._ab[fc], surface._ac[fc]
-    qr = q[rr]
-    v, w = _closest_barycentric(qr, a, ab, ac, surface._dots[fc])
+def _face_d2(surface, q, rows, faces):
+    """Squared distance of q[rows] to faces (pairs), (p,) float64; NaN (a degenerate face) as inf."""
+    a, ab, ac = surface._a[faces], surface._ab[faces], surface._ac[faces]
+    qr = q[rows]
+    v, w = _closest_barycentric(qr, a, ab, ac, surface._dots[faces])
     diff = qr - a - v[:, None] * ab - w[:, None] * ac
     d2 = np.einsum("ij,ij->i", diff, diff)
-    full = np.full((n, kc), np.inf)
-    full[rr, cc] = d2
-    j = np.argmin(full, axis=1)
-    where = np.empty((n, kc), dtype=np.int64)
-    where[rr, cc] = np.arange(rr.size)
-    p = where[rows, j]
-    return q - diff[p], np.sqrt(d2[p]), faces[rows, j]
+    return np.where(np.isnan(d2), np.inf, d2)
 
 
-def closest_points(surface, points, *, k: int = 16) -> ClosestPoints:
+def _improve(best_d2, best_face, surface, q, rows, sites, site_dist):
+    """Lower ``best_d2`` / ``best_face`` in place with the candidate sites (pairs, rows sorted).
+
+    A face can hold a point nearer than the current best only if one of its
+    sites lies within the best distance plus that site's radius; the others
+    are skipped unevaluated.
+    """
+    keep = site_dist - surface._site_radius[sites] <= np.sqrt(best_d2[rows])
+    rows, faces = rows[keep], surface._site_face[sites[keep]]
+    if rows.size == 0:
+        return
+    d2 = _face_d2(surface, q, rows, faces)
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    low = np.minimum.reduceat(d2, starts)
+    seg = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, rows.size]))
+    hit = np.flatnonzero(d2 == low[seg])
+    hit = hit[np.r_[True, seg[hit][1:] != seg[hit][:-1]]]  # the first minimum of each row
+    r = rows[hit]
+    better = d2[hit] < best_d2[r]
+    best_d2[r[better]], best_face[r[better]] = d2[hit][better], faces[hit][better]
+
+
+def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
     """Exact closest points on a triangle mesh.
+
+    The ``k`` nearest search sites give candidate faces; the nearest site's
+    face bounds the distance, and only the faces whose sites lie within that
+    bound plus their own radius are evaluated.  Where the ``k``-th site is not
+    far enough to exclude the faces beyond it (module docstring), every site
+    within the found distance plus the largest site radius is searched.
 
     Parameters
     ----------
@@ -308,8 +307,7 @@ def closest_points(surface, points, *, k: int = 16) -> ClosestPoints:
         Build a :class:`SurfaceIndex` once when querying repeatedly.
     points : (n, 3) float, mm
     k : int
-        Nearest centroids tried first; more are searched only where the bound in
-        the module docstring does not prove the answer.
+        Nearest search sites tried first.
 
     Returns
     -------
@@ -325,27 +323,30 @@ def closest_points(surface, points, *, k: int = 16) -> ClosestPoints:
         raise ValueError(f"k must be >= 1, got {k}")
     n = q.shape[0]
     n_sites = surface._site_face.shape[0]
-    r = surface.site_radius_mm
     kc = int(min(k, n_sites))
     dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
     dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
-    cp, d, face = _best_pruned(surface, q, idx, dist_s)
-    # Faces without a site among the kc nearest are at least (kc-th site
-    # distance - r) away: the answer is proven where d is below that.
-    unproven = np.flatnonzero(d > dist_s[:, -1] - r) if kc < n_sites else np.empty(0, int)
-    while unproven.size:
-        k_old, kc = kc, min(4 * kc, n_sites)
-        qu = q[unproven]
-        dist_s, idx = surface.tree.query(qu, k=kc, workers=-1)
-        dist_s, idx = dist_s.reshape(-1, kc), idx.reshape(-1, kc)
-        cp2, d2, f2 = _best_pruned(surface, qu, idx[:, k_old:], dist_s[:, k_old:])
-        better = d2 < d[unproven]
-        sel = unproven[better]
-        cp[sel], d[sel], face[sel] = cp2[better], d2[better], f2[better]
-        if kc == n_sites:
-            break
-        unproven = unproven[d[unproven] > dist_s[:, -1] - r]
-    return ClosestPoints(cp, d, face, surface.normals[face])
+    rows = np.arange(n)
+    best_face = surface._site_face[idx[:, 0]]
+    best_d2 = _face_d2(surface, q, rows, best_face)
+    rr = np.repeat(rows, kc - 1)
+    _improve(best_d2, best_face, surface, q, rr, idx[:, 1:].ravel(), dist_s[:, 1:].ravel())
+    # faces without a site among the kc nearest are at least (kc-th site distance - r) away
+    if kc < n_sites:
+        unproven = np.flatnonzero(np.sqrt(best_d2) > dist_s[:, -1] - surface.site_radius_mm)
+        if unproven.size:
+            radius = np.sqrt(best_d2[unproven]) + surface.site_radius_mm
+            lists = surface.tree.query_ball_point(q[unproven], np.where(np.isfinite(radius), radius, np.inf),
+                                                  workers=-1, return_sorted=False)
+            lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+            sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
+            rr = np.repeat(unproven, lengths)
+            _improve(best_d2, best_face, surface, q, rr, sites,
+                     np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1))
+    a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
+    v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
+    cp = a + v[:, None] * ab + w[:, None] * ac
+    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
 
 
 @dataclass(frozen=True)
@@ -367,7 +368,9 @@ class IcpResult:
     inliers : (n,) bool
     iterations : int
     converged : bool
-        True when the last step moved less than ``tol_mm`` and ``tol_deg``.
+        True when the iteration met one of :func:`icp`'s criteria (a step below
+        ``tol_mm`` and ``tol_deg``, or a loss no longer falling by ``tol_loss``)
+        within ``max_iterations``.
     method : str
     hessian_eigenvalues : (6,) float64, mm^2 per point
         Ascending eigenvalues of the point-to-plane normal matrix at the solution
@@ -397,22 +400,45 @@ class IcpResult:
     degenerate: bool
 
 
-def _weighted_kabsch(src, dst, w):
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+#: ICP stops when a step lowers its loss by less than this fraction (``tol_loss``).
+TOL_LOSS = 1e-4
+
+
+def kabsch_batch(source, target, weights=None) -> np.ndarray:
+    """Rigid ``T`` (b, 4, 4) minimising ``sum_k w_k |T source_k - target_k|^2`` per set.
+
+    Parameters
+    ----------
+    source, target : (b, k, 3) float, mm
+        Corresponding points of b sets.
+    weights : (b, k) float, optional
+        Non-negative weights (equal by default).
+
+    Returns
+    -------
+    (b, 4, 4) float64
+    """
+    source = np.asarray(source, dtype=float)
+    target = np.asarray(target, dtype=float)
+    w = np.ones(source.shape[:2]) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum(axis=1, keepdims=True)
+    cs, ct = np.einsum("bk,bki->bi", w, source), np.einsum("bk,bki->bi", w, target)
+    H = np.einsum("bk,bki,bkj->bij", w, source - cs[:, None], target - ct[:, None])
     U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    d[d == 0] = 1.0
+    R = (V * np.concatenate([np.ones((d.size, 2)), d[:, None]], axis=1)[:, None, :]) @ Ut
+    T = np.zeros(source.shape[:1] + (4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = ct - np.einsum("bij,bj->bi", R, cs)
+    T[:, 3, 3] = 1.0
+    return T
 
 
-def _plane_system(q, c, normals, w, centre, scale):
-    qc = q - centre
-    J = np.concatenate([np.cross(qc, normals) / scale, normals], axis=1)
-    r = np.einsum("ij,ij->i", q - c, normals)
-    Jw = J * w[:, None]
-    return Jw.T @ J, Jw.T @ r
+def _plane_jacobian(q, normals, centre, scale):
+    """Point-to-plane Jacobian (a, n, 6): rotation about ``centre`` (scaled by ``scale``), translation."""
+    return np.concatenate([np.cross(q - centre[:, None], normals) / scale[:, None, None], normals], axis=2)
 
 
 def _check_options(src, T_init, trim_fraction, huber_mm, max_iterations) -> np.ndarray:
@@ -440,12 +466,28 @@ def icp(
     max_iterations: int = 50,
     tol_mm: float = 1e-3,
     tol_deg: float = 1e-3,
+    tol_loss: float = TOL_LOSS,
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
     degeneracy_ratio: float = 1e-3,
-    k: int = 16,
+    k: int = 24,
 ) -> IcpResult:
     """Rigidly register points to a triangle mesh.
+
+    Each iteration finds the exact closest points, then takes one step: the
+    linearised point-to-plane least-squares step (Gauss-Newton) or the
+    point-to-point SVD step.  The iteration has *converged* when a step moves
+    the points' centroid less than ``tol_mm`` and rotates less than
+    ``tol_deg``, or when the loss (half the sum of squared distances over the
+    kept points, Huber's with ``huber_mm``) falls by less than the fraction
+    ``tol_loss``: on a faceted mesh, with the points off the surface (the
+    wrong phase of a sweep), the step can keep rotating the points by a
+    tenth of a degree along a weakly constrained direction while the loss
+    changes in its fifth digit; the minimum is then as sharp as the facets
+    allow.  A step that raises the loss is halved once (back towards the best
+    iterate); the best iterate is returned.  ``max_iterations`` bounds the
+    steps: a registration still improving then returns with
+    ``converged=False``.
 
     Parameters
     ----------
@@ -459,9 +501,12 @@ def icp(
         ``"point_to_plane"`` (default, converges in few iterations) or
         ``"point_to_point"``.
     max_iterations : int
+        Most steps (``heartreg register --icp-max-iterations``).
     tol_mm, tol_deg : float, mm and degrees
         Converged when one step moves the points' centroid less than ``tol_mm``
         and rotates less than ``tol_deg``.
+    tol_loss : float
+        Converged when one step lowers the loss by less than this fraction.
     trim_fraction : float in [0, 0.5)
         Fraction of the points with the largest distances ignored in each step.
     huber_mm : float, optional
@@ -484,55 +529,30 @@ def icp(
     method = IcpMethod(method)
     T = _check_options(src, T_init, trim_fraction, huber_mm, max_iterations)
     n = src.shape[0]
-    n_keep = max(3, int(np.ceil((1.0 - trim_fraction) * n)))
+    fit = _icp_batch(src[None], surface, T[None], method=method, max_iterations=max_iterations, tol_mm=tol_mm,
+                     tol_deg=tol_deg, tol_loss=tol_loss, n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))),
+                     huber_mm=huber_mm, k=k)
+    T = fit.T[0]
+    d, w = fit.distances_mm[0], fit.weights[0]
+    sel = w > 0
     centre_src = src.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((src - centre_src) ** 2, axis=1)))) or 1.0
-    tol_rad = np.radians(tol_deg)
-
-    converged = False
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        q = src @ T[:3, :3].T + T[:3, 3]
-        cp = closest_points(surface, q, k=k)
-        w = _weights(cp.distances_mm, n_keep, huber_mm)
-        sel = w > 0
-        centre = T[:3, :3] @ centre_src + T[:3, 3]
-        if method is IcpMethod.POINT_TO_POINT:
-            R, t = _weighted_kabsch(q[sel], cp.points[sel], w[sel])
-        else:
-            A, b = _plane_system(q[sel], cp.points[sel], cp.normals[sel], w[sel], centre, scale)
-            x = np.linalg.lstsq(A, -b, rcond=1e-12)[0]
-            R = Rotation.from_rotvec(x[:3] / scale).as_matrix()
-            t = centre - R @ centre + x[3:]
-        step = np.eye(4)
-        step[:3, :3], step[:3, 3] = R, t
-        T = step @ T
-        moved = np.linalg.norm(R @ centre + t - centre)
-        angle = Rotation.from_matrix(R).magnitude()
-        if moved < tol_mm and angle < tol_rad:
-            converged = True
-            break
-
     q = src @ T[:3, :3].T + T[:3, 3]
-    cp = closest_points(surface, q, k=k)
-    w = _weights(cp.distances_mm, n_keep, huber_mm)
-    sel = w > 0
-    centre = T[:3, :3] @ centre_src + T[:3, 3]
-    A, _ = _plane_system(q[sel], cp.points[sel], cp.normals[sel], w[sel], centre, scale)
-    A = A / w[sel].sum()
+    J = _plane_jacobian(q[None, sel], fit.normals[0][None, sel], (T[:3, :3] @ centre_src + T[:3, 3])[None],
+                        np.array([scale]))[0]
+    A = (J * w[sel, None]).T @ J / w[sel].sum()
     evals, evecs = np.linalg.eigh(A)
     evals = np.clip(evals, 0.0, None)
     cond = float(evals[-1] / evals[0]) if evals[0] > 0 else float("inf")
-    d = cp.distances_mm
     return IcpResult(
         T_target_from_source=T,
         rms_mm=float(np.sqrt(np.mean(d**2))),
         rms_inlier_mm=float(np.sqrt(np.mean(d[sel] ** 2))),
         distances_mm=d,
-        closest_points=cp.points,
+        closest_points=fit.closest_mm[0],
         inliers=sel,
-        iterations=iterations,
-        converged=converged,
+        iterations=int(fit.iterations[0]),
+        converged=bool(fit.converged[0]),
         method=method.value,
         hessian_eigenvalues=evals,
         weakest_direction=evecs[:, 0],
@@ -541,23 +561,10 @@ def icp(
     )
 
 
-def _weights(d, n_keep, huber_mm):
-    w = np.zeros_like(d)
-    if n_keep >= d.shape[0]:
-        keep = np.arange(d.shape[0])
-    else:
-        keep = np.argpartition(d, n_keep - 1)[:n_keep]
-    w[keep] = 1.0
-    if huber_mm is not None:
-        w[keep] = np.minimum(1.0, huber_mm / np.maximum(d[keep], 1e-12))
-    return w
-
-
 def icp_sweep(points, surface, **options):
-    """Point-to-plane :func:`icp` of many point sets at once, all from one seed.
+    """:func:`icp` of many point sets at once, all from one seed.
 
-    See :func:`icp_sweep_distances` for the parameters (``T_init``, ``max_iterations``,
-    ``tol_mm``, ``tol_deg``, ``trim_fraction``, ``huber_mm``, ``k``).
+    See :func:`icp_sweep_distances` for the parameters.
 
     Returns
     -------
@@ -576,33 +583,31 @@ def icp_sweep_distances(
     surface,
     *,
     T_init=None,
+    method: IcpMethod | str = IcpMethod.POINT_TO_PLANE,
     max_iterations: int = 50,
     tol_mm: float = 1e-3,
     tol_deg: float = 1e-3,
+    tol_loss: float = TOL_LOSS,
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
-    k: int = 16,
+    k: int = 24,
     warm_start: bool = False,
     warm_stride: int = 10,
+    signed: bool = False,
 ):
-    """Point-to-plane :func:`icp` of many point sets at once.
+    """:func:`icp` of many point sets at once.
 
-    The same iteration as :func:`icp` (method ``"point_to_plane"``), run on all
-    ``m`` point sets together so that each iteration makes one closest-point
-    query for all active sets; a set stops when its step is below the
-    tolerances, or when it returns within them to where it was two steps
-    before (a two-cycle between faces of the mesh: it has converged as far as
-    the facets allow).  The 6 x 6 steps are solved with a pseudo-inverse
-    (``rcond = 1e-12``, as ``icp``'s ``lstsq``).
+    The same iteration as :func:`icp` (one implementation), run on all ``m``
+    point sets together so that each iteration makes one closest-point query
+    for all active sets.
 
     With ``warm_start`` the sets are taken as ordered samples of a smooth
     family (the predicted points along a phase sweep): every ``warm_stride``-th
     set is registered from ``T_init``, then the others in waves outwards from
-    those, each seeded by its already registered neighbour, which is a
-    fraction of a millimetre away rather than the seed's ~10 mm; the sweep
-    then takes a few iterations per set instead of ten or more.  Each set still
-    iterates to the same tolerances, so the answers agree with the cold start
-    to about the tolerance (the bench checks 0.01 mm).
+    those, each seeded by its already registered neighbour.  Each set iterates
+    to the same tolerances, but where the loss is flat along a direction (the
+    sets off the surface) the answer depends on the seed by up to the
+    tolerances' effect there (hundredths of a mm at the heart's centre).
 
     Parameters
     ----------
@@ -611,12 +616,15 @@ def icp_sweep_distances(
     surface : SurfaceIndex or (vertices, faces)
     T_init : (4, 4) or (m, 4, 4) float, optional
         Seed of every registration, or one per set.
-    max_iterations, tol_mm, tol_deg, trim_fraction, huber_mm, k
+    method, max_iterations, tol_mm, tol_deg, tol_loss, trim_fraction, huber_mm, k
         As for :func:`icp`.
     warm_start : bool
         Seed each set by its registered neighbour (see above).
     warm_stride : int
         Sets registered from ``T_init`` when warm starting: every this many.
+    signed : bool
+        Signed distances: negative inside the surface (by the closest face's
+        outward normal).
 
     Returns
     -------
@@ -640,10 +648,18 @@ def icp_sweep_distances(
         seeds = np.repeat(_check_options(src, seeds, trim_fraction, huber_mm, max_iterations)[None], m, axis=0)
     if int(warm_stride) != warm_stride or warm_stride < 1:
         raise ValueError(f"warm_stride must be a positive integer, got {warm_stride}")
-    options = dict(max_iterations=max_iterations, tol_mm=tol_mm, tol_deg=tol_deg,
-                   n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))), huber_mm=huber_mm, k=k)
+    options = dict(method=IcpMethod(method), max_iterations=max_iterations, tol_mm=tol_mm, tol_deg=tol_deg,
+                   tol_loss=tol_loss, n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))), huber_mm=huber_mm,
+                   k=k)
+    def distances(fit, points):
+        if not signed:
+            return fit.distances_mm
+        q = np.einsum("aij,anj->ani", fit.T[:, :3, :3], points) + fit.T[:, None, :3, 3]
+        return np.where(np.einsum("ani,ani->an", q - fit.closest_mm, fit.normals) < 0, -1.0, 1.0) * fit.distances_mm
+
     if not warm_start or m <= 2:
-        return _icp_batch(src, surface, seeds, **options)
+        fit = _icp_batch(src, surface, seeds, **options)
+        return fit.T, distances(fit, src), fit.iterations, fit.converged
     T = np.empty((m, 4, 4))
     d = np.empty((m, n))
     iterations = np.zeros(m, dtype=np.int64)
@@ -654,7 +670,8 @@ def icp_sweep_distances(
     source_of = {int(i): None for i in anchors}
     while wave.size:
         seed = np.stack([seeds[i] if source_of[int(i)] is None else T[source_of[int(i)]] for i in wave])
-        T[wave], d[wave], iterations[wave], converged[wave] = _icp_batch(src[wave], surface, seed, **options)
+        fit = _icp_batch(src[wave], surface, seed, **options)
+        T[wave], d[wave], iterations[wave], converged[wave] = fit.T, distances(fit, src[wave]), fit.iterations, fit.converged
         done[wave] = True
         nxt = {}
         for i in wave:
@@ -666,8 +683,52 @@ def icp_sweep_distances(
     return T, d, iterations, converged
 
 
-def _icp_batch(src, surface, seeds, *, max_iterations, tol_mm, tol_deg, n_keep, huber_mm, k):
-    """The batched point-to-plane iteration of :func:`icp_sweep_distances`, one seed per set."""
+@dataclass(frozen=True)
+class _BatchFit:
+    """The best iterate of each set of :func:`_icp_batch`, with its closest points."""
+
+    T: np.ndarray  # (m, 4, 4)
+    distances_mm: np.ndarray  # (m, n)
+    closest_mm: np.ndarray  # (m, n, 3)
+    normals: np.ndarray  # (m, n, 3)
+    weights: np.ndarray  # (m, n)
+    iterations: np.ndarray  # (m,)
+    converged: np.ndarray  # (m,)
+
+
+def _step(method, q, cp, normals, w, centre, scale):
+    """One ICP step (a, 4, 4) from the closest points: point-to-plane Gauss-Newton or point-to-point SVD."""
+    if method is IcpMethod.POINT_TO_POINT:
+        return kabsch_batch(q, cp, w)
+    J = _plane_jacobian(q, normals, centre, scale)
+    Jw = J * w[:, :, None]
+    A = np.einsum("ani,anj->aij", Jw, J)
+    b = np.einsum("ani,an->ai", Jw, np.einsum("ani,ani->an", q - cp, normals))
+    x = -np.einsum("aij,aj->ai", np.linalg.pinv(A, rcond=1e-12), b)
+    R = Rotation.from_rotvec(x[:, :3] / scale[:, None]).as_matrix()
+    step = np.zeros((q.shape[0], 4, 4))
+    step[:, :3, :3], step[:, :3, 3], step[:, 3, 3] = R, centre - np.einsum("aij,aj->ai", R, centre) + x[:, 3:], 1.0
+    return step
+
+
+def _half_step(T, T_best, centre):
+    """Halfway from ``T_best`` to ``T`` (a, 4, 4): half the rotation about ``centre`` and half its shift."""
+    S = T @ np.linalg.inv(T_best)
+    R = Rotation.from_rotvec(Rotation.from_matrix(S[:, :3, :3]).as_rotvec() / 2).as_matrix()
+    shift = np.einsum("aij,aj->ai", S[:, :3, :3], centre) + S[:, :3, 3] - centre
+    half = np.zeros_like(S)
+    half[:, :3, :3], half[:, :3, 3], half[:, 3, 3] = R, centre + shift / 2 - np.einsum("aij,aj->ai", R, centre), 1.0
+    return half @ T_best
+
+
+def _loss(d, w, huber_mm):
+    """Half the sum of squared distances of the kept points (Huber's loss with ``huber_mm``), per row."""
+    rho = 0.5 * d**2 if huber_mm is None else np.where(d <= huber_mm, 0.5 * d**2, huber_mm * (d - huber_mm / 2))
+    return np.where(w > 0, rho, 0.0).sum(axis=1)
+
+
+def _icp_batch(src, surface, seeds, *, method, max_iterations, tol_mm, tol_deg, tol_loss, n_keep, huber_mm, k):
+    """The ICP iteration of :func:`icp` on m sets at once, one seed per set (criteria in ``icp``)."""
     m, n, _ = src.shape
     centre_src = src.mean(axis=1)  # (m, 3)
     scale = np.sqrt(np.mean(np.sum((src - centre_src[:, None]) ** 2, axis=2), axis=1))
@@ -675,53 +736,53 @@ def _icp_batch(src, surface, seeds, *, max_iterations, tol_mm, tol_deg, n_keep, 
     tol_rad = np.radians(tol_deg)
 
     T = np.array(seeds, dtype=float)
-    T_before = np.full_like(T, np.nan)  # two steps back, for the two-cycle test
-    iterations = np.zeros(m, dtype=np.int64)
-    converged = np.zeros(m, dtype=bool)
+    best = _BatchFit(T.copy(), np.zeros((m, n)), np.zeros((m, n, 3)), np.zeros((m, n, 3)), np.zeros((m, n)),
+                     np.zeros(m, dtype=np.int64), np.zeros(m, dtype=bool))
+    best_loss = np.full(m, np.inf)
+    small = np.zeros(m, dtype=bool)  # the step to T was below tol_mm and tol_deg
+    halved = np.zeros(m, dtype=bool)  # T is a halved step back towards the best
     active = np.arange(m)
-    for _ in range(max_iterations):
+    while active.size:
         a = active
-        R0, t0 = T[a, :3, :3], T[a, :3, 3]
-        q = np.einsum("aij,anj->ani", R0, src[a]) + t0[:, None]
+        q = np.einsum("aij,anj->ani", T[a, :3, :3], src[a]) + T[a, None, :3, 3]
         cp = closest_points(surface, q.reshape(-1, 3), k=k)
         d = cp.distances_mm.reshape(len(a), n)
         w = _weights_batch(d, n_keep, huber_mm)
-        centre = np.einsum("aij,aj->ai", R0, centre_src[a]) + t0
-        normals = cp.normals.reshape(len(a), n, 3)
-        J = np.concatenate([np.cross(q - centre[:, None], normals) / scale[a, None, None], normals], axis=2)
-        r = np.einsum("ani,ani->an", q - cp.points.reshape(len(a), n, 3), normals)
-        Jw = J * w[:, :, None]
-        A = np.einsum("ani,anj->aij", Jw, J)
-        b = np.einsum("ani,an->ai", Jw, r)
-        x = -np.einsum("aij,aj->ai", np.linalg.pinv(A, rcond=1e-12), b)
-        R = Rotation.from_rotvec(x[:, :3] / scale[a, None]).as_matrix()
-        t = centre - np.einsum("aij,aj->ai", R, centre) + x[:, 3:]
-        step = np.zeros((len(a), 4, 4))
-        step[:, :3, :3], step[:, :3, 3], step[:, 3, 3] = R, t, 1.0
-        previous = T[a]
-        T[a] = step @ previous
-        iterations[a] += 1
-        moved = np.linalg.norm(np.einsum("aij,aj->ai", R, centre) + t - centre, axis=1)
-        angle = Rotation.from_matrix(R).magnitude()
-        # two-cycle: back within the tolerances of where the set was two steps ago
-        back = T[a] @ np.linalg.inv(np.where(np.isnan(T_before[a]), previous, T_before[a]))
-        back_moved = np.linalg.norm(np.einsum("aij,aj->ai", back[:, :3, :3], centre) + back[:, :3, 3] - centre, axis=1)
-        back_angle = Rotation.from_matrix(back[:, :3, :3]).magnitude()
-        cycled = ~np.isnan(T_before[a, 0, 0]) & (back_moved < tol_mm) & (back_angle < tol_rad)
-        done = ((moved < tol_mm) & (angle < tol_rad)) | cycled
-        T_before[a] = previous
-        converged[a[done]] = True
-        active = a[~done]
-        if active.size == 0:
-            break
-
-    q = np.einsum("aij,anj->ani", T[:, :3, :3], src) + T[:, None, :3, 3]
-    d = closest_points(surface, q.reshape(-1, 3), k=k).distances_mm.reshape(m, n)
-    return T, d, iterations, converged
+        loss = _loss(d, w, huber_mm)
+        improved = loss < best_loss[a]
+        enough = loss < best_loss[a] * (1.0 - tol_loss)
+        i = a[improved]
+        best.T[i], best.distances_mm[i], best.weights[i] = T[i], d[improved], w[improved]
+        best.closest_mm[i] = cp.points.reshape(len(a), n, 3)[improved]
+        best.normals[i] = cp.normals.reshape(len(a), n, 3)[improved]
+        best_loss[i] = loss[improved]
+        # converged: a small step, a loss that no longer falls, or one that rose after a halved step
+        done = small[a] | (improved & ~enough) | (~improved & halved[a])
+        best.converged[a[done]] = True
+        go = ~done & (best.iterations[a] < max_iterations)
+        back = go & ~improved  # the step raised the loss: halve it
+        if back.any():
+            b = a[back]
+            T[b] = _half_step(T[b], best.T[b], np.einsum("aij,aj->ai", best.T[b, :3, :3], centre_src[b])
+                              + best.T[b, :3, 3])
+            halved[b], small[b] = True, False
+        fwd = go & improved
+        if fwd.any():
+            f = a[fwd]
+            centre = np.einsum("aij,aj->ai", T[f, :3, :3], centre_src[f]) + T[f, :3, 3]
+            step = _step(method, q[fwd], cp.points.reshape(len(a), n, 3)[fwd],
+                         cp.normals.reshape(len(a), n, 3)[fwd], w[fwd], centre, scale[f])
+            T[f] = step @ T[f]
+            moved = np.linalg.norm(np.einsum("aij,aj->ai", step[:, :3, :3], centre) + step[:, :3, 3] - centre, axis=1)
+            small[f] = (moved < tol_mm) & (Rotation.from_matrix(step[:, :3, :3]).magnitude() < tol_rad)
+            halved[f] = False
+        best.iterations[a[go]] += 1
+        active = a[go]
+    return best
 
 
 def _weights_batch(d, n_keep, huber_mm):
-    """:func:`_weights` of each row of d (m, n)."""
+    """Weights of each row of d (m, n): 1 on the ``n_keep`` nearest (trimming), Huber's on those."""
     m, n = d.shape
     if n_keep >= n:
         w = np.ones_like(d)

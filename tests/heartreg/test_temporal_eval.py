@@ -55,3 +55,15 @@ def test_grid_outputs_agree_with_the_cases(grid_slice, capsys):
     # re-summarised by the CLI without running anything: the same table
     assert main(["evaluate-temporal", "-o", str(out), "--trials", "4", "--seeds", "1", "--report-only"]) == 0
     assert table in capsys.readouterr().out
+
+
+def test_the_grid_runs_on_the_batch_machinery_and_records_a_failed_case(tmp_path):
+    # a local Dask cluster (heartreg.batch): a case that cannot run is
+    # recorded with its one-line error, the table is not written from nothing,
+    # and nothing half-written is left for the next run to mistake for a case
+    messages = []
+    result = evaluate(tmp_path, presets=("no-such-preset",), seeds=(1,), workers=1, say=messages.append)
+    assert list(result["failed"]) == ["no-such-preset_s1"]
+    assert "unknown preset" in result["failed"]["no-such-preset_s1"]
+    assert any("FAILED" in m for m in messages) and not result["cases"]
+    assert not list((tmp_path / "cases").iterdir())

@@ -125,3 +125,27 @@ def test_sweep_accepts_predicted_points_and_checks_shapes(case, heart_index):
         sweep_phase(None, heart_index, case["T0"], fixed_phase=PHASE_C, phases=[0.1, 0.3, 0.5], points=points)
     with pytest.raises(ValueError, match="kind"):
         sweep_phase(case["models"], heart_index, case["T0"], fixed_phase=PHASE_C, kind="both")
+
+
+def test_the_sweep_converges_and_equals_icp_phase_by_phase(case, heart_index):
+    # every phase of the sweep converges well within the default iteration limit,
+    # also where the points lie off the surface (the loss criterion), and the
+    # batched sweep is icp() phase by phase: the same transform and distances
+    sweep = case["reg"].respiration_sweep
+    assert sweep.converged.all() and sweep.iterations.max() <= 12
+    for i in (0, 17, 40):
+        points = predict_positions(case["models"], PHASE_C, sweep.phases[i])[0]
+        single = icp(points, heart_index, T_init=case["T0"])
+        assert single.converged and single.iterations == sweep.iterations[i]
+        np.testing.assert_allclose(single.T_target_from_source, sweep.T_map_from_source[i], atol=1e-9)
+        np.testing.assert_allclose(single.distances_mm, sweep.distances_mm[i], atol=1e-9)
+
+
+def test_point_to_point_sweeps_in_one_batch_too(case, heart_index):
+    points = predict_positions(case["models"], PHASE_C, np.array([0.3, 0.7]))
+    sweep = sweep_phase(None, heart_index, case["T0"], fixed_phase=PHASE_C, phases=[0.3, 0.7], points=points,
+                        icp_options={"method": "point_to_point", "max_iterations": 200})
+    for i in range(2):
+        single = icp(points[i], heart_index, T_init=case["T0"], method="point_to_point", max_iterations=200)
+        np.testing.assert_allclose(single.T_target_from_source, sweep.T_map_from_source[i], atol=1e-9)
+        assert single.converged == sweep.converged[i]
