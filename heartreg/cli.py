@@ -72,6 +72,19 @@ def _cmd_phantom(args) -> int:
     return 0
 
 
+def _finite(value: str) -> float:
+    """A float option: a finite number (``nan`` and ``inf`` are refused by name)."""
+    import math
+
+    try:
+        number = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a number") from None
+    if not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"{value} is not a finite number")
+    return number
+
+
 def _label_arg(value: str):
     """``--label``: a label value, or its name in the label map (TotalSegmentator, DICOM SEG)."""
     return int(value) if value.lstrip("-").isdigit() else value
@@ -165,7 +178,7 @@ def _registration_options(args):
         kw["breath_hold_phase"] = args.breath_hold_phase
     if args.icp_max_iterations is not None:
         if args.icp_max_iterations < 1:
-            raise UsageError(f"--icp-max-iterations must be at least 1, got {args.icp_max_iterations}")
+            raise UsageError(f"max_iterations (--icp-max-iterations) must be >= 1, got {args.icp_max_iterations}")
         kw["icp_options"] = {"max_iterations": args.icp_max_iterations}
     return RegistrationOptions(**kw)
 
@@ -459,7 +472,7 @@ def _add_model_options(p) -> None:
                    help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
     p.add_argument("--fiducials", type=int, default=None,
                    help="skin fiducials expected, insisted on (default: those found on the skin; 0: none)")
-    p.add_argument("--fiducial-floor-hu", type=float, default=None, help="HU above which fiducial excess density counts")
+    p.add_argument("--fiducial-floor-hu", type=_finite, default=None, help="HU above which fiducial excess density counts")
     p.add_argument("--keep-vessels", action="store_true",
                    help="keep the great-vessel stubs (do not trim them off the base)")
     p.add_argument("--trim-vessels", action="store_true",
@@ -471,7 +484,7 @@ def _add_registration_options(p) -> None:
     from registration.options import ESTIMATORS, RegistrationOptions
 
     defaults = RegistrationOptions()
-    p.add_argument("--step", type=float, default=None,
+    p.add_argument("--step", type=_finite, default=None,
                    help=f"phase step of the sweeps (default {defaults.phase_step})")
     p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
                    help="Fourier harmonics of the motion models (default "
@@ -479,7 +492,7 @@ def _add_registration_options(p) -> None:
     p.add_argument("--estimator", default=defaults.estimator, choices=list(ESTIMATORS),
                    help="how phi_R* is chosen: chest and heart shape with a 90%% interval (default), "
                         "or the paper's eq. 10")
-    p.add_argument("--breath-hold-phase", type=float, default=None, metavar="PHASE",
+    p.add_argument("--breath-hold-phase", type=_finite, default=None, metavar="PHASE",
                    help=f"the CT's breath-hold respiration phase if known (sd {defaults.breath_hold_sd}), "
                         "used by --estimator shape")
     p.add_argument("--icp-max-iterations", type=int, default=None, metavar="N",
@@ -514,9 +527,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", default="sample", choices=sorted(SIZES), help="CT grid size")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
     p.add_argument("--points", type=int, default=None, help="number of robot attachment points")
-    p.add_argument("--resp-phase", type=float, default=None, metavar="PHASE",
+    p.add_argument("--resp-phase", type=_finite, default=None, metavar="PHASE",
                    help="respiration phase of the CT breath-hold (default the preset's, 0.3)")
-    p.add_argument("--chest-wall-mm", type=float, default=None, metavar="MM",
+    p.add_argument("--chest-wall-mm", type=_finite, default=None, metavar="MM",
                    help="sternal excursion over a breath (default the preset's; 0: a still chest)")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
     p.add_argument("--plus", action="store_true",
@@ -525,7 +538,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="also a 60 s navigation session (the robot crawling) and its truth, for heartreg track")
     p.add_argument("--anatomy", default=None, choices=("spheroid", "chambers"),
                    help="heart: the paper's spheroid or four chambers with great vessels (default: the preset's)")
-    p.add_argument("--fov-mm", type=float, default=None, help="tight CT field of view centred on the heart (mm)")
+    p.add_argument("--fov-mm", type=_finite, default=None, help="tight CT field of view centred on the heart (mm)")
     p.add_argument("--no-markers", action="store_true", help="no skin staples (needs --no-session)")
     p.add_argument("--stent", action="store_true", help="a metal stent in the descending aorta")
     p.add_argument("--overwrite", action="store_true", help="replace existing phantom outputs")
@@ -565,7 +578,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("session_dir", type=Path, help="session folder (heartreg-session)")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="folder for registration.json, CSVs, PNGs")
     _add_registration_options(p)
-    p.add_argument("--cardiac-phase", type=float, default=None, metavar="P",
+    p.add_argument("--cardiac-phase", type=_finite, default=None, metavar="P",
                    help="the CT's cardiac phase (0..1), needed when the model's is unknown; replaces it otherwise")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
@@ -580,15 +593,15 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="session folder to replay as the pose stream (default SESSION_DIR)")
     p.add_argument("--igtl-in", default=None, metavar="HOST:PORT",
                    help="take the stream from an OpenIGTLink server instead (docs/formats.md)")
-    p.add_argument("--idle-timeout", type=float, default=5.0, help="--igtl-in: end after this many idle seconds")
-    p.add_argument("--speed", type=float, default=None,
+    p.add_argument("--idle-timeout", type=_finite, default=5.0, help="--igtl-in: end after this many idle seconds")
+    p.add_argument("--speed", type=_finite, default=None,
                    help="replay pacing: 1 = real time, 2 = twice as fast (default: as fast as possible)")
     p.add_argument("--log", type=Path, required=True, help="CSV log to write (one row per sample)")
     p.add_argument("--igtl-port", type=int, default=None,
                    help="serve OpenIGTLink to Slicer on this port (18944 is Slicer's default; 0: any free)")
-    p.add_argument("--igtl-rate", type=float, default=100.0,
+    p.add_argument("--igtl-rate", type=_finite, default=100.0,
                    help="most samples per second sent over OpenIGTLink (0: all)")
-    p.add_argument("--wait-client", type=float, default=0.0,
+    p.add_argument("--wait-client", type=_finite, default=0.0,
                    help="seconds to wait for an OpenIGTLink client before the stream starts")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_track)
@@ -612,7 +625,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], metavar="N",
                    help="trials of Table 1 to run (default all six)")
     p.add_argument("--points", type=int, default=None, help="attachment points per session instead of Table 1's")
-    p.add_argument("--step", type=float, default=0.01, help="phase step of the sweeps (default 0.01)")
+    p.add_argument("--step", type=_finite, default=0.01, help="phase step of the sweeps (default 0.01)")
     p.add_argument("--report-only", action="store_true",
                    help="re-draw the tables, figures and page from an earlier run in OUT_DIR; run nothing")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
@@ -647,13 +660,28 @@ def command_parser() -> argparse.ArgumentParser:
     def fail(message):
         raise CommandLineError(message)
 
+    for p in _all_parsers(parser):
+        p.error = fail
+    return parser
+
+
+def _all_parsers(parser) -> list:
+    """The parser and its subcommands' parsers."""
     parsers = [parser]
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             parsers.extend(action.choices.values())
-    for p in parsers:
-        p.error = fail
-    return parser
+    return parsers
+
+
+def _usage_error_in_one_line(parser) -> None:
+    """A command line that does not parse: one line naming the argument, status 2."""
+
+    def error(message):
+        sys.stderr.write(f"{parser.prog}: error: {message} (see {parser.prog} --help)\n")
+        sys.exit(EXIT_USAGE)
+
+    parser.error = error
 
 
 def _one_line_warning(message, category, filename, lineno, line=None) -> str:
@@ -681,6 +709,8 @@ def main(argv: list[str] | None = None) -> int:
     import warnings
 
     parser = _build_parser()
+    for p in _all_parsers(parser):
+        _usage_error_in_one_line(p)
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help(sys.stderr)
@@ -697,6 +727,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"heartreg {args.command}: error: {refusal_line(exc)}", file=sys.stderr)
+        return 1
+    except MemoryError as exc:
+        if args.debug:
+            raise
+        print(f"heartreg {args.command}: error: out of memory ({' '.join(str(exc).split()) or 'no detail'}); "
+              "nothing was written; free memory or ask for less (a coarser --step, fewer --faces)", file=sys.stderr)
         return 1
     except Exception:  # not a refusal of bad input: a bug, shown in full
         import traceback

@@ -249,7 +249,7 @@ def refusal_line(exc: BaseException) -> str | None:
     return None
 
 
-def _size_mb(path: Path) -> float:
+def _size_bytes(path: Path) -> int:
     total = 0
     for dirpath, _, files in os.walk(path):
         for f in files:
@@ -257,7 +257,22 @@ def _size_mb(path: Path) -> float:
                 total += os.lstat(os.path.join(dirpath, f)).st_size
     if path.is_file():
         total = path.stat().st_size
-    return total / 1e6
+    return total
+
+
+def _amount(n_bytes: float) -> str:
+    """A size in words: ``2.0 MB``, ``35 kB``."""
+    return f"{n_bytes / 1e6:.1f} MB" if n_bytes >= 1e6 else f"{n_bytes / 1e3:.0f} kB"
+
+
+def _named_in_out(filename, stage: Path, out: Path) -> str:
+    """The file an error names, as it would have been in ``out`` (not in the staging path)."""
+    if not filename:
+        return str(out)
+    path = Path(os.fsdecode(filename))
+    with contextlib.suppress(ValueError):
+        return str(out / Path(os.path.abspath(path)).relative_to(os.path.abspath(stage)))
+    return str(path)
 
 
 # ------------------------------------------------------------------ staging
@@ -367,13 +382,13 @@ def staged_output(
                     _commit(stage / name, absolute / name)
             _remove(stage)
     except OSError as exc:
-        written = _size_mb(stage) if os.path.lexists(stage) else 0.0
+        written = _size_bytes(stage) if os.path.lexists(stage) else 0
         _cleanup(stage, created)
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            free = shutil.disk_usage(_existing_parent(absolute)).free / 1e6
+            free = shutil.disk_usage(_existing_parent(absolute)).free
             raise OutputError(
-                f"disk full writing {exc.filename or out}: {what} {out} needed more than the "
-                f"{written:.1f} MB written before the disk ran out ({free:.1f} MB free now, nothing "
+                f"disk full writing {_named_in_out(exc.filename, stage, out)}: {what} {out} needed more than the "
+                f"{_amount(written)} written before the disk ran out ({_amount(free)} free now, nothing "
                 "was kept); free space or choose another output path"
             ) from None
         raise

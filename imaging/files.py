@@ -31,6 +31,7 @@ def atomic_path(path):
 
     The caller writes the temporary file (e.g. with matplotlib's ``savefig`` or a
     mesh writer); on an exception it is removed and ``path`` is left untouched.
+    An OS error that names no file (a writer's full disk) is raised naming ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -41,6 +42,10 @@ def atomic_path(path):
         yield tmp
         os.chmod(tmp, umask_mode())
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.filename is None and exc.errno is not None:  # e.g. a full disk inside a writer: name the file
+            raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(path)) from exc
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()

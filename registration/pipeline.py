@@ -75,6 +75,8 @@ __all__ = [
     "RegistrationOptions",
 ]
 
+#: The finest sweep step: 1001 phases (finer only costs time and memory).
+MIN_PHASE_STEP = 0.001
 
 
 class RegistrationError(HeartregError, ValueError):
@@ -87,15 +89,18 @@ def sweep_phases(step: float) -> np.ndarray:
     Parameters
     ----------
     step : float, cycles
-        Must divide 1 into a whole number of steps (0.01 gives 101 phases).
+        Must divide 1 into a whole number of steps (0.01 gives 101 phases),
+        at least :data:`MIN_PHASE_STEP`.
 
     Returns
     -------
     (round(1 / step) + 1,) float64
     """
     step = float(step)
-    if not (0.0 < step <= 0.5):
-        raise UsageError(f"step (--step) must be in (0, 0.5] cycles, got {step}")
+    if not (MIN_PHASE_STEP <= step <= 0.5):
+        raise UsageError(
+            f"step (--step) must be in [{MIN_PHASE_STEP:g}, 0.5] cycles (0.01: the paper's 101 phases), got {step:g}"
+        )
     n = 1.0 / step
     if abs(n - round(n)) > 1e-6:
         raise UsageError(f"step (--step) must divide one cycle evenly (e.g. 0.01, 0.02, 0.05), got {step}")

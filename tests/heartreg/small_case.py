@@ -3,14 +3,17 @@
 The model is meshed straight from the phantom's analytic heart (no segmentation)
 and the session keeps only its first points, so a registration on them takes
 seconds: for tests of contracts and readers, not of accuracy.  :func:`digest`
-fingerprints a folder (inputs must not change; outputs are the old or the new).
+fingerprints a folder (inputs must not change; outputs are the old or the new);
+:func:`time_box` turns a hang into a failure.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import shutil
+import signal
 from pathlib import Path
 
 from heartreg.phantom import config as phantom_config
@@ -46,3 +49,23 @@ def digest(root: Path) -> dict:
         str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
         for p in sorted(root.rglob("*")) if p.is_file()
     }
+
+
+class Hang(Exception):
+    """Code under a :func:`time_box` ran past its time."""
+
+
+@contextlib.contextmanager
+def time_box(seconds: float):
+    """Raise :class:`Hang` in the main thread if the block runs longer than ``seconds``."""
+
+    def alarm(signum, frame):
+        raise Hang(f"still running after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)

@@ -10,10 +10,8 @@ instead of blocking the suite.  Budget: max_examples modest, ~20 s in all.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import shutil
-import signal
 import tempfile
 import warnings
 from pathlib import Path
@@ -26,7 +24,7 @@ from hrcore.errors import HeartregError
 from imaging import list_series, load_study, read_qrs_file
 from modeling.model import read_model
 from registration.session import read_session
-from tests.heartreg.small_case import small_case
+from tests.heartreg.small_case import small_case, time_box
 
 #: a reader that takes longer than this on a few-kB input is hanging, s.
 TIME_BOX_S = 10
@@ -40,27 +38,9 @@ FUZZ = settings(
 EXTREMES = ["nan", "inf", "-inf", "1e30", "-1e308", "1e-320", "", " ", "0x10", "1,5", "\u00a0", "9" * 400]
 
 
-class _Hang(Exception):
-    pass
-
-
-@contextlib.contextmanager
-def _time_box(seconds=TIME_BOX_S):
-    def alarm(signum, frame):
-        raise _Hang(f"reader still running after {seconds} s")
-
-    previous = signal.signal(signal.SIGALRM, alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-
-
 def _holds_contract(read, *args):
     """Run a reader: a result, or a one-line HeartregError."""
-    with _time_box(), warnings.catch_warnings():
+    with time_box(TIME_BOX_S), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             return read(*args)

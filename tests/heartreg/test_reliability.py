@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -29,7 +30,7 @@ from registration.plausibility import (
     outlier_samples,
 )
 from registration.session import SessionError, read_session
-from tests.heartreg.small_case import digest, small_case
+from tests.heartreg.small_case import digest, small_case, time_box
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -53,13 +54,14 @@ def case(sample_case, tmp_path_factory):
 
 
 # ------------------------------------------------------------------ writing into an input
+@pytest.mark.parametrize("command", ["phases", "model"])
 @pytest.mark.parametrize("where", ["study", "inside"])
-def test_phases_never_writes_into_the_study(case, capsys, where):
+def test_phases_and_model_never_write_into_the_study(case, capsys, where, command):
     before = digest(case["ct"])
     out = case["ct"] if where == "study" else case["ct"] / "phases_out"
-    assert main(["phases", str(case["ct"]), "-o", str(out), "-q", "--overwrite"]) == 1
+    assert main([command, str(case["ct"]), "-o", str(out), "-q", "--overwrite"]) == 1
     line = _one_error_line(capsys.readouterr().err)
-    assert "-o" in line and ("is the input" in line or "lies inside the input" in line)
+    assert f"{out} is the input" in line or f"{out} lies inside the input" in line
     assert digest(case["ct"]) == before
 
 
@@ -96,10 +98,57 @@ def test_bad_input_leaves_no_output_folder(case, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty_study"]
 
 
-def test_negative_fiducial_count_is_refused(case, tmp_path, capsys):
-    assert main(["model", str(case["ct"]), "-o", str(tmp_path / "m"), "--fiducials", "-1", "-q"]) == 1
-    assert "--fiducials -1" in _one_error_line(capsys.readouterr().err)
-    assert not (tmp_path / "m").exists()
+@pytest.mark.parametrize("option", [["--fiducials", "-1"], ["--faces", "5"]])
+@pytest.mark.parametrize("command", ["model", "pipeline"])
+def test_a_negative_fiducial_count_or_too_few_faces_is_refused(case, tmp_path, capsys, command, option):
+    session = [] if command == "model" else [str(case["session"])]
+    assert main([command, str(case["ct"]), *session, "-o", str(tmp_path / "m"), *option, "-q"]) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert option[0] in line and option[1] in line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option, said", [
+    (["--step", "1e-9"], "step (--step) must be in [0.001, 0.5] cycles"),  # once asked numpy for 201 GiB
+    (["--step", "0.3"], "step (--step) must divide one cycle evenly"),
+    (["--cardiac-phase", "1.5"], "--cardiac-phase must be a phase in [0, 1), got 1.5"),
+    (["--breath-hold-phase", "2"], "breath_hold_phase (--breath-hold-phase) must be a phase in [0, 1], got 2.0"),
+    (["--icp-max-iterations", "0"], "max_iterations (--icp-max-iterations) must be >= 1, got 0"),
+])
+def test_register_refuses_bad_options_in_one_plain_line(case, tmp_path, capsys, option, said):
+    before = digest(case["session"])
+    rc = main(["register", str(case["model"]), str(case["session"]), "-o", str(tmp_path / "r"), "-q", *option])
+    assert rc == 1
+    assert said in _one_error_line(capsys.readouterr().err)
+    assert list(tmp_path.iterdir()) == [] and digest(case["session"]) == before
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_non_finite_numbers_are_usage_errors_in_one_line(case, tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as info:
+        main(["register", str(case["model"]), str(case["session"]), "-o", str(tmp_path / "r"), f"--step={value}"])
+    assert info.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert line == f"heartreg register: error: argument --step: {value} is not a finite number " \
+                   "(see heartreg register --help)"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_pose_of_1e30_is_refused_by_register_naming_file_row_and_value(case, tmp_path, capsys):
+    session = tmp_path / "session"
+    shutil.copytree(case["session"], session)
+    csv = session / "points" / "point_003.csv"
+    lines = csv.read_text().splitlines()
+    cells = lines[100].split(",")
+    cells[1] = "1e30"  # robot_x_mm
+    lines[100] = ",".join(cells)
+    csv.write_text("\n".join(lines) + "\n")
+    before = digest(session)
+    rc = main(["register", str(case["model"]), str(session), "-o", str(tmp_path / "r"), "-q"])
+    assert rc == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert "point_003.csv: column 'robot_x_mm', row 100 (line 101): value 1e+30 mm" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session"] and digest(session) == before
 
 
 def test_model_picture_failure_leaves_no_half_model(case, tmp_path, monkeypatch, capsys):
@@ -115,7 +164,7 @@ def test_model_picture_failure_leaves_no_half_model(case, tmp_path, monkeypatch,
     out = tmp_path / "model"
     assert main(["model", str(case["ct"]), "-o", str(out), "-q", "--faces", "2000"]) == 1
     line = _one_error_line(capsys.readouterr().err)
-    assert "disk full writing" in line and "model.png" in line and "MB" in line
+    assert re.search(rf"disk full writing {out}/model.png: .* needed more than the [\d.]+ [kM]B written", line), line
     assert list(tmp_path.iterdir()) == []
 
 
@@ -170,18 +219,22 @@ def test_sigterm_and_sigint_during_the_write_stop_cleanly(case, tmp_path, sig, s
 
 
 # ------------------------------------------------------------------ readers that must not hang
-def test_named_pipe_and_sparse_zero_file_in_a_study_do_not_hang(case, tmp_path):
+def test_named_pipe_and_sparse_zero_file_in_a_study_do_not_hang(case, tmp_path, recwarn):
+    """`phases` on a study holding a FIFO and a 2 GB sparse file of zeros: both
+    skipped (the FIFO said by name), the phases of the real slices written."""
     study = tmp_path / "study"
     shutil.copytree(case["ct"], study)
     os.mkfifo(study / "pipe.dcm")
     with open(study / "zeros.dcm", "wb") as fh:  # 2 GB of zeros, sparse: no disk used
         fh.truncate(2 * 1024**3)
-    signal.alarm(60)  # a hang fails the test instead of blocking the suite
-    try:
-        series = list_series(study)
-    finally:
-        signal.alarm(0)
-    volumes = [s for s in series if s.kind == "volume"]
+    with time_box(60):  # a hang fails the test instead of blocking the suite
+        assert main(["phases", str(study), "-o", str(tmp_path / "out"), "-q"]) == 0
+    said = [str(w.message) for w in recwarn]  # printed as "warning: ..." lines by the command line
+    assert any("pipe.dcm: not a regular file" in w for w in said), said
+    phases = json.loads((tmp_path / "out" / "phases.json").read_text())
+    assert phases["n_slices"] == len(case["truth"]["slice_cardiac_phase"])
+    with time_box(60):
+        volumes = [s for s in list_series(study) if s.kind == "volume"]
     assert len(volumes) == 1 and volumes[0].n_slices == len(case["truth"]["slice_cardiac_phase"])
 
 
@@ -298,12 +351,10 @@ def test_trigger_time_phases_are_said_to_be_nominal(case, tmp_path):
     assert any("nominal phases" in n and "--qrs" in n for n in report.notes)
 
 
-def test_a_mask_far_smaller_than_a_heart_is_refused_with_its_volume(case, tmp_path):
+def test_a_mask_far_smaller_than_a_heart_is_refused_with_its_volume(case, tmp_path, capsys):
     import nibabel as nib
 
     from imaging import load_study
-    from modeling import build_heart_model
-    from modeling.labelmap import LabelMapError
 
     volume = load_study(case["ct"])
     T = volume.T_patient_from_voxel
@@ -312,10 +363,14 @@ def test_a_mask_far_smaller_than_a_heart_is_refused_with_its_volume(case, tmp_pa
     labels[ci - 5:ci + 5, cj - 5:cj + 5, ck - 3:ck + 3] = 1  # 10 x 10 x 6 voxels: a few ml
     voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
     ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T  # LPS -> RAS for NIfTI
-    nib.save(nib.Nifti1Image(labels, ras), str(tmp_path / "tiny.nii.gz"))
-    with pytest.raises(LabelMapError, match=rf"holds {600 * voxel_ml:.1f} ml, far less than a heart \(100 ml"):
-        build_heart_model(volume, cardiac_phase=0.7, cardiac_phase_source="test",
-                          mask_path=tmp_path / "tiny.nii.gz")
+    mask = tmp_path / "tiny.nii.gz"
+    nib.save(nib.Nifti1Image(labels, ras), str(mask))
+    before = digest(tmp_path)
+    assert main(["model", str(case["ct"]), "--mask", str(mask), "-o", str(tmp_path / "model"), "-q"]) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert "tiny.nii.gz" in line and f"holds {600 * voxel_ml:.1f} ml, far less than a heart (100 ml" in line
+    assert "--label" in line  # what to do
+    assert digest(tmp_path) == before  # no model folder, the mask untouched
 
 
 def test_disk_full_during_phases_leaves_nothing_and_names_the_file(case, tmp_path, monkeypatch, capsys):
@@ -330,6 +385,82 @@ def test_disk_full_during_phases_leaves_nothing_and_names_the_file(case, tmp_pat
     out = tmp_path / "phases"
     assert main(["phases", str(case["ct"]), "-o", str(out), "-q"]) == 1
     line = _one_error_line(capsys.readouterr().err)
-    assert line.startswith("heartreg phases: error: disk full writing") and "phases.png" in line
-    assert "MB written before the disk ran out" in line
+    assert line.startswith(f"heartreg phases: error: disk full writing {out}/phases.png: ")
+    assert re.search(r"needed more than the \d+ kB written before the disk ran out \(\d.* free now", line), line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_disk_full_during_register_leaves_no_json_without_figures(case, tmp_path, monkeypatch, capsys):
+    """A full disk after registration.json and the CSVs, at the second figure: no
+    folder holding them without the figures; one line naming the figure."""
+    import registration.report
+
+    draw = registration.report._save
+    drawn = []
+
+    def full_at_the_second(fig, path):
+        drawn.append(path.name)
+        if len(drawn) == 2:
+            raise OSError(28, "No space left on device", str(path))
+        return draw(fig, path)
+
+    monkeypatch.setattr(registration.report, "_save", full_at_the_second)
+    before = digest(case["session"])
+    rc = main(["register", str(case["model"]), str(case["session"]), "-o", str(tmp_path / "reg"), "-q",
+               "--step", "0.5", "--no-view"])
+    assert rc == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert line.startswith(f"heartreg register: error: disk full writing {tmp_path / 'reg' / drawn[1]}: "), line
+    assert re.search(r"[\d.]+ [kM]B written before the disk ran out", line) and line.endswith(
+        "nothing was kept); free space or choose another output path")
+    assert list(tmp_path.iterdir()) == [] and digest(case["session"]) == before
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 16 kB tmpfs (needs root; skipped otherwise): a disk that really fills up
+    (phases.csv and .json fit, the picture of some 35 kB does not)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16k", "tmpfs", str(disk)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_a_really_full_disk_is_one_line_and_leaves_the_disk_empty(case, tiny_disk, capsys):
+    """`phases` onto a 16 kB disk: the real ENOSPC of the picture becomes one line
+    naming the file; the disk is left as empty as it was."""
+    rc = main(["phases", str(case["ct"]), "-o", str(tiny_disk / "phases"), "-q"])
+    assert rc == 1
+    line = _one_error_line(capsys.readouterr().err)
+    # the file named as in the output folder, the csv and json counted as written (real ENOSPC, no filename)
+    assert line.startswith(f"heartreg phases: error: disk full writing {tiny_disk}/phases/phases.png: "), line
+    assert re.search(r"needed more than the [1-9]\d* kB written", line) and line.endswith("another output path")
+    assert list(tiny_disk.iterdir()) == []
+
+
+def test_a_nan_image_position_is_skipped_with_one_line_naming_file_and_attribute(case, tmp_path, recwarn):
+    """Once "cannot convert float NaN to integer": now the slice is left out, said
+    in one line naming the file and the attribute, and the rest is read."""
+    import pydicom
+    from pydicom import config
+
+    study = tmp_path / "study"
+    shutil.copytree(case["ct"], study)
+    slices = sorted(f for f in study.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "CT")
+    bad = slices[len(slices) // 2]
+    ds = pydicom.dcmread(bad)
+    with config.disable_value_validation():
+        ds.ImagePositionPatient = ["nan", "nan", "nan"]
+        ds.save_as(bad)
+    before = digest(study)
+    assert main(["phases", str(study), "-o", str(tmp_path / "out"), "-q"]) == 0
+    said = " | ".join(str(w.message) for w in recwarn)  # printed as "warning: ..." lines by the command line
+    assert f"{bad.name}: (0020,0032) Image Position (Patient) is (nan, nan, nan) mm, not a plausible value" in said
+    assert "cannot convert" not in said
+    assert json.loads((tmp_path / "out" / "phases.json").read_text())["n_slices"] == len(slices) - 1
+    assert digest(study) == before
