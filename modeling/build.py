@@ -145,6 +145,9 @@ def build_heart_model(
         timings[name] = time.perf_counter()
 
     def done(name):
+        # each stage's arrays are garbage now: give the heap they leave back, so the
+        # next stage's peak does not sit on top of it
+        release_free_memory()
         timings[name] = time.perf_counter() - timings[name]
 
     def fallback(message: str) -> None:
@@ -184,8 +187,10 @@ def build_heart_model(
     if trim_vessels:
         # trim at full resolution, then decimate: the patches get fine faces too
         dense = mask_to_mesh(mask, T, target_faces=max(int(target_faces), 400_000))
+        release_free_memory()
         try:
             trim = trim_vessel_stubs(dense, volume.hu, T)
+            release_free_memory()
         except MeshError as exc:
             fallback(f"vessel stub trim skipped, surface kept as segmented: {exc}")
             mesh = decimate(dense, target_faces)
@@ -198,7 +203,6 @@ def build_heart_model(
                 )
     else:
         mesh = mask_to_mesh(mask, T, target_faces=target_faces)
-    release_free_memory()  # the dense mesh's arrays: later stages' peaks need not sit on them
     done("mesh")
 
     stage("fiducials")

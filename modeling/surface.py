@@ -392,9 +392,9 @@ def _decimate(verts, faces, target_faces: int):
     import fast_simplification
 
     reduction = 1.0 - float(target_faces) / len(faces)
-    verts, faces = fast_simplification.simplify(
-        np.ascontiguousarray(verts, dtype=np.float64),
-        np.ascontiguousarray(faces, dtype=np.int64),
+    verts, faces = fast_simplification.simplify(  # writable copies: its binding refuses read-only arrays
+        np.array(verts, dtype=np.float64, order="C"),
+        np.array(faces, dtype=np.int64, order="C"),
         target_reduction=reduction,
     )
     verts, faces = _repair(np.asarray(verts, np.float64), np.asarray(faces), smooth_iterations=0)
@@ -564,6 +564,11 @@ def _repair(verts: np.ndarray, faces: np.ndarray, *, smooth_iterations: int):
     adjacency = _clean_adjacency(verts, faces)
     if adjacency is not None:
         return _taubin(verts, adjacency, smooth_iterations), faces
+    return _repair_pymeshlab(verts, faces, smooth_iterations=smooth_iterations)
+
+
+def _repair_pymeshlab(verts: np.ndarray, faces: np.ndarray, *, smooth_iterations: int):
+    """pymeshlab clean-up, hole closing and Taubin smoothing."""
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
