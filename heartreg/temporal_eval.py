@@ -134,7 +134,9 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     shape = result.phase_estimates[0] if result.phase_estimates[0].method == "shape" else result.phase_estimates[1]
     evidence = {
         **_trace_evidence(model, session, sweep.phases),
-        "phases": sweep.phases, "distances_mm": sweep.distances_mm, "signed_distances_mm": sweep.signed_distances_mm, "T_map_from_source": sweep.T_map_from_source,
+        "phases": sweep.phases,
+        "points_map_mm": np.asarray(result.points_probe_mm) @ np.asarray(result.T_heart_from_probe)[:3, :3].T
+        + np.asarray(result.T_heart_from_probe)[:3, 3], "distances_mm": sweep.distances_mm, "signed_distances_mm": sweep.signed_distances_mm, "T_map_from_source": sweep.T_map_from_source,
         "cost_fiducial": shape.cost_fiducial, "cost_heart": shape.cost_heart, "T_true": T_true,
         "vertices_mm": vertices[:: max(1, vertices.shape[0] // 2000)], "pivot_mm": sweep.pivot_mm,
         "fiducials_probe_mm": np.asarray(session.fiducials_probe_mm), "fiducials_heart_mm": model.fiducials_heart_mm,

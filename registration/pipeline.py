@@ -374,7 +374,8 @@ def register_session(
     if exclusions:
         notes.append(f"{len(exclusions)} point(s) excluded (see exclusions)")
     means = np.stack([m.mean_position_mm for m in models])
-    coverage = assess_coverage(means @ T0[:3, :3].T + T0[:3, 3], model.mesh.vertices)
+    means_map = means @ T0[:3, :3].T + T0[:3, 3]
+    coverage = assess_coverage(means_map, model.mesh.vertices)
     notes.extend(coverage.notes)
 
     # ---- sweeps
@@ -400,7 +401,7 @@ def register_session(
     vertices = model.mesh.vertices
     shape = estimate_phase(
         phases, resp.distances_mm, resp.T_map_from_source, vertices, fiducials=curve,
-        breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd,
+        breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd, points_mm=means_map,
     )
     paper = paper_phase(phases, resp.T_map_from_source, fid_probe, fid_model, pivot, vertices, order=fid.order)
     chosen, other = (shape, paper) if estimator is TemporalEstimator.SHAPE else (paper, shape)

@@ -27,21 +27,31 @@ profile likelihood under Gaussian residuals; ``phi_R* = argmin J``.
 
 Interval
 --------
-The interval is a bootstrap over the evidence: the attachment points and the
-staples are resampled with replacement (B = 500), ``J`` re-summed and its
-argmin taken; the 5th and 95th percentiles of the resampled phases about
-phi_R* (circularly), widened by half a sweep step (the grid's resolution), give
-the 90 % interval.  Resampling the points, rather than trusting the Gaussian
-curvature of ``J``, keeps the points' own systematic errors (mesh, motion
-model), which differ from point to point, in the spread.  The per-phase ICP
-solutions are held fixed (re-running ICP per resample would cost B sweeps).
-When the interval spans more than :data:`UNDECIDED_WIDTH` of a cycle the data
-cannot decide phi_R*, and the estimate says so.
+The 90 % interval is the likelihood-ratio interval of ``J``, adjusted for
+errors that the sum of squares counts as independent but are not: the
+sample-size mesh's errors, and the motion model's, are alike at neighbouring
+points, so near end-expiration, where the chest and the heart change least,
+a few nearby points can pull the minimum and a plain interval is too narrow.
+The points are grouped into spatial blocks of about five neighbours
+(:func:`spatial_blocks`; the staples are blocks of one); near phi_R* each
+block's cost is fitted by a quadratic in the phase.  ``H``, the curvature of
+``J``, is the information the cost assumes; ``V``, the spread of the blocks'
+slopes, the information the data show (the sandwich, or Godambe, estimate
+of composite likelihood).  The interval is the run of phases about phi_R*
+with ``J - min J <= chi2_1(0.90) * max(1, V / H)``, widened by half a sweep
+step (the grid's resolution); where ``J`` is flat it is wide, whatever the
+curvature at the minimum says.  A bootstrap over the same blocks and staples
+(B = 500, the per-phase ICP solutions held fixed) resamples the evidence and
+takes the argmin again; the interval reported spans both (the bootstrap's
+5th-95th percentiles cover a cost too rough for the quadratic, as when no
+phase carries more evidence than another).  When it spans more than
+:data:`UNDECIDED_WIDTH` of a cycle the data cannot decide phi_R*, and the
+estimate says so.
 
-The final transform's uncertainty is that of phi_R* carried through the sweep:
-the mean displacement of the map's vertices between ``T(phi_b)`` and
-``T(phi_R*)`` over the resamples (90th percentile), and the rotation between
-them; the ICP's own noise at a fixed phase is far smaller (see ``icp``'s
+The final transform's uncertainty is that of phi_R* carried through the
+sweep: the mean displacement of the map's vertices between ``T(phi_b)`` and
+``T(phi_R*)`` over the bootstrap's resamples (90th percentile), and the
+rotation between them; the ICP's own noise at a fixed phase is far smaller (see ``icp``'s
 Hessian report).
 """
 
@@ -70,6 +80,10 @@ UNDECIDED_WIDTH = 0.3
 #: resamples of the bootstrap, and the interval's confidence.
 N_BOOTSTRAP = 500
 CONFIDENCE = 0.9
+#: points per spatial block of the heart term's bootstrap and sandwich.
+BLOCK_POINTS = 5
+#: half-width (cycles) of the window about phi_R* where each unit's cost is fitted by a quadratic.
+WINDOW = 0.04
 #: Fourier harmonics of each staple's position over the breath.
 TRACE_HARMONICS = 2
 
@@ -288,6 +302,24 @@ class TemporalEstimate:
         }
 
 
+def spatial_blocks(points_mm, n_blocks: int) -> np.ndarray:
+    """Partition points into ``n_blocks`` spatial blocks, (n,) int block labels.
+
+    Block centres by farthest-point sampling from the first point (so the
+    same points give the same blocks), each point in its nearest centre's
+    block: neighbouring points, whose errors (the mesh's, the motion
+    model's) are alike, fall in one block.
+    """
+    p = np.asarray(points_mm, dtype=float)
+    n_blocks = int(min(max(1, n_blocks), p.shape[0]))
+    centres = [0]
+    d = np.linalg.norm(p - p[0], axis=1)
+    for _ in range(n_blocks - 1):
+        centres.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(p - p[centres[-1]], axis=1))
+    return np.argmin(np.linalg.norm(p[:, None] - p[centres][None], axis=2), axis=1)
+
+
 def _interval(phases, best, boot, confidence, step):
     offsets = _wrap(boot - phases[best])
     tail = 100 * (1 - confidence) / 2
@@ -296,6 +328,41 @@ def _interval(phases, best, boot, confidence, step):
     if hi - lo >= 1.0:
         lo, hi = -0.5, 0.5
     return np.array([lo, hi])
+
+
+def _sandwich_interval(phases, J, units, best, confidence, step):
+    """Offsets (lo, hi) of the adjusted likelihood-ratio interval of argmin J (module docstring).
+
+    ``J`` (m,) the cost over the circular grid ``phases``, ``units`` (m, u)
+    its independent parts (spatial blocks of points, staples).  Near the
+    minimum each unit is fitted by a quadratic in the phase: the sum of the
+    curvatures is the information the cost assumes (``H``), the spread of the
+    units' slopes the information the data show (``V``, the sandwich's meat);
+    the interval is the run of phases about the minimum where
+    ``J - min J <= chi2_1(confidence) * max(1, V / H)``.
+    """
+    from scipy.stats import chi2
+
+    m = phases.size
+    x = _wrap(phases - phases[best])
+    win = np.abs(x) <= max(WINDOW, 2.01 * step)
+    X = np.stack([np.ones(int(win.sum())), x[win], x[win] ** 2], axis=1)
+    coef = np.linalg.lstsq(X, np.column_stack([J[win], units[win]]), rcond=None)[0]
+    curvature, slopes = coef[2, 0], coef[1, 1:] / 2
+    u = slopes.size
+    meat = float(np.sum((slopes - slopes.mean()) ** 2) * u / (u - 1)) if u > 1 else 0.0
+    scale = max(1.0, meat / curvature) if curvature > 0 else np.inf
+    inside = (J - J[best]) <= chi2.ppf(confidence, 1) * scale
+    lo = hi = 0
+    while lo > -(m // 2) and inside[(best + lo - 1) % m]:
+        lo -= 1
+    while hi < m // 2 and inside[(best + hi + 1) % m]:
+        hi += 1
+    lo_off = float(_wrap(phases[(best + lo) % m] - phases[best])) - step / 2 if lo else -step / 2
+    hi_off = float(_wrap(phases[(best + hi) % m] - phases[best])) + step / 2 if hi else step / 2
+    if hi - lo + 1 >= m or hi_off - lo_off >= 1.0:
+        return np.array([-0.5, 0.5])
+    return np.array([min(lo_off, 0.0), max(hi_off, 0.0)])
 
 
 def _transform_spread(Ts, best, boot_idx, vertices_mm):
@@ -322,6 +389,8 @@ def estimate_phase(
     fiducials: FiducialCurve | None = None,
     breath_hold_phase: float | None = None,
     breath_hold_sd: float = 0.05,
+    points_mm=None,
+    block_points: int = BLOCK_POINTS,
     n_bootstrap: int = N_BOOTSTRAP,
     confidence: float = CONFIDENCE,
     seed: int = 0,
@@ -343,6 +412,11 @@ def estimate_phase(
     breath_hold_phase : float, optional
         A breath-hold phase stated by the user, with standard deviation
         ``breath_hold_sd`` (cycles).
+    points_mm : (n, 3) float, mm, optional
+        Where the points lie on the map (any phase's registration will do):
+        the bootstrap resamples spatial blocks of about ``block_points``
+        neighbouring points; without it, single points.
+    block_points : int
     n_bootstrap : int
     confidence : float
     seed : int
@@ -389,14 +463,20 @@ def estimate_phase(
     best = int(np.argmin(J))
 
     rng = np.random.default_rng([int(seed), 0x7E3])
-    W_h = rng.multinomial(n, np.full(n, 1.0 / n), size=n_bootstrap).astype(float)
-    J_b = W_h @ e_h.T + prior
+    groups = np.arange(n) if points_mm is None else spatial_blocks(points_mm, max(2, n // int(block_points)))
+    g = int(groups.max()) + 1
+    e_blocks = np.zeros((usable.size, g))
+    np.add.at(e_blocks.T, groups, e_h.T)
+    W_h = rng.multinomial(g, np.full(g, 1.0 / g), size=n_bootstrap).astype(float)
+    J_b = W_h @ e_blocks.T + prior
     if e_f.shape[1]:
         k = e_f.shape[1]
         W_f = rng.multinomial(k, np.full(k, 1.0 / k), size=n_bootstrap).astype(float)
         J_b = J_b + W_f @ e_f.T
     boot_idx = usable[np.argmin(J_b, axis=1)]
-    offsets = _interval(phases, usable[best], phases[boot_idx], confidence, step)
+    lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step)
+    boot = _interval(phases, usable[best], phases[boot_idx], confidence, step)
+    offsets = np.array([min(lr[0], boot[0]), max(lr[1], boot[1])])
     t_mm, t_deg = _transform_spread(np.asarray(T_map_from_source), usable[best], boot_idx, vertices_mm)
 
     def full(x):

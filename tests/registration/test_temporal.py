@@ -150,3 +150,25 @@ def test_paper_eq10_picks_the_registration_closest_to_T0():
     expected = 0.42 + np.array([1.0, 5.0]) / 12
     assert np.abs(_wrap(biased.phase_r - expected)).min() <= 0.02
     assert not biased.contains(0.42)  # resampling the staples cannot reveal a shift of them all
+
+
+def test_errors_shared_by_neighbouring_points_widen_the_interval():
+    # 12 patches of 5 points; each patch's misfit is least at its own phase
+    # (0.5 + a shared error of sd 0.04, as a patch of mesh error would pull it).
+    # Counted as 60 independent points the interval is too narrow; with where
+    # the points lie (spatial blocks, the sandwich) it widens to cover the truth.
+    vertices = np.random.default_rng(0).normal(0, 40, (200, 3))
+    covered = {"independent": 0, "blocks": 0}
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        centres = rng.normal(0, 40, (12, 3))
+        points = np.repeat(centres, 5, axis=0) + rng.normal(0, 1.0, (60, 3))
+        pull = np.repeat(0.04 * rng.standard_normal(12), 5)
+        misfit = 2.0 * np.sin(np.pi * _wrap(PHASES[:, None] - 0.5 - pull))
+        d = np.sqrt(0.2**2 + misfit**2)
+        plain = estimate_phase(PHASES, d, _identity_sweep(101), vertices)
+        blocks = estimate_phase(PHASES, d, _identity_sweep(101), vertices, points_mm=points)
+        assert blocks.phase_r == plain.phase_r and blocks.width >= plain.width
+        covered["independent"] += plain.contains(0.5)
+        covered["blocks"] += blocks.contains(0.5)
+    assert covered["blocks"] >= 7 and covered["independent"] <= 4
