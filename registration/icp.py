@@ -36,6 +36,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from hrcore.geometry import apply_to_points, check_transform, kabsch
+
 __all__ = [
     "IcpMethod",
     "SurfaceIndex",
@@ -397,16 +399,6 @@ class IcpResult:
     degenerate: bool
 
 
-def _weighted_kabsch(src, dst, w):
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
-
-
 def _plane_system(q, c, normals, w, centre, scale):
     qc = q - centre
     J = np.concatenate([np.cross(qc, normals) / scale, normals], axis=1)
@@ -419,9 +411,7 @@ def _check_options(src, T_init, trim_fraction, huber_mm, max_iterations) -> np.n
     """Validate the options shared by :func:`icp` and :func:`icp_sweep`; return T_init."""
     if not np.all(np.isfinite(src)):
         raise ValueError("points must be finite")
-    T = np.eye(4) if T_init is None else np.array(T_init, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_init must have shape (4, 4), got {T.shape}")
+    T = np.eye(4) if T_init is None else check_transform(T_init, name="T_init").copy()
     if not 0.0 <= trim_fraction < 0.5:
         raise ValueError(f"trim_fraction must be in [0, 0.5), got {trim_fraction}")
     if huber_mm is not None and not huber_mm > 0:
@@ -492,13 +482,14 @@ def icp(
     converged = False
     iterations = 0
     for iterations in range(1, max_iterations + 1):
-        q = src @ T[:3, :3].T + T[:3, 3]
+        q = apply_to_points(T, src)
         cp = closest_points(surface, q, k=k)
         w = _weights(cp.distances_mm, n_keep, huber_mm)
         sel = w > 0
-        centre = T[:3, :3] @ centre_src + T[:3, 3]
+        centre = apply_to_points(T, centre_src)
         if method is IcpMethod.POINT_TO_POINT:
-            R, t = _weighted_kabsch(q[sel], cp.points[sel], w[sel])
+            fit = kabsch(q[sel], cp.points[sel], weights=w[sel])
+            R, t = fit[:3, :3], fit[:3, 3]
         else:
             A, b = _plane_system(q[sel], cp.points[sel], cp.normals[sel], w[sel], centre, scale)
             x = np.linalg.lstsq(A, -b, rcond=1e-12)[0]
@@ -513,11 +504,11 @@ def icp(
             converged = True
             break
 
-    q = src @ T[:3, :3].T + T[:3, 3]
+    q = apply_to_points(T, src)
     cp = closest_points(surface, q, k=k)
     w = _weights(cp.distances_mm, n_keep, huber_mm)
     sel = w > 0
-    centre = T[:3, :3] @ centre_src + T[:3, 3]
+    centre = apply_to_points(T, centre_src)
     A, _ = _plane_system(q[sel], cp.points[sel], cp.normals[sel], w[sel], centre, scale)
     A = A / w[sel].sum()
     evals, evecs = np.linalg.eigh(A)

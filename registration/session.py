@@ -36,6 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import frozen
 from registration.plus import PlusFileError, read_plus_sequence
 
 __all__ = [
@@ -551,11 +552,11 @@ def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float
         point_id=int(entry["id"]),
         surface_point=int(entry["surface_point"]),
         file=rel,
-        time_s=_frozen(time_s),
-        T_probe_from_robot=_frozen(T),
-        ecg_mv=_frozen(data[:, 15]),
-        flow_insp_lpm=_frozen(data[:, 16]),
-        flow_exp_lpm=_frozen(data[:, 17]),
+        time_s=frozen(time_s),
+        T_probe_from_robot=frozen(T),
+        ecg_mv=frozen(data[:, 15]),
+        flow_insp_lpm=frozen(data[:, 16]),
+        flow_exp_lpm=frozen(data[:, 17]),
         rate_hz=rate_hz,
     )
 
@@ -641,11 +642,11 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
         point_id=int(entry["id"]),
         surface_point=int(entry["surface_point"]),
         file=rel,
-        time_s=_frozen(data[:, 0]),
-        T_probe_from_robot=_frozen(T),
-        ecg_mv=_frozen(data[:, 1]),
-        flow_insp_lpm=_frozen(data[:, 2]),
-        flow_exp_lpm=_frozen(data[:, 3]),
+        time_s=frozen(data[:, 0]),
+        T_probe_from_robot=frozen(T),
+        ecg_mv=frozen(data[:, 1]),
+        flow_insp_lpm=frozen(data[:, 2]),
+        flow_exp_lpm=frozen(data[:, 3]),
         rate_hz=rate_hz,
     )
 
@@ -686,7 +687,7 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
             f"{rel}: column 'fiducial' must number the staples 1..9 in order ({FIDUCIAL_ORDER}), "
             f"got {labels.tolist()}"
         )
-    return _frozen(data[:, 1:4])
+    return frozen(data[:, 1:4])
 
 
 def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrace:
@@ -715,22 +716,12 @@ def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrac
     tip = np.einsum("nij,nj->ni", R_probe_T, data[:, 2:5] - data[:, 5:8])
     return FiducialTrace(
         file=rel,
-        time_s=_frozen(time_s),
-        fiducial=_frozen_int(labels),
-        stylus_probe_mm=_frozen(tip),
-        flow_insp_lpm=_frozen(data[:, 12]),
-        flow_exp_lpm=_frozen(data[:, 13]),
+        time_s=frozen(time_s),
+        fiducial=frozen(labels, np.int64),
+        stylus_probe_mm=frozen(tip),
+        flow_insp_lpm=frozen(data[:, 12]),
+        flow_exp_lpm=frozen(data[:, 13]),
         rate_hz=rate_hz,
     )
 
 
-def _frozen_int(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(np.round(a), dtype=np.int64)
-    a.setflags(write=False)
-    return a
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    a.setflags(write=False)
-    return a

@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import kabsch
 
 __all__ = [
     "TemporalEstimator",
@@ -95,24 +96,6 @@ def _fourier(phase, harmonics):
     for k in range(1, harmonics + 1):
         cols += [np.cos(2 * np.pi * k * phase), np.sin(2 * np.pi * k * phase)]
     return np.stack(cols, axis=-1)
-
-
-def _kabsch_batch(source, target):
-    """Rigid T (b, 4, 4) with T source ~ target; source, target (b, k, 3)."""
-    cs, ct = source.mean(axis=1), target.mean(axis=1)
-    H = np.einsum("bki,bkj->bij", source - cs[:, None], target - ct[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    d[d == 0] = 1.0
-    D = np.zeros_like(H)
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
-    T = np.zeros(source.shape[:1] + (4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = ct - np.einsum("bij,bj->bi", R, cs)
-    T[:, 3, 3] = 1.0
-    return T
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,7 +189,7 @@ def fiducial_curve(
         coef, *_ = np.linalg.lstsq(A, tip[sel], rcond=None)
         rms[k] = float(np.sqrt(np.mean(np.sum((tip[sel] - A @ coef) ** 2, axis=1))))
         curves[:, k] = basis @ coef
-    T = _kabsch_batch(curves, np.broadcast_to(target, curves.shape))
+    T = kabsch(curves, np.broadcast_to(target, curves.shape))
     fitted = np.einsum("mij,mkj->mki", T[:, :3, :3], curves) + T[:, None, :3, 3]
     res = np.linalg.norm(fitted - target, axis=2)
     return FiducialCurve(
@@ -498,13 +481,13 @@ def paper_phase(
         at = np.einsum("mij,bj->bmi", Ts[:, :3, :3], s) + Ts[None, :, :3, 3]
         return np.linalg.norm(at - pivot, axis=2)
 
-    T0 = _kabsch_batch(src[None], dst[None])
+    T0 = kabsch(src[None], dst[None])
     dist = distances(T0)[0]
     best = int(np.argmin(dist))
     rng = np.random.default_rng([int(seed), 0xE910])
     k = src.shape[0]
     idx = rng.integers(0, k, size=(n_bootstrap, k))
-    boot_idx = np.argmin(distances(_kabsch_batch(src[idx], dst[idx])), axis=1)
+    boot_idx = np.argmin(distances(kabsch(src[idx], dst[idx])), axis=1)
     offsets = _interval(phases, best, phases[boot_idx], confidence, step)
     t_mm, t_deg = _transform_spread(Ts, best, boot_idx, vertices_mm)
     phase = float(phases[best] % 1.0)
