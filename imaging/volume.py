@@ -546,13 +546,6 @@ def _rescale(frame: _Frame) -> tuple[float, float]:
     return slope, intercept
 
 
-def _stored_range(frame: _Frame) -> tuple[int, int]:
-    bits = frame.bits_stored
-    if frame.pixel_representation == 1:
-        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
-    return 0, (1 << bits) - 1
-
-
 def _int16_possible(frames) -> bool:
     for f in frames:
         s, b = _rescale(f)

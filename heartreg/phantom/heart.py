@@ -152,10 +152,6 @@ class AnalyticHeart:
         return -self.shape.apex_length_mm
 
     @property
-    def z_base_mm(self) -> float:
-        return self.shape.base_length_mm
-
-    @property
     def length_mm(self) -> float:
         return self.shape.apex_length_mm + self.shape.base_length_mm
 
