@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import UsageError
+from hrcore.geometry import invert
 from imaging.files import write_text_atomic
 
 __all__ = ["SAMPLE_DIR", "format_table", "pose_error", "run_demo", "truth_rows"]
@@ -56,7 +57,7 @@ def pose_error(T, T_true, point_probe):
 
 def _rigid_error(T, T_true):
     """Translation error at the heart frame's origin (mm) and rotation error (deg)."""
-    pivot = np.linalg.inv(T_true)[:3, 3]  # the heart origin in the probe frame
+    pivot = invert(T_true)[:3, 3]  # the heart origin in the probe frame
     _, distance_mm, rotation_deg = pose_error(T, T_true, pivot)
     return distance_mm, rotation_deg
 
@@ -75,7 +76,7 @@ def truth_rows(run, truth: dict) -> list[tuple]:
     rows.append(("respiration phase phi_R*", reg.phase_r, truth["respiration_phase"], err, TOL_PHASE_R,
                  abs(err) <= TOL_PHASE_R))
 
-    R = np.linalg.inv(model.T_heart_from_patient)[:3, :3]
+    R = model.T_patient_from_heart[:3, :3]
     axes = np.asarray(truth["heart_axes_patient"])
     e, e_true = model.frame.euler_xyz_deg, truth["heart_euler_xyz_deg"]
     for k, name in enumerate("XYZ"):
@@ -85,8 +86,7 @@ def truth_rows(run, truth: dict) -> list[tuple]:
     rows.append(("heart frame x axis (deg)", x_err, 0.0, x_err, TOL_X_DEG, x_err <= TOL_X_DEG))
 
     heart = layout.make_heart(make_config(truth["preset"], image_resp_phase=truth["respiration_phase"]))
-    T_patient_from_heart = np.linalg.inv(model.T_heart_from_patient)
-    vertices = model.mesh.vertices @ T_patient_from_heart[:3, :3].T + T_patient_from_heart[:3, 3]
+    vertices = model.mesh_patient().vertices
     d = np.abs(heart.surface_distance(vertices, truth["cardiac_phase"]))
     rows.append(("mesh to true surface, mean (mm)", float(d.mean()), 0.0, float(d.mean()), TOL_SURFACE_MEAN_MM,
                  float(d.mean()) <= TOL_SURFACE_MEAN_MM))

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.geometry import apply_to_points
 from imaging.files import write_text_atomic
 
 __all__ = ["html_table", "registration_view_html", "trust_html", "write_html_report"]
@@ -63,11 +64,8 @@ def registration_view_html(model, reg, *, element_id: str = "view3d") -> str:
     robot's track (its attachment points in recording order)."""
     from heartreg.view3d import Layer, viewer_html
 
-    def mapped(T, pts):
-        return pts @ T[:3, :3].T + T[:3, 3]
-
-    final = mapped(reg.T_heart_from_probe, reg.points_probe_mm)
-    seed = mapped(reg.T0_heart_from_probe, reg.points_probe_mm)
+    final = apply_to_points(reg.T_heart_from_probe, reg.points_probe_mm)
+    seed = apply_to_points(reg.T0_heart_from_probe, reg.points_probe_mm)
     centre = model.mesh.vertices.mean(axis=0)
     towards = final.mean(axis=0) - centre
     towards[2] *= 0.35  # mostly from the side, a little from the points' end

@@ -43,6 +43,7 @@ from heartreg.demo import pose_error
 from heartreg.phantom.config import PAPER_TABLE1
 from hrcore.errors import HeartregError
 from hrcore.output import staged_output
+from imaging.phase_io import read_phase_report
 
 __all__ = [
     "COLUMNS",
@@ -316,10 +317,10 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
         "resp_rate_hz": float(np.mean([f["resp_rate_hz"] for f in fits])),
         "paper_heart_rate_hz": paper[1],
         "paper_resp_rate_hz": paper[2],
-        "phi_c": float(phases["volume_cardiac_phase"]),
+        "phi_c": float(phases.volume_cardiac_phase),
         "phi_c_truth": float(truth["cardiac_phase"]),
         "phi_c_paper": float(PAPER_IMAGE_PHASE.get(preset, paper[3])),
-        "phase_source": phases["source"],
+        "phase_source": phases.source,
         "euler_fit_a_deg": e_fit[0], "euler_fit_b_deg": e_fit[1], "euler_fit_g_deg": e_fit[2],
         "euler_preset_a_deg": e_preset[0], "euler_preset_b_deg": e_preset[1], "euler_preset_g_deg": e_preset[2],
         "euler_paper_a_deg": paper[4][0], "euler_paper_b_deg": paper[4][1], "euler_paper_g_deg": paper[4][2],
@@ -356,8 +357,7 @@ def _read_run(run_dir: Path) -> dict:
     """The pipeline's output files that the reproduction reads."""
     reg_dir = run_dir / "registration"
     files = {
-        "phases": json.loads((run_dir / "phases" / "phases.json").read_text()),
-        "slices": _read_csv(run_dir / "phases" / "phases.csv"),
+        "phases": read_phase_report(run_dir / "phases"),
         "model": json.loads((run_dir / "model" / "model.json").read_text()),
         "registration": json.loads((reg_dir / "registration.json").read_text()),
         "sweep": _read_csv(reg_dir / "sweep.csv"),
@@ -389,8 +389,8 @@ def _trial_result(trial: int, trial_dir: Path, truth: dict, truth_rows: list, ex
         correction_translation_mm=np.stack([sweep[c] for c in ("tx_mm", "ty_mm", "tz_mm")], axis=1),
         correction_euler_xyz_deg=np.stack([sweep[c] for c in ("rx_deg", "ry_deg", "rz_deg")], axis=1),
         delta_mm=np.array([delta[str(i)] for i in reg["point_ids"]], dtype=float),
-        slice_position_mm=files["slices"]["position_mm"],
-        slice_phase=files["slices"]["cardiac_phase"],
+        slice_position_mm=np.array([s.position_mm for s in files["phases"].slices]),
+        slice_phase=files["phases"].phases,
         timings_s=dict(timings),
     )
 

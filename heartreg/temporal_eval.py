@@ -34,6 +34,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from hrcore.geometry import apply_to_points
 from imaging.files import write_text_atomic
 
 __all__ = ["GRID_PRESETS", "CRITERIA", "true_phase", "run_case", "summarize", "evaluate"]
@@ -61,7 +62,7 @@ def true_phase(preset: str, seed: int) -> float:
 
 def _transform_error(T, T_true, vertices):
     E = T @ np.linalg.inv(T_true)
-    moved = vertices @ E[:3, :3].T + E[:3, 3]
+    moved = apply_to_points(E, vertices)
     mean_mm = float(np.linalg.norm(moved - vertices, axis=1).mean())
     cos = np.clip((np.trace(E[:3, :3]) - 1) / 2, -1.0, 1.0)
     return mean_mm, float(np.degrees(np.arccos(cos)))

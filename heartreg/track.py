@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from heartreg.igtl import IgtlSink
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points
 from registration.localise import FAR_MM, Localiser, registered_models
 from registration.motion_model import Harmonics
 from registration.online import CausalPhases, PhaseFlag
@@ -393,8 +394,8 @@ def run_track(
         if model is None:
             raise TrackError("OpenIGTLink needs the model (its POLYDATA)")
         mesh = model.mesh
-        T = T_RAS_FROM_LPS @ model.T_patient_from_heart
-        sink = IgtlSink(igtl_port, mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.faces)
+        vertices_ras = apply_to_points(T_RAS_FROM_LPS @ model.T_patient_from_heart, mesh.vertices)
+        sink = IgtlSink(igtl_port, vertices_ras, mesh.faces)
         own_sink = True
     T_ras_from_heart = None if model is None else T_RAS_FROM_LPS @ model.T_patient_from_heart
     if sink is not None and T_ras_from_heart is None:

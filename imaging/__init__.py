@@ -8,7 +8,7 @@ from imaging.ecg import RPeaks, cardiac_phase, detect_r_peaks
 from imaging.events import SignalError, phase_from_events
 from imaging.nifti import is_nifti_path, read_nifti_volume
 from imaging.phase import GatingError, GatingWarning, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
-from imaging.phase_io import plot_phases, write_phase_report
+from imaging.phase_io import PhaseFileError, plot_phases, read_phase_report, write_phase_report
 from imaging.respiration import expiration_onsets, respiration_phase
 from imaging.series import SeriesSummary, StudyError, StudyWarning, list_series, load_study
 from imaging.volume import (
@@ -53,4 +53,6 @@ __all__ = [
     "read_qrs_file",
     "respiration_phase",
     "write_phase_report",
+    "read_phase_report",
+    "PhaseFileError",
 ]

@@ -119,11 +119,6 @@ class RPeaks:
     def __len__(self) -> int:
         return int(self.times_s.size)
 
-    @property
-    def rr_s(self) -> np.ndarray:
-        """(n - 1,) float64, s: intervals between consecutive R-peaks."""
-        return np.diff(self.times_s)
-
 
 def cardiac_phase(time_s, r_peaks_s) -> np.ndarray:
     """Cardiac phase ``(t - R_k) / (R_{k+1} - R_k)`` for ``R_k <= t < R_{k+1}``.

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.geometry import apply_to_points
 from imaging.volume import SeriesError, SeriesInfo, SliceInfo, Volume
 
 __all__ = ["is_nifti_path", "read_nifti_volume"]
@@ -114,7 +115,7 @@ def read_nifti_volume(path) -> Volume:
     slices = tuple(
         SliceInfo(
             index=k, file=str(path), frame=k, instance_number=None,
-            position_mm=float((T[:3, :3] @ np.array([0.0, 0.0, k]) + T[:3, 3]) @ normal),
+            position_mm=float(apply_to_points(T, [0.0, 0.0, k]) @ normal),
             k=float(k), sop_instance_uid="", acquisition_time_s=None, mid_scan_time_s=None,
             trigger_time_ms=None, nominal_interval_ms=None, heart_rate_bpm=None,
             nominal_cardiac_percent=None,

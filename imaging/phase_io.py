@@ -1,4 +1,4 @@
-"""Writing a PhaseReport: ``phases.csv``, ``phases.json`` and ``phases.png``."""
+"""Writing a PhaseReport (``phases.csv``, ``phases.json``, ``phases.png``) and reading it back."""
 
 from __future__ import annotations
 
@@ -8,15 +8,23 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.errors import HeartregError
 from imaging.files import atomic_path, write_text_atomic
-from imaging.phase import MOTION_FREE_WINDOW, PhaseReport
+from imaging.phase import MOTION_FREE_WINDOW, PhaseReport, SlicePhase
 
-__all__ = ["write_phase_report", "plot_phases"]
+__all__ = ["PhaseFileError", "write_phase_report", "read_phase_report", "plot_phases"]
+
+#: Columns of ``phases.csv``, in order.
+CSV_COLUMNS = ("slice_index", "position_mm", "time_s", "cardiac_phase", "volume_k")
+
+
+class PhaseFileError(HeartregError, ValueError):
+    """A ``phases.csv``/``phases.json`` pair that is not one :func:`write_phase_report` wrote."""
 
 
 def _csv_text(report: PhaseReport) -> str:
     out = io.StringIO()
-    out.write("slice_index,position_mm,time_s,cardiac_phase,volume_k\n")
+    out.write(",".join(CSV_COLUMNS) + "\n")
     for s in report.slices:
         time = "" if not np.isfinite(s.time_s) else f"{s.time_s:.6f}"
         out.write(f"{s.index},{s.position_mm:.4f},{time},{s.cardiac_phase:.6f},{s.volume_k:.4f}\n")
@@ -67,3 +75,83 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     write_text_atomic(paths["json"], json.dumps(payload, indent=1) + "\n")
     plot_phases(report, paths["png"])
     return paths
+
+
+def read_phase_report(out_dir) -> PhaseReport:
+    """Read back the :class:`PhaseReport` that :func:`write_phase_report` wrote into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The folder holding ``phases.json`` and ``phases.csv``.
+
+    Returns
+    -------
+    PhaseReport
+        The report written, its slices to the precision of ``phases.csv``
+        (position and volume index 1e-4, time and phase 1e-6); writing it again
+        gives the same bytes (with the same ``extra``, whose keys are not part of it).
+
+    Raises
+    ------
+    PhaseFileError
+        A file missing, not the format written, or the two files disagree.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from imaging.phase import PhaseReport, SlicePhase
+    >>> report = PhaseReport(slices=(SlicePhase(0, -10.0, 0.5, 0.7, 0.0),), volume_cardiac_phase=0.7,
+    ...                      circular_mean_phase=0.7, source="qrs.csv", clock="trigger time",
+    ...                      r_peaks_s=np.array([0.0, 1.0]), jumps=(), fraction_in_window=1.0)
+    >>> with tempfile.TemporaryDirectory() as out:
+    ...     _ = write_phase_report(report, out)
+    ...     read_phase_report(out).slices == report.slices
+    True
+    """
+    out_dir = Path(out_dir)
+    json_path, csv_path = out_dir / "phases.json", out_dir / "phases.csv"
+    for path in (json_path, csv_path):
+        if not path.is_file():
+            raise PhaseFileError(f"{path} not found: give the output folder of heartreg phases")
+    try:
+        meta = json.loads(json_path.read_text(encoding="utf-8"))
+        report_fields = dict(
+            volume_cardiac_phase=float(meta["volume_cardiac_phase"]),
+            circular_mean_phase=float(meta["circular_mean_phase"]),
+            source=str(meta["source"]),
+            clock=str(meta["clock"]),
+            r_peaks_s=np.array(meta["r_peaks_s"], dtype=np.float64).reshape(-1),
+            jumps=tuple(int(j) for j in meta["jumps"]),
+            fraction_in_window=float(meta["fraction_in_window"]),
+            notes=tuple(str(n) for n in meta["notes"]),
+        )
+        n_slices = int(meta["n_slices"])
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        raise PhaseFileError(f"{json_path}: not a phases.json of heartreg ({type(exc).__name__}: {exc})") from None
+    slices = _read_slices(csv_path)
+    if len(slices) != n_slices:
+        raise PhaseFileError(f"{csv_path}: {len(slices)} slice rows, but {json_path.name} says n_slices = {n_slices}")
+    report_fields["r_peaks_s"].setflags(write=False)
+    return PhaseReport(slices=slices, **report_fields)
+
+
+def _read_slices(path: Path) -> tuple[SlicePhase, ...]:
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PhaseFileError(f"{path}: not readable ({exc})") from None
+    if not lines or tuple(lines[0].split(",")) != CSV_COLUMNS:
+        raise PhaseFileError(f"{path}: the header must be {','.join(CSV_COLUMNS)}")
+    slices = []
+    for row, line in enumerate(lines[1:], start=2):
+        cells = line.split(",")
+        try:
+            if len(cells) != len(CSV_COLUMNS):
+                raise ValueError(f"{len(cells)} cells")
+            index, position, time, phase, k = cells
+            slices.append(SlicePhase(int(index), float(position), float(time) if time else float("nan"),
+                                     float(phase), float(k)))
+        except ValueError as exc:
+            raise PhaseFileError(f"{path}: line {row} is not a slice row ({exc})") from None
+    return tuple(slices)

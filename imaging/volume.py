@@ -31,6 +31,7 @@ import pydicom
 from pydicom.errors import InvalidDicomError
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points
 
 from .discover import DEFLATED_UID, _Frame
 
@@ -215,16 +216,14 @@ class Volume:
         pts = np.asarray(ijk, dtype=np.float64)
         if pts.shape[-1:] != (3,) or pts.ndim > 2:
             raise ValueError(f"ijk must have shape (n, 3) or (3,), got {pts.shape}")
-        T = self.T_patient_from_voxel
-        return pts @ T[:3, :3].T + T[:3, 3]
+        return apply_to_points(self.T_patient_from_voxel, pts)
 
     def patient_to_voxel(self, xyz) -> np.ndarray:
         """Inverse of `voxel_to_patient`: LPS mm (n, 3) or (3,) -> (i, j, k) float64."""
         pts = np.asarray(xyz, dtype=np.float64)
         if pts.shape[-1:] != (3,) or pts.ndim > 2:
             raise ValueError(f"xyz must have shape (n, 3) or (3,), got {pts.shape}")
-        T = np.linalg.inv(self.T_patient_from_voxel)
-        return pts @ T[:3, :3].T + T[:3, 3]
+        return apply_to_points(np.linalg.inv(self.T_patient_from_voxel), pts)
 
 
 # ------------------------------------------------------------------ geometry
@@ -545,13 +544,6 @@ def _rescale(frame: _Frame) -> tuple[float, float]:
             f"{intercept!r} cannot map stored values to HU; the file is corrupt"
         )
     return slope, intercept
-
-
-def _stored_range(frame: _Frame) -> tuple[int, int]:
-    bits = frame.bits_stored
-    if frame.pixel_representation == 1:
-        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
-    return 0, (1 << bits) - 1
 
 
 def _int16_possible(frames) -> bool:

@@ -31,6 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step
 
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
@@ -194,9 +195,7 @@ def find_fiducials(
     hu = np.asarray(hu)
     if hu.ndim != 3:
         raise ValueError(f"hu must be a 3-D volume (k, j, i), got shape {hu.shape}")
-    T = np.asarray(T_patient_from_voxel, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_patient_from_voxel must have shape (4, 4), got {T.shape}")
+    T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
     voxel_mm3 = abs(np.linalg.det(T[:3, :3]))
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
 
@@ -217,7 +216,7 @@ def find_fiducials(
             "skin fiducials cannot be told from bone: pass --fiducials 0 and give them otherwise"
         )
     body_kji = np.array(ndimage.center_of_mass(~outside)) * step  # full-resolution voxel indices
-    body_centre_y = (T[:3, :3] @ body_kji[::-1] + T[:3, 3])[1]
+    body_centre_y = apply_to_points(T, body_kji[::-1])[1]
     reach = skin_reach_mm + 0.5 * float(np.max(cspacing))
     shell = ndimage.distance_transform_edt(~outside, sampling=cspacing) <= reach
     candidates = shell & (cmax > floor_hu)
@@ -250,7 +249,7 @@ def find_fiducials(
         w = weight[weight > 0]
         offset = np.array([b.start for b in box])
         k, j, i = ((kji + offset) * w[:, None]).sum(axis=0) / w.sum()
-        centre = T[:3, :3] @ np.array([i, j, k]) + T[:3, 3]
+        centre = apply_to_points(T, [i, j, k])
         if anterior_only and centre[1] > body_centre_y:
             notes.append(f"metal on the back skin at {np.round(centre, 1).tolist()} mm ignored (anterior_only)")
             continue

@@ -44,6 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import check_transform, frozen, invert
 
 __all__ = ["FrameError", "SlabEllipse", "HeartFrame", "fit_heart_frame", "ANTERIOR_LPS"]
 
@@ -173,10 +174,7 @@ class HeartFrame:
     n_rejected_slabs: int
 
     def __post_init__(self):
-        T = np.array(self.T_heart_from_patient, dtype=np.float64)
-        if T.shape != (4, 4):
-            raise ValueError(f"T_heart_from_patient must have shape (4, 4), got {T.shape}")
-        T.setflags(write=False)
+        T = frozen(check_transform(self.T_heart_from_patient, name="T_heart_from_patient"), np.float64)
         object.__setattr__(self, "T_heart_from_patient", T)
         object.__setattr__(self, "euler_xyz_deg", tuple(float(a) for a in self.euler_xyz_deg))
         object.__setattr__(self, "ellipses", tuple(self.ellipses))
@@ -199,7 +197,7 @@ class HeartFrame:
 
     @property
     def T_patient_from_heart(self) -> np.ndarray:
-        return _invert_rigid(self.T_heart_from_patient)
+        return invert(self.T_heart_from_patient)
 
     @property
     def axes_patient(self) -> np.ndarray:
@@ -374,13 +372,6 @@ def _unit(vec, name: str) -> np.ndarray:
     if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-12:
         raise ValueError(f"{name} must be a finite non-zero 3-vector, got {vec!r}")
     return a / np.linalg.norm(a)
-
-
-def _invert_rigid(T: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
 
 
 def _plane_basis(z: np.ndarray):

@@ -17,6 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points
 
 __all__ = ["LabelMapError", "LabelMap", "read_label_map", "mask_on_grid"]
 
@@ -236,8 +237,7 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     kji = np.argwhere(src)
     lo, hi = kji.min(axis=0), kji.max(axis=0)
     corners = np.array([[i, j, k] for k in (lo[0] - 1, hi[0] + 1) for j in (lo[1] - 1, hi[1] + 1) for i in (lo[2] - 1, hi[2] + 1)], float)
-    patient = corners @ label_map.T_patient_from_voxel[:3, :3].T + label_map.T_patient_from_voxel[:3, 3]
-    ijk = np.linalg.solve(T_vol[:3, :3], (patient - T_vol[:3, 3]).T).T
+    ijk = apply_to_points(np.linalg.inv(T_vol) @ label_map.T_patient_from_voxel, corners)
     shape = tuple(int(s) for s in shape)
     box_lo = np.clip(np.floor(ijk.min(axis=0)).astype(int), 0, np.array(shape[::-1]) - 1)
     box_hi = np.clip(np.ceil(ijk.max(axis=0)).astype(int) + 1, 0, np.array(shape[::-1]))
@@ -250,7 +250,7 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     ii, jj, kk = np.meshgrid(*(np.arange(a, b) for a, b in zip(box_lo, box_hi)), indexing="ij")
     pts = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(float)
     T_src_from_vol = np.linalg.inv(label_map.T_patient_from_voxel) @ T_vol
-    src_ijk = pts @ T_src_from_vol[:3, :3].T + T_src_from_vol[:3, 3]
+    src_ijk = apply_to_points(T_src_from_vol, pts)
     values = ndimage.map_coordinates(src.astype(np.uint8), src_ijk[:, ::-1].T, order=0, mode="constant", cval=0)
     sub = values.reshape(ii.shape).astype(bool).transpose(2, 1, 0)  # (k, j, i)
     mask[box_lo[2] : box_hi[2], box_lo[1] : box_hi[1], box_lo[0] : box_hi[0]] = sub

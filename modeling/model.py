@@ -31,6 +31,7 @@ from typing import Mapping
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points
 from hrcore.output import staged_output
 from imaging.files import umask_mode
 from modeling.fiducials import order_fiducials
@@ -207,8 +208,7 @@ class HeartModel:
     @property
     def fiducials_heart_mm(self) -> np.ndarray:
         """(n, 3) float64 fiducials in the heart frame, same order."""
-        T = self.T_heart_from_patient
-        return self.fiducials_patient_mm @ T[:3, :3].T + T[:3, 3]
+        return apply_to_points(self.T_heart_from_patient, self.fiducials_patient_mm)
 
     def mesh_patient(self) -> Mesh:
         """The surface mapped back to the patient frame."""

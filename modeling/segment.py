@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
@@ -296,9 +297,7 @@ def segment_heart(
     hu = np.asarray(hu)
     if hu.ndim != 3:
         raise ValueError(f"hu must be a 3-D volume (k, j, i), got shape {hu.shape}")
-    T = np.asarray(T_patient_from_voxel, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_patient_from_voxel must have shape (4, 4), got {T.shape}")
+    T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
     if not hu_low < hu_high:
         raise ValueError(f"hu_low ({hu_low}) must be below hu_high ({hu_high})")
     spacing_kji = _spacing(T)[::-1]
@@ -331,7 +330,7 @@ def segment_heart(
                 f"{blood_hu[0]:.0f}-{blood_hu[1]:.0f} HU): seeded in the thickest soft tissue between the lungs, "
                 f"tissue up to {soft_hu[1]:.0f} HU"
             )
-        seed_mm = T[:3, :3] @ kji[::-1] + T[:3, 3]
+        seed_mm = apply_to_points(T, kji[::-1])
     else:
         seed_mm = np.asarray(seed_patient_mm, dtype=float).reshape(3)
         ijk = np.linalg.solve(T[:3, :3], seed_mm - T[:3, 3])

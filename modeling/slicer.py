@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import check_transform, invert
 from imaging.files import write_text_atomic
-from modeling.surface import _check_affine
 
 __all__ = [
     "MARKUPS_SCHEMA",
@@ -50,8 +50,6 @@ _FLIP = np.diag([-1.0, -1.0, 1.0])
 _ITK_MAGIC = "#Insight Transform File V1.0"
 #: ITK transform types whose parameters are 9 matrix entries (row-major) and a translation.
 _AFFINE_TYPES = ("AffineTransform", "MatrixOffsetTransformBase")
-#: a to-parent matrix must be rigid to this tolerance (mm-free: a rotation's entries).
-RIGID_TOL = 1e-6
 
 
 class SlicerFileError(HeartregError, ValueError):
@@ -223,21 +221,6 @@ def read_markups(path) -> Markups:
                    descriptions=tuple(descriptions))
 
 
-def _check_rigid(T, name: str) -> np.ndarray:
-    T = _check_affine(T, name)  # shape, finite values, last row
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or np.linalg.det(R) <= 0:
-        raise ValueError(f"{name} must be a rigid transform (rotation and translation)")
-    return T
-
-
-def _rigid_inverse(T: np.ndarray) -> np.ndarray:
-    inv = np.eye(4)
-    inv[:3, :3] = T[:3, :3].T
-    inv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return inv
-
-
 def write_itk_transform(path, T_parent_from_child, *, note: str = "") -> Path:
     """Write a rigid transform as an ITK text transform file, as Slicer reads it.
 
@@ -257,10 +240,10 @@ def write_itk_transform(path, T_parent_from_child, *, note: str = "") -> Path:
     -------
     Path
     """
-    T = _check_rigid(T_parent_from_child, "T_parent_from_child")
+    T = check_transform(T_parent_from_child, name="T_parent_from_child", rigid=True)
     if "\n" in note or "\r" in note:
         raise ValueError("note must be a single line")
-    inv = _rigid_inverse(T)
+    inv = invert(T)
     params = [*inv[:3, :3].ravel(), *inv[:3, 3]]
     lines = [_ITK_MAGIC]
     if note:

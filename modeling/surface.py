@@ -39,6 +39,7 @@ from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points, check_transform
 from imaging.files import atomic_path
 
 __all__ = [
@@ -218,10 +219,10 @@ def transform_mesh(T_to_from_from: np.ndarray, mesh: Mesh) -> Mesh:
     Mesh
         Same faces, vertices in the target frame.
     """
-    T = _check_affine(T_to_from_from, "T_to_from_from")
+    T = check_transform(T_to_from_from, name="T_to_from_from")
     if np.linalg.det(T[:3, :3]) <= 0:
         raise ValueError("T_to_from_from must be a proper rigid transform (det > 0)")
-    return Mesh(mesh.vertices @ T[:3, :3].T + T[:3, 3], mesh.faces)
+    return Mesh(apply_to_points(T, mesh.vertices), mesh.faces)
 
 
 # ----------------------------------------------------------------------- meshing
@@ -272,7 +273,7 @@ def mask_to_mesh(
         raise ValueError(f"mask must be a 3-D (k, j, i) array, got shape {mask.shape}")
     if mask.dtype != bool:
         raise ValueError(f"mask must be boolean, got dtype {mask.dtype}; use mask > 0")
-    T = _check_affine(T_patient_from_voxel, "T_patient_from_voxel")
+    T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
     if abs(np.linalg.det(T[:3, :3])) < 1e-12:
         raise ValueError("T_patient_from_voxel is singular (zero voxel spacing?)")
     if int(target_faces) < 100:
@@ -318,7 +319,7 @@ def mask_to_mesh(
 
     # 3. (k, j, i) -> (i, j, k) -> patient; fix the winding of a reflection ---
     verts_ijk = verts_kji[:, ::-1]
-    verts = verts_ijk @ T[:3, :3].T + T[:3, 3]
+    verts = apply_to_points(T, verts_ijk)
     # skimage orients faces so normals point down the gradient (out of the mask)
     # in (k, j, i) index space; the axis swap has det -1, the affine det(A).
     if -np.linalg.det(T[:3, :3]) < 0:
@@ -417,17 +418,6 @@ def decimate(mesh: Mesh, target_faces: int) -> Mesh:
     if not check.ok:
         raise MeshError(f"decimation to {target_faces} faces broke the surface ({check}); raise target_faces")
     return out
-
-
-def _check_affine(T, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"{name} must have shape (4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} contains NaN or infinity")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {T[3]}")
-    return T
 
 
 def _vertex_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:

@@ -51,7 +51,6 @@ from registration.motion_model import (
     CoverageWarning,
     design_matrix,
     fit_motion_model,
-    fit_motion_models,
     predict_positions,
 )
 from registration.icp import (
@@ -164,7 +163,6 @@ __all__ = [
     "design_matrix",
     "euler_xyz_deg_from_matrix",
     "fit_motion_model",
-    "fit_motion_models",
     "icp",
     "icp_sweep",
     "invert",

@@ -26,6 +26,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points, kabsch
 
 __all__ = [
     "FiducialError",
@@ -110,24 +111,6 @@ def _check_not_collinear(points, name):
         )
 
 
-def _kabsch(source, target, weights=None):
-    if weights is None:
-        cs, ct = source.mean(axis=0), target.mean(axis=0)
-        H = (source - cs).T @ (target - ct)
-    else:
-        w = weights / weights.sum()
-        cs, ct = w @ source, w @ target
-        H = ((source - cs) * w[:, None]).T @ (target - ct)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    D = np.diag([1.0, 1.0, d if d != 0 else 1.0])
-    R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = ct - R @ cs
-    return T
-
-
 def rigid_fit(source, target, *, weights=None) -> np.ndarray:
     """Least-squares rigid transform mapping ``source[i]`` onto ``target[i]``.
 
@@ -158,23 +141,23 @@ def rigid_fit(source, target, *, weights=None) -> np.ndarray:
             raise ValueError(f"weights must have shape ({source.shape[0]},), got {weights.shape}")
         if np.any(weights < 0) or not weights.sum() > 0:
             raise ValueError("weights must be non-negative and not all zero")
-    return _kabsch(source, target, weights)
+    return kabsch(source, target, weights=weights)
 
 
 def _residuals(T, source, target):
-    return np.linalg.norm(source @ T[:3, :3].T + T[:3, 3] - target, axis=1)
+    return np.linalg.norm(apply_to_points(T, source) - target, axis=1)
 
 
 def _refine_assignment(source, target, order, n_rounds=5):
     """Alternate rigid fit and Hungarian re-assignment until the order is stable."""
     for _ in range(n_rounds):
-        T = _kabsch(source, target[order])
-        moved = source @ T[:3, :3].T + T[:3, 3]
+        T = kabsch(source, target[order])
+        moved = apply_to_points(T, source)
         _, new = linear_sum_assignment(cdist(moved, target, "sqeuclidean"))
         if np.array_equal(new, order):
             break
         order = new
-    T = _kabsch(source, target[order])
+    T = kabsch(source, target[order])
     return order, T, float(np.sqrt(np.mean(_residuals(T, source, target[order]) ** 2)))
 
 
@@ -203,8 +186,8 @@ def _candidate_orders(source, target, *, max_triples=2000):
     for err, a, b, c in triples[:max_triples]:
         if err > tol:
             break
-        T = _kabsch(source[[i, j, k]], target[[a, b, c]])
-        moved = source @ T[:3, :3].T + T[:3, 3]
+        T = kabsch(source[[i, j, k]], target[[a, b, c]])
+        moved = apply_to_points(T, source)
         _, order = linear_sum_assignment(cdist(moved, target, "sqeuclidean"))
         yield order
 
@@ -249,7 +232,7 @@ def register_fiducials(
         raise ValueError(f"max_fre_mm must be positive, got {max_fre_mm}")
     n = source.shape[0]
     identity = np.arange(n)
-    T = _kabsch(source, target)
+    T = kabsch(source, target)
     res = _residuals(T, source, target)
     fre = float(np.sqrt(np.mean(res**2)))
     if fre <= max_fre_mm or not allow_reorder:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hrcore.geometry import kabsch
 from registration.closest import (
     ClosestPoints,
     SurfaceIndex,
@@ -47,7 +48,6 @@ __all__ = [
     "icp",
     "icp_sweep",
     "icp_sweep_distances",
-    "kabsch_batch",
 ]
 
 
@@ -111,38 +111,6 @@ class IcpResult:
 
 #: ICP stops when a step lowers its loss by less than this fraction (``tol_loss``).
 TOL_LOSS = 1e-4
-
-
-def kabsch_batch(source, target, weights=None) -> np.ndarray:
-    """Rigid ``T`` (b, 4, 4) minimising ``sum_k w_k |T source_k - target_k|^2`` per set.
-
-    Parameters
-    ----------
-    source, target : (b, k, 3) float, mm
-        Corresponding points of b sets.
-    weights : (b, k) float, optional
-        Non-negative weights (equal by default).
-
-    Returns
-    -------
-    (b, 4, 4) float64
-    """
-    source = np.asarray(source, dtype=float)
-    target = np.asarray(target, dtype=float)
-    w = np.ones(source.shape[:2]) if weights is None else np.asarray(weights, dtype=float)
-    w = w / w.sum(axis=1, keepdims=True)
-    cs, ct = np.einsum("bk,bki->bi", w, source), np.einsum("bk,bki->bi", w, target)
-    H = np.einsum("bk,bki,bkj->bij", w, source - cs[:, None], target - ct[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
-    d = np.sign(np.linalg.det(V @ Ut))
-    d[d == 0] = 1.0
-    R = (V * np.concatenate([np.ones((d.size, 2)), d[:, None]], axis=1)[:, None, :]) @ Ut
-    T = np.zeros(source.shape[:1] + (4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = ct - np.einsum("bij,bj->bi", R, cs)
-    T[:, 3, 3] = 1.0
-    return T
 
 
 def _plane_jacobian(q, normals, centre, scale):
@@ -408,7 +376,7 @@ class _BatchFit:
 def _step(method, q, cp, normals, w, centre, scale):
     """One ICP step (a, 4, 4) from the closest points: point-to-plane Gauss-Newton or point-to-point SVD."""
     if method is IcpMethod.POINT_TO_POINT:
-        return kabsch_batch(q, cp, w)
+        return kabsch(q, cp, weights=w)
     J = _plane_jacobian(q, normals, centre, scale)
     Jw = J * w[:, :, None]
     A = np.einsum("ani,anj->aij", Jw, J)

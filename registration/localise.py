@@ -40,6 +40,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import apply_to_points, check_transform
 from registration.icp import SurfaceIndex, closest_points
 from registration.motion_model import MotionModel, design_matrix
 
@@ -114,9 +115,7 @@ class Localiser:
         h = models[0].harmonics
         if any(m.harmonics != h for m in models):
             raise LocaliseError("all motion models must have the same harmonics")
-        T = np.asarray(T_heart_from_probe, dtype=float)
-        if T.shape != (4, 4):
-            raise ValueError(f"T_heart_from_probe must have shape (4, 4), got {T.shape}")
+        T = check_transform(T_heart_from_probe, name="T_heart_from_probe")
         for name, value in (("phase_c", phase_c), ("phase_r", phase_r)):
             if not (0.0 <= float(value) <= 1.0):
                 raise ValueError(f"{name} must be a phase in [0, 1], got {value!r}")
@@ -164,16 +163,15 @@ class Localiser:
         -------
         MapPositions
         """
-        T = np.asarray(T_probe_from_robot, dtype=float)
-        if T.ndim != 3 or T.shape[1:] != (4, 4):
+        T = check_transform(T_probe_from_robot, name="T_probe_from_robot", stack=True, finite=False)
+        if T.ndim != 3:
             raise ValueError(f"T_probe_from_robot must have shape (m, 4, 4), got {T.shape}")
         m = T.shape[0]
         pc = np.asarray(phase_c, dtype=float).reshape(-1)
         pr = np.asarray(phase_r, dtype=float).reshape(-1)
         if pc.shape != (m,) or pr.shape != (m,):
             raise ValueError(f"phase_c and phase_r must have shape ({m},), got {pc.shape} and {pr.shape}")
-        Th = self.T_heart_from_probe
-        static = T[:, :3, 3] @ Th[:3, :3].T + Th[:3, 3]
+        static = apply_to_points(self.T_heart_from_probe, T[:, :3, 3])
         if m == 1 and math.isfinite(pc[0] + pr[0]) and np.isfinite(T).all():
             # a live sample: the same maths with less set-up per call
             Tm, near = self._locate_one(T[0], float(pc[0]), float(pr[0]))

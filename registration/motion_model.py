@@ -40,7 +40,6 @@ __all__ = [
     "CoverageWarning",
     "design_matrix",
     "fit_motion_model",
-    "fit_motion_models",
     "predict_positions",
 ]
 
@@ -372,29 +371,6 @@ def _solve_least_squares(X, Y, *, rcond=None, max_condition=1e6):
         sv = np.linalg.svd(Xs, compute_uv=False)
         condition = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     return coef / scale[:, None], condition
-
-
-def fit_motion_models(
-    traces: Sequence[tuple],
-    *,
-    harmonics: Harmonics = Harmonics(),
-    coverage_bins: int = 10,
-) -> list[MotionModel]:
-    """Fit one model per point.
-
-    Parameters
-    ----------
-    traces : sequence of (phase_c, phase_r, T_probe_from_robot)
-        One tuple of arrays per point, as for :func:`fit_motion_model`.
-
-    Returns
-    -------
-    list of MotionModel
-    """
-    return [
-        fit_motion_model(pc, pr, T, harmonics=harmonics, coverage_bins=coverage_bins)
-        for pc, pr, T in traces
-    ]
 
 
 def predict_positions(models: Sequence[MotionModel], phase_c, phase_r) -> np.ndarray:

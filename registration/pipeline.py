@@ -33,6 +33,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from hrcore.errors import HeartregError, UsageError
+from hrcore.geometry import apply_to_points, frozen
 from imaging.ecg import cardiac_phase, detect_r_peaks
 from imaging.events import SignalError
 from imaging.respiration import expiration_onsets, respiration_phase
@@ -48,7 +49,7 @@ from registration.motion_model import (
     fit_motion_model,
 )
 from registration.plausibility import assess_coverage, assess_trust, outlier_samples
-from registration.result import IcpReport, PointFit, RegistrationResult, _frozen
+from registration.result import IcpReport, PointFit, RegistrationResult
 from registration.session import PointRecord, Session
 from registration.spatiotemporal import (
     compare_static,
@@ -202,7 +203,7 @@ def _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins):
         n_breaths=int(n_breaths),
         heart_rate_hz=float(n_beats / (peaks[-1] - peaks[0])),
         resp_rate_hz=float(n_breaths / (onsets[-1] - onsets[0])),
-        residual_rms_mm=_frozen(model.residual_rms_mm),
+        residual_rms_mm=frozen(model.residual_rms_mm),
         residual_rms_3d_mm=float(model.residual_rms_3d_mm),
         residual_rms_deg=float(model.residual_rms_deg),
         condition_number=float(model.condition_number),
@@ -374,7 +375,7 @@ def register_session(
     if exclusions:
         notes.append(f"{len(exclusions)} point(s) excluded (see exclusions)")
     means = np.stack([m.mean_position_mm for m in models])
-    means_map = means @ T0[:3, :3].T + T0[:3, 3]
+    means_map = apply_to_points(T0, means)
     coverage = assess_coverage(means_map, model.mesh.vertices)
     notes.extend(coverage.notes)
 
@@ -441,8 +442,8 @@ def register_session(
     t = time.perf_counter()
     final = icp(reg.points_source_mm, surface, T_init=T0, **options)
     report = IcpReport(
-        hessian_eigenvalues=_frozen(final.hessian_eigenvalues),
-        weakest_direction=_frozen(final.weakest_direction),
+        hessian_eigenvalues=frozen(final.hessian_eigenvalues),
+        weakest_direction=frozen(final.weakest_direction),
         condition_number=float(final.condition_number),
         degenerate=bool(final.degenerate),
         iterations=int(final.iterations),
@@ -491,24 +492,24 @@ def register_session(
         phase_c=float(model.cardiac_phase),
         phase_c_source=model.cardiac_phase_source,
         phase_r=float(reg.phase_r),
-        T_heart_from_probe=_frozen(reg.T_map_from_source),
-        T0_heart_from_probe=_frozen(T0),
+        T_heart_from_probe=frozen(reg.T_map_from_source),
+        T0_heart_from_probe=frozen(T0),
         fre_mm=float(fid.fre_rms_mm),
-        fiducial_residuals_mm=_frozen(fid.residuals_mm),
+        fiducial_residuals_mm=frozen(fid.residuals_mm),
         fiducials_reordered=bool(fid.reordered),
         fiducials_ambiguous=bool(fid.ambiguous),
         rms_mm=float(reg.rms_mm),
         translation_distance_mm=float(reg.translation_distance_mm),
         rotation_distance_deg=float(reg.rotation_distance_deg),
-        euler_xyz_deg=_frozen(euler_xyz_deg_from_matrix(reg.T_map_from_source)),
+        euler_xyz_deg=frozen(euler_xyz_deg_from_matrix(reg.T_map_from_source)),
         respiration_sweep=resp,
         cardiac_sweep=card,
         static=static,
         phase_estimates=(chosen, other),
-        point_ids=_frozen(np.array([f.point_id for f in fits], dtype=np.int64)),
-        points_probe_mm=_frozen(reg.points_source_mm),
-        normals_probe=_frozen(normals),
-        mean_points_probe_mm=_frozen(np.stack([m.mean_position_mm for m in models])),
+        point_ids=frozen(np.array([f.point_id for f in fits], dtype=np.int64)),
+        points_probe_mm=frozen(reg.points_source_mm),
+        normals_probe=frozen(normals),
+        mean_points_probe_mm=frozen(np.stack([m.mean_position_mm for m in models])),
         point_fits=tuple(fits),
         exclusions=tuple((int(i), str(r)) for i, r in exclusions),
         icp=report,

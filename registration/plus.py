@@ -32,6 +32,7 @@ from types import MappingProxyType
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import is_rigid
 
 __all__ = ["PLUS_SUFFIXES", "PlusFileError", "PlusSequence", "read_plus_sequence"]
 
@@ -208,10 +209,7 @@ def _is_float(text: str) -> bool:
 def _check_poses(path: Path, name: str, T: np.ndarray, frames) -> None:
     if not T.size:
         return
-    bad = ~np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
-    R = T[:, :3, :3]
-    err = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
-    bad |= (err > RIGID_TOL) | (np.linalg.det(R) <= 0) | np.any(np.abs(T[:, 3] - [0, 0, 0, 1]) > 1e-9, axis=1)
+    bad = ~is_rigid(T, tol=RIGID_TOL)
     if bad.any():
         k = int(np.argmax(bad))
         raise PlusFileError(

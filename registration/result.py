@@ -30,12 +30,6 @@ def _version() -> str:
         return "0+unknown"
 
 
-def _frozen(a) -> np.ndarray:
-    a = np.array(a, copy=True)
-    a.setflags(write=False)
-    return a
-
-
 @dataclass(frozen=True, eq=False)
 class PointFit:
     """The motion-model fit of one attachment point.

@@ -36,6 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import frozen
 from registration.plus import PlusFileError, read_plus_sequence
 
 __all__ = [
@@ -532,32 +533,41 @@ def _check_magnitude(data: np.ndarray, rel: str, columns) -> None:
         )
 
 
-def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float) -> PointRecord:
-    rel = entry["file"]
+def _read_samples(folder: Path, rel: str, columns, rate_hz: float) -> np.ndarray:
+    """The checked rows of a sample table: every column there, finite, plausible, on the declared clock."""
     file = folder / rel
-    cols = _read_header(file, rel, POINT_COLUMNS)
-    data = _load_table(file, rel, cols, POINT_COLUMNS)
-    if data.shape[0] and data.shape[1] != len(POINT_COLUMNS):
-        raise SessionError(f"{rel}: expected {len(POINT_COLUMNS)} columns, read {data.shape[1]}")
-    data = data.reshape(-1, len(POINT_COLUMNS))
-    _check_finite(data, rel, POINT_COLUMNS)
-    _check_magnitude(data, rel, POINT_COLUMNS)
-    time_s = data[:, 0]
-    _check_clock(time_s, rel, rate_hz)
-    q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
-    q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
-    T = _probe_from_robot(_matrices(q_robot), data[:, 1:4], _matrices(q_probe), data[:, 8:11])
+    data = _load_table(file, rel, _read_header(file, rel, columns), columns)
+    if data.shape[0] and data.shape[1] != len(columns):
+        raise SessionError(f"{rel}: expected {len(columns)} columns, read {data.shape[1]}")
+    data = data.reshape(-1, len(columns))
+    _check_finite(data, rel, columns)
+    _check_magnitude(data, rel, columns)
+    _check_clock(data[:, 0], rel, rate_hz)
+    return data
+
+
+def _point_record(entry: dict, rate_hz: float, time_s, T_probe_from_robot, signals) -> PointRecord:
+    """The record of ``entry``; ``signals`` (n, 3): ECG mV, inspiratory and expiratory flow L/min."""
     return PointRecord(
         point_id=int(entry["id"]),
         surface_point=int(entry["surface_point"]),
-        file=rel,
-        time_s=_frozen(time_s),
-        T_probe_from_robot=_frozen(T),
-        ecg_mv=_frozen(data[:, 15]),
-        flow_insp_lpm=_frozen(data[:, 16]),
-        flow_exp_lpm=_frozen(data[:, 17]),
+        file=entry["file"],
+        time_s=frozen(time_s),
+        T_probe_from_robot=frozen(T_probe_from_robot),
+        ecg_mv=frozen(signals[:, 0]),
+        flow_insp_lpm=frozen(signals[:, 1]),
+        flow_exp_lpm=frozen(signals[:, 2]),
         rate_hz=rate_hz,
     )
+
+
+def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float) -> PointRecord:
+    rel = entry["file"]
+    data = _read_samples(folder, rel, POINT_COLUMNS, rate_hz)
+    q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
+    q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
+    T = _probe_from_robot(_matrices(q_robot), data[:, 1:4], _matrices(q_probe), data[:, 8:11])
+    return _point_record(entry, rate_hz, data[:, 0], T, data[:, 15:18])
 
 
 def _check_clock(time_s: np.ndarray, rel: str, rate_hz: float) -> None:
@@ -596,11 +606,7 @@ def _probe_from_robot(R_robot, t_robot, R_probe, t_probe) -> np.ndarray:
 def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cache: dict, notes: list) -> PointRecord:
     """A record whose ECG and flow are in a CSV file and poses in a PLUS sequence file."""
     rel, poses_rel = entry["file"], entry["poses"]
-    file = folder / rel
-    cols = _read_header(file, rel, SIGNAL_COLUMNS)
-    data = _load_table(file, rel, cols, SIGNAL_COLUMNS).reshape(-1, len(SIGNAL_COLUMNS))
-    _check_finite(data, rel, SIGNAL_COLUMNS)
-    _check_clock(data[:, 0], rel, rate_hz)
+    data = _read_samples(folder, rel, SIGNAL_COLUMNS, rate_hz)
     if poses_rel not in cache:
         if not (folder / poses_rel).is_file():
             raise SessionNotFoundError(f"{poses_rel} is listed in session.json but missing from the folder")
@@ -637,17 +643,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
         data, k = data[ok], k[ok]
     Tr, Tp = T_robot[k], T_probe[k]
     T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
-    return PointRecord(
-        point_id=int(entry["id"]),
-        surface_point=int(entry["surface_point"]),
-        file=rel,
-        time_s=_frozen(data[:, 0]),
-        T_probe_from_robot=_frozen(T),
-        ecg_mv=_frozen(data[:, 1]),
-        flow_insp_lpm=_frozen(data[:, 2]),
-        flow_exp_lpm=_frozen(data[:, 3]),
-        rate_hz=rate_hz,
-    )
+    return _point_record(entry, rate_hz, data[:, 0], T, data[:, 1:4])
 
 
 def _matrices(q_wxyz: np.ndarray) -> np.ndarray:
@@ -686,7 +682,7 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
             f"{rel}: column 'fiducial' must number the staples 1..9 in order ({FIDUCIAL_ORDER}), "
             f"got {labels.tolist()}"
         )
-    return _frozen(data[:, 1:4])
+    return frozen(data[:, 1:4])
 
 
 def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrace:
@@ -715,22 +711,12 @@ def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrac
     tip = np.einsum("nij,nj->ni", R_probe_T, data[:, 2:5] - data[:, 5:8])
     return FiducialTrace(
         file=rel,
-        time_s=_frozen(time_s),
-        fiducial=_frozen_int(labels),
-        stylus_probe_mm=_frozen(tip),
-        flow_insp_lpm=_frozen(data[:, 12]),
-        flow_exp_lpm=_frozen(data[:, 13]),
+        time_s=frozen(time_s),
+        fiducial=frozen(labels, np.int64),
+        stylus_probe_mm=frozen(tip),
+        flow_insp_lpm=frozen(data[:, 12]),
+        flow_exp_lpm=frozen(data[:, 13]),
         rate_hz=rate_hz,
     )
 
 
-def _frozen_int(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(np.round(a), dtype=np.int64)
-    a.setflags(write=False)
-    return a
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    a.setflags(write=False)
-    return a

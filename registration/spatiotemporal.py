@@ -37,6 +37,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from hrcore.geometry import apply_to_points, check_transform
 from registration.icp import IcpMethod, SurfaceIndex, icp_sweep_distances, closest_points, icp
 from registration.motion_model import MotionModel, predict_positions
 from registration.transforms import (
@@ -202,13 +203,6 @@ def _as_surface(surface) -> SurfaceIndex:
     raise ValueError("surface must be a SurfaceIndex or a (vertices, faces) tuple")
 
 
-def _check_T(T, name):
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        raise ValueError(f"{name} must have shape (4, 4), got {T.shape}")
-    return T
-
-
 def surface_centroid(surface) -> np.ndarray:
     """Area-weighted centroid of a triangle surface, (3,) mm (the default pivot)."""
     surface = _as_surface(surface)
@@ -271,7 +265,7 @@ def sweep_phase(
     if kind not in ("respiration", "cardiac"):
         raise ValueError(f"kind must be 'respiration' or 'cardiac', got {kind!r}")
     surface = _as_surface(surface)
-    T0 = _check_T(T0, "T0")
+    T0 = check_transform(T0, name="T0")
     phases = DEFAULT_PHASES if phases is None else np.asarray(phases, dtype=float)
     if phases.ndim != 1 or phases.size == 0:
         raise ValueError(f"phases must have shape (m,), got {phases.shape}")
@@ -359,7 +353,7 @@ def register_spatiotemporal(
     SpatiotemporalRegistration
     """
     surface = _as_surface(surface)
-    T0 = _check_T(T0, "T0")
+    T0 = check_transform(T0, name="T0")
     if not 0.0 <= phase_c <= 1.0:
         raise ValueError(f"phase_c must be a phase in [0, 1], got {phase_c}")
     pivot = surface_centroid(surface) if pivot_mm is None else pivot_mm
@@ -431,8 +425,8 @@ def compare_static(
     StaticComparison
     """
     surface = _as_surface(surface)
-    T0 = _check_T(T0, "T0")
-    T_st = _check_T(T_spatiotemporal, "T_spatiotemporal")
+    T0 = check_transform(T0, name="T0")
+    T_st = check_transform(T_spatiotemporal, name="T_spatiotemporal")
     if not isinstance(mean_points, np.ndarray) and all(
         isinstance(m, MotionModel) for m in mean_points
     ):
@@ -449,8 +443,8 @@ def compare_static(
     options.pop("T_init", None)
     static = icp(mean_points, surface, T_init=T0, **options)
     T_bar = static.T_target_from_source
-    proj_static = closest_points(surface, mean_points @ T_bar[:3, :3].T + T_bar[:3, 3]).points
-    proj_st = closest_points(surface, p_st @ T_st[:3, :3].T + T_st[:3, 3]).points
+    proj_static = closest_points(surface, apply_to_points(T_bar, mean_points)).points
+    proj_st = closest_points(surface, apply_to_points(T_st, p_st)).points
     delta = np.linalg.norm(proj_st - proj_static, axis=1)
     return StaticComparison(
         T_static=T_bar,

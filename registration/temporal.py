@@ -63,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hrcore.errors import HeartregError, UsageError
-from registration.icp import kabsch_batch
+from hrcore.geometry import kabsch
 
 __all__ = [
     "TemporalEstimator",
@@ -203,7 +203,7 @@ def fiducial_curve(
         coef, *_ = np.linalg.lstsq(A, tip[sel], rcond=None)
         rms[k] = float(np.sqrt(np.mean(np.sum((tip[sel] - A @ coef) ** 2, axis=1))))
         curves[:, k] = basis @ coef
-    T = kabsch_batch(curves, np.broadcast_to(target, curves.shape))
+    T = kabsch(curves, np.broadcast_to(target, curves.shape))
     fitted = np.einsum("mij,mkj->mki", T[:, :3, :3], curves) + T[:, None, :3, 3]
     res = np.linalg.norm(fitted - target, axis=2)
     return FiducialCurve(
@@ -561,13 +561,13 @@ def paper_phase(
         at = np.einsum("mij,bj->bmi", Ts[:, :3, :3], s) + Ts[None, :, :3, 3]
         return np.linalg.norm(at - pivot, axis=2)
 
-    T0 = kabsch_batch(src[None], dst[None])
+    T0 = kabsch(src[None], dst[None])
     dist = distances(T0)[0]
     best = int(np.argmin(dist))
     rng = np.random.default_rng([int(seed), 0xE910])
     k = src.shape[0]
     idx = rng.integers(0, k, size=(n_bootstrap, k))
-    boot_idx = np.argmin(distances(kabsch_batch(src[idx], dst[idx])), axis=1)
+    boot_idx = np.argmin(distances(kabsch(src[idx], dst[idx])), axis=1)
     offsets = _interval(phases, best, phases[boot_idx], confidence, step)
     t_mm, t_deg = _transform_spread(Ts, best, boot_idx, vertices_mm)
     phase = float(phases[best] % 1.0)

@@ -1,5 +1,9 @@
 """Rigid transforms: 4x4 homogeneous matrices, rotations and their distances.
 
+The 4x4 basics (check, apply, invert, compose, Kabsch) live in
+:mod:`hrcore.geometry`, below every package; they are re-exported here under
+their old names.
+
 Conventions (DESIGN.md section 3): a transform is a (4, 4) float64 matrix named
 ``T_<to>_from_<from>``; transforms compose right to left,
 ``T_a_from_c = T_a_from_b @ T_b_from_c``.  Rotations go through
@@ -16,9 +20,20 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hrcore.errors import HeartregError
+from hrcore.geometry import (
+    RIGID_TOL,
+    TransformError,
+    apply_to_points,
+    apply_to_vectors,
+    check_points,
+    check_rigid,
+    check_transform,
+    compose,
+    invert,
+)
 
 __all__ = [
+    "RIGID_TOL",
     "TransformError",
     "make_transform",
     "check_rigid",
@@ -36,27 +51,6 @@ __all__ = [
     "rotation_distance_deg",
     "translation_distance_mm",
 ]
-
-#: Default tolerance on ``R^T R - I`` and ``det R - 1`` for a rotation matrix.
-RIGID_TOL = 1e-6
-
-
-class TransformError(HeartregError, ValueError):
-    """A matrix that should be a rigid transform is not (shape, rotation, last row)."""
-
-
-def _as_transforms(T, name: str = "T") -> np.ndarray:
-    T = np.asarray(T, dtype=float)
-    if T.ndim < 2 or T.shape[-2:] != (4, 4):
-        raise ValueError(f"{name} must have shape (..., 4, 4), got {T.shape}")
-    return T
-
-
-def _as_points(points, name: str = "points") -> np.ndarray:
-    points = np.asarray(points, dtype=float)
-    if points.ndim < 1 or points.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (..., 3), got {points.shape}")
-    return points
 
 
 def make_transform(rotation=None, translation_mm=None) -> np.ndarray:
@@ -90,122 +84,6 @@ def make_transform(rotation=None, translation_mm=None) -> np.ndarray:
     return T
 
 
-def check_rigid(T, *, tol: float = RIGID_TOL, name: str = "T") -> np.ndarray:
-    """Return ``T`` as float64 after checking it is a proper rigid transform.
-
-    Parameters
-    ----------
-    T : (..., 4, 4) float
-    tol : float
-        Tolerance on the entries of ``R^T R - I``, on ``det R - 1`` and on the
-        last row.
-
-    Raises
-    ------
-    TransformError
-        When the rotation block is not orthonormal with determinant +1 (a
-        reflection), or the last row is not ``(0, 0, 0, 1)``.
-    """
-    T = _as_transforms(T, name)
-    R = T[..., :3, :3]
-    ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() if R.size else 0.0
-    if not np.all(np.isfinite(T)):
-        raise TransformError(f"{name} has non-finite entries")
-    if ortho > tol:
-        raise TransformError(f"{name} rotation block is not orthonormal (max |R^T R - I| = {ortho:.2e})")
-    det = np.linalg.det(R)
-    if np.any(np.abs(det - 1.0) > tol):
-        raise TransformError(
-            f"{name} rotation block has determinant {np.min(det):.6f}: a reflection, not a rotation"
-        )
-    if np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max() > tol:
-        raise TransformError(f"{name} last row must be (0, 0, 0, 1)")
-    return T
-
-
-def compose(*transforms) -> np.ndarray:
-    """Compose transforms right to left: ``compose(A, B, C) = A @ B @ C``.
-
-    Parameters
-    ----------
-    *transforms : (..., 4, 4) float
-        At least one; stacks broadcast.
-
-    Returns
-    -------
-    (..., 4, 4) float64
-    """
-    if not transforms:
-        raise ValueError("compose needs at least one transform")
-    out = _as_transforms(transforms[0], "transforms[0]")
-    for k, T in enumerate(transforms[1:], start=1):
-        out = out @ _as_transforms(T, f"transforms[{k}]")
-    return out
-
-
-def invert(T) -> np.ndarray:
-    """Inverse of rigid transforms, using ``R^T`` (exact for rigid matrices).
-
-    Parameters
-    ----------
-    T : (..., 4, 4) float
-        ``T_a_from_b``.
-
-    Returns
-    -------
-    (..., 4, 4) float64
-        ``T_b_from_a``.
-    """
-    T = _as_transforms(T)
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def apply_to_points(T_to_from_from, points) -> np.ndarray:
-    """Map points through a rigid transform.
-
-    Parameters
-    ----------
-    T_to_from_from : (4, 4) float
-    points : (..., 3) float, mm
-        Points in the source frame.
-
-    Returns
-    -------
-    (..., 3) float64, mm
-        Points in the target frame.
-    """
-    T = _as_transforms(T_to_from_from, "T_to_from_from")
-    if T.shape != (4, 4):
-        raise ValueError(f"T_to_from_from must have shape (4, 4), got {T.shape}")
-    points = _as_points(points)
-    return points @ T[:3, :3].T + T[:3, 3]
-
-
-def apply_to_vectors(T_to_from_from, vectors) -> np.ndarray:
-    """Rotate direction vectors (normals, displacements) by a rigid transform.
-
-    Parameters
-    ----------
-    T_to_from_from : (4, 4) float
-    vectors : (..., 3) float
-
-    Returns
-    -------
-    (..., 3) float64
-        The vectors in the target frame (translation ignored).
-    """
-    T = _as_transforms(T_to_from_from, "T_to_from_from")
-    if T.shape != (4, 4):
-        raise ValueError(f"T_to_from_from must have shape (4, 4), got {T.shape}")
-    vectors = _as_points(vectors, "vectors")
-    return vectors @ T[:3, :3].T
-
-
 def matrix_from_euler_xyz_deg(angles_deg, translation_mm=None) -> np.ndarray:
     """Rigid transform with rotation ``Rx(alpha) Ry(beta) Rz(gamma)`` (intrinsic X-Y-Z).
 
@@ -219,14 +97,14 @@ def matrix_from_euler_xyz_deg(angles_deg, translation_mm=None) -> np.ndarray:
     -------
     (..., 4, 4) float64
     """
-    angles = _as_points(angles_deg, "angles_deg")
+    angles = check_points(angles_deg, name="angles_deg")
     flat = angles.reshape(-1, 3)
     R = Rotation.from_euler("XYZ", flat, degrees=True).as_matrix()
     T = np.zeros((flat.shape[0], 4, 4))
     T[:, :3, :3] = R
     T[:, 3, 3] = 1.0
     if translation_mm is not None:
-        t = _as_points(translation_mm, "translation_mm")
+        t = check_points(translation_mm, name="translation_mm")
         T[:, :3, 3] = np.broadcast_to(t, angles.shape).reshape(-1, 3)
     return T.reshape(angles.shape[:-1] + (4, 4))
 
@@ -265,7 +143,7 @@ def rotation_exp(rotvec) -> np.ndarray:
     -------
     (..., 3, 3) float64
     """
-    rv = _as_points(rotvec, "rotvec")
+    rv = check_points(rotvec, name="rotvec")
     R = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix()
     return R.reshape(rv.shape[:-1] + (3, 3))
 
@@ -338,7 +216,7 @@ def se3_log(T) -> np.ndarray:
     (..., 6) float64
         ``(rho [mm], omega [rad])``.
     """
-    T = _as_transforms(T)
+    T = check_transform(T, stack=True, finite=False)
     omega = rotation_log(T[..., :3, :3])
     V = _so3_left_jacobian(omega)
     rho = np.linalg.solve(V, T[..., :3, 3][..., None])[..., 0]
@@ -411,8 +289,8 @@ def translation_distance_mm(T_a, T_b, point_mm=None) -> np.ndarray:
     -------
     (...) float64, mm
     """
-    A = _as_transforms(T_a, "T_a")
-    B = _as_transforms(T_b, "T_b")
+    A = check_transform(T_a, name="T_a", stack=True, finite=False)
+    B = check_transform(T_b, name="T_b", stack=True, finite=False)
     if point_mm is None:
         diff = A[..., :3, 3] - B[..., :3, 3]
     else:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.geometry import apply_to_points, apply_to_vectors
 from modeling.model import HeartModel
 from modeling.render import render_png
 from registration.icp import SurfaceIndex, closest_points
@@ -26,7 +27,7 @@ __all__ = ["render_registration_png"]
 
 
 def _mapped(T, points, normals):
-    return points @ T[:3, :3].T + T[:3, 3], normals @ T[:3, :3].T
+    return apply_to_points(T, points), apply_to_vectors(T, normals)
 
 
 def render_registration_png(

@@ -1,12 +1,17 @@
-"""Phantom cases shared by the whole suite (written once per test session).
+"""Phantom cases shared by the whole suite (written once per test run).
 
 The phantom (heartreg.phantom) is the independent ground truth: every stage is
-tested against the values in its truth.json.
+tested against the values in its truth.json. Under pytest-xdist (``make test``)
+the workers share one copy of each case: the first to need it writes it, the
+others wait for it (a file lock beside their temporary folders).
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
+from pathlib import Path
 
 import pytest
 from hypothesis import settings
@@ -22,20 +27,34 @@ settings.load_profile("heartreg")
 SAMPLE_SEED = 0
 
 
+def shared_phantom(tmp_path_factory, name: str, **options) -> tuple[Path, dict]:
+    """``make_phantom(folder, **options)`` once per test run, whichever worker asks first.
+
+    Returns the folder and its truth. Tests read the folder, never write into it.
+    """
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's temporary folder, above every worker's own
+    out = root / f"shared-{name}"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not (out / "truth.json").is_file():  # make_phantom moves the case in whole, truth.json included
+            make_phantom(out, overwrite=True, **options)
+    return out, load_truth(out)
+
+
 @pytest.fixture(scope="session")
 def sample_case(tmp_path_factory):
     """A sample-size phantom (trial 1 settings): CT, qrs.csv, session, truth."""
-    out = tmp_path_factory.mktemp("sample_case")
-    truth = make_phantom(out, preset="wood2018-trial1", size="sample", seed=SAMPLE_SEED, n_points=30)
-    return out, truth
+    return shared_phantom(tmp_path_factory, "sample_case", preset="wood2018-trial1", size="sample",
+                          seed=SAMPLE_SEED, n_points=30)
 
 
 @pytest.fixture(scope="session")
 def full_case(tmp_path_factory):
     """A full-size phantom CT (512 x 512 x 288, 0.49 mm pixels, 0.625 mm slices)."""
-    out = tmp_path_factory.mktemp("full_case")
-    truth = make_phantom(out, preset="wood2018-trial3", size="full", seed=1, session=False)
-    return out, truth
+    return shared_phantom(tmp_path_factory, "full_case", preset="wood2018-trial3", size="full", seed=1,
+                          session=False)
 
 
 def load_truth(case_dir):

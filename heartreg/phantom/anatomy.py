@@ -49,6 +49,7 @@ from itertools import pairwise
 
 import numpy as np
 
+from heartreg.phantom.geometry import apply
 from heartreg.phantom.heart import AnalyticHeart
 
 __all__ = [
@@ -280,9 +281,8 @@ class ChamberHeart(AnalyticHeart):
         p = np.asarray(points_patient, dtype=float)
         phase_r = self.image_resp_phase if phase_r is None else phase_r
         T = np.linalg.inv(self.T_resp(phase_r))
-        p = p @ T[:3, :3].T + T[:3, 3]
-        Th = self.T_heart_from_patient
-        h = p @ Th[:3, :3].T + Th[:3, 3]
+        p = apply(T, p)
+        h = apply(self.T_heart_from_patient, p)
         s = self.contraction(phase_c, phase_r)
         ref = self.unbeat(h, s)
         if self.motion.resp_nonrigid_mm:

@@ -54,6 +54,7 @@ from heartreg.phantom.anatomy import (
     great_vessels,
 )
 from heartreg.phantom.config import Anatomy
+from heartreg.phantom.geometry import apply
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import (
     BODY_SEMI_AP_MM,
@@ -244,7 +245,7 @@ def build_chest(heart: AnalyticHeart, *, anatomy: Anatomy | None = None, phase_c
     T = heart.T_patient_from_heart
 
     def at(p_heart):
-        return T[:3, :3] @ np.asarray(p_heart, dtype=float) + T[:3, 3]
+        return apply(T, p_heart)
 
     base = shape.base_length_mm
     base_pole = at([0.0, 0.0, base])
@@ -489,8 +490,7 @@ def _render_heart(img, chest: ChestModel, xs, ys, z, phase_c, edge_mm):
     heart = chest.heart
     X, Y = np.meshgrid(xs[ix], ys[iy])
     P = np.stack([X, Y, np.full_like(X, z)], axis=-1).reshape(-1, 3)
-    T = heart.T_heart_from_patient
-    h = P @ T[:3, :3].T + T[:3, 3]
+    h = apply(heart.T_heart_from_patient, P)
     ref = heart.unbeat(h, heart.contraction(phase_c, heart.image_resp_phase))
     epi = heart.implicit_reference(ref).reshape(X.shape)
     inner = heart.implicit_reference(ref, scale=chest.blood_scale).reshape(X.shape)

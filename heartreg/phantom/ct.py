@@ -50,6 +50,7 @@ from tqdm import tqdm
 from heartreg.phantom.chest import build_chest, render_slice
 from heartreg.phantom.config import SIZES, CTGeometry, PhantomConfig
 from heartreg.phantom.dicom_ct import ct_slice_dataset, derive_uid, ecg_dataset
+from heartreg.phantom.geometry import frozen
 from heartreg.phantom.layout import fiducials_patient_mm, make_heart
 from heartreg.phantom.signals import phase_from_events, r_peak_times, synthesize_ecg
 from hrcore.errors import HeartregError
@@ -92,12 +93,6 @@ def _us(t):
 def _circular_mean(phase) -> float:
     z = np.mean(np.exp(2j * np.pi * np.asarray(phase)))
     return float(np.mod(np.angle(z) / (2 * np.pi), 1.0))
-
-
-def _frozen(a, dtype=float):
-    a = np.array(a, dtype=dtype)
-    a.setflags(write=False)
-    return a
 
 
 def _streams(seed: int):
@@ -257,14 +252,14 @@ def plan_acquisition(config: PhantomConfig, *, size: str = "sample", seed: int =
     return AcquisitionPlan(
         geometry=g,
         scan_origin_s=float(origin),
-        r_peaks_s=_frozen(peaks),
-        stack_trigger_s=_frozen(trigger),
-        stack_r_peak_s=_frozen(peaks[k]),
-        slice_position_mm=_frozen(z),
-        slice_time_s=_frozen(time),
-        slice_cardiac_phase=_frozen(phase),
-        slice_stack=_frozen(stack, int),
-        slice_instance_number=_frozen(instance, int),
+        r_peaks_s=frozen(peaks),
+        stack_trigger_s=frozen(trigger),
+        stack_r_peak_s=frozen(peaks[k]),
+        slice_position_mm=frozen(z),
+        slice_time_s=frozen(time),
+        slice_cardiac_phase=frozen(phase),
+        slice_stack=frozen(stack, int),
+        slice_instance_number=frozen(instance, int),
     )
 
 
@@ -520,7 +515,7 @@ def write_ct_study(
         seed=seed,
         config_name=config.name,
         geometry=g if pixel_mm == g.pixel_mm else dataclasses.replace(g, pixel_mm=pixel_mm),
-        T_patient_from_voxel=_frozen(T),
+        T_patient_from_voxel=frozen(T),
         scan_origin_s=origin,
         r_peaks_s=plan.r_peaks_s,
         stack_trigger_s=plan.stack_trigger_s,
@@ -533,7 +528,7 @@ def write_ct_study(
         slice_sop_instance_uid=sop_uids,
         cardiac_phase=plan.cardiac_phase,
         circular_mean_phase=plan.circular_mean_phase,
-        fiducials_patient_mm=_frozen(fiducials),
+        fiducials_patient_mm=frozen(fiducials),
         study_instance_uid=study_uid,
         series_instance_uid=series_uid,
         frame_of_reference_uid=frame_uid,

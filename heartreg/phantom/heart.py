@@ -34,6 +34,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from heartreg.phantom.config import HeartMotion, HeartShape
+from heartreg.phantom.geometry import apply
 
 __all__ = [
     "AnalyticHeart",
@@ -126,10 +127,6 @@ def T_from_euler_xyz_deg(angles_deg, origin_mm=(0.0, 0.0, 0.0)) -> np.ndarray:
     return T
 
 
-def _apply(T, points):
-    return points @ T[:3, :3].T + T[:3, 3]
-
-
 @dataclass(frozen=True)
 class AnalyticHeart:
     """The phantom heart: shape, motion and placement in the patient frame.
@@ -153,10 +150,6 @@ class AnalyticHeart:
     @property
     def z_apex_mm(self) -> float:
         return -self.shape.apex_length_mm
-
-    @property
-    def z_base_mm(self) -> float:
-        return self.shape.base_length_mm
 
     @property
     def length_mm(self) -> float:
@@ -343,11 +336,11 @@ class AnalyticHeart:
         """
         s = self.contraction(phase_c, phase_r)
         beaten = self.beat(points_heart_ref, s)
-        patient = _apply(self.T_patient_from_heart, beaten.reshape(-1, 3)).reshape(beaten.shape)
+        patient = apply(self.T_patient_from_heart, beaten.reshape(-1, 3)).reshape(beaten.shape)
         patient = patient + self.resp_stretch(points_heart_ref, phase_r)
         T = self.T_resp(phase_r)
         if T.ndim == 2:
-            return patient @ T[:3, :3].T + T[:3, 3]
+            return apply(T, patient)
         return np.einsum("...ij,...j->...i", T[..., :3, :3], patient) + T[..., :3, 3]
 
     def surface_points(self, u, v, phase_c, phase_r) -> np.ndarray:
@@ -385,7 +378,7 @@ class AnalyticHeart:
         """Approximate signed distance (mm, negative inside) of patient points to the
         heart at (phase_c, image respiration phase), as the CT sees it."""
         p = np.asarray(points_patient, dtype=float)
-        h = _apply(self.T_heart_from_patient, p.reshape(-1, 3)).reshape(p.shape)
+        h = apply(self.T_heart_from_patient, p.reshape(-1, 3)).reshape(p.shape)
         s = self.contraction(phase_c, self.image_resp_phase)
         ref = self.unbeat(h, s)
         return self.implicit_reference(ref, scale=scale)

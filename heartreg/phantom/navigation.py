@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 from heartreg import __version__
 from heartreg.phantom.config import PhantomConfig
 from heartreg.phantom.generate import PhantomError
+from heartreg.phantom.geometry import apply, poses
 from heartreg.phantom.heart import respiratory_waveform
 from heartreg.phantom.layout import (
     T_fiducial_shift,
@@ -65,7 +66,6 @@ from heartreg.phantom.session import (
     _drift_params,
     _format_rows,
     _pose_columns,
-    _poses,
     _T_drift,
     _T_tracker_from_patient,
     reachable_patch,
@@ -273,7 +273,7 @@ def _write(staging, config, truth, seed, duration_s, rest_s, speed_mm_s, pause_s
                          box=box, avoid_ref=avoid)
     yaw = Rotation.from_euler("z", rng.uniform(-180.0, 180.0), degrees=True).as_matrix()
     p_pat, R_pat = heart.surface_frames(u, v, phase_c, phase_r)
-    T_probe_from_robot = T_probe_from_patient @ _poses(R_pat @ yaw, p_pat)
+    T_probe_from_robot = T_probe_from_patient @ poses(R_pat @ yaw, p_pat)
     breath = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     breath[:, 2, 3] = truth["session"]["probe_breathing_mm"] * respiratory_waveform(phase_r)
     T_tracker_from_probe = _T_drift(time_s, _drift_params(rng)) @ (_T_tracker_from_patient() @ T_star) @ breath
@@ -296,7 +296,7 @@ def _write(staging, config, truth, seed, duration_s, rest_s, speed_mm_s, pause_s
         fh.write(_format_rows(table, _ROW_FORMAT))
     f_ct = fiducials_patient_mm()
     T_probe_from_staples = T_probe_from_patient @ T_fiducial_shift(config)
-    f_probe = f_ct @ T_probe_from_staples[:3, :3].T + T_probe_from_staples[:3, 3]
+    f_probe = apply(T_probe_from_staples, f_ct)
     f_probe = np.round(f_probe + noise.fiducial_touch_mm * rng.standard_normal(f_ct.shape), 4)
     with open(folder / "fiducials.csv", "w", newline="") as fh:
         fh.write(",".join(FIDUCIAL_COLUMNS) + "\n")

@@ -48,6 +48,7 @@ from scipy.spatial.transform import Rotation
 
 from heartreg import __version__
 from heartreg.phantom.config import PhantomConfig
+from heartreg.phantom.geometry import apply, invert, kabsch, poses
 from heartreg.phantom.heart import AnalyticHeart, respiratory_waveform
 from heartreg.phantom.layout import (
     T_fiducial_shift,
@@ -378,19 +379,6 @@ def _spread_points(rng, heart, n, u_centre, half_width_u, v_range):
 
 
 # ------------------------------------------------------------ motion helpers
-def _poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.zeros(R.shape[:-2] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = t
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    R = np.swapaxes(T[..., :3, :3], -1, -2)
-    return _poses(R, -np.einsum("...ij,...j->...i", R, T[..., :3, 3]))
-
-
 def _T_tracker_from_patient() -> np.ndarray:
     """Tracker field generator ~300 mm from the chest, right-inferior-anterior
     of the probe, axes turned against the patient's."""
@@ -414,7 +402,7 @@ def _T_drift(time_s, params) -> np.ndarray:
     w = np.sin(2 * np.pi * time_s[:, None, None] / periods + phases).mean(axis=1)
     shift = _DRIFT_MM * w[:, :3]
     rotvec = np.deg2rad(_DRIFT_DEG) * w[:, 3:]
-    return _poses(Rotation.from_rotvec(rotvec).as_matrix(), shift)
+    return poses(Rotation.from_rotvec(rotvec).as_matrix(), shift)
 
 
 def _add_noise(rng, T, position_mm, rotation_deg):
@@ -422,7 +410,7 @@ def _add_noise(rng, T, position_mm, rotation_deg):
     component, applied on the left (tracker frame)."""
     n = T.shape[0]
     dR = Rotation.from_rotvec(np.deg2rad(rotation_deg) * rng.standard_normal((n, 3))).as_matrix()
-    return _poses(dR @ T[:, :3, :3], T[:, :3, 3] + position_mm * rng.standard_normal((n, 3)))
+    return poses(dR @ T[:, :3, :3], T[:, :3, 3] + position_mm * rng.standard_normal((n, 3)))
 
 
 def _pose_columns(T):
@@ -440,7 +428,7 @@ def _parse_pose_columns(cols):
     """Inverse of :func:`_pose_columns` after rounding to the written precision."""
     q = cols[:, 3:]
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return _poses(Rotation.from_quat(q, scalar_first=True).as_matrix(), cols[:, :3])
+    return poses(Rotation.from_quat(q, scalar_first=True).as_matrix(), cols[:, :3])
 
 
 def _rate_in(events, start, end) -> float:
@@ -448,16 +436,6 @@ def _rate_in(events, start, end) -> float:
     if len(inside) < 2:
         return float("nan")
     return float((len(inside) - 1) / (inside[-1] - inside[0]))
-
-
-def _svd_register(source, target) -> np.ndarray:
-    """Least-squares rigid T with ``T @ source ~ target`` (reflection guarded)."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    H = (source - cs).T @ (target - ct)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return _poses(R, ct - R @ cs)
 
 
 def _format_rows(values: np.ndarray, fmt: str) -> str:
@@ -529,7 +507,7 @@ def _write_fiducial_trace(folder, rng, config, T_star, T_tracker_from_patient, d
     disp = chest_wall_displacement(config, phase_r)  # (n, 9, 3)
     staples = f_ct[None] + disp  # patient frame at the CT's placement of the skin
     shift = T_fiducial_shift(config)
-    staples = staples @ shift[:3, :3].T + shift[:3, 3]
+    staples = apply(shift, staples)
     # between staples (and before / after) the stylus glides 20 mm above the skin
     target = np.zeros((labels.size, 3))
     idx = np.clip(labels - 1, 0, 8)
@@ -543,7 +521,7 @@ def _write_fiducial_trace(folder, rng, config, T_star, T_tracker_from_patient, d
     nxt = np.minimum(prev + 1, 9)
     rows = np.flatnonzero(free)
     target[free] = 0.5 * (staples[rows, prev[free] - 1] + staples[rows, nxt[free] - 1]) + [0.0, -20.0, 0.0]
-    tip_probe = target @ T_probe_from_patient[:3, :3].T + T_probe_from_patient[:3, 3]
+    tip_probe = apply(T_probe_from_patient, target)
     tip_probe[held] += offsets_mm[idx[held]]
     breath = np.zeros((time_s.size, 4, 4))
     breath[:] = np.eye(4)
@@ -689,7 +667,7 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
     # --- fiducials
     f_ct = fiducials_patient_mm()
     T_probe_from_staples = T_probe_from_patient @ T_fiducial_shift(config)
-    f_clean = f_ct @ T_probe_from_staples[:3, :3].T + T_probe_from_staples[:3, 3]
+    f_clean = apply(T_probe_from_staples, f_ct)
     touch_phase = np.full(9, float(config.image_resp_phase))
     if trace:
         offsets = noise.fiducial_hold_mm * rng.standard_normal(f_ct.shape)
@@ -707,7 +685,7 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
             touch_phase[k] = phase_fid[mid]
     else:
         f_probe = np.round(f_clean + noise.fiducial_touch_mm * rng.standard_normal(f_ct.shape), 4)
-    T0 = _svd_register(f_probe, f_ct)
+    T0 = kabsch(f_probe, f_ct)
 
     (folder / "points").mkdir()
     points_meta, point_truths = [], []
@@ -724,7 +702,7 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
         phase_r = phase_from_events(time_s, onsets)
         uu, vv = np.full(n_samples, u[i]), np.full(n_samples, v[i])
         p_pat, R_pat = heart.surface_frames(uu, vv, phase_c, phase_r)
-        T_patient_from_robot = _poses(R_pat @ yaw_R[i], p_pat)
+        T_patient_from_robot = poses(R_pat @ yaw_R[i], p_pat)
         T_probe_from_robot = T_probe_from_patient @ T_patient_from_robot
         breath = np.zeros((n_samples, 4, 4))
         breath[:] = np.eye(4)
@@ -763,7 +741,7 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
         # effective noise of the relative pose, as written
         Tr = _parse_pose_columns(_as_written(robot_cols))
         Tp = _parse_pose_columns(_as_written(probe_cols))
-        T_meas = _inv(Tp) @ Tr
+        T_meas = invert(Tp) @ Tr
         d_pos = T_meas[:, :3, 3] - T_probe_from_robot[:, :3, 3]
         d_rot = Rotation.from_matrix(
             np.swapaxes(T_probe_from_robot[:, :3, :3], 1, 2) @ T_meas[:, :3, :3]

@@ -34,13 +34,21 @@ def small_case(src: Path, truth: dict, root: Path, *, grid: int, points: int) ->
         fiducials_patient_mm=truth["fiducials_patient_mm"],
     )
     write_model(built, root / "model")
-    session = root / "session"
-    shutil.copytree(src / "session", session)
-    meta = json.loads((session / "session.json").read_text())
-    kept = meta["points"][:points]
-    meta["points"] = kept
-    (session / "session.json").write_text(json.dumps(meta))
-    return root / "model", session
+    return root / "model", first_points(src / "session", root / "session", points)
+
+
+def first_points(src: Path, dst: Path, n: int) -> Path:
+    """A copy of session ``src`` with its first ``n`` point records only (and their files)."""
+    meta = json.loads((src / "session.json").read_text())
+    meta["points"] = meta["points"][:n]
+    (dst / "points").mkdir(parents=True)
+    for entry in meta["points"]:
+        shutil.copyfile(src / entry["file"], dst / entry["file"])
+    shutil.copyfile(src / meta["fiducials_file"], dst / meta["fiducials_file"])
+    if meta.get("fiducial_trace_file"):  # session format 2
+        shutil.copyfile(src / meta["fiducial_trace_file"], dst / meta["fiducial_trace_file"])
+    (dst / "session.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return dst
 
 
 def digest(root: Path) -> dict:

@@ -74,8 +74,6 @@ def material(sample_case, tmp_path_factory):
     src, truth = sample_case
     root = tmp_path_factory.mktemp("fuzz")
     model, session = small_case(src, truth, root, grid=20, points=1)
-    for extra in sorted((session / "points").iterdir())[1:]:
-        extra.unlink()
     dicom = sorted((src / "ct").rglob("*"))
     slices = [p for p in dicom if p.is_file() and p.stat().st_size > 10_000][:3]
     return {"model": model, "session": session, "qrs": src / "qrs.csv", "slices": slices}

@@ -18,7 +18,7 @@ from scipy.ndimage import map_coordinates
 
 from heartreg.phantom import ct as ct_module
 from heartreg.phantom.chest import build_chest, render_slice
-from heartreg.phantom.config import PRESETS, SIZES, make_config
+from heartreg.phantom.config import PRESETS, SIZES, config_from_dict, make_config
 from heartreg.phantom.ct import CTStudyExistsError, plan_acquisition, write_ct_study
 from heartreg.phantom.dicom_ct import GE_ACQU_CREATOR, GE_CARDIAC_CREATOR
 from heartreg.phantom.layout import FIDUCIAL_SIZE_MM, fiducials_patient_mm, make_heart
@@ -369,19 +369,22 @@ def test_failure_leaves_no_half_written_study(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_full_size_study(tmp_path):
-    """512 x 512 x 288: geometry, timing and pixels of a few slices against truth."""
-    config = _quiet(make_config("wood2018-trial2"))
-    truth = write_ct_study(tmp_path, config, size="full", seed=1, ecg_waveform=False)
+def test_full_size_study(full_case):
+    """512 x 512 x 288 (the suite's shared full-size case): geometry, timing and
+    pixels of a few slices against truth, the CT noise drawn again from its seed."""
+    case, truth = full_case
+    config = config_from_dict(truth["config"])
     g = SIZES["full"]
-    files = list((tmp_path / "ct").iterdir())
-    assert len(files) == g.n_slices and truth.ecg_file is None
-    chest = build_chest(make_heart(config))
+    files = [f for f in (case / "ct").iterdir() if f.name != truth["ecg_file"]]
+    assert len(files) == g.n_slices
+    chest = build_chest(make_heart(config), anatomy=config.anatomy, phase_c=config.gating_target_phase)
+    noise_seeds = ct_module._streams(truth["seed"])[2].spawn(g.n_slices)
     for k in (0, 100, 200, 287):
-        ds = pydicom.dcmread(tmp_path / "ct" / truth.slice_file[k])
-        assert float(ds.ImagePositionPatient[2]) == pytest.approx(truth.slice_position_mm[k], abs=1e-4)
-        assert _tm(ds.AcquisitionTime) == pytest.approx(truth.slice_time_s[k], abs=1e-6)
+        ds = pydicom.dcmread(case / "ct" / truth["slice_file"][k])
+        assert float(ds.ImagePositionPatient[2]) == pytest.approx(truth["slice_position_mm"][k], abs=1e-4)
+        assert _tm(ds.AcquisitionTime) == pytest.approx(truth["slice_time_s"][k], abs=1e-6)
         x, y = _grid(ds)
-        expected = render_slice(chest, z_mm=truth.slice_position_mm[k],
-                                phase_c=float(truth.slice_cardiac_phase[k]), xs_mm=x, ys_mm=y)
+        expected = render_slice(chest, z_mm=truth["slice_position_mm"][k], phase_c=truth["slice_cardiac_phase"][k],
+                                xs_mm=x, ys_mm=y, rng=np.random.default_rng(noise_seeds[k]),
+                                noise_hu=config.noise.ct_noise_hu)
         np.testing.assert_allclose(_hu(ds), expected, atol=0.5 + 1e-3)

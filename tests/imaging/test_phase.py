@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -10,7 +11,19 @@ import pydicom
 import pytest
 
 from heartreg.cli import main
-from imaging import GatingError, GatingWarning, compute_phase_report, load_study, read_ecg_waveform, read_qrs_file
+from imaging import (
+    GatingError,
+    GatingWarning,
+    PhaseFileError,
+    PhaseReport,
+    SlicePhase,
+    compute_phase_report,
+    load_study,
+    read_ecg_waveform,
+    read_phase_report,
+    read_qrs_file,
+    write_phase_report,
+)
 
 #: the slice clocks are written with microsecond resolution: phases agree to 1e-5;
 #: the issue's tolerances (1e-3 per slice, 0.005 for the volume) leave room for
@@ -140,6 +153,43 @@ def test_cli_phases_outputs_match_truth(sample_case, tmp_path, capsys):
 
     for name in ("phases.csv", "phases.json", "phases.png"):  # not private temporary files
         assert (out / name).stat().st_mode & 0o777 == umask_mode()
+    _check_reads_back(out, tmp_path / "again")
+
+
+def _check_reads_back(out, again):
+    """read_phase_report gives the report written: the same files when written again."""
+    report = read_phase_report(out)
+    assert report.n_slices == json.loads((out / "phases.json").read_text())["n_slices"]
+    assert not report.r_peaks_s.flags.writeable
+    extra = {k: v for k, v in json.loads((out / "phases.json").read_text()).items() if k not in report.to_dict()}
+    write_phase_report(report, again, extra=extra)
+    for name in ("phases.csv", "phases.json"):
+        assert (again / name).read_bytes() == (out / name).read_bytes()
+    table = [[np.array(dataclasses.astuple(s)) for s in r.slices] for r in (report, read_phase_report(again))]
+    np.testing.assert_array_equal(*table)  # NaN times (no clock) equal too
+
+
+def test_phase_report_round_trip_and_bad_files(tmp_path):
+    nan = float("nan")
+    report = PhaseReport(
+        slices=(SlicePhase(0, -12.5, 0.25, 0.7, 0.0), SlicePhase(1, -10.0, nan, 0.75, 1.5)),
+        volume_cardiac_phase=0.725, circular_mean_phase=0.7249, source="qrs.csv", clock="trigger time",
+        r_peaks_s=np.array([0.0, 0.8, 1.6]), jumps=(0,), fraction_in_window=1.0, notes=("a note",),
+    )
+    write_phase_report(report, tmp_path / "a")
+    back = read_phase_report(tmp_path / "a")
+    assert back.slices[0] == report.slices[0] and np.isnan(back.slices[1].time_s)
+    assert back.to_dict() == report.to_dict()
+    _check_reads_back(tmp_path / "a", tmp_path / "b")
+    with pytest.raises(PhaseFileError, match="phases.json not found"):
+        read_phase_report(tmp_path / "none")
+    csv = tmp_path / "a" / "phases.csv"
+    csv.write_text(csv.read_text() + "2,1.0,0.5\n")
+    with pytest.raises(PhaseFileError, match="phases.csv: line 4 is not a slice row"):
+        read_phase_report(tmp_path / "a")
+    csv.write_text("\n".join(csv.read_text().splitlines()[:2]) + "\n")
+    with pytest.raises(PhaseFileError, match="1 slice rows, but phases.json says n_slices = 2"):
+        read_phase_report(tmp_path / "a")
 
 
 def test_cli_phases_errors(tmp_path, capsys):

@@ -9,15 +9,12 @@ folder, so every file here is the one ``heartreg register`` writes.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from heartreg.phantom import config as phantom_config
-from heartreg.phantom import layout
-from modeling.model import make_heart_model, read_model, write_model
+from modeling.model import read_model
 from modeling.slicer import (
     SlicerFileError,
     read_itk_transform,
@@ -25,12 +22,10 @@ from modeling.slicer import (
     write_itk_transform,
     write_markups,
 )
-from modeling.surface import Mesh
 from registration.pipeline import register_session
 from registration.report import write_registration
 from registration.session import read_session
-
-from .conftest import heart_grid_mesh
+from tests.heartreg.small_case import small_case
 
 SCHEMA = Path("/work/shared/slicer/markups-schema-v1.0.3.json")
 EXAMPLE_TFM = Path("/work/shared/slicer/example-affine.tfm")
@@ -42,33 +37,13 @@ N_POINTS = 12
 PHASE_STEP = 0.05
 
 
-def _first_points(src: Path, dst: Path, n: int) -> Path:
-    """A copy of session ``src`` with its first ``n`` point records only."""
-    meta = json.loads((src / "session.json").read_text())
-    meta["points"] = meta["points"][:n]
-    (dst / "points").mkdir(parents=True)
-    for entry in meta["points"]:
-        shutil.copyfile(src / entry["file"], dst / entry["file"])
-    shutil.copyfile(src / meta["fiducials_file"], dst / meta["fiducials_file"])
-    if meta.get("fiducial_trace_file"):  # session format 2
-        shutil.copyfile(src / meta["fiducial_trace_file"], dst / meta["fiducial_trace_file"])
-    (dst / "session.json").write_text(json.dumps(meta, indent=2) + "\n")
-    return dst
-
-
 @pytest.fixture(scope="module")
 def registered(sample_case, tmp_path_factory):
     case, truth = sample_case
     root = tmp_path_factory.mktemp("slicer")
-    heart = layout.make_heart(phantom_config.PRESETS[truth["preset"]])
-    vertices, faces = heart_grid_mesh(heart, truth["cardiac_phase"], truth["respiration_phase"], n_u=60, n_v=60)
-    built = make_heart_model(
-        Mesh(vertices, faces), cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
-        fiducials_patient_mm=truth["fiducials_patient_mm"],
-    )
-    model_dir = write_model(built, root / "model")
+    model_dir, session_dir = small_case(case, truth, root, grid=60, points=N_POINTS)
     model = read_model(model_dir)
-    session = read_session(_first_points(case / "session", root / "session", N_POINTS))
+    session = read_session(session_dir)
     result = register_session(model, session, phase_step=PHASE_STEP)
     out = root / "registration"
     paths = write_registration(result, out, model=model, view=False, fiducials_probe_mm=session.fiducials_probe_mm)
