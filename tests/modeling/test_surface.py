@@ -141,10 +141,11 @@ def test_numpy_repair_is_pymeshlabs_on_a_clean_surface():
     """A closed manifold surface skips pymeshlab: the same faces, Taubin vertices
     within 1e-6 mm of pymeshlab's (measured 4e-8 mm here and 3e-8 mm on a 325k-face
     heart: vcglib takes mu as a float32, -0.5299999714 for -0.53)."""
-    from modeling.surface import _clean_adjacency, _repair, _repair_pymeshlab
+    from modeling.repair import clean_adjacency
+    from modeling.surface import _repair, _repair_pymeshlab
 
     verts, faces = _marching_cubes_ball()
-    assert _clean_adjacency(verts, faces) is not None
+    assert clean_adjacency(verts, faces) is not None
     fast_v, fast_f = _repair(verts, faces, smooth_iterations=10)
     ref_v, ref_f = _repair_pymeshlab(verts, faces, smooth_iterations=10)
     assert np.array_equal(fast_f, ref_f)
@@ -153,23 +154,23 @@ def test_numpy_repair_is_pymeshlabs_on_a_clean_surface():
 
 
 def test_surfaces_needing_repair_are_not_taken_for_clean():
-    from modeling.surface import _clean_adjacency
+    from modeling.repair import clean_adjacency
 
     verts, faces = _marching_cubes_ball()
-    assert _clean_adjacency(verts, faces[1:]) is None  # a hole
-    assert _clean_adjacency(verts, np.vstack([faces[:1, ::-1], faces[1:]])) is None  # a face wound backwards
+    assert clean_adjacency(verts, faces[1:]) is None  # a hole
+    assert clean_adjacency(verts, np.vstack([faces[:1, ::-1], faces[1:]])) is None  # a face wound backwards
     degenerate = faces.copy()
     degenerate[0, 1] = degenerate[0, 0]
-    assert _clean_adjacency(verts, degenerate) is None
+    assert clean_adjacency(verts, degenerate) is None
     twin = np.vstack([verts, verts[faces[0, 0]]])  # a vertex twice at one position
     renamed = faces.copy()
     renamed[renamed == faces[0, 0]] = len(verts)
-    assert _clean_adjacency(twin, renamed) is None  # (and the original one unused)
+    assert clean_adjacency(twin, renamed) is None  # (and the original one unused)
     # two tetrahedra sharing one vertex: every edge twice, but that vertex has two fans
     tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1.0]])
     fans = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3], [0, 4, 5], [0, 6, 4], [0, 5, 6], [4, 6, 5]])
-    assert _clean_adjacency(tet[:4], fans[:4]) is not None
-    assert _clean_adjacency(tet, fans) is None
+    assert clean_adjacency(tet[:4], fans[:4]) is not None
+    assert clean_adjacency(tet, fans) is None
     # repair still makes such a surface whole
     mesh = mask_to_mesh(_ball_mask(12.0), np.eye(4), target_faces=3000)
     assert check_mesh(mesh).ok
