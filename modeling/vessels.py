@@ -128,6 +128,8 @@ def trim_vessel_stubs(
 MOUTH_BLOOD_HU = 150.0
 #: How far outside the mask (mm) the vessels' mouths are looked for.
 MOUTH_REACH_MM = 4.0
+#: Coarsest grid spacing (mm) the base direction is found on.
+MOUTH_GRID_MM = 1.0
 #: The usual direction of the apex in LPS: patient left, anterior, inferior.
 APEX_LAI_LPS = np.array([1.0, -1.0, -1.0]) / np.sqrt(3.0)
 
@@ -163,18 +165,23 @@ def base_direction(mask, hu, T_patient_from_voxel, *, blood_hu: float = MOUTH_BL
     mask = np.asarray(mask, dtype=bool)
     T = np.asarray(T_patient_from_voxel, dtype=float)
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
-    boxes = ndimage.find_objects(mask.astype(np.uint8))
-    if not boxes:
+    extent = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
+    if any(e.size == 0 for e in extent):
         return None
+    # a direction needs no sub-millimetre grid: every ``step``-th voxel (at most
+    # MOUTH_GRID_MM apart) keeps the distance transform small on a fine CT
+    step = np.maximum(1, np.floor(MOUTH_GRID_MM / spacing_kji)).astype(int)
     pad = [int(np.ceil(reach_mm / s)) + 1 for s in spacing_kji]
-    box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(boxes[0], pad, mask.shape))
+    box = tuple(slice(max(e[0] - p, 0), min(e[-1] + 1 + p, n), int(st))
+                for e, p, n, st in zip(extent, pad, mask.shape, step))
     sub = mask[box]
-    shell = (ndimage.distance_transform_edt(~sub, sampling=spacing_kji) <= reach_mm) & ~sub
+    spacing = spacing_kji * step
+    shell = (ndimage.distance_transform_edt(~sub, sampling=spacing) <= reach_mm) & ~sub
     mouths = shell & (np.asarray(hu[box]) > blood_hu)
-    voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
+    voxel_ml = abs(np.linalg.det(T[:3, :3])) * float(np.prod(step)) / 1000.0
     if mouths.sum() * voxel_ml < min_ml:
         return None
-    kji_delta = np.argwhere(mouths).mean(axis=0) - np.argwhere(sub).mean(axis=0)
+    kji_delta = (np.array(ndimage.center_of_mass(mouths)) - np.array(ndimage.center_of_mass(sub))) * step
     d = T[:3, :3] @ kji_delta[::-1]
     n = np.linalg.norm(d)
     return None if n < 1e-6 else d / n
