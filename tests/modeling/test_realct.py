@@ -28,14 +28,15 @@ any epicardial surface can score against it:
 
 Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
 
-- the reference follows the whole-heart convention of the public heart
-  atlases it was trained from (chamber blood pools plus the left-ventricular
-  myocardium): where the heart borders fat, HU profiles along the reference's
+- the reference behaves like the usual whole-heart atlas convention (chamber
+  blood pools plus the left-ventricular myocardium; inferred from its
+  profiles, not documented by its maker): where the heart borders fat, HU profiles along the reference's
   outward normal give, at the left-ventricular wall, 96 / 15 / -37 HU at
   0 / +1 / +2 voxels (the fat/myocardium half-way level ~20 HU lies about half
   a voxel outside its edge), but at thin walls (right ventricle, atria) 470 /
-  196 / 43 / -32 HU at 0 / +1 / +2 / +3: its edge is the blood pool's, the 2-4 mm wall is left
-  out.  An epicardial surface includes that wall;
+  196 / 43 / -32 HU at 0 / +1 / +2 / +3 voxels: its edge is the blood
+  pool's, the 2-4 mm wall is left out.  An epicardial surface includes that
+  wall;
 - with the pulmonary artery cut at its valve no surface can meet the issue's
   p95 against this reference: the reference less its own pulmonary artery
   (dilated by 2 voxels, opened, largest part; "r2") scores Dice 0.946, MSD
