@@ -9,6 +9,10 @@ from modeling.segment import (
     HeartSegmentation,
     segment_heart,
 )
+from modeling.greatvessels import (
+    GreatVessels,
+    trace_great_vessels,
+)
 from modeling.build import (
     ModelBuild,
     ModelingWarning,
@@ -113,6 +117,8 @@ __all__ = [
     "read_ply",
     "render_model_png",
     "segment_heart",
+    "GreatVessels",
+    "trace_great_vessels",
     "transform_mesh",
     "write_mesh",
     "write_model",

@@ -76,6 +76,17 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   atrium's: the reference cuts these atria where no narrowing of the blood
   pool marks a vessel's mouth.  Most of the oracle gain above is that
   atrial roof and 81 ml of non-blood tissue (mostly thin walls).
+- that lobe trace is now the segmentation's last step
+  (``modeling.greatvessels``: lobes at the field of view's edge no wider
+  than 20 mm, continued across saddles >= 0.8 of the narrower radius into
+  lobes at most 1.1 times the narrowest on the way, removed with 3 mm of
+  wall).  Model mesh through ``heartreg model``, before -> after: full
+  reference Dice 0.862 -> 0.869, MSD 4.0 -> 3.8 mm, p95 14.2 -> 14.2 mm;
+  ``ref & ~pa`` 0.884 -> 0.892, 3.21 -> 2.98 mm, 9.2 -> 8.6 mm; frame
+  12.6 -> 12.9 deg from the mask model's.  On the masks the result holds
+  for widen ratios 1.1-1.35, saddle ratios 0.7-0.9, peak spacings 6-10 mm
+  (no chamber is reached; 1.15-1.25 take 30 ml more lumen: ``ref & ~pa``
+  0.895 on the mask, but the full reference's p95 rises to 15 mm).
 """
 
 from __future__ import annotations
@@ -174,7 +185,7 @@ def test_model_with_no_options(realct, auto_model):
         assert any(message in w for w in caught), message
         assert any(message in w for w in payload["parameters"]["warnings"]), message
     model, m = _metrics(out, volume, reference)
-    # Measured 0.862 / 3.8-4.0 mm / 14 mm: bounds a few % looser than measured
+    # Measured 0.869 / 3.8 mm / 14 mm: bounds a few % looser than measured
     # (see the module docstring for what the reference includes; the issue's
     # targets are in test_issue_targets).
     assert m["dice"] >= 0.84 and m["msd_mm"] <= 4.5 and m["p95_mm"] <= 16.0, m
@@ -200,15 +211,15 @@ def test_model_from_reference_mask(realct, mask_model, auto_model):
     assert m["dice"] >= 0.98 and m["msd_mm"] <= 0.5, m
     apex = -model.frame.axes_patient[:, 2]
     assert apex @ APEX_LAI_LPS > 0.7
-    # the automatic model's frame: same apex->base sign, axes close (measured 12.6 deg; the issue's 5 deg
+    # the automatic model's frame: same apex->base sign, axes close (measured 12.9 deg; the issue's 5 deg
     # is in test_issue_targets)
     auto = read_model(auto_model[2])
     assert _angle_deg(auto.frame.axes_patient[:, 2], model.frame.axes_patient[:, 2], signed=True) <= 20.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 9's targets are not reached yet (measured Dice 0.862, MSD 3.8 mm, "
-                   "p95 14 mm, frame 12.6 deg); see the module docstring for why part of the gap is the reference "
-                   "(against it less its pulmonary artery: Dice 0.885, MSD 3.0 mm, p95 8.7 mm); its p95 cannot be met with "
+@pytest.mark.xfail(strict=True, reason="issue 9's targets are not reached yet (measured Dice 0.869, MSD 3.8 mm, "
+                   "p95 14 mm, frame 12.9 deg); see the module docstring for why part of the gap is the reference "
+                   "(against it less its pulmonary artery: Dice 0.892, MSD 3.0 mm, p95 8.6 mm); its p95 cannot be met with "
                    "the pulmonary artery cut at its valve (the reference less its own pulmonary artery: p95 19.5 mm)")
 def test_issue_targets(realct, auto_model, mask_model):
     volume, _, reference = realct
@@ -216,6 +227,17 @@ def test_issue_targets(realct, auto_model, mask_model):
     given = read_model(mask_model[2])
     assert m["dice"] >= 0.92 and m["msd_mm"] <= 1.5 and m["p95_mm"] <= 5.0, m
     assert _angle_deg(auto.frame.axes_patient[:, 2], given.frame.axes_patient[:, 2], signed=True) <= 5.0
+
+
+def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model):
+    """The issue cuts the great vessels at their valves, the reference keeps the pulmonary artery."""
+    volume, _, reference = realct
+    T = volume.T_patient_from_voxel
+    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
+    _, m = _metrics(auto_model[2], volume, reference & ~artery)
+    # measured 0.892 / 2.98 mm / 8.6 mm (before the vessels were traced to their valves: 0.884 / 3.21 / 9.2);
+    # the rest is mostly the atrial roofs and the thin walls (module docstring)
+    assert m["dice"] >= 0.885 and m["msd_mm"] <= 3.1 and m["p95_mm"] <= 9.0, m
 
 
 def test_fiducials_insisted_on(realct):
