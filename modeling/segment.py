@@ -236,7 +236,7 @@ def segment_heart(
     vessel_radius_mm: float = 14.0,
     heart_radius_mm: float = 20.0,
     vessel_length_mm: float = 25.0,
-    vessel_root_mm: float = 3.0,
+    vessel_root_mm: float = 10.0,
     margin_mm: float = 1.0,
     smooth_mm: float = 0.6,
     coarse_mm: float = 2.0,
@@ -271,7 +271,9 @@ def segment_heart(
         A branch reaching farther than this from the heart body is a vessel
         leaving the heart (corners such as the apex or an auricle stay closer).
     vessel_root_mm : float
-        Vessels are cut this far from the heart body (at their root).
+        Vessels are cut this far from the heart body (at their root); their
+        contrast lumen is traced to the valves apart (``trace_vessels``), so
+        this tissue-level cut keeps off the atrial roofs and the outflow tract.
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
