@@ -135,11 +135,20 @@ def trace_great_vessels(
     if pool.ndim != 3:
         raise ValueError(f"pool must be a 3-D mask (k, j, i), got shape {pool.shape}")
     spacing = np.asarray(spacing_kji, dtype=float).reshape(3)
+    empty = np.zeros(pool.shape, bool)
+    found = ndimage.find_objects(pool.astype(np.uint8))
+    if not found:
+        return GreatVessels(empty, empty, (), "great vessels: no lobe in the blood pool")
+    # work in the pool's box (with room for the walls); only the volume's own sides are the field of view's edge
+    room = [int(np.ceil(wall_mm / s)) + 1 for s in spacing]
+    box = tuple(slice(max(b.start - r, 0), min(b.stop + r, n)) for b, r, n in zip(found[0], room, pool.shape))
+    edges = [(axis, end) for axis in range(3) for end, at_edge in
+             ((0, box[axis].start == 0), (-1, box[axis].stop == pool.shape[axis])) if at_edge]
+    full_shape, pool = pool.shape, pool[box]
     distance = ndimage.distance_transform_edt(pool, sampling=spacing)
     gap = max(1, int(round(peak_spacing_mm / float(spacing.min()))))
     peaks = peak_local_max(distance, min_distance=gap, threshold_abs=min_radius_mm,
                            labels=pool.astype(np.int32), exclude_border=False)
-    empty = np.zeros(pool.shape, bool)
     if len(peaks) == 0:
         return GreatVessels(empty, empty, (), "great vessels: no lobe in the blood pool")
     markers = np.zeros(pool.shape, np.int32)
@@ -153,7 +162,7 @@ def trace_great_vessels(
         neighbours[a].append((b, width))
         neighbours[b].append((a, width))
 
-    sides = np.concatenate([lobes[[0, -1]].ravel(), lobes[:, [0, -1]].ravel(), lobes[:, :, [0, -1]].ravel()])
+    sides = np.concatenate([np.take(lobes, end, axis=axis).ravel() for axis, end in edges] + [np.zeros(1, int)])
     starts = [int(i) for i in np.unique(sides) if i > 0 and radius[i] <= max_vessel_radius_mm]
     vessel = np.zeros(n + 1, bool)
     vessel[starts] = True
@@ -169,10 +178,12 @@ def trace_great_vessels(
                 stack.append(b)
     if not vessel.any():
         return GreatVessels(empty, empty, (), "great vessels: no blood leaves the field of view")
-    lumen = vessel[lobes]
-    to_lumen = ndimage.distance_transform_edt(~lumen, sampling=spacing)
-    to_chambers = ndimage.distance_transform_edt(~(pool & ~lumen), sampling=spacing)
-    territory = lumen | ((to_lumen < to_chambers) & (to_lumen <= wall_mm))
+    lumen = np.zeros(full_shape, bool)
+    lumen[box] = vessel[lobes]
+    to_lumen = ndimage.distance_transform_edt(~lumen[box], sampling=spacing)
+    to_chambers = ndimage.distance_transform_edt(~(pool & ~lumen[box]), sampling=spacing)
+    territory = np.zeros(full_shape, bool)
+    territory[box] = lumen[box] | ((to_lumen < to_chambers) & (to_lumen <= wall_mm))
     radii = tuple(sorted((float(r) for r in radius[vessel]), reverse=True))
     volume_ml = float(lumen.sum() * np.prod(spacing) / 1000.0)
     note = (
