@@ -10,6 +10,10 @@ from modeling.segment import (
     segment_heart,
 )
 from modeling.options import ModelOptions
+from modeling.greatvessels import (
+    GreatVessels,
+    trace_great_vessels,
+)
 from modeling.build import (
     ModelBuild,
     ModelingWarning,
@@ -117,6 +121,8 @@ __all__ = [
     "render_model_png",
     "segment_heart",
     "start_offscreen_probe",
+    "GreatVessels",
+    "trace_great_vessels",
     "transform_mesh",
     "write_mesh",
     "write_model",

@@ -1,6 +1,6 @@
 """Automatic whole-heart (epicardial) segmentation of contrast cardiac CT.
 
-Classical tools only (scipy.ndimage), in four steps:
+Classical tools only (scipy.ndimage, scikit-image), in six steps:
 
 1. *tissue*: the HU volume, lightly smoothed against noise, between ``hu_low``
    (midway between fat and myocardium, so the mask's edge is the epicardium) and
@@ -23,7 +23,11 @@ Classical tools only (scipy.ndimage), in four steps:
    (ascending aorta, pulmonary trunk, venae cavae) and are cut
    ``vessel_root_mm`` from the body; shorter ones (apex, auricles) are kept.
    The full-resolution tissue mask within ``margin_mm`` of the result is the
-   heart, holes filled.
+   heart, holes filled;
+6. *remove the great vessels' lumen down to their valves* (contrast CT only):
+   the blood pool's lobes traced from the field of view's edge
+   (:mod:`modeling.greatvessels`), with their walls, are taken out of the
+   heart -- the aortic root the opening keeps, the vessels' mouths.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step
+from modeling.greatvessels import trace_great_vessels
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
@@ -232,7 +237,7 @@ def segment_heart(
     vessel_radius_mm: float = 14.0,
     heart_radius_mm: float = 20.0,
     vessel_length_mm: float = 25.0,
-    vessel_root_mm: float = 3.0,
+    vessel_root_mm: float = 10.0,
     margin_mm: float = 1.0,
     smooth_mm: float = 0.6,
     coarse_mm: float = 2.0,
@@ -240,6 +245,7 @@ def segment_heart(
     min_pool_radius_mm: float = 15.0,
     lung_hu: float = -400.0,
     soft_hu: tuple[float, float] = (-50.0, 150.0),
+    trace_vessels: bool = True,
 ) -> HeartSegmentation:
     """Segment the whole heart (epicardial surface inward) in a contrast CT.
 
@@ -266,7 +272,9 @@ def segment_heart(
         A branch reaching farther than this from the heart body is a vessel
         leaving the heart (corners such as the apex or an auricle stay closer).
     vessel_root_mm : float
-        Vessels are cut this far from the heart body (at their root).
+        Vessels are cut this far from the heart body (at their root); their
+        contrast lumen is traced to the valves apart (``trace_vessels``), so
+        this tissue-level cut keeps off the atrial roofs and the outflow tract.
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
@@ -288,6 +296,9 @@ def segment_heart(
         Soft tissue of a non-contrast heart (blood and myocardium 30-60 HU);
         without contrast the seed is the thickest such tissue lying between the
         lungs, and tissue above ``soft_hu[1]`` (bone) is not heart.
+    trace_vessels : bool
+        Remove the great vessels' lumen and walls traced in the contrast blood
+        pool down to their valves (:func:`modeling.greatvessels.trace_great_vessels`).
 
     Raises
     ------
@@ -314,8 +325,8 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
+    pool = _blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm)
     if seed_patient_mm is None:
-        pool = _blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm)
         if pool is not None:
             seed_mask = pool
             kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
@@ -376,6 +387,10 @@ def segment_heart(
     notes.append(cut_note)
     reach = margin_mm + 0.5 * float(np.max(cspacing))
     near = ndimage.distance_transform_edt(~core, sampling=cspacing) <= reach
+    if trace_vessels and contrast and pool is not None:
+        vessels = trace_great_vessels(pool, cspacing)
+        near &= ~vessels.territory[box]
+        notes.append(vessels.note)
 
     # ---- full resolution inside the near band's bounding box
     nbox = ndimage.find_objects(near.astype(np.uint8))[0]
@@ -403,6 +418,7 @@ def segment_heart(
         heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm, vessel_root_mm=vessel_root_mm,
         margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
         min_pool_radius_mm=min_pool_radius_mm, lung_hu=lung_hu, soft_hu=list(soft_hu), contrast=contrast,
+        trace_vessels=trace_vessels,
         seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),
     )
     return HeartSegmentation(mask, seed_mm, volume_ml, parameters, tuple(notes))

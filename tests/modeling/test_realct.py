@@ -25,6 +25,72 @@ any epicardial surface can score against it:
   most of the rest the right atrium's roof and the right ventricular outflow
   tract lost with the superior vena cava and the pulmonary trunk (the vessel
   cut decides per branch).
+
+Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
+
+- the reference behaves like the usual whole-heart atlas convention (chamber
+  blood pools plus the left-ventricular myocardium; inferred from its
+  profiles, not documented by its maker): where the heart borders fat, HU profiles along the reference's
+  outward normal give, at the left-ventricular wall, 96 / 15 / -37 HU at
+  0 / +1 / +2 voxels (the fat/myocardium half-way level ~20 HU lies about half
+  a voxel outside its edge), but at thin walls (right ventricle, atria) 470 /
+  196 / 43 / -32 HU at 0 / +1 / +2 / +3 voxels: its edge is the blood
+  pool's, the 2-4 mm wall is left out.  An epicardial surface includes that
+  wall;
+- with the pulmonary artery cut at its valve no surface can meet the issue's
+  p95 against this reference: the reference less its own pulmonary artery
+  (dilated by 2 voxels, opened, largest part; "r2") scores Dice 0.946, MSD
+  2.2 mm, p95 19.5 mm against the whole reference.  Against r2, the reference
+  grown by one or two layers of its wall tissue (> 0 HU, < 250 HU) still
+  scores Dice 0.95-0.98, MSD 0.5-1.05 mm, p95 1.5-3 mm: the targets are
+  reachable against the reference less its pulmonary artery;
+- of today's automatic mask's 136 ml outside r2 (22 ml inside r2 missed),
+  removing only the contrast-blood part (vessel lumens: the pulmonary-vein
+  antrum above the left atrium, the aortic root, the inferior vena cava) and
+  2 voxels around it gives Dice 0.948, MSD 1.30 mm, p95 5.6 mm against r2;
+  removing too the non-blood part deeper than one voxel and adding the
+  missed blood (right atrial roof, outflow tract) gives 0.985 / 0.45 / 1.5.
+  The vessel lumens, not the boundary's HU level, are the first error;
+- a wave-front vessel tracer (contrast blood > 200 HU on a 3 mm grid,
+  fronts started where blood leaves the field of view, a front frozen where
+  its inscribed radius exceeds ``growth`` times its last 20 mm's median)
+  is brittle here: growth 1.4-1.5 traces the aortae, pulmonary trunk and
+  caval/pulmonary veins (200 ml, no chamber flooded) but stops at the
+  sinotubular junction: about 25 mm of aortic root (CT slices 51-67) stay
+  below its end; 1.6 floods the chambers (686 ml).
+  Of what 1.4-1.5 traces, 16 ml lie in the automatic mask outside r2 and
+  14 ml inside it; removing it with the tissue closer to it than to the
+  remaining blood (up to 6 mm) leaves Dice 0.885 against ``ref & ~pa``.  Softening the
+  current cut (``vessel_root_mm`` 6 or 10, ``heart_radius_mm`` 18 or 22)
+  trades the right atrial roof against the aortic root: full reference
+  Dice 0.861-0.863, ``ref & ~pa`` 0.875-0.885, no gain either (without the lobe trace
+  below; with it, 10 mm gains);
+- where that wrong lumen lies: a watershed of the blood pool's distance
+  map (peaks >= 4 mm, 7.5 mm apart) splits it into lobes.  The aortic root
+  is a lobe of its own (inscribed radius 14 mm) between the ascending aorta
+  (saddle 13 mm, the sinotubular junction) and the left ventricle (saddle
+  9 mm, the annulus): a valve-level cut exists, but the root holds only
+  8 ml of the automatic mask's 55 ml of wrong blood, and removing it with
+  up to 3 mm of its wall gains Dice 0.885 -> 0.890 against ``ref & ~pa``.
+  30 ml lie in the left atrium's own lobe (radius 24 mm; its upper part,
+  slices 67-78, where the pulmonary veins enter) and 8 ml in the right
+  atrium's: the reference cuts these atria where no narrowing of the blood
+  pool marks a vessel's mouth.  Most of the oracle gain above is that
+  atrial roof and 81 ml of non-blood tissue (mostly thin walls).
+- that lobe trace is now the segmentation's last step
+  (``modeling.greatvessels``: lobes at the field of view's edge no wider
+  than 20 mm, continued across saddles >= 0.8 of the narrower radius into
+  lobes at most 1.1 times the narrowest on the way, removed with 3 mm of
+  wall), and the tissue-level cut keeps 10 mm of the vessels instead of 3
+  (it took the right atrium's roof and the outflow tract).  Model mesh
+  through ``heartreg model``, before -> after: full reference Dice
+  0.862 -> 0.879, MSD 4.0 -> 3.3 mm, p95 14.2 -> 10.6 mm; ``ref & ~pa``
+  0.884 -> 0.892, 3.21 -> 2.76 mm, 9.2 -> 7.5 mm; frame 12.6 -> 11.0 deg
+  from the mask model's (the trace alone, with the 3 mm cut: 0.869 / 3.8 /
+  14.2 and 0.892 / 2.98 / 8.6, 12.9 deg).  On the masks the trace holds
+  for widen ratios 1.1-1.35, saddle ratios 0.7-0.9, peak spacings 6-10 mm
+  (no chamber is reached; 1.15-1.25 take 30 ml more lumen: ``ref & ~pa``
+  0.895 on the mask, but the full reference's p95 rises to 15 mm).
 """
 
 from __future__ import annotations
@@ -123,10 +189,10 @@ def test_model_with_no_options(realct, auto_model):
         assert any(message in w for w in caught), message
         assert any(message in w for w in payload["parameters"]["warnings"]), message
     model, m = _metrics(out, volume, reference)
-    # Measured 0.862 / 3.8-4.0 mm / 14 mm: bounds a few % looser than measured
+    # Measured 0.879 / 3.3 mm / 10.6 mm: bounds a few % looser than measured
     # (see the module docstring for what the reference includes; the issue's
     # targets are in test_issue_targets).
-    assert m["dice"] >= 0.84 and m["msd_mm"] <= 4.5 and m["p95_mm"] <= 16.0, m
+    assert m["dice"] >= 0.86 and m["msd_mm"] <= 3.7 and m["p95_mm"] <= 12.5, m
     # the long axis follows the reference's principal axis (measured 7 deg)
     z = model.frame.axes_patient[:, 2]
     assert _angle_deg(z, principal_axis(reference, volume.T_patient_from_voxel)) <= 15.0
@@ -149,21 +215,33 @@ def test_model_from_reference_mask(realct, mask_model, auto_model):
     assert m["dice"] >= 0.98 and m["msd_mm"] <= 0.5, m
     apex = -model.frame.axes_patient[:, 2]
     assert apex @ APEX_LAI_LPS > 0.7
-    # the automatic model's frame: same apex->base sign, axes close (measured 12.6 deg; the issue's 5 deg
+    # the automatic model's frame: same apex->base sign, axes close (measured 11.0 deg; the issue's 5 deg
     # is in test_issue_targets)
     auto = read_model(auto_model[2])
     assert _angle_deg(auto.frame.axes_patient[:, 2], model.frame.axes_patient[:, 2], signed=True) <= 20.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 9's targets are not reached yet (measured Dice 0.862, MSD 3.8 mm, "
-                   "p95 14 mm, frame 12.6 deg); see the module docstring for why part of the gap is the reference "
-                   "(against it less its pulmonary artery: Dice 0.885, MSD 3.0 mm, p95 8.7 mm)")
+@pytest.mark.xfail(strict=True, reason="issue 9's targets are not reached yet (measured Dice 0.879, MSD 3.3 mm, "
+                   "p95 10.6 mm, frame 11.0 deg); see the module docstring for why part of the gap is the reference "
+                   "(against it less its pulmonary artery: Dice 0.892, MSD 2.8 mm, p95 7.5 mm); its p95 cannot be met with "
+                   "the pulmonary artery cut at its valve (the reference less its own pulmonary artery: p95 19.5 mm)")
 def test_issue_targets(realct, auto_model, mask_model):
     volume, _, reference = realct
     auto, m = _metrics(auto_model[2], volume, reference)
     given = read_model(mask_model[2])
     assert m["dice"] >= 0.92 and m["msd_mm"] <= 1.5 and m["p95_mm"] <= 5.0, m
     assert _angle_deg(auto.frame.axes_patient[:, 2], given.frame.axes_patient[:, 2], signed=True) <= 5.0
+
+
+def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model):
+    """The issue cuts the great vessels at their valves, the reference keeps the pulmonary artery."""
+    volume, _, reference = realct
+    T = volume.T_patient_from_voxel
+    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
+    _, m = _metrics(auto_model[2], volume, reference & ~artery)
+    # measured 0.892 / 2.76 mm / 7.5 mm (before the vessels were traced to their valves: 0.884 / 3.21 / 9.2);
+    # the rest is mostly the atrial roofs and the thin walls (module docstring)
+    assert m["dice"] >= 0.885 and m["msd_mm"] <= 2.9 and m["p95_mm"] <= 8.5, m
 
 
 def test_fiducials_insisted_on(realct):

@@ -1,0 +1,45 @@
+"""modeling.greatvessels: vessels traced from the field of view's edge stop at their valve."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from modeling.greatvessels import trace_great_vessels
+
+SPACING = (1.5, 1.5, 1.5)
+
+
+def _pool(*, valve_radius_mm=7.0, through_edge=True):
+    """A chamber (radius 25 mm) fed by a tube (12 mm) with a sinus (13 mm) and a valve narrowing.
+
+    The tube runs along k from the chamber to the volume's top face (or stops
+    short of it); returns the pool and the k (mm) of the valve plane.
+    """
+    k, j, i = (np.indices((100, 70, 70)) + 0.5) * 1.5
+    chamber = (k - 40) ** 2 + (j - 52.5) ** 2 + (i - 52.5) ** 2 <= 25**2
+    top = 150.0 if through_edge else 120.0
+    valve_mm = 68.0
+    along = np.clip(k, 0, top)
+    radius = np.where(k < valve_mm + 2, valve_radius_mm, np.where(k < valve_mm + 22, 13.0, 12.0))
+    radius = np.where(k < valve_mm - 4, 25.0, radius)  # the chamber's side of the valve
+    tube = ((j - 52.5) ** 2 + (i - 52.5) ** 2 <= radius**2) & (k > 40) & (k <= top) & (along == k)
+    return chamber | tube, valve_mm
+
+
+def test_vessel_traced_to_its_valve():
+    pool, valve_mm = _pool()
+    found = trace_great_vessels(pool, SPACING)
+    k_mm = (np.indices(pool.shape)[0] + 0.5) * 1.5
+    assert found.lumen[pool & (k_mm > valve_mm + 6)].all()  # the tube and its sinus
+    assert not found.lumen[pool & (k_mm < valve_mm - 6)].any()  # not the chamber
+    assert found.territory[found.lumen].all() and found.lobe_radii_mm[0] <= 14.0
+    assert "great vessels traced" in found.note
+
+
+def test_no_vessel_without_an_exit():
+    pool, _ = _pool(through_edge=False)  # a blind pouch: nothing leaves the field of view
+    found = trace_great_vessels(pool, SPACING)
+    assert not found.lumen.any() and not found.territory.any()
+    assert "no blood leaves the field of view" in found.note
+    empty = trace_great_vessels(np.zeros((10, 10, 10), bool), SPACING)
+    assert not empty.lumen.any() and "no lobe" in empty.note
