@@ -26,6 +26,8 @@ __all__ = ["DEFAULT_MEMORY_LIMIT", "ClusterError", "TaskFailure", "default_worke
 DEFAULT_MEMORY_LIMIT = "4GB"
 #: Seconds to wait for a scheduler to answer before giving up.
 CONNECT_TIMEOUT_S = 30
+#: Seconds the client and a local cluster get to close before the command goes on.
+CLOSE_TIMEOUT_S = 30
 
 
 class ClusterError(HeartregError, RuntimeError):
@@ -113,9 +115,13 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
     try:
         yield client
     finally:
-        client.close()
+        # every result is back by now: a cluster slow to wind down (workers of a
+        # loaded machine killed after the nanny's grace time) is not a failure
+        with contextlib.suppress(TimeoutError, OSError):
+            client.close(timeout=CLOSE_TIMEOUT_S)
         if cluster is not None:
-            cluster.close()
+            with contextlib.suppress(TimeoutError, OSError):
+                cluster.close(timeout=CLOSE_TIMEOUT_S)
 
 
 def _failure_line(exc: BaseException) -> str:
