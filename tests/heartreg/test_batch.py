@@ -93,7 +93,9 @@ def scheduler():
     cluster = subprocess.Popen([sys.executable, "-c", script], env=_env(), stdin=subprocess.PIPE,
                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
     try:
-        yield cluster.stdout.readline().strip()
+        address = cluster.stdout.readline().strip()
+        assert address.startswith("tcp://127.0.0.1:"), address  # else the batch would start a local cluster
+        yield address
     finally:
         cluster.stdin.close()
         try:
@@ -218,7 +220,6 @@ def test_scheduler_started_separately_on_loopback(batch, scheduler, sample_case,
     port); a case the killed batch's local cluster finished comes out the same bytes there."""
     case_dir, _ = sample_case
     _, _, out, before, _, _ = batch
-    assert scheduler.startswith("tcp://127.0.0.1:"), scheduler
     # a case without a session that the local cluster finished before the kill (two finished: one is)
     local = next(r for r in ROWS if r[0] in before and not r[2])
     cohort = _write_cohort(tmp_path / "in", case_dir, [local, next(r for r in ROWS if r[0] == "broken")])
