@@ -1,12 +1,13 @@
 """``heartreg batch``: five sample cases on a two-worker local cluster, stopped and resumed.
 
 The cases share the session-wide sample phantom (``sample_case``): one runs the
-whole chain (phases, model, register with its 30-point session), three only
-phases and model with different options, and one is broken (a study folder
-without DICOM).  The batch is started in a child process and killed after two
-cases finish; the restart must run only the rest, and every output must be the
-bytes the single commands write (the commands are deterministic: same inputs,
-same bytes).
+whole chain (phases, model, register with the sample session's first 8 points),
+three only phases and model with different options, and one is broken (a study
+folder without DICOM).  The batch is started in a child process on its own
+local cluster and killed after two cases finish; the restart runs on a
+scheduler started separately (the module's one other cluster) and must run
+only the rest, and every output must be the bytes the single commands write
+(the commands are deterministic: same inputs, same bytes).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import pytest
 from heartreg.batch import CohortError, read_cohort, run_batch
 from heartreg.batch.cohort import select_part
 from heartreg.cli import main
+from tests.heartreg.small_case import first_points
 
 REPO = Path(__file__).resolve().parents[2]
 #: bounded waits (s): a loaded 2-core machine runs a sample case in 5-60 s
@@ -34,13 +36,15 @@ SCHEDULER_WAIT_S = 120
 
 ROWS = [
     # case, study, session, options
-    ("whole", "case/ct", "case/session", "--step 0.1 --no-view"),
+    ("whole", "case/ct", "short", "--step 0.1 --no-view"),
     ("faces8k", "case/ct", "", "--faces 8000 --fiducials 0"),
     ("broken", "broken", "", ""),
     ("vessels", "case/ct", "", "--keep-vessels --faces 8000 --fiducials 0"),
     ("faces5k", "case/ct", "", "--faces 5000 --fiducials 0"),
 ]
 BROKEN_MESSAGE = r"^phases: no DICOM images found under '<study>'"
+#: points of the session the whole case registers (the shape estimator's least)
+SHORT_POINTS = 8
 
 
 def _env():
@@ -52,6 +56,8 @@ def _env():
 def _write_cohort(folder: Path, case_dir: Path, rows) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "case").symlink_to(case_dir)
+    if any(r[2] == "short" for r in rows):
+        first_points(case_dir / "session", folder / "short", SHORT_POINTS)
     (folder / "broken").mkdir()
     (folder / "broken" / "IM0001.dcm").write_bytes(b"not a DICOM file")
     path = folder / "cohort.csv"
@@ -72,8 +78,35 @@ def _files(folder: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def batch(sample_case, tmp_path_factory):
-    """The batch killed after two cases, then run again to the end."""
+def scheduler():
+    """A scheduler and two workers in their own process (127.0.0.1, ephemeral port): its address."""
+    script = (
+        "import sys\n"
+        "from distributed import LocalCluster\n"
+        "if __name__ == '__main__':\n"
+        "    c = LocalCluster(n_workers=2, threads_per_worker=1, host='127.0.0.1', scheduler_port=0,\n"
+        "                     dashboard_address=None)\n"
+        "    print(c.scheduler_address, flush=True)\n"
+        "    sys.stdin.read()\n"  # until the fixture closes stdin
+        "    c.close()\n"
+    )
+    cluster = subprocess.Popen([sys.executable, "-c", script], env=_env(), stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    try:
+        address = cluster.stdout.readline().strip()
+        assert address.startswith("tcp://127.0.0.1:"), address  # else the batch would start a local cluster
+        yield address
+    finally:
+        cluster.stdin.close()
+        try:
+            cluster.wait(timeout=SCHEDULER_WAIT_S)
+        except subprocess.TimeoutExpired:
+            os.killpg(cluster.pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def batch(sample_case, scheduler, tmp_path_factory):
+    """The batch killed after two cases, then run again to the end on the separate scheduler."""
     case_dir, _ = sample_case
     root = tmp_path_factory.mktemp("batch")
     cohort = _write_cohort(root / "in", case_dir, ROWS)
@@ -96,7 +129,7 @@ def batch(sample_case, tmp_path_factory):
             os.killpg(child.pid, signal.SIGKILL)  # any worker left behind (cleanup, not part of the test)
         except ProcessLookupError:
             pass
-    result = run_batch(cohort, out, workers=2, progress=False)
+    result = run_batch(cohort, out, scheduler=scheduler, progress=False)
     return root, cohort, out, before, folders, result
 
 
@@ -127,9 +160,9 @@ def test_four_done_one_failed_with_its_message(batch):
 
 def test_outputs_are_the_single_commands_bytes(batch, sample_case, tmp_path):
     case_dir, _ = sample_case
-    _, _, out, _, _, _ = batch
+    root, _, out, _, _, _ = batch
     single = tmp_path / "single"
-    ct, session = str(case_dir / "ct"), str(case_dir / "session")
+    ct, session = str(case_dir / "ct"), str(root / "in" / "short")
     assert main(["phases", ct, "-o", str(single / "phases"), "-q"]) == 0
     assert main(["model", ct, "-o", str(single / "model"), "-q"]) == 0
     assert main(["register", str(single / "model"), session, "-o", str(single / "registration"), "-q",
@@ -182,40 +215,22 @@ def test_the_key_follows_inputs_and_options_not_where_the_cohort_is(batch, sampl
     assert case_key(cases["faces5k"]) != case_key(old["faces5k"])
 
 
-def test_scheduler_started_separately_on_loopback(batch, sample_case, tmp_path):
-    """A scheduler and one worker in their own process (127.0.0.1, ephemeral port); the batch connects to it."""
+def test_scheduler_started_separately_on_loopback(batch, scheduler, sample_case, tmp_path):
+    """The batch connects to a scheduler and workers in their own process (127.0.0.1, ephemeral
+    port); a case the killed batch's local cluster finished comes out the same bytes there."""
     case_dir, _ = sample_case
-    _, _, out, _, _, _ = batch
-    script = (
-        "import sys\n"
-        "from distributed import LocalCluster\n"
-        "if __name__ == '__main__':\n"
-        "    c = LocalCluster(n_workers=1, threads_per_worker=1, host='127.0.0.1', scheduler_port=0,\n"
-        "                     dashboard_address=None)\n"
-        "    print(c.scheduler_address, flush=True)\n"
-        "    sys.stdin.read()\n"  # until the test closes stdin
-        "    c.close()\n"
-    )
-    cluster = subprocess.Popen([sys.executable, "-c", script], env=_env(), stdin=subprocess.PIPE,
-                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, start_new_session=True)
-    try:
-        address = cluster.stdout.readline().strip()
-        assert address.startswith("tcp://127.0.0.1:"), address
-        cohort = _write_cohort(tmp_path / "in", case_dir, [r for r in ROWS if r[0] in ("faces5k", "broken")])
-        remote = tmp_path / "out"
-        code = main(["batch", str(cohort), "-o", str(remote), "--scheduler", address, "-q"])
-        assert code == 1  # one case failed
-        statuses = {r["case"]: r["status"] for r in csv.DictReader((remote / "summary.csv").open())}
-        assert statuses == {"faces5k": "done", "broken": "failed"}
-        # the worker of the other cluster wrote the same bytes as the local batch
-        for part in ("phases", "model"):
-            assert _files(remote / "faces5k" / part) == _files(out / "faces5k" / part)
-    finally:
-        cluster.stdin.close()
-        try:
-            cluster.wait(timeout=SCHEDULER_WAIT_S)
-        except subprocess.TimeoutExpired:
-            os.killpg(cluster.pid, signal.SIGKILL)
+    _, _, out, before, _, _ = batch
+    # a case without a session that the local cluster finished before the kill (two finished: one is)
+    local = next(r for r in ROWS if r[0] in before and not r[2])
+    cohort = _write_cohort(tmp_path / "in", case_dir, [local, next(r for r in ROWS if r[0] == "broken")])
+    remote = tmp_path / "out"
+    code = main(["batch", str(cohort), "-o", str(remote), "--scheduler", scheduler, "-q"])
+    assert code == 1  # one case failed
+    statuses = {r["case"]: r["status"] for r in csv.DictReader((remote / "summary.csv").open())}
+    assert statuses == {local[0]: "done", "broken": "failed"}
+    # the worker of the other cluster wrote the same bytes as the local batch
+    for part in ("phases", "model"):
+        assert _files(remote / local[0] / part) == _files(out / local[0] / part)
 
 
 def test_an_unreachable_scheduler_is_one_line(tmp_path, sample_case, capsys, monkeypatch):

@@ -44,7 +44,7 @@ def case(sample_case, tmp_path_factory):
 def _argv(command: str, case, out: Path) -> list[str]:
     fast = ["-q", "--overwrite"]
     return {
-        "model": ["model", str(case["ct"]), "-o", str(out), "--faces", "2000", *fast],
+        "model": ["model", str(case["ct"]), "-o", str(out), "--faces", "2000", "--fiducials", "0", *fast],
         "register": ["register", str(case["model"]), str(case["session"]), "-o", str(out), "--step", "0.5",
                      "--no-view", *fast],
         "pipeline": ["pipeline", str(case["ct"]), str(case["session"]), "-o", str(out), "--step", "0.5",

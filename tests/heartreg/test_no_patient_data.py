@@ -5,14 +5,14 @@ gets (0010,0010) *Patient's Name*, (0010,0020) *Patient ID* and (0010,0030)
 *Patient's Birth Date*, and the GE R-peak stamps are removed so that the study
 is timed by its ECG waveform (the source whose absolute path used to leak into
 ``phases.json`` and ``model.json``).  Then ``phases``, ``model``, ``register``
-and ``pipeline`` run, and every file they wrote is searched, as bytes and with
-the compressed text chunks of PNG files inflated, for the name, the ID, the
-birth date (both spellings), the folder name and the temporary path.
+and ``pipeline`` run (the session cut to its first 8 points: a registration in
+seconds), and every file they wrote is searched, as bytes and with the
+compressed text chunks of PNG files inflated, for the name, the ID, the birth
+date (both spellings), the folder name and the temporary path.
 """
 
 from __future__ import annotations
 
-import shutil
 import struct
 import zlib
 from pathlib import Path
@@ -21,6 +21,7 @@ import pydicom
 import pytest
 
 from heartreg.cli import main
+from tests.heartreg.small_case import first_points
 
 NAME = "DOE^JANE"
 PATIENT_ID = "PID8675309"
@@ -29,7 +30,7 @@ FOLDER = "DOE_JANE_PID8675309"
 
 
 def _patient_case(case_dir: Path, root: Path) -> Path:
-    """``root/FOLDER`` holding ct/ (tags set, GE stamps removed) and session/."""
+    """``root/FOLDER`` holding ct/ (tags set, GE stamps removed) and session/ (its first 8 points)."""
     folder = root / FOLDER
     (folder / "ct").mkdir(parents=True)
     for f in sorted((case_dir / "ct").iterdir()):
@@ -40,7 +41,7 @@ def _patient_case(case_dir: Path, root: Path) -> Path:
         ds.PatientID = PATIENT_ID
         ds.PatientBirthDate = BIRTH
         ds.save_as(folder / "ct" / f.name)
-    shutil.copytree(case_dir / "session", folder / "session")
+    first_points(case_dir / "session", folder / "session", 8)  # 8 points: a registration in seconds
     return folder
 
 
