@@ -149,8 +149,6 @@ def _model_options(args):
     """The model options the flags give (their defaults written once, in ModelOptions)."""
     from modeling.options import ModelOptions
 
-    if args.fiducials is not None and args.fiducials < 0:
-        raise UsageError(f"--fiducials {args.fiducials}: give the number of skin fiducials expected (0 for none)")
     kw = {}
     if args.faces is not None:
         kw["target_faces"] = args.faces

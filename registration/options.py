@@ -87,6 +87,11 @@ class RegistrationOptions:
             except ValueError as exc:
                 raise UsageError(f"harmonics (--harmonics HC HR HMC HMR): {exc}") from None
             object.__setattr__(self, "harmonics", h)
+        if h.respiratory < 1 or h.cardiac < 1:
+            raise UsageError(
+                "harmonics (--harmonics HC HR HMC HMR): the sweeps need at least one cardiac and one "
+                f"respiratory harmonic, got Hc={h.cardiac}, Hr={h.respiratory}"
+            )
         estimator = getattr(self.estimator, "value", self.estimator)
         if estimator not in ESTIMATORS:
             raise UsageError(f"estimator (--estimator) must be one of {list(ESTIMATORS)}, got {self.estimator!r}")

@@ -28,7 +28,6 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -43,7 +42,6 @@ from registration.options import MIN_BEATS, MIN_BREATHS, RegistrationOptions
 from registration.icp import SurfaceIndex, icp
 from registration.motion_model import (
     CoverageWarning,
-    Harmonics,
     MotionModel,
     MotionModelError,
     fit_motion_model,
@@ -106,24 +104,6 @@ def sweep_phases(step: float) -> np.ndarray:
     if abs(n - round(n)) > 1e-6:
         raise UsageError(f"step (--step) must divide one cycle evenly (e.g. 0.01, 0.02, 0.05), got {step}")
     return np.linspace(0.0, 1.0, int(round(n)) + 1)
-
-
-def _as_harmonics(harmonics) -> Harmonics:
-    if not isinstance(harmonics, Harmonics):
-        values = tuple(harmonics)
-        if len(values) != 4:
-            raise UsageError(f"harmonics (--harmonics) must be a Harmonics or (Hc, Hr, Hmc, Hmr), got {harmonics!r}")
-        hc, hr, hmc, hmr = values
-        try:
-            harmonics = Harmonics(cardiac=hc, respiratory=hr, coupled_cardiac=hmc, coupled_respiratory=hmr)
-        except ValueError as exc:
-            raise UsageError(f"harmonics (--harmonics HC HR HMC HMR): {exc}") from None
-    if harmonics.respiratory < 1 or harmonics.cardiac < 1:
-        raise UsageError(
-            "harmonics (--harmonics HC HR HMC HMR): the sweeps need at least one cardiac and one "
-            f"respiratory harmonic, got Hc={harmonics.cardiac}, Hr={harmonics.respiratory}"
-        )
-    return harmonics
 
 
 def point_phases(record: PointRecord):
@@ -299,7 +279,7 @@ def register_session(
             "give the CT's phase (0..1) with --cardiac-phase"
         )
     opts = RegistrationOptions.of(options, **overrides)
-    harmonics = _as_harmonics(opts.harmonics)
+    harmonics = opts.harmonics
     estimator = TemporalEstimator(opts.estimator)
     phase_step, cardiac_sweep, cardiac_phase_step = opts.phase_step, opts.cardiac_sweep, opts.cardiac_phase_step
     icp_options, min_beats, min_breaths = opts.icp_options, opts.min_beats, opts.min_breaths

@@ -66,6 +66,12 @@ def test_bad_values_name_the_keyword_then_the_flag(make, field, flag):
     assert message.startswith(f"{field} ({flag})") and "\n" not in message
 
 
+def test_the_sweeps_need_a_cardiac_and_a_respiratory_harmonic():
+    with pytest.raises(UsageError, match=r"^harmonics \(--harmonics HC HR HMC HMR\): the sweeps need at least one "
+                                         r"cardiac and one respiratory harmonic, got Hc=2, Hr=0$"):
+        RegistrationOptions(harmonics=(2, 0, 0, 0))
+
+
 def test_options_are_frozen_and_overridable():
     opts = RegistrationOptions(icp_options={"max_iterations": 10})
     with pytest.raises(dataclasses.FrozenInstanceError):
