@@ -33,6 +33,7 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step
+from modeling.distance import distance_mm
 
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
 
@@ -144,7 +145,7 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji) -> str:
         return "cut by the edge of the field of view"
     sub = np.asarray(hu[big])
     body = (sub > BODY_HU) & ~dense
-    near = (ndimage.distance_transform_edt(~part, sampling=spacing_kji) <= SKIN_CONTACT_MM) | ndimage.binary_dilation(
+    near = (distance_mm(~part, spacing_kji) <= SKIN_CONTACT_MM) | ndimage.binary_dilation(
         part, structure=np.ones((3, 3, 3), bool)
     )  # the neighbouring voxels at least, however coarse the grid
     if not (near & body).any():
@@ -218,7 +219,7 @@ def find_fiducials(
     body_kji = np.array(ndimage.center_of_mass(~outside)) * step  # full-resolution voxel indices
     body_centre_y = apply_to_points(T, body_kji[::-1])[1]
     reach = skin_reach_mm + 0.5 * float(np.max(cspacing))
-    shell = ndimage.distance_transform_edt(~outside, sampling=cspacing) <= reach
+    shell = distance_mm(~outside, cspacing) <= reach
     candidates = shell & (cmax > floor_hu)
     labels, _ = ndimage.label(ndimage.binary_dilation(candidates), structure=np.ones((3, 3, 3), bool))
 

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.distance import distance_mm
+
 __all__ = ["GreatVessels", "trace_great_vessels"]
 
 
@@ -145,7 +147,7 @@ def trace_great_vessels(
     edges = [(axis, end) for axis in range(3) for end, at_edge in
              ((0, box[axis].start == 0), (-1, box[axis].stop == pool.shape[axis])) if at_edge]
     full_shape, pool = pool.shape, pool[box]
-    distance = ndimage.distance_transform_edt(pool, sampling=spacing)
+    distance = distance_mm(pool, spacing)
     gap = max(1, int(round(peak_spacing_mm / float(spacing.min()))))
     peaks = peak_local_max(distance, min_distance=gap, threshold_abs=min_radius_mm,
                            labels=pool.astype(np.int32), exclude_border=False)
@@ -180,8 +182,8 @@ def trace_great_vessels(
         return GreatVessels(empty, empty, (), "great vessels: no blood leaves the field of view")
     lumen = np.zeros(full_shape, bool)
     lumen[box] = vessel[lobes]
-    to_lumen = ndimage.distance_transform_edt(~lumen[box], sampling=spacing)
-    to_chambers = ndimage.distance_transform_edt(~(pool & ~lumen[box]), sampling=spacing)
+    to_lumen = distance_mm(~lumen[box], spacing)
+    to_chambers = distance_mm(~(pool & ~lumen[box]), spacing)
     territory = np.zeros(full_shape, bool)
     territory[box] = lumen[box] | ((to_lumen < to_chambers) & (to_lumen <= wall_mm))
     radii = tuple(sorted((float(r) for r in radius[vessel]), reverse=True))

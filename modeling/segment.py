@@ -40,6 +40,7 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step
+from modeling.distance import distance_mm
 from modeling.greatvessels import trace_great_vessels
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
@@ -111,11 +112,11 @@ def _largest_component(mask) -> np.ndarray:
 
 def _opening_mm(mask, spacing_kji, radius_mm):
     """Binary opening by a ball of ``radius_mm`` using Euclidean distance transforms."""
-    inside = ndimage.distance_transform_edt(mask, sampling=spacing_kji)
+    inside = distance_mm(mask, spacing_kji)
     core = inside > radius_mm
     if not core.any():
         return core
-    outside = ndimage.distance_transform_edt(~core, sampling=spacing_kji)
+    outside = distance_mm(~core, spacing_kji)
     return outside <= radius_mm
 
 
@@ -129,7 +130,7 @@ def _blood_pool(coarse, cspacing, blood_hu, min_radius_mm):
     pool = labels == int(np.argmax(sizes)) + 1
     box = ndimage.find_objects(pool.astype(np.uint8))[0]
     padded = np.pad(pool[box], 1)
-    if ndimage.distance_transform_edt(padded, sampling=cspacing).max() < min_radius_mm:
+    if distance_mm(padded, cspacing).max() < min_radius_mm:
         return None
     return pool
 
@@ -175,7 +176,7 @@ def _mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
             "no contrast blood pool and no soft tissue between two lungs in the volume; "
             "give a heart mask with --mask (or segment_heart a seed point)"
         )
-    depth = ndimage.distance_transform_edt(candidate, sampling=cspacing)
+    depth = distance_mm(candidate, cspacing)
     seed = np.zeros(coarse.shape, bool)
     seed[np.unravel_index(int(np.argmax(depth)), depth.shape)] = True
     return seed, between
@@ -207,7 +208,7 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
     counts = ndimage.sum_labels(seed, labels, index=np.arange(1, n + 1))
     sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
     heart = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
-    distance = ndimage.distance_transform_edt(~heart, sampling=spacing_kji)
+    distance = distance_mm(~heart, spacing_kji)
     rest = body & ~heart
     labels, n = ndimage.label(rest)
     if n == 0:
@@ -386,7 +387,7 @@ def segment_heart(
     )
     notes.append(cut_note)
     reach = margin_mm + 0.5 * float(np.max(cspacing))
-    near = ndimage.distance_transform_edt(~core, sampling=cspacing) <= reach
+    near = distance_mm(~core, cspacing) <= reach
     if trace_vessels and contrast and pool is not None:
         vessels = trace_great_vessels(pool, cspacing)
         near &= ~vessels.territory[box]

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.distance import distance_mm
 from modeling.surface import Mesh, MeshError, check_mesh
 
 __all__ = ["APEX_LAI_LPS", "VesselTrim", "base_direction", "trim_vessel_stubs"]
@@ -176,7 +177,7 @@ def base_direction(mask, hu, T_patient_from_voxel, *, blood_hu: float = MOUTH_BL
                 for e, p, n, st in zip(extent, pad, mask.shape, step))
     sub = mask[box]
     spacing = spacing_kji * step
-    shell = (ndimage.distance_transform_edt(~sub, sampling=spacing) <= reach_mm) & ~sub
+    shell = (distance_mm(~sub, spacing) <= reach_mm) & ~sub
     mouths = shell & (np.asarray(hu[box]) > blood_hu)
     voxel_ml = abs(np.linalg.det(T[:3, :3])) * float(np.prod(step)) / 1000.0
     if mouths.sum() * voxel_ml < min_ml:

@@ -1,0 +1,54 @@
+"""Euclidean distance transforms in millimetres on anisotropic voxel grids.
+
+Every "within r mm of", "thicker than", "farther than" of the segmentation is
+a distance transform; on a full-size CT they were the largest single cost of
+the model.  :func:`distance_mm` computes them with the ``edt`` package
+(Zlateski & Seung's linear-time anisotropic algorithm, float32), about five
+times faster than ``scipy.ndimage.distance_transform_edt`` and without its
+integer feature arrays (three int32 volumes), the same distances to float32
+precision (``tests/modeling/test_distance.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["distance_mm"]
+
+
+def distance_mm(mask, spacing_kji) -> np.ndarray:
+    """Distance (mm) from each ``True`` voxel to the nearest ``False`` voxel.
+
+    Parameters
+    ----------
+    mask : (k, j, i) bool array
+        Voxels outside the array count as neither: only ``False`` voxels of
+        the array are background (as ``scipy.ndimage.distance_transform_edt``).
+    spacing_kji : (3,) float
+        Voxel size along the array's axes, mm.
+
+    Returns
+    -------
+    (k, j, i) float32
+        0 on ``False`` voxels; ``inf`` everywhere when the array has no
+        ``False`` voxel.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> mask = np.ones((1, 1, 5), bool)
+    >>> mask[0, 0, 0] = False
+    >>> distance_mm(mask, (1.0, 1.0, 2.0)).ravel().tolist()
+    [0.0, 2.0, 4.0, 6.0, 8.0]
+    """
+    import edt
+
+    mask = np.ascontiguousarray(mask, dtype=bool)
+    if mask.ndim != 3:
+        raise ValueError(f"mask must be a 3-D array (k, j, i), got shape {mask.shape}")
+    spacing = tuple(float(s) for s in np.broadcast_to(np.asarray(spacing_kji, float), (3,)))
+    if not all(np.isfinite(s) and s > 0 for s in spacing):
+        raise ValueError(f"spacing_kji must be three positive lengths (mm), got {spacing}")
+    if mask.all():
+        return np.full(mask.shape, np.inf, np.float32)
+    return edt.edt(mask, anisotropy=spacing, black_border=False, parallel=1)
