@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["SurfaceIndex", "ClosestPoints", "closest_points", "closest_points_on_triangles"]
+__all__ = ["SurfaceIndex", "ClosestPoints", "PointSetTracker", "closest_points", "closest_points_on_triangles"]
 
 
 def _subtriangle_centroids(m: int) -> np.ndarray:
@@ -233,26 +233,131 @@ def _face_d2(surface, q, rows, faces):
     return np.where(np.isnan(d2), np.inf, d2)
 
 
-def _improve(best_d2, best_face, surface, q, rows, sites, site_dist):
-    """Lower ``best_d2`` / ``best_face`` in place with the candidate sites (pairs, rows sorted).
+def _lower_best(best, rows, faces, d2, key):
+    """Lower the best (d2, face, key) of each row in place with the pairs (rows sorted).
 
-    A face can hold a point nearer than the current best only if one of its
-    sites lies within the best distance plus that site's radius; the others
-    are skipped unevaluated.
+    Of equal distances (a point nearest to an edge or a vertex shared by
+    faces) the face with the nearest search site (``key``, mm) wins, as in a
+    scan of the sites nearest first.
     """
-    keep = site_dist - surface._site_radius[sites] <= np.sqrt(best_d2[rows])
-    rows, faces = rows[keep], surface._site_face[sites[keep]]
     if rows.size == 0:
         return
-    d2 = _face_d2(surface, q, rows, faces)
+    best_d2, best_face, best_key = best
     starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     low = np.minimum.reduceat(d2, starts)
     seg = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, rows.size]))
     hit = np.flatnonzero(d2 == low[seg])
-    hit = hit[np.r_[True, seg[hit][1:] != seg[hit][:-1]]]  # the first minimum of each row
+    hit = hit[np.lexsort((key[hit], seg[hit]))]
+    hit = hit[np.r_[True, seg[hit][1:] != seg[hit][:-1]]]  # the nearest site of each row's minima
     r = rows[hit]
-    better = d2[hit] < best_d2[r]
-    best_d2[r[better]], best_face[r[better]] = d2[hit][better], faces[hit][better]
+    better = (d2[hit] < best_d2[r]) | ((d2[hit] == best_d2[r]) & (key[hit] < best_key[r]))
+    r, hit = r[better], hit[better]
+    best_d2[r], best_face[r], best_key[r] = d2[hit], faces[hit], key[hit]
+
+
+def _ball_search(best, surface, q, rows):
+    """Settle ``rows`` by every site within their best distance plus the largest site radius (in place)."""
+    best_d2 = best[0]
+    radius = np.sqrt(best_d2[rows]) + surface.site_radius_mm
+    lists = surface.tree.query_ball_point(q[rows], np.where(np.isfinite(radius), radius, np.inf),
+                                          workers=-1, return_sorted=False)
+    lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
+    rr = np.repeat(rows, lengths)
+    # a face can hold a point nearer than the best only if one of its sites lies within
+    # the best distance plus that site's radius; the others are skipped unevaluated
+    dist = np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1)
+    keep = dist - surface._site_radius[sites] <= np.sqrt(best_d2[rr])
+    rr, faces, dist = rr[keep], surface._site_face[sites[keep]], dist[keep]
+    _lower_best(best, rr, faces, _face_d2(surface, q, rr, faces), dist)
+
+
+@dataclass
+class _Candidates:
+    """What a search at ``q0_mm`` proved, for queries near it (:func:`_search`, :func:`_reuse`).
+
+    Each listed search site's face is at least ``lower_mm`` away (the exact
+    distance where it was evaluated, else the site's distance less its
+    radius); a face is at least ``excluded_mm`` away where none of its
+    sites is listed.
+    """
+
+    q0_mm: np.ndarray  # (p, 3)
+    d0_mm: np.ndarray  # (p,) the nearest face's distance
+    excluded_mm: np.ndarray  # (p,) -inf: nothing proven
+    sites: np.ndarray  # (p, k)
+    lower_mm: np.ndarray  # (p, k)
+
+    def take(self, rows) -> "_Candidates":
+        return _Candidates(self.q0_mm[rows], self.d0_mm[rows], self.excluded_mm[rows], self.sites[rows],
+                           self.lower_mm[rows])
+
+    def put(self, rows, other: "_Candidates") -> None:
+        self.q0_mm[rows], self.d0_mm[rows], self.excluded_mm[rows] = other.q0_mm, other.d0_mm, other.excluded_mm
+        self.sites[rows], self.lower_mm[rows] = other.sites, other.lower_mm
+
+
+def _search(surface, q, k):
+    """Exact nearest face of each point from the ``k`` nearest sites (module docstring).
+
+    Returns (best_d2, best_face, _Candidates).
+    """
+    n = q.shape[0]
+    n_sites = surface._site_face.shape[0]
+    kc = int(min(k, n_sites))
+    dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
+    dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
+    faces = surface._site_face[idx]
+    lower = dist_s - surface._site_radius[idx]
+    rows = np.arange(n)
+    # the nearest site's face bounds the distance
+    best = (_face_d2(surface, q, rows, faces[:, 0]), faces[:, 0].copy(), dist_s[:, 0].copy())
+    lower[:, 0] = np.sqrt(best[0])
+    r, c = np.nonzero(lower[:, 1:] <= lower[:, :1])
+    c += 1
+    d2 = _face_d2(surface, q, r, faces[r, c])
+    lower[r, c] = np.sqrt(d2)
+    _lower_best(best, r, faces[r, c], d2, dist_s[r, c])
+    # faces without a site among the kc nearest are at least (kc-th site distance - r) away
+    excluded = dist_s[:, -1] - surface.site_radius_mm if kc < n_sites else np.full(n, np.inf)
+    unproven = np.flatnonzero(np.sqrt(best[0]) > excluded)
+    if unproven.size:
+        _ball_search(best, surface, q, unproven)
+        excluded[unproven] = -np.inf
+    return best[0], best[1], _Candidates(q.copy(), np.sqrt(best[0]), excluded, idx, lower)
+
+
+def _reuse(surface, q, near: _Candidates):
+    """Exact nearest face of points q near the points of an earlier search, where that proves it.
+
+    A point moved by ``delta`` from ``q0`` is at most ``d0 + delta`` from the
+    earlier nearest face, at least ``lower - delta`` from a listed face and
+    ``excluded - delta`` from any other: only the listed faces with ``lower <=
+    d0 + 2 delta`` can be nearest, and when ``2 delta <= excluded - d0`` no
+    unlisted one can.
+
+    Returns (ok, best_d2, best_face, _Candidates at q) for the rows ``ok``.
+    """
+    delta = np.linalg.norm(q - near.q0_mm, axis=1)
+    ok = np.flatnonzero(2.0 * delta <= near.excluded_mm - near.d0_mm)
+    near, delta, q = near.take(ok), delta[ok], q[ok]
+    lower = near.lower_mm - delta[:, None]
+    r, c = np.nonzero(lower <= (near.d0_mm + delta)[:, None])
+    sites = near.sites[r, c]
+    faces = surface._site_face[sites]
+    d2 = _face_d2(surface, q, r, faces)
+    lower[r, c] = np.sqrt(d2)
+    best = (np.full(ok.size, np.inf), np.zeros(ok.size, dtype=np.int64), np.full(ok.size, np.inf))
+    _lower_best(best, r, faces, d2, np.linalg.norm(surface.tree.data[sites] - q[r], axis=1))
+    return ok, best[0], best[1], _Candidates(q, np.sqrt(best[0]), near.excluded_mm - delta, near.sites, lower)
+
+
+def _finish(surface, q, best_face) -> "ClosestPoints":
+    """The closest points on the found faces."""
+    a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
+    v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
+    cp = a + v[:, None] * ab + w[:, None] * ac
+    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
 
 
 def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
@@ -284,29 +389,72 @@ def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
         raise ValueError("points must be finite")
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
-    n = q.shape[0]
-    n_sites = surface._site_face.shape[0]
-    kc = int(min(k, n_sites))
-    dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
-    dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
-    rows = np.arange(n)
-    best_face = surface._site_face[idx[:, 0]]
-    best_d2 = _face_d2(surface, q, rows, best_face)
-    rr = np.repeat(rows, kc - 1)
-    _improve(best_d2, best_face, surface, q, rr, idx[:, 1:].ravel(), dist_s[:, 1:].ravel())
-    # faces without a site among the kc nearest are at least (kc-th site distance - r) away
-    if kc < n_sites:
-        unproven = np.flatnonzero(np.sqrt(best_d2) > dist_s[:, -1] - surface.site_radius_mm)
-        if unproven.size:
-            radius = np.sqrt(best_d2[unproven]) + surface.site_radius_mm
-            lists = surface.tree.query_ball_point(q[unproven], np.where(np.isfinite(radius), radius, np.inf),
-                                                  workers=-1, return_sorted=False)
-            lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-            sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
-            rr = np.repeat(unproven, lengths)
-            _improve(best_d2, best_face, surface, q, rr, sites,
-                     np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1))
-    a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
-    v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
-    cp = a + v[:, None] * ab + w[:, None] * ac
-    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
+    _, best_face, _ = _search(surface, q, k)
+    return _finish(surface, q, best_face)
+
+
+class PointSetTracker:
+    """Exact closest points of m point sets of n points that move a little between queries.
+
+    The ICP of a phase sweep queries the same points again and again, each
+    time moved by one ICP step, and neighbouring sets (phases) lie close to
+    each other.  Each point keeps what its last search proved
+    (:class:`_Candidates`); a query first tries that (:func:`_reuse`); the
+    points it cannot settle are searched afresh (:func:`_search`) in every
+    ``stride``-th of their sets, and the others try the fresh search of the
+    same point in the nearest such set before their own search.  Every answer
+    is exact (the nearest face, with the same first-minimum rule as
+    :func:`closest_points`).
+
+    Parameters
+    ----------
+    surface : SurfaceIndex
+    m, n : int
+        Sets and points per set.
+    k : int
+        Nearest search sites of a fresh search.
+    stride : int
+        Fresh searches in every this many sets needing one.
+    """
+
+    def __init__(self, surface, m: int, n: int, *, k: int = 24, stride: int = 4):
+        self.surface, self.n, self.k, self.stride = surface, n, k, stride
+        kc = int(min(k, surface._site_face.shape[0]))
+        self.known = _Candidates(np.zeros((m * n, 3)), np.zeros(m * n), np.full(m * n, -np.inf),
+                                 np.zeros((m * n, kc), dtype=np.int64), np.zeros((m * n, kc)))
+
+    def query(self, sets, q) -> ClosestPoints:
+        """Closest points of ``q`` (a, n, 3), the points of the sets ``sets`` (a,) (ascending)."""
+        n = self.n
+        sets = np.asarray(sets, dtype=np.int64)
+        q = q.reshape(-1, 3)
+        slots = (sets[:, None] * n + np.arange(n)).ravel()
+        best_face = np.zeros(q.shape[0], dtype=np.int64)
+        todo = self._reuse(best_face, q, np.arange(q.shape[0]), slots, slots)
+        if todo.size:
+            local = todo // n
+            need = np.unique(local)
+            fresh = np.unique(np.r_[need[:: self.stride], need[-1]])
+            is_fresh = np.isin(local, fresh)
+            self._search(best_face, q, todo[is_fresh], slots)
+            rest = todo[~is_fresh]
+            if rest.size:
+                own = sets[rest // n]
+                pos = np.searchsorted(sets[fresh], own)
+                lo, hi = fresh[np.maximum(pos - 1, 0)], fresh[np.minimum(pos, fresh.size - 1)]
+                donor = np.where(own - sets[lo] <= sets[hi] - own, lo, hi)
+                left = self._reuse(best_face, q, rest, slots[donor * n + rest % n], slots[rest])
+                self._search(best_face, q, left, slots)
+        return _finish(self.surface, q, best_face)
+
+    def _reuse(self, best_face, q, rows, src, dst):
+        """Settle ``rows`` from the candidates of slots ``src``, kept in ``dst``; the rows left unsettled."""
+        ok, _, face, found = _reuse(self.surface, q[rows], self.known.take(src))
+        best_face[rows[ok]] = face
+        self.known.put(dst[ok], found)
+        return np.setdiff1d(rows, rows[ok], assume_unique=True)
+
+    def _search(self, best_face, q, rows, slots):
+        if rows.size:
+            _, best_face[rows], found = _search(self.surface, q[rows], self.k)
+            self.known.put(slots[rows], found)
