@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["SurfaceIndex", "ClosestPoints", "PointSetTracker", "closest_points", "closest_points_on_triangles"]
+__all__ = ["SurfaceIndex", "ClosestPoints", "closest_points", "closest_points_on_triangles"]
 
 
 def _subtriangle_centroids(m: int) -> np.ndarray:
@@ -223,14 +223,18 @@ class ClosestPoints:
     normals: np.ndarray
 
 
-def _face_d2(surface, q, rows, faces):
-    """Squared distance of q[rows] to faces (pairs), (p,) float64; NaN (a degenerate face) as inf."""
+def _face_d2(surface, q, rows, faces, offsets=False):
+    """Squared distance of q[rows] to faces (pairs), (p,) float64; NaN (a degenerate face) as inf.
+
+    With ``offsets`` also the (p, 3) offsets of the points from their closest points.
+    """
     a, ab, ac = surface._a[faces], surface._ab[faces], surface._ac[faces]
     qr = q[rows]
     v, w = _closest_barycentric(qr, a, ab, ac, surface._dots[faces])
     diff = qr - a - v[:, None] * ab - w[:, None] * ac
     d2 = np.einsum("ij,ij->i", diff, diff)
-    return np.where(np.isnan(d2), np.inf, d2)
+    d2 = np.where(np.isnan(d2), np.inf, d2)
+    return (d2, diff) if offsets else d2
 
 
 def _lower_best(best, rows, faces, d2, key):
@@ -272,35 +276,16 @@ def _ball_search(best, surface, q, rows):
     _lower_best(best, rr, faces, _face_d2(surface, q, rr, faces), dist)
 
 
-@dataclass
-class _Candidates:
-    """What a search at ``q0_mm`` proved, for queries near it (:func:`_search`, :func:`_reuse`).
-
-    Each listed search site's face is at least ``lower_mm`` away (the exact
-    distance where it was evaluated, else the site's distance less its
-    radius); a face is at least ``excluded_mm`` away where none of its
-    sites is listed.
-    """
-
-    q0_mm: np.ndarray  # (p, 3)
-    d0_mm: np.ndarray  # (p,) the nearest face's distance
-    excluded_mm: np.ndarray  # (p,) -inf: nothing proven
-    sites: np.ndarray  # (p, k)
-    lower_mm: np.ndarray  # (p, k)
-
-    def take(self, rows) -> "_Candidates":
-        return _Candidates(self.q0_mm[rows], self.d0_mm[rows], self.excluded_mm[rows], self.sites[rows],
-                           self.lower_mm[rows])
-
-    def put(self, rows, other: "_Candidates") -> None:
-        self.q0_mm[rows], self.d0_mm[rows], self.excluded_mm[rows] = other.q0_mm, other.d0_mm, other.excluded_mm
-        self.sites[rows], self.lower_mm[rows] = other.sites, other.lower_mm
-
-
 def _search(surface, q, k):
-    """Exact nearest face of each point from the ``k`` nearest sites (module docstring).
+    """Exact nearest face of the points q from their ``k`` nearest sites (module docstring).
 
-    Returns (best_d2, best_face, _Candidates).
+    Returns ``best`` (d2, face, key: the site distance) per point and what the
+    search proved, for :mod:`registration.tracking`: the listed ``sites``
+    (n, kc), the ``lower`` bounds on their faces' distances (exact where
+    ``evaluated``, with the ``offsets`` (n, kc, 3) of q from the closest
+    points; else site distance less site radius) and ``excluded``: every face
+    with no listed site is at least that far (-inf where the listed sites did
+    not settle the point).
     """
     n = q.shape[0]
     n_sites = surface._site_face.shape[0]
@@ -309,14 +294,17 @@ def _search(surface, q, k):
     dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
     faces = surface._site_face[idx]
     lower = dist_s - surface._site_radius[idx]
-    rows = np.arange(n)
+    offsets = np.zeros((n, kc, 3))
+    evaluated = np.zeros((n, kc), dtype=bool)
     # the nearest site's face bounds the distance
-    best = (_face_d2(surface, q, rows, faces[:, 0]), faces[:, 0].copy(), dist_s[:, 0].copy())
-    lower[:, 0] = np.sqrt(best[0])
+    d2, offsets[:, 0] = _face_d2(surface, q, np.arange(n), faces[:, 0], offsets=True)
+    best = (d2, faces[:, 0].copy(), dist_s[:, 0].copy())
+    lower[:, 0] = np.sqrt(d2)
     r, c = np.nonzero(lower[:, 1:] <= lower[:, :1])
     c += 1
-    d2 = _face_d2(surface, q, r, faces[r, c])
+    d2, offsets[r, c] = _face_d2(surface, q, r, faces[r, c], offsets=True)
     lower[r, c] = np.sqrt(d2)
+    evaluated[:, 0], evaluated[r, c] = True, True
     _lower_best(best, r, faces[r, c], d2, dist_s[r, c])
     # faces without a site among the kc nearest are at least (kc-th site distance - r) away
     excluded = dist_s[:, -1] - surface.site_radius_mm if kc < n_sites else np.full(n, np.inf)
@@ -324,35 +312,10 @@ def _search(surface, q, k):
     if unproven.size:
         _ball_search(best, surface, q, unproven)
         excluded[unproven] = -np.inf
-    return best[0], best[1], _Candidates(q.copy(), np.sqrt(best[0]), excluded, idx, lower)
+    return best, dict(sites=idx, lower=lower, evaluated=evaluated, offsets=offsets, excluded=excluded)
 
 
-def _reuse(surface, q, near: _Candidates):
-    """Exact nearest face of points q near the points of an earlier search, where that proves it.
-
-    A point moved by ``delta`` from ``q0`` is at most ``d0 + delta`` from the
-    earlier nearest face, at least ``lower - delta`` from a listed face and
-    ``excluded - delta`` from any other: only the listed faces with ``lower <=
-    d0 + 2 delta`` can be nearest, and when ``2 delta <= excluded - d0`` no
-    unlisted one can.
-
-    Returns (ok, best_d2, best_face, _Candidates at q) for the rows ``ok``.
-    """
-    delta = np.linalg.norm(q - near.q0_mm, axis=1)
-    ok = np.flatnonzero(2.0 * delta <= near.excluded_mm - near.d0_mm)
-    near, delta, q = near.take(ok), delta[ok], q[ok]
-    lower = near.lower_mm - delta[:, None]
-    r, c = np.nonzero(lower <= (near.d0_mm + delta)[:, None])
-    sites = near.sites[r, c]
-    faces = surface._site_face[sites]
-    d2 = _face_d2(surface, q, r, faces)
-    lower[r, c] = np.sqrt(d2)
-    best = (np.full(ok.size, np.inf), np.zeros(ok.size, dtype=np.int64), np.full(ok.size, np.inf))
-    _lower_best(best, r, faces, d2, np.linalg.norm(surface.tree.data[sites] - q[r], axis=1))
-    return ok, best[0], best[1], _Candidates(q, np.sqrt(best[0]), near.excluded_mm - delta, near.sites, lower)
-
-
-def _finish(surface, q, best_face) -> "ClosestPoints":
+def _finish(surface, q, best_face) -> ClosestPoints:
     """The closest points on the found faces."""
     a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
     v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
@@ -389,72 +352,5 @@ def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
         raise ValueError("points must be finite")
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
-    _, best_face, _ = _search(surface, q, k)
-    return _finish(surface, q, best_face)
-
-
-class PointSetTracker:
-    """Exact closest points of m point sets of n points that move a little between queries.
-
-    The ICP of a phase sweep queries the same points again and again, each
-    time moved by one ICP step, and neighbouring sets (phases) lie close to
-    each other.  Each point keeps what its last search proved
-    (:class:`_Candidates`); a query first tries that (:func:`_reuse`); the
-    points it cannot settle are searched afresh (:func:`_search`) in every
-    ``stride``-th of their sets, and the others try the fresh search of the
-    same point in the nearest such set before their own search.  Every answer
-    is exact (the nearest face, with the same first-minimum rule as
-    :func:`closest_points`).
-
-    Parameters
-    ----------
-    surface : SurfaceIndex
-    m, n : int
-        Sets and points per set.
-    k : int
-        Nearest search sites of a fresh search.
-    stride : int
-        Fresh searches in every this many sets needing one.
-    """
-
-    def __init__(self, surface, m: int, n: int, *, k: int = 24, stride: int = 4):
-        self.surface, self.n, self.k, self.stride = surface, n, k, stride
-        kc = int(min(k, surface._site_face.shape[0]))
-        self.known = _Candidates(np.zeros((m * n, 3)), np.zeros(m * n), np.full(m * n, -np.inf),
-                                 np.zeros((m * n, kc), dtype=np.int64), np.zeros((m * n, kc)))
-
-    def query(self, sets, q) -> ClosestPoints:
-        """Closest points of ``q`` (a, n, 3), the points of the sets ``sets`` (a,) (ascending)."""
-        n = self.n
-        sets = np.asarray(sets, dtype=np.int64)
-        q = q.reshape(-1, 3)
-        slots = (sets[:, None] * n + np.arange(n)).ravel()
-        best_face = np.zeros(q.shape[0], dtype=np.int64)
-        todo = self._reuse(best_face, q, np.arange(q.shape[0]), slots, slots)
-        if todo.size:
-            local = todo // n
-            need = np.unique(local)
-            fresh = np.unique(np.r_[need[:: self.stride], need[-1]])
-            is_fresh = np.isin(local, fresh)
-            self._search(best_face, q, todo[is_fresh], slots)
-            rest = todo[~is_fresh]
-            if rest.size:
-                own = sets[rest // n]
-                pos = np.searchsorted(sets[fresh], own)
-                lo, hi = fresh[np.maximum(pos - 1, 0)], fresh[np.minimum(pos, fresh.size - 1)]
-                donor = np.where(own - sets[lo] <= sets[hi] - own, lo, hi)
-                left = self._reuse(best_face, q, rest, slots[donor * n + rest % n], slots[rest])
-                self._search(best_face, q, left, slots)
-        return _finish(self.surface, q, best_face)
-
-    def _reuse(self, best_face, q, rows, src, dst):
-        """Settle ``rows`` from the candidates of slots ``src``, kept in ``dst``; the rows left unsettled."""
-        ok, _, face, found = _reuse(self.surface, q[rows], self.known.take(src))
-        best_face[rows[ok]] = face
-        self.known.put(dst[ok], found)
-        return np.setdiff1d(rows, rows[ok], assume_unique=True)
-
-    def _search(self, best_face, q, rows, slots):
-        if rows.size:
-            _, best_face[rows], found = _search(self.surface, q[rows], self.k)
-            self.known.put(slots[rows], found)
+    best, _ = _search(surface, q, k)
+    return _finish(surface, q, best[1])

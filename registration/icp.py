@@ -30,9 +30,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.geometry import kabsch
+from registration.tracking import PointSetTracker
 from registration.closest import (
     ClosestPoints,
-    PointSetTracker,
     SurfaceIndex,
     _as_index,
     closest_points,
@@ -148,7 +148,7 @@ def icp(
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
     degeneracy_ratio: float = 1e-3,
-    k: int = 24,
+    k: int = 128,
 ) -> IcpResult:
     """Rigidly register points to a triangle mesh.
 
@@ -192,7 +192,8 @@ def icp(
     degeneracy_ratio : float
         See :attr:`IcpResult.degenerate`.
     k : int
-        Candidate faces per point tried first by :func:`closest_points`.
+        Nearest search sites of a fresh closest-point search
+        (:class:`registration.tracking.PointSetTracker`).
 
     Returns
     -------
@@ -268,7 +269,7 @@ def icp_sweep_distances(
     tol_loss: float = TOL_LOSS,
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
-    k: int = 24,
+    k: int = 128,
     warm_start: bool = False,
     warm_stride: int = 10,
     signed: bool = False,
