@@ -127,6 +127,18 @@ def _as_index(surface) -> SurfaceIndex:
     raise ValueError("surface must be a SurfaceIndex, a (vertices, faces) tuple or a mesh")
 
 
+def _as_points(points, *, at_least: int = 1) -> np.ndarray:
+    """``points`` as finite (n, 3) float64 with n >= ``at_least``; ValueError naming them otherwise."""
+    q = np.asarray(points, dtype=float)
+    if q.ndim != 2 or q.shape[1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got {q.shape}")
+    if q.shape[0] < at_least:
+        raise ValueError(f"need at least {at_least} points, got {q.shape[0]}")
+    if not np.all(np.isfinite(q)):
+        raise ValueError("points must be finite")
+    return q
+
+
 def _closest_barycentric(p, a, ab, ac, dots=None):
     """Closest point on triangles (a, a + ab, a + ac) to p; all (..., 3).
 
@@ -345,11 +357,7 @@ def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
     ClosestPoints
     """
     surface = _as_index(surface)
-    q = np.asarray(points, dtype=float)
-    if q.ndim != 2 or q.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {q.shape}")
-    if not np.all(np.isfinite(q)):
-        raise ValueError("points must be finite")
+    q = _as_points(points)
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
     best, _ = _search(surface, q, k)
