@@ -231,7 +231,11 @@ def _sample_model(case: Path) -> Path:
 
 
 def main(argv=None) -> int:
-    args = common.bench_argparser(__doc__.splitlines()[0]).parse_args(argv)
+    parser = common.bench_argparser(__doc__.splitlines()[0])
+    parser.add_argument("--only", action="append", choices=("fit", "sweep", "register"),
+                        help="run only this step (repeatable); all by default")
+    args = parser.parse_args(argv)
+    steps = set(args.only or ("fit", "sweep", "register"))
     common.ensure_requirements()
     n = args.repeats
     me = ME
@@ -244,6 +248,17 @@ def main(argv=None) -> int:
     imports = ("numpy", "scipy.spatial", "registration")
     rows = []
 
+    if "fit" in steps:
+        _fit_row(rows, me, inputs, imports, n)
+    if "sweep" in steps:
+        _sweep_row(rows, me, inputs, imports, n)
+    if "register" in steps:
+        _register_row(rows, n)
+    common.write_results(me, rows, command=common.command_line(), repeats=n)
+    return 0
+
+
+def _fit_row(rows, me, inputs, imports, n):
     fit = common.run_step(f"{me}:fit_models", {"inputs": inputs}, repeats=n, imports=imports)
     rows.append(common.Row(
         step=f"motion-model fit ({fit.info['n_points']} points x {fit.info['n_samples']} samples)",
@@ -253,6 +268,9 @@ def main(argv=None) -> int:
                f"inputs loaded untimed; baseline after imports {fit.info['baseline_mb']:.0f} MB"),
         command="[fit_motion_model(phase_c, phase_r, T) for each of 100 points]",
     ))
+
+
+def _sweep_row(rows, me, inputs, imports, n):
 
     o3d_error = _open3d_status()
     specs = {"ours": {"target": f"{me}:sweep_ours", "kwargs": {"inputs": inputs}, "imports": imports}}
@@ -289,6 +307,9 @@ def main(argv=None) -> int:
         command="registration.spatiotemporal.sweep_phase(None, index, T0, fixed_phase=0.65, points=P)",
     ))
 
+
+def _register_row(rows, n):
+
     case = common.ensure_phantom_case("sample_case", size="sample", preset="default", seed=1, session=True)
     model = _sample_model(case)
     with common.scratch_dir("register-") as root:
@@ -308,8 +329,6 @@ def main(argv=None) -> int:
                f"stage times of the last run (s): {timings}"),
         command="heartreg register " + " ".join(str(a) for a in argv[2:]).replace(str(common.REPO_DIR) + "/", ""),
     ))
-    common.write_results(me, rows, command=common.command_line(), repeats=n)
-    return 0
 
 
 if __name__ == "__main__":

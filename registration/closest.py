@@ -127,6 +127,18 @@ def _as_index(surface) -> SurfaceIndex:
     raise ValueError("surface must be a SurfaceIndex, a (vertices, faces) tuple or a mesh")
 
 
+def _as_points(points, *, at_least: int = 1) -> np.ndarray:
+    """``points`` as finite (n, 3) float64 with n >= ``at_least``; ValueError naming them otherwise."""
+    q = np.asarray(points, dtype=float)
+    if q.ndim != 2 or q.shape[1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got {q.shape}")
+    if q.shape[0] < at_least:
+        raise ValueError(f"need at least {at_least} points, got {q.shape[0]}")
+    if not np.all(np.isfinite(q)):
+        raise ValueError("points must be finite")
+    return q
+
+
 def _closest_barycentric(p, a, ab, ac, dots=None):
     """Closest point on triangles (a, a + ab, a + ac) to p; all (..., 3).
 
@@ -223,36 +235,104 @@ class ClosestPoints:
     normals: np.ndarray
 
 
-def _face_d2(surface, q, rows, faces):
-    """Squared distance of q[rows] to faces (pairs), (p,) float64; NaN (a degenerate face) as inf."""
+def _face_d2(surface, q, rows, faces, offsets=False):
+    """Squared distance of q[rows] to faces (pairs), (p,) float64; NaN (a degenerate face) as inf.
+
+    With ``offsets`` also the (p, 3) offsets of the points from their closest points.
+    """
     a, ab, ac = surface._a[faces], surface._ab[faces], surface._ac[faces]
     qr = q[rows]
     v, w = _closest_barycentric(qr, a, ab, ac, surface._dots[faces])
     diff = qr - a - v[:, None] * ab - w[:, None] * ac
     d2 = np.einsum("ij,ij->i", diff, diff)
-    return np.where(np.isnan(d2), np.inf, d2)
+    d2 = np.where(np.isnan(d2), np.inf, d2)
+    return (d2, diff) if offsets else d2
 
 
-def _improve(best_d2, best_face, surface, q, rows, sites, site_dist):
-    """Lower ``best_d2`` / ``best_face`` in place with the candidate sites (pairs, rows sorted).
+def _lower_best(best, rows, faces, d2, key):
+    """Lower the best (d2, face, key) of each row in place with the pairs (rows sorted).
 
-    A face can hold a point nearer than the current best only if one of its
-    sites lies within the best distance plus that site's radius; the others
-    are skipped unevaluated.
+    Of equal distances (a point nearest to an edge or a vertex shared by
+    faces) the face with the nearest search site (``key``, mm) wins, as in a
+    scan of the sites nearest first.
     """
-    keep = site_dist - surface._site_radius[sites] <= np.sqrt(best_d2[rows])
-    rows, faces = rows[keep], surface._site_face[sites[keep]]
     if rows.size == 0:
         return
-    d2 = _face_d2(surface, q, rows, faces)
+    best_d2, best_face, best_key = best
     starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     low = np.minimum.reduceat(d2, starts)
     seg = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, rows.size]))
     hit = np.flatnonzero(d2 == low[seg])
-    hit = hit[np.r_[True, seg[hit][1:] != seg[hit][:-1]]]  # the first minimum of each row
+    hit = hit[np.lexsort((key[hit], seg[hit]))]
+    hit = hit[np.r_[True, seg[hit][1:] != seg[hit][:-1]]]  # the nearest site of each row's minima
     r = rows[hit]
-    better = d2[hit] < best_d2[r]
-    best_d2[r[better]], best_face[r[better]] = d2[hit][better], faces[hit][better]
+    better = (d2[hit] < best_d2[r]) | ((d2[hit] == best_d2[r]) & (key[hit] < best_key[r]))
+    r, hit = r[better], hit[better]
+    best_d2[r], best_face[r], best_key[r] = d2[hit], faces[hit], key[hit]
+
+
+def _ball_search(best, surface, q, rows):
+    """Settle ``rows`` by every site within their best distance plus the largest site radius (in place)."""
+    best_d2 = best[0]
+    radius = np.sqrt(best_d2[rows]) + surface.site_radius_mm
+    lists = surface.tree.query_ball_point(q[rows], np.where(np.isfinite(radius), radius, np.inf),
+                                          workers=-1, return_sorted=False)
+    lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
+    rr = np.repeat(rows, lengths)
+    # a face can hold a point nearer than the best only if one of its sites lies within
+    # the best distance plus that site's radius; the others are skipped unevaluated
+    dist = np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1)
+    keep = dist - surface._site_radius[sites] <= np.sqrt(best_d2[rr])
+    rr, faces, dist = rr[keep], surface._site_face[sites[keep]], dist[keep]
+    _lower_best(best, rr, faces, _face_d2(surface, q, rr, faces), dist)
+
+
+def _search(surface, q, k):
+    """Exact nearest face of the points q from their ``k`` nearest sites (module docstring).
+
+    Returns ``best`` (d2, face, key: the site distance) per point and what the
+    search proved, for :mod:`registration.tracking`: the listed ``sites``
+    (n, kc), the ``lower`` bounds on their faces' distances (exact where
+    ``evaluated``, with the ``offsets`` (n, kc, 3) of q from the closest
+    points; else site distance less site radius) and ``excluded``: every face
+    with no listed site is at least that far (-inf where the listed sites did
+    not settle the point).
+    """
+    n = q.shape[0]
+    n_sites = surface._site_face.shape[0]
+    kc = int(min(k, n_sites))
+    dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
+    dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
+    faces = surface._site_face[idx]
+    lower = dist_s - surface._site_radius[idx]
+    offsets = np.zeros((n, kc, 3))
+    evaluated = np.zeros((n, kc), dtype=bool)
+    # the nearest site's face bounds the distance
+    d2, offsets[:, 0] = _face_d2(surface, q, np.arange(n), faces[:, 0], offsets=True)
+    best = (d2, faces[:, 0].copy(), dist_s[:, 0].copy())
+    lower[:, 0] = np.sqrt(d2)
+    r, c = np.nonzero(lower[:, 1:] <= lower[:, :1])
+    c += 1
+    d2, offsets[r, c] = _face_d2(surface, q, r, faces[r, c], offsets=True)
+    lower[r, c] = np.sqrt(d2)
+    evaluated[:, 0], evaluated[r, c] = True, True
+    _lower_best(best, r, faces[r, c], d2, dist_s[r, c])
+    # faces without a site among the kc nearest are at least (kc-th site distance - r) away
+    excluded = dist_s[:, -1] - surface.site_radius_mm if kc < n_sites else np.full(n, np.inf)
+    unproven = np.flatnonzero(np.sqrt(best[0]) > excluded)
+    if unproven.size:
+        _ball_search(best, surface, q, unproven)
+        excluded[unproven] = -np.inf
+    return best, dict(sites=idx, lower=lower, evaluated=evaluated, offsets=offsets, excluded=excluded)
+
+
+def _finish(surface, q, best_face) -> ClosestPoints:
+    """The closest points on the found faces."""
+    a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
+    v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
+    cp = a + v[:, None] * ab + w[:, None] * ac
+    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
 
 
 def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
@@ -277,36 +357,8 @@ def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
     ClosestPoints
     """
     surface = _as_index(surface)
-    q = np.asarray(points, dtype=float)
-    if q.ndim != 2 or q.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {q.shape}")
-    if not np.all(np.isfinite(q)):
-        raise ValueError("points must be finite")
+    q = _as_points(points)
     if k < 1:
         raise ValueError(f"k must be >= 1, got {k}")
-    n = q.shape[0]
-    n_sites = surface._site_face.shape[0]
-    kc = int(min(k, n_sites))
-    dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
-    dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
-    rows = np.arange(n)
-    best_face = surface._site_face[idx[:, 0]]
-    best_d2 = _face_d2(surface, q, rows, best_face)
-    rr = np.repeat(rows, kc - 1)
-    _improve(best_d2, best_face, surface, q, rr, idx[:, 1:].ravel(), dist_s[:, 1:].ravel())
-    # faces without a site among the kc nearest are at least (kc-th site distance - r) away
-    if kc < n_sites:
-        unproven = np.flatnonzero(np.sqrt(best_d2) > dist_s[:, -1] - surface.site_radius_mm)
-        if unproven.size:
-            radius = np.sqrt(best_d2[unproven]) + surface.site_radius_mm
-            lists = surface.tree.query_ball_point(q[unproven], np.where(np.isfinite(radius), radius, np.inf),
-                                                  workers=-1, return_sorted=False)
-            lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-            sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
-            rr = np.repeat(unproven, lengths)
-            _improve(best_d2, best_face, surface, q, rr, sites,
-                     np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1))
-    a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
-    v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
-    cp = a + v[:, None] * ab + w[:, None] * ac
-    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
+    best, _ = _search(surface, q, k)
+    return _finish(surface, q, best[1])

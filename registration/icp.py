@@ -3,7 +3,10 @@
 Closest points
 --------------
 :func:`closest_points` (:mod:`registration.closest`) returns the exact closest
-point on the mesh, not on a sampled cloud.
+point on the mesh, not on a sampled cloud.  The iteration asks through a
+:class:`registration.tracking.PointSetTracker`, which gives the same answer
+while reusing what earlier queries proved (each point moves a little per
+step, and the sets of neighbouring phases lie close together).
 
 ICP
 ---
@@ -24,16 +27,19 @@ below ``degeneracy_ratio``.
 from __future__ import annotations
 
 import enum
+import inspect
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.geometry import kabsch
+from registration.tracking import PointSetTracker
 from registration.closest import (
     ClosestPoints,
     SurfaceIndex,
     _as_index,
+    _as_points,
     closest_points,
     closest_points_on_triangles,
 )
@@ -147,7 +153,7 @@ def icp(
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
     degeneracy_ratio: float = 1e-3,
-    k: int = 24,
+    k: int = 128,
 ) -> IcpResult:
     """Rigidly register points to a triangle mesh.
 
@@ -191,18 +197,15 @@ def icp(
     degeneracy_ratio : float
         See :attr:`IcpResult.degenerate`.
     k : int
-        Candidate faces per point tried first by :func:`closest_points`.
+        Nearest search sites of a fresh closest-point search
+        (:class:`registration.tracking.PointSetTracker`).
 
     Returns
     -------
     IcpResult
     """
     surface = _as_index(surface)
-    src = np.asarray(points, dtype=float)
-    if src.ndim != 2 or src.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {src.shape}")
-    if src.shape[0] < 3:
-        raise ValueError(f"ICP needs at least 3 points, got {src.shape[0]}")
+    src = _as_points(points, at_least=3)
     method = IcpMethod(method)
     T = _check_options(src, T_init, trim_fraction, huber_mm, max_iterations)
     n = src.shape[0]
@@ -260,17 +263,10 @@ def icp_sweep_distances(
     surface,
     *,
     T_init=None,
-    method: IcpMethod | str = IcpMethod.POINT_TO_PLANE,
-    max_iterations: int = 50,
-    tol_mm: float = 1e-3,
-    tol_deg: float = 1e-3,
-    tol_loss: float = TOL_LOSS,
-    trim_fraction: float = 0.0,
-    huber_mm: float | None = None,
-    k: int = 24,
     warm_start: bool = False,
     warm_stride: int = 10,
     signed: bool = False,
+    **options,
 ):
     """:func:`icp` of many point sets at once.
 
@@ -293,8 +289,6 @@ def icp_sweep_distances(
     surface : SurfaceIndex or (vertices, faces)
     T_init : (4, 4) or (m, 4, 4) float, optional
         Seed of every registration, or one per set.
-    method, max_iterations, tol_mm, tol_deg, tol_loss, trim_fraction, huber_mm, k
-        As for :func:`icp`.
     warm_start : bool
         Seed each set by its registered neighbour (see above).
     warm_stride : int
@@ -302,6 +296,10 @@ def icp_sweep_distances(
     signed : bool
         Signed distances: negative inside the surface (by the closest face's
         outward normal).
+    **options
+        The other keyword arguments of :func:`icp` (``method``,
+        ``max_iterations``, the tolerances, ``trim_fraction``, ``huber_mm``,
+        ``k``), with its defaults.
 
     Returns
     -------
@@ -312,6 +310,10 @@ def icp_sweep_distances(
     converged : (m,) bool
     """
     surface = _as_index(surface)
+    bound = inspect.signature(icp).bind(points, surface, **options)
+    bound.apply_defaults()
+    kw = bound.arguments
+    trim_fraction, huber_mm, max_iterations = kw["trim_fraction"], kw["huber_mm"], kw["max_iterations"]
     src = np.asarray(points, dtype=float)
     if src.ndim != 3 or src.shape[2] != 3 or src.shape[0] == 0:
         raise ValueError(f"points must have shape (m, n, 3), got {src.shape}")
@@ -325,9 +327,9 @@ def icp_sweep_distances(
         seeds = np.repeat(_check_options(src, seeds, trim_fraction, huber_mm, max_iterations)[None], m, axis=0)
     if int(warm_stride) != warm_stride or warm_stride < 1:
         raise ValueError(f"warm_stride must be a positive integer, got {warm_stride}")
-    options = dict(method=IcpMethod(method), max_iterations=max_iterations, tol_mm=tol_mm, tol_deg=tol_deg,
-                   tol_loss=tol_loss, n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))), huber_mm=huber_mm,
-                   k=k)
+    options = dict(method=IcpMethod(kw["method"]), max_iterations=max_iterations, tol_mm=kw["tol_mm"],
+                   tol_deg=kw["tol_deg"], tol_loss=kw["tol_loss"], huber_mm=huber_mm, k=kw["k"],
+                   n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))))
     def distances(fit, points):
         if not signed:
             return fit.distances_mm
@@ -419,10 +421,11 @@ def _icp_batch(src, surface, seeds, *, method, max_iterations, tol_mm, tol_deg, 
     small = np.zeros(m, dtype=bool)  # the step to T was below tol_mm and tol_deg
     halved = np.zeros(m, dtype=bool)  # T is a halved step back towards the best
     active = np.arange(m)
+    tracker = PointSetTracker(surface, m, n, k=k)
     while active.size:
         a = active
         q = np.einsum("aij,anj->ani", T[a, :3, :3], src[a]) + T[a, None, :3, 3]
-        cp = closest_points(surface, q.reshape(-1, 3), k=k)
+        cp = tracker.query(a, q)
         d = cp.distances_mm.reshape(len(a), n)
         w = _weights_batch(d, n_keep, huber_mm)
         loss = _loss(d, w, huber_mm)

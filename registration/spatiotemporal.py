@@ -295,21 +295,11 @@ def sweep_phase(
     dT = Ts @ invert(T0)
     shift = dT[:, :3, :3] @ pivot + dT[:, :3, 3] - pivot
     return PhaseSweep(
-        kind=kind,
-        phases=phases.copy(),
-        fixed_phase=float(fixed_phase),
-        rms_mm=rms,
-        T_map_from_source=Ts,
-        translation_distance_mm=np.linalg.norm(shift, axis=1),
-        rotation_distance_deg=rotation_distance_deg(Ts, T0),
-        correction_translation_mm=shift,
-        correction_euler_xyz_deg=euler_xyz_deg_from_matrix(dT),
-        euler_xyz_deg=euler_xyz_deg_from_matrix(Ts),
-        iterations=iterations,
-        converged=converged,
-        pivot_mm=pivot,
-        distances_mm=distances,
-        signed_distances_mm=signed,
+        kind=kind, phases=phases.copy(), fixed_phase=float(fixed_phase), rms_mm=rms, T_map_from_source=Ts,
+        translation_distance_mm=np.linalg.norm(shift, axis=1), rotation_distance_deg=rotation_distance_deg(Ts, T0),
+        correction_translation_mm=shift, correction_euler_xyz_deg=euler_xyz_deg_from_matrix(dT),
+        euler_xyz_deg=euler_xyz_deg_from_matrix(Ts), iterations=iterations, converged=converged, pivot_mm=pivot,
+        distances_mm=distances, signed_distances_mm=signed,
     )
 
 
