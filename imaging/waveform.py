@@ -167,7 +167,7 @@ def _to_mv(ch: Dataset, label: str, name: str) -> tuple[float, str | None]:
 
 
 def _start_time(ds: Dataset, group: Dataset, name: str) -> tuple[float, str]:
-    from imaging.discover import _date, on_study_clock
+    from imaging.dicom_values import _date, on_study_clock
 
     offset_s = float(group.get("MultiplexGroupTimeOffset", 0.0) or 0.0) / 1000.0
     study_day = _date(ds.get("StudyDate"))

@@ -567,7 +567,7 @@ def test_single_valued_image_type_localizer_is_recognised(tmp_path):
     """ImageType with one value ('LOCALIZER') must not be split into letters."""
     import pydicom
 
-    from imaging.discover import _upper_values
+    from imaging.dicom_values import _upper_values
 
     assert _upper_values("LOCALIZER") == ("LOCALIZER",)
     assert _upper_values(pydicom.multival.MultiValue(str, ["ORIGINAL", "primary"])) == ("ORIGINAL", "PRIMARY")
