@@ -10,10 +10,10 @@ from imaging.nifti import is_nifti_path, read_nifti_volume
 from imaging.phase import GatingError, GatingWarning, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
 from imaging.phase_io import PhaseFileError, plot_phases, read_phase_report, write_phase_report
 from imaging.respiration import expiration_onsets, respiration_phase
-from imaging.series import SeriesSummary, StudyError, StudyWarning, list_series, load_study
+from imaging.grouping import SeriesSummary, StudyError, StudyWarning
+from imaging.series import list_series, load_study
+from imaging.pixels import DecoderUnavailableError, PixelDataError
 from imaging.volume import (
-    DecoderUnavailableError,
-    PixelDataError,
     SeriesError,
     SeriesInfo,
     SliceInfo,

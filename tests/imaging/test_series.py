@@ -24,14 +24,10 @@ from pydicom.encaps import encapsulate
 from pydicom.uid import JPEG2000Lossless, JPEGLSLossless, RLELossless
 from scipy.spatial.transform import Rotation
 
-from imaging.series import (
-    SeriesError,
-    StudyError,
-    StudyWarning,
-    list_series,
-    load_study,
-)
-from imaging.volume import DecoderUnavailableError, SliceInfo, Volume
+from imaging.grouping import StudyError, StudyWarning
+from imaging.pixels import DecoderUnavailableError
+from imaging.series import list_series, load_study
+from imaging.volume import SeriesError, SliceInfo, Volume
 
 from . import dicom_factory as fac
 
