@@ -31,19 +31,12 @@ from modeling.labelmap import (
     read_label_map,
     mask_on_grid,
 )
-from modeling.surface import (
-    Mesh,
-    MeshError,
-    decimate,
-    mask_to_mesh,
-    check_mesh,
-    transform_mesh,
-    write_mesh,
-    read_ply,
-)
+from modeling.mesh import Mesh, MeshError, check_mesh, transform_mesh
+from modeling.mesh_io import read_ply, write_mesh
+from modeling.surface import decimate, mask_to_mesh
+from modeling.slab_ellipses import SlabEllipse
 from modeling.frame import (
     FrameError,
-    SlabEllipse,
     HeartFrame,
     fit_heart_frame,
     ANTERIOR_LPS,

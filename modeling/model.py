@@ -35,16 +35,11 @@ from hrcore.geometry import apply_to_points
 from hrcore.output import staged_output
 from imaging.files import umask_mode
 from modeling.fiducials import order_fiducials
-from modeling.frame import HeartFrame, SlabEllipse, fit_heart_frame
+from modeling.frame import HeartFrame, fit_heart_frame
+from modeling.mesh import Mesh, MeshError, check_mesh, transform_mesh
+from modeling.mesh_io import read_ply, write_mesh
+from modeling.slab_ellipses import SlabEllipse
 from modeling.slicer import write_itk_transform, write_markups
-from modeling.surface import (
-    Mesh,
-    MeshError,
-    check_mesh,
-    read_ply,
-    transform_mesh,
-    write_mesh,
-)
 
 __all__ = [
     "ModelError",
