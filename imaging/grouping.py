@@ -24,15 +24,9 @@ from .volume import _files_text
 
 #: Slice positions closer than this (mm) are the same position.
 SAME_POSITION_MM = 0.01
-
-
 #: A stack is called axial/coronal/sagittal when its normal is this close to an axis.
 AXIS_COS = np.cos(np.radians(10.0))
-
-
 _LOADABLE = ("volume", "slice", "localizer")
-
-
 _SPLIT_KEYS = (
     ("nominal_cardiac_percent", "NominalPercentageOfCardiacPhase"),
     ("trigger_time_ms", "TriggerTime"),

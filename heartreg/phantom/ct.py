@@ -47,7 +47,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from heartreg.phantom.chest import build_chest, render_slice
+from heartreg.phantom.chest import build_chest
+from heartreg.phantom.chest_render import render_slice
 from heartreg.phantom.config import SIZES, CTGeometry, PhantomConfig
 from heartreg.phantom.dicom_ct import ct_slice_dataset, derive_uid, ecg_dataset
 from heartreg.phantom.geometry import frozen

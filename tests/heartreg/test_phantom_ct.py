@@ -17,7 +17,8 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from heartreg.phantom import ct as ct_module
-from heartreg.phantom.chest import build_chest, render_slice
+from heartreg.phantom.chest import build_chest
+from heartreg.phantom.chest_render import render_slice
 from heartreg.phantom.config import PRESETS, SIZES, config_from_dict, make_config
 from heartreg.phantom.ct import CTStudyExistsError, plan_acquisition, write_ct_study
 from heartreg.phantom.dicom_ct import GE_ACQU_CREATOR, GE_CARDIAC_CREATOR
