@@ -175,7 +175,8 @@ def _open_model_input(args):
 
 
 def _cmd_model(args) -> int:
-    from modeling import build_heart_model, offscreen_available, render_model_png, start_offscreen_probe, write_model
+    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling.render import start_offscreen_probe
 
     if args.list_series:
         return _print_series(args.study_dir)

@@ -594,7 +594,7 @@ def test_a_stray_repeated_position_is_dropped_not_split(tmp_path):
 
 
 def test_zero_rescale_slope_is_a_clear_error(tmp_path):
-    from imaging import PixelDataError
+    from imaging.pixels import PixelDataError
 
     with np.errstate(divide="ignore", invalid="ignore"):  # the factory divides by the slope
         fac.write_ct_series(tmp_path, rescale=(0.0, -1024.0))
