@@ -118,6 +118,12 @@ def cardiac_phase(time_s, r_peaks_s) -> np.ndarray:
     ------
     SignalError
         If fewer than two R-peaks are given, or they are not strictly increasing.
+
+    Examples
+    --------
+    >>> from imaging import cardiac_phase
+    >>> cardiac_phase([0.5, 1.25, 1.9, 2.5], [0.0, 1.0, 2.0])  # after the last R-peak: unknown
+    array([0.5 , 0.25, 0.9 ,  nan])
     """
     return phase_from_events(time_s, r_peaks_s, name="r_peaks_s", what="R-peak")
 

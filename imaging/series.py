@@ -45,6 +45,14 @@ def list_series(path, *, progress: bool = False) -> tuple[SeriesSummary, ...]:
     -------
     tuple of SeriesSummary
         In a stable order; ``index`` is what ``load_study(series=index)`` takes.
+
+    Examples
+    --------
+    The repository's sample study holds a gated CT series and its ECG:
+
+    >>> from imaging import list_series
+    >>> [(s.index, s.kind, s.n_slices) for s in list_series("sample_dicom/ct")]
+    [(0, 'volume', 72), (1, 'non-image', 0)]
     """
     _, groups, _ = _scan_groups(path, progress)
     return tuple(g.summary for g in groups)
@@ -212,6 +220,15 @@ def load_study(
         A compressed transfer syntax has no installed decoder (names the package).
     imaging.pixels.PixelDataError
         A file's pixel data cannot be decoded.
+
+    Examples
+    --------
+    >>> from imaging import load_study
+    >>> volume = load_study("sample_dicom/ct")
+    >>> volume.hu.shape, volume.spacing_mm.tolist()  # [k, j, i] voxels; mm along i, j, k
+    ((72, 128, 128), [1.95, 1.95, 2.5])
+    >>> len(volume.waveform_files)  # the ECG recorded with it
+    1
     """
     if not isinstance(progress, (bool, np.bool_)):
         raise TypeError(f"progress must be a bool, got {type(progress).__name__}")

@@ -284,6 +284,13 @@ def read_ecg_waveform(path_or_dataset, *, channel=None, group: int | None = None
     WaveformError
         If the file is not DICOM, not an ECG waveform, has no waveform data, has
         no time, or the lead asked for does not exist.
+
+    Examples
+    --------
+    >>> from imaging import load_study, read_ecg_waveform
+    >>> ecg = read_ecg_waveform(load_study("sample_dicom/ct").waveform_files[0])
+    >>> ecg.rate_hz, ecg.channel_label, ecg.signal_mv.shape
+    (500.0, 'II', (6302,))
     """
     if isinstance(path_or_dataset, Dataset):
         ds, name = path_or_dataset, str(getattr(path_or_dataset, "filename", "") or "<Dataset>")

@@ -164,6 +164,19 @@ def fit_heart_frame(
     ------
     FrameError
         Fewer than three slabs give an ellipse (reduce ``slab_mm`` or check the mesh).
+
+    Examples
+    --------
+    The long axis of an ellipsoid's surface, pointing to the hinted base:
+
+    >>> import numpy as np
+    >>> from modeling import fit_heart_frame, mask_to_mesh
+    >>> k, j, i = np.mgrid[:50, :40, :40]
+    >>> mask = ((k - 25) / 22) ** 2 + ((j - 20) / 14) ** 2 + ((i - 20) / 12) ** 2 < 1
+    >>> mesh = mask_to_mesh(mask, np.diag([2.0, 2.0, 2.0, 1.0]), target_faces=2000)
+    >>> frame = fit_heart_frame(mesh.vertices, base_hint=[0, 0, 1])
+    >>> frame.T_patient_from_heart[:3, 2].round(2) + 0.0  # the heart's z in patient LPS
+    array([0., 0., 1.])
     """
     v = np.asarray(vertices_patient, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3:

@@ -237,6 +237,17 @@ def make_heart_model(
     source, parameters : Mapping, optional
     slab_mm, base_hint
         Passed to :func:`modeling.frame.fit_heart_frame`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from modeling import make_heart_model, mask_to_mesh
+    >>> k, j, i = np.mgrid[:50, :40, :40]
+    >>> mask = ((k - 25) / 22) ** 2 + ((j - 20) / 14) ** 2 + ((i - 20) / 12) ** 2 < 1
+    >>> mesh = mask_to_mesh(mask, np.diag([2.0, 2.0, 2.0, 1.0]), target_faces=2000)
+    >>> model = make_heart_model(mesh, cardiac_phase=0.7, cardiac_phase_source="example", base_hint=[0, 0, 1])
+    >>> model.cardiac_phase, model.mesh.n_faces == mesh.n_faces
+    (0.7, True)
     """
     if not isinstance(mesh_patient, Mesh):
         raise TypeError(f"mesh_patient must be a Mesh, got {type(mesh_patient).__name__}")
@@ -304,6 +315,19 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
     -------
     Path
         ``out_dir``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import numpy as np
+    >>> from modeling import make_heart_model, mask_to_mesh, read_model, write_model
+    >>> k, j, i = np.mgrid[:50, :40, :40]
+    >>> mask = ((k - 25) / 22) ** 2 + ((j - 20) / 14) ** 2 + ((i - 20) / 12) ** 2 < 1
+    >>> mesh = mask_to_mesh(mask, np.diag([2.0, 2.0, 2.0, 1.0]), target_faces=2000)
+    >>> model = make_heart_model(mesh, cardiac_phase=0.7, cardiac_phase_source="example", base_hint=[0, 0, 1])
+    >>> folder = write_model(model, tempfile.mkdtemp() + "/model")
+    >>> read_model(folder).cardiac_phase
+    0.7
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")
@@ -374,6 +398,19 @@ def read_model(model_dir) -> HeartModel:
     ModelError
         Missing folder or files, unreadable JSON, another format, or files
         that disagree with each other.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import numpy as np
+    >>> from modeling import make_heart_model, mask_to_mesh, read_model, write_model
+    >>> k, j, i = np.mgrid[:50, :40, :40]
+    >>> mask = ((k - 25) / 22) ** 2 + ((j - 20) / 14) ** 2 + ((i - 20) / 12) ** 2 < 1
+    >>> mesh = mask_to_mesh(mask, np.diag([2.0, 2.0, 2.0, 1.0]), target_faces=2000)
+    >>> model = make_heart_model(mesh, cardiac_phase=0.7, cardiac_phase_source="example", base_hint=[0, 0, 1])
+    >>> again = read_model(write_model(model, tempfile.mkdtemp() + "/model"))
+    >>> np.allclose(again.mesh.vertices, model.mesh.vertices, atol=1e-4), again.cardiac_phase_source
+    (True, 'example')
     """
     d = Path(model_dir)
     if not d.is_dir():

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import doctest
-import importlib
 
 import pytest
 
@@ -82,8 +80,3 @@ def test_options_are_frozen_and_overridable():
     with pytest.raises(TypeError, match="no_such_option"):
         RegistrationOptions.of(None, no_such_option=1)
 
-
-@pytest.mark.parametrize("name", ["hrcore.errors", "modeling.options", "registration.options"])
-def test_examples_run(name):
-    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
-    assert result.attempted > 0 and result.failed == 0
