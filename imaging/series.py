@@ -27,6 +27,16 @@ from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _plan_geometry
 
 logger = logging.getLogger(__name__)
 
+#: What a `SliceInfo` and the `SeriesInfo` copy unchanged from the frames' headers.
+_SLICE_FROM_FRAME = (
+    "instance_number", "sop_instance_uid", "acquisition_time_s", "mid_scan_time_s", "trigger_time_ms",
+    "nominal_interval_ms", "heart_rate_bpm", "nominal_cardiac_percent",
+)  # fmt: skip
+_SERIES_FROM_FRAME = (
+    "series_instance_uid", "study_instance_uid", "frame_of_reference_uid", "series_number", "description",
+    "modality", "manufacturer", "model_name",
+)  # fmt: skip
+
 
 # ------------------------------------------------------------------- public
 
@@ -262,30 +272,16 @@ def load_study(
             index=idx,
             file=f.path,
             frame=f.frame,
-            instance_number=f.instance_number,
             position_mm=float(p),
             k=float((p - pos0) / m) if (plan.resample_k or len(plan.frames) == 1) else float(idx),
-            sop_instance_uid=f.sop_instance_uid,
-            acquisition_time_s=f.acquisition_time_s,
-            mid_scan_time_s=f.mid_scan_time_s,
-            trigger_time_ms=f.trigger_time_ms,
-            nominal_interval_ms=f.nominal_interval_ms,
-            heart_rate_bpm=f.heart_rate_bpm,
-            nominal_cardiac_percent=f.nominal_cardiac_percent,
+            **{name: getattr(f, name) for name in _SLICE_FROM_FRAME},
         )
         for idx, (f, p) in enumerate(zip(plan.frames, plan.positions_mm))
     )
     first = plan.frames[0]
     rpeaks = next((f.rpeak_timestamps_ms for f in plan.frames if f.rpeak_timestamps_ms), None)
     info = SeriesInfo(
-        series_instance_uid=first.series_instance_uid,
-        study_instance_uid=first.study_instance_uid,
-        frame_of_reference_uid=first.frame_of_reference_uid,
-        series_number=first.series_number,
-        description=first.description,
-        modality=first.modality,
-        manufacturer=first.manufacturer,
-        model_name=first.model_name,
+        **{name: getattr(first, name) for name in _SERIES_FROM_FRAME},
         n_files=summary.n_files,
         subset=summary.subset,
         rpeak_timestamps_ms=rpeaks,
