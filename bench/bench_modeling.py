@@ -126,7 +126,8 @@ def ct_only_folder(study_dir: str, out_dir: str) -> dict:
 def _run_stages(study_dir: str, out_dir: str, meter: _Meter | None, picture: bool = True) -> dict:
     from hrcore.memory import release_free_memory
     from imaging import compute_phase_report, load_study, read_ecg_waveform
-    from modeling import build_heart_model, offscreen_available, render_model_png, start_offscreen_probe, write_model
+    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling.render import start_offscreen_probe
 
     if picture:
         start_offscreen_probe()  # as the CLI: at the start, beside the work

@@ -152,7 +152,8 @@ def run_pipeline(
     top of the HTML report (the demo).
     """
     from imaging import write_phase_report
-    from modeling import build_heart_model, offscreen_available, render_model_png, start_offscreen_probe, write_model
+    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling.render import start_offscreen_probe
     from registration import read_session
     from registration.pipeline import register_session
     from registration.report import write_registration

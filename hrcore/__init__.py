@@ -2,11 +2,12 @@
 
 ``hrcore`` imports nothing from ``imaging``, ``modeling``, ``registration`` or
 ``heartreg``; they all import from it. It holds the error family
-(:class:`HeartregError`) and the output contract (:mod:`hrcore.output`: stage,
-one rename, nothing left behind, never into an input).
+(:class:`HeartregError`, :mod:`hrcore.errors`), the output contract
+(:func:`staged_output`, :mod:`hrcore.output`: stage, one rename, nothing left
+behind, never into an input) and the 4x4 geometry (:mod:`hrcore.geometry`).
 """
 
-from hrcore.errors import HeartregError, UsageError
-from hrcore.output import OutputError, check_output_path, staged_output
+from hrcore.errors import HeartregError
+from hrcore.output import staged_output
 
-__all__ = ["HeartregError", "OutputError", "UsageError", "check_output_path", "staged_output"]
+__all__ = ["HeartregError", "staged_output"]

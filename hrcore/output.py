@@ -346,6 +346,21 @@ def staged_output(
     ``out`` are created only for the staging path.  A kill -9 leaves at most a
     staging path named ``.<name>.heartreg-<pid>-<token>.tmp`` beside ``out``,
     which the next run that writes there removes.
+
+    Examples
+    --------
+    Nothing is visible at the target until the block ends without an error:
+
+    >>> import pathlib
+    >>> import tempfile
+    >>> from hrcore import staged_output
+    >>> out = pathlib.Path(tempfile.mkdtemp()) / "result"
+    >>> with staged_output(out) as stage:
+    ...     _ = (stage / "a.txt").write_text("done")
+    ...     print(out.exists())
+    False
+    >>> (out / "a.txt").read_text()
+    'done'
     """
     out = Path(out)
     parts = tuple(parts) if parts is not None else None

@@ -1,58 +1,46 @@
 """imaging: from a DICOM CT study on disk to a HU volume and per-slice cardiac phases.
 
 Only this package touches ``pydicom`` datasets; later stages receive arrays,
-affines and frozen dataclasses.
+affines and frozen dataclasses. The names below are what a caller needs: read a
+study (:func:`load_study`), its cardiac phases (:func:`compute_phase_report`) and
+the ECG and respiration signals behind them; everything else (file formats,
+decoding, grouping rules, warnings) stays importable from its module.
 """
 
 from imaging.ecg import RPeaks, cardiac_phase, detect_r_peaks
-from imaging.events import SignalError, phase_from_events
-from imaging.nifti import is_nifti_path, read_nifti_volume
-from imaging.phase import GatingError, GatingWarning, PhaseReport, SlicePhase, compute_phase_report, read_qrs_file
-from imaging.phase_io import PhaseFileError, plot_phases, read_phase_report, write_phase_report
+from imaging.grouping import SeriesSummary, StudyError
+from imaging.nifti import read_nifti_volume
+from imaging.phase import GatingError, PhaseReport, compute_phase_report, read_qrs_file
+from imaging.phase_io import plot_phases, read_phase_report, write_phase_report
 from imaging.respiration import expiration_onsets, respiration_phase
-from imaging.series import SeriesSummary, StudyError, StudyWarning, list_series, load_study
-from imaging.volume import (
-    DecoderUnavailableError,
-    PixelDataError,
-    SeriesError,
-    SeriesInfo,
-    SliceInfo,
-    Volume,
-)
-from imaging.waveform import EcgRecord, WaveformError, read_ecg_waveform
+from imaging.series import list_series, load_study
+from imaging.volume import SeriesError, Volume
+from imaging.waveform import EcgRecord, read_ecg_waveform
 
 __all__ = [
-    "DecoderUnavailableError",
-    "EcgRecord",
-    "GatingError",
-    "GatingWarning",
-    "PhaseReport",
-    "PixelDataError",
-    "RPeaks",
-    "SeriesError",
-    "SeriesInfo",
-    "SeriesSummary",
-    "SignalError",
-    "SliceInfo",
-    "SlicePhase",
-    "StudyError",
-    "StudyWarning",
+    # a study
     "Volume",
-    "WaveformError",
-    "cardiac_phase",
-    "compute_phase_report",
-    "detect_r_peaks",
-    "expiration_onsets",
+    "SeriesSummary",
     "list_series",
     "load_study",
-    "is_nifti_path",
-    "phase_from_events",
     "read_nifti_volume",
-    "plot_phases",
-    "read_ecg_waveform",
-    "read_qrs_file",
-    "respiration_phase",
-    "write_phase_report",
+    # its cardiac phases
+    "PhaseReport",
+    "compute_phase_report",
     "read_phase_report",
-    "PhaseFileError",
+    "write_phase_report",
+    "plot_phases",
+    "read_qrs_file",
+    # the signals
+    "EcgRecord",
+    "read_ecg_waveform",
+    "RPeaks",
+    "detect_r_peaks",
+    "cardiac_phase",
+    "expiration_onsets",
+    "respiration_phase",
+    # refusals (each a hrcore.HeartregError)
+    "StudyError",
+    "SeriesError",
+    "GatingError",
 ]

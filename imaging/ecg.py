@@ -14,6 +14,7 @@ choice of Wood et al. 2018 (section 2.2.4):
 5. search-back: when no QRS came for 1.66 times the regular RR interval, the
    largest peak above half the threshold in the gap is taken as a QRS (also in
    the gaps before the first and after the last detection).
+   Steps 3 to 5 are :mod:`imaging.qrs_classify`.
 
 Each detection is then moved to the true R-peak: the extremum of the lightly
 filtered (0.5-40 Hz, zero phase) signal within +-80 ms, on the side of the
@@ -27,13 +28,13 @@ extremum of the record, so a QRS cut by the start or the end is left out.
 
 from __future__ import annotations
 
-from bisect import bisect_left, bisect_right
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage, signal
 
 from imaging.events import SignalError, phase_from_events
+from imaging.qrs_classify import _Classifier, _search_edges
 
 __all__ = ["RPeaks", "SignalError", "detect_r_peaks", "cardiac_phase"]
 
@@ -45,14 +46,6 @@ REFINE_BAND_HZ = (0.5, 40.0)
 INTEGRATION_S = 0.150
 #: Half-width (s) of the window in which a detection is moved to the R maximum.
 REFINE_HALF_WIDTH_S = 0.065
-#: A peak this close (s) after a QRS is tested for being a T wave.
-T_WAVE_WINDOW_S = 0.360
-#: Search back when no QRS came for this multiple of the regular RR interval.
-SEARCH_BACK_FACTOR = 1.66
-#: The signal level is the median energy of this many last QRS complexes.
-SPK_MEMORY = 8
-#: Threshold = noise level + this fraction of (signal level - noise level).
-THRESHOLD_FRACTION = 0.25
 #: Seconds at the start from which the first signal and noise levels are learnt.
 LEARN_S = 8.0
 #: Half-width (s) of the window whose median is a beat's baseline.
@@ -63,21 +56,6 @@ LOCAL_POLARITY_RATIO = 1.0
 #: A beat whose R-peak lies closer than this (s) to either end of the record is
 #: incomplete (half a QRS complex) and is left out.
 EDGE_MARGIN_S = 0.050
-#: Half-life (s) of the signal level once no QRS came for the search-back limit.
-DECAY_HALF_LIFE_S = 1.0
-#: The decayed signal level stays at least this multiple of the noise level.
-NOISE_FLOOR_RATIO = 4.0
-#: A peak earlier than this fraction of the regular RR after the last QRS ...
-EARLY_FRACTION = 0.55
-#: ... is noise unless its energy is at least this fraction of the QRS level.
-EARLY_ENERGY_RATIO = 0.7
-#: Within this fraction of the regular RR (at most MAX_REFRACTORY_S, at least
-#: the refractory period) only the larger of two peaks is a QRS (a P wave
-#: before it, an artefact after it).
-REFRACTORY_RR_FRACTION = 0.6
-MAX_REFRACTORY_S = 0.25
-#: Levels are learnt afresh from a gap this long (s) past the search-back limit.
-RELEARN_AFTER_S = 1.0
 #: Shortest record (s) on which detection is attempted.
 MIN_DURATION_S = 2.0
 #: Lowest sampling rate (Hz): the 5-15 Hz band must sit well below Nyquist.
@@ -140,6 +118,12 @@ def cardiac_phase(time_s, r_peaks_s) -> np.ndarray:
     ------
     SignalError
         If fewer than two R-peaks are given, or they are not strictly increasing.
+
+    Examples
+    --------
+    >>> from imaging import cardiac_phase
+    >>> cardiac_phase([0.5, 1.25, 1.9, 2.5], [0.0, 1.0, 2.0])  # after the last R-peak: unknown
+    array([0.5 , 0.25, 0.9 ,  nan])
     """
     return phase_from_events(time_s, r_peaks_s, name="r_peaks_s", what="R-peak")
 
@@ -189,181 +173,6 @@ def _parabolic(y_m: np.ndarray, y_0: np.ndarray, y_p: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         delta = np.where(den < 0, 0.5 * (y_m - y_p) / den, 0.0)
     return np.clip(delta, -0.5, 0.5)
-
-
-def _median(values: list[float]) -> float:
-    s = sorted(values)
-    m = len(s) // 2
-    return s[m] if len(s) % 2 else 0.5 * (s[m - 1] + s[m])
-
-
-class _Classifier:
-    """Sequential adaptive-threshold classification of energy peaks.
-
-    Pan-Tompkins' rules, with the signal level taken as the median of the last
-    :data:`SPK_MEMORY` QRS energies instead of a running average, so that one
-    large transient cannot lift the threshold above the beats that follow, and a
-    search-back that repeats until the gap before the current peak is closed.
-    """
-
-    def __init__(self, peaks, values, slopes, rate: float, refractory: int):
-        self.peaks = peaks.tolist()
-        self.values = values.tolist()
-        self.slopes = slopes.tolist()
-        self.rate, self.refractory = rate, refractory
-
-    def run(self, spk0: float, npk0: float) -> list[int]:
-        peaks, values, slopes = self.peaks, self.values, self.slopes
-        self.recent = [spk0]  # energies of the last accepted QRS complexes
-        self.spk = spk0  # their median: the signal level
-        self.npk = npk0
-        self.limit = SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
-        self.dead = self.refractory
-        qrs: list[int] = []  # indices into peaks
-        rr: list[int] = []  # samples
-        t_window = T_WAVE_WINDOW_S * self.rate
-        for j in range(len(peaks)):
-            p, v = peaks[j], values[j]
-            # search back in the gap before this peak, as often as beats are missing
-            tried_relearning = False
-            while qrs and p - peaks[qrs[-1]] > self.limit:
-                found = self._search_back(qrs[-1], j)
-                if found is None:
-                    if tried_relearning or p - peaks[qrs[-1]] < self.limit + RELEARN_AFTER_S * self.rate:
-                        break
-                    tried_relearning = True
-                    if self._relearn(qrs[-1], j):
-                        continue
-                    break
-                self._accept(qrs, rr, found)
-            th1 = self.threshold(p - peaks[qrs[-1]] if qrs else 0)
-            if qrs and p - peaks[qrs[-1]] < self.dead:
-                if v > th1 and v > values[qrs[-1]]:  # the larger of two close peaks is the QRS
-                    self._retract(qrs, rr)
-                    self._accept(qrs, rr, j)
-                continue
-            if v > th1:
-                if qrs and p - peaks[qrs[-1]] < EARLY_FRACTION * self.limit / SEARCH_BACK_FACTOR and v < (
-                    EARLY_ENERGY_RATIO * self.spk
-                ):
-                    self.npk = 0.125 * v + 0.875 * self.npk  # noise: too early for a weak beat
-                    continue
-                if qrs and p - peaks[qrs[-1]] < t_window:
-                    if slopes[j] < 0.5 * slopes[qrs[-1]]:
-                        self.npk = 0.125 * v + 0.875 * self.npk  # a T wave
-                        continue
-                    last = qrs[-1]
-                    if slopes[last] < 0.5 * slopes[j] or (
-                        values[last] < 0.5 * v and slopes[last] < 0.85 * slopes[j]
-                    ):
-                        self._retract(qrs, rr)  # the last one was a P wave before this QRS
-                self._accept(qrs, rr, j)
-            else:
-                self.npk = 0.125 * v + 0.875 * self.npk
-        self.rr = rr
-        return qrs
-
-    def threshold(self, gap: float) -> float:
-        """Threshold 1 a peak ``gap`` samples after the last QRS must pass.
-
-        Past the search-back limit the signal level decays (half-life
-        DECAY_HALF_LIFE_S), down to NOISE_FLOOR_RATIO x the noise level, so that a
-        lead whose QRS complexes shrank (after a transient, a lead change) is
-        followed again within seconds.
-        """
-        spk = self.spk
-        over = gap - self.limit
-        if over > 0:
-            spk = max(spk * 0.5 ** (over / (DECAY_HALF_LIFE_S * self.rate)), NOISE_FLOOR_RATIO * self.npk)
-        return self.npk + THRESHOLD_FRACTION * (spk - self.npk)
-
-    def _relearn(self, last: int, j: int) -> bool:
-        """Learn the levels afresh from the peaks of a long gap (last, j) without a QRS.
-
-        After a large transient both levels can sit far above the beats that
-        follow.  If the largest peak of the gap stands out from the others
-        (NOISE_FLOOR_RATIO x their median, as a QRS does among T waves and
-        noise), it becomes the signal level and their median the noise level.
-        A gap of similar peaks (a flat or disconnected lead) teaches nothing.
-        """
-        gap = self.values[last + 1 : j]
-        if len(gap) < 2:
-            return False
-        top, typical = max(gap), _median(gap)
-        if top < NOISE_FLOOR_RATIO * typical or top >= self.spk:
-            return False
-        self.recent = [top]
-        self.spk = top
-        self.npk = min(self.npk, typical)
-        return True
-
-    def _search_back(self, last: int, j: int) -> int | None:
-        """The largest peak in the gap (last, j) above half its threshold 1."""
-        peaks, values = self.peaks, self.values
-        lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
-        best, best_v = None, 0.0
-        for k in range(last + 1, j):
-            if lo_p <= peaks[k] <= hi_p and values[k] > best_v and values[k] > 0.5 * self.threshold(peaks[k] - peaks[last]):
-                best, best_v = k, values[k]
-        return best
-
-    def _retract(self, qrs, rr) -> None:
-        """Take back the last QRS (a P or T wave, as the steeper complex after it shows)."""
-        j = qrs.pop()
-        if rr:
-            rr.pop()
-        if len(self.recent) > 1 and self.recent[-1] == self.values[j]:
-            self.recent.pop()
-            self.spk = _median(self.recent)
-        self.npk = 0.125 * self.values[j] + 0.875 * self.npk
-        self._update_limits(rr)
-
-    def _accept(self, qrs, rr, j) -> None:
-        if qrs:
-            gap = self.peaks[j] - self.peaks[qrs[-1]]
-            if gap > self.limit:  # found after the level decayed: start learning it afresh
-                self.recent = []
-            rr.append(gap)
-        qrs.append(j)
-        self._update_limits(rr)
-        self.recent.append(self.values[j])
-        if len(self.recent) > SPK_MEMORY:
-            del self.recent[0]
-        self.spk = _median(self.recent)
-
-    def _update_limits(self, rr) -> None:
-        self.limit = self._rr_limit(rr)
-        regular_rr = self.limit / SEARCH_BACK_FACTOR
-        self.dead = max(self.refractory, min(MAX_REFRACTORY_S * self.rate, REFRACTORY_RR_FRACTION * regular_rr))
-
-    def _rr_limit(self, rr) -> float:
-        """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples."""
-        if len(rr) < 2:
-            return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
-        recent = rr[-8:]
-        avg1 = sum(recent) / len(recent)
-        lo, hi = 0.92 * avg1, 1.16 * avg1
-        regular = []
-        for r in reversed(rr[-32:]):
-            if lo <= r <= hi:
-                regular.append(r)
-                if len(regular) == 8:
-                    break
-        avg = sum(regular) / len(regular) if regular else avg1
-        return SEARCH_BACK_FACTOR * avg
-
-    def best_in(self, lo_p: float, hi_p: float, threshold: float) -> int | None:
-        """The largest peak above ``threshold`` with position in [lo_p, hi_p]."""
-        return self._best(0, len(self.peaks), lo_p, hi_p, threshold)
-
-    def _best(self, lo_j, hi_j, lo_p, hi_p, threshold) -> int | None:
-        lo_j = max(lo_j, bisect_left(self.peaks, lo_p))
-        hi_j = min(hi_j, bisect_right(self.peaks, hi_p))
-        best, best_v = None, threshold
-        for k in range(lo_j, hi_j):
-            if self.values[k] > best_v:
-                best, best_v = k, self.values[k]
-        return best
 
 
 def detect_r_peaks(
@@ -531,25 +340,6 @@ def _refine(light: np.ndarray, coarse: np.ndarray, rate: float, polarity):
     ii = np.clip(idx, 1, n - 2)
     ok &= (sign * light[ii] >= sign * light[ii - 1]) & (sign * light[ii] >= sign * light[ii + 1])
     return idx[ok].astype(np.int64), amp[ok].astype(float), sign[ok]
-
-
-def _search_edges(clf: _Classifier, qrs: list[int], n: int) -> list[int]:
-    """Search back in the gaps before the first and after the last detection."""
-    qrs = sorted(qrs)
-    peaks = clf.peaks
-    rr = np.diff([peaks[j] for j in qrs])
-    limit = SEARCH_BACK_FACTOR * (float(np.median(rr)) if rr.size else clf.rate)
-    while peaks[qrs[0]] > limit:
-        found = clf.best_in(0, peaks[qrs[0]] - clf.refractory, 0.5 * clf.threshold(0))
-        if found is None:
-            break
-        qrs.insert(0, found)
-    while n - 1 - peaks[qrs[-1]] > limit:
-        found = clf.best_in(peaks[qrs[-1]] + clf.refractory, n - 1, 0.5 * clf.threshold(0))
-        if found is None:
-            break
-        qrs.append(found)
-    return qrs
 
 
 def _dedupe(idx: np.ndarray, amp: np.ndarray, refractory: int):

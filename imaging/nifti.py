@@ -62,6 +62,18 @@ def read_nifti_volume(path) -> Volume:
     SeriesError
         Missing or unreadable file, not 3-D, or an affine with sheared or
         degenerate axes.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import nibabel as nib
+    >>> import numpy as np
+    >>> from imaging import read_nifti_volume
+    >>> path = tempfile.mkdtemp() + "/ct.nii.gz"
+    >>> nib.save(nib.Nifti1Image(np.full((4, 5, 6), -1000, np.int16), np.diag([0.5, 0.5, 2.0, 1.0])), path)
+    >>> volume = read_nifti_volume(path)
+    >>> volume.hu.shape, volume.spacing_mm.tolist()
+    ((6, 5, 4), [0.5, 0.5, 2.0])
     """
     import nibabel as nib
 

@@ -144,6 +144,12 @@ def read_qrs_file(path) -> np.ndarray:
     Returns
     -------
     (n,) float64, s, strictly increasing
+
+    Examples
+    --------
+    >>> from imaging import read_qrs_file
+    >>> read_qrs_file("sample_dicom/qrs.csv")[:2]  # s after midnight
+    array([38331.025715, 38331.994804])
     """
     path = Path(path)
     if not path.exists():
@@ -316,6 +322,15 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     ------
     GatingError
         When no source can time every slice; the message lists what was looked for.
+
+    Examples
+    --------
+    The sample study's slices carry GE's R-peak time stamps:
+
+    >>> from imaging import compute_phase_report, load_study
+    >>> report = compute_phase_report(load_study("sample_dicom/ct"))
+    >>> round(report.volume_cardiac_phase, 2), report.source
+    (0.69, 'GE RpeakTimeStamps (0049,xx0C)')
     """
     notes: list[str] = []
     if ecg_records is None:

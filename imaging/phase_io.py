@@ -32,7 +32,15 @@ def _csv_text(report: PhaseReport) -> str:
 
 
 def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per slice") -> None:
-    """Phase per slice like the paper's Fig. 4, motion-free window shaded."""
+    """Phase per slice like the paper's Fig. 4, motion-free window shaded.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from imaging import compute_phase_report, load_study, plot_phases
+    >>> path = tempfile.mkdtemp() + "/phases.png"
+    >>> plot_phases(compute_phase_report(load_study("sample_dicom/ct")), path)
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -64,6 +72,17 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     """Write ``phases.csv``, ``phases.json`` and ``phases.png`` into ``out_dir``.
 
     Returns the paths written, by name.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from imaging import compute_phase_report, load_study, read_phase_report, write_phase_report
+    >>> report = compute_phase_report(load_study("sample_dicom/ct"))
+    >>> written = write_phase_report(report, tempfile.mkdtemp() + "/phases")
+    >>> sorted(written)
+    ['csv', 'json', 'png']
+    >>> read_phase_report(written["json"].parent).volume_cardiac_phase == report.volume_cardiac_phase
+    True
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

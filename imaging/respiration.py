@@ -66,6 +66,12 @@ def respiration_phase(time_s, onsets_s) -> np.ndarray:
     ------
     SignalError
         If fewer than two onsets are given, or they are not strictly increasing.
+
+    Examples
+    --------
+    >>> from imaging import respiration_phase
+    >>> respiration_phase([1.0, 3.0, 5.5], [0.0, 4.0, 8.0])
+    array([0.25 , 0.75 , 0.375])
     """
     return phase_from_events(time_s, onsets_s, name="onsets_s", what="start-of-expiration")
 
@@ -134,6 +140,18 @@ def expiration_onsets(
     SignalError
         If no flow is given, the flows differ in shape, contain NaN, are flat,
         or no start of expiration is found.
+
+    Examples
+    --------
+    A ventilator breathing every 4 s, expiring while the sine is negative:
+
+    >>> import numpy as np
+    >>> from imaging import expiration_onsets
+    >>> breath = np.sin(2 * np.pi * np.arange(0, 20, 0.01) / 4)
+    >>> onsets = expiration_onsets(rate_hz=100.0, flow_exp_lpm=30 * np.clip(-breath, 0, None),
+    ...                            flow_insp_lpm=30 * np.clip(breath, 0, None))
+    >>> onsets.round(1)
+    array([ 2.,  6., 10., 14., 18.])
     """
     q = _signed_flow(flow_exp_lpm, flow_insp_lpm)
     try:

@@ -167,7 +167,7 @@ def _to_mv(ch: Dataset, label: str, name: str) -> tuple[float, str | None]:
 
 
 def _start_time(ds: Dataset, group: Dataset, name: str) -> tuple[float, str]:
-    from imaging.discover import _date, on_study_clock
+    from imaging.dicom_values import _date, on_study_clock
 
     offset_s = float(group.get("MultiplexGroupTimeOffset", 0.0) or 0.0) / 1000.0
     study_day = _date(ds.get("StudyDate"))
@@ -284,6 +284,13 @@ def read_ecg_waveform(path_or_dataset, *, channel=None, group: int | None = None
     WaveformError
         If the file is not DICOM, not an ECG waveform, has no waveform data, has
         no time, or the lead asked for does not exist.
+
+    Examples
+    --------
+    >>> from imaging import load_study, read_ecg_waveform
+    >>> ecg = read_ecg_waveform(load_study("sample_dicom/ct").waveform_files[0])
+    >>> ecg.rate_hz, ecg.channel_label, ecg.signal_mv.shape
+    (500.0, 'II', (6302,))
     """
     if isinstance(path_or_dataset, Dataset):
         ds, name = path_or_dataset, str(getattr(path_or_dataset, "filename", "") or "<Dataset>")

@@ -1,136 +1,44 @@
 """modeling: from a CT volume to a heart model in the heart-centric frame.
 
 Segmentation, chest fiducials, surface mesh, the heart-centric frame from
-ellipses in 10 mm slabs (paper section 2.2.3) and the model folder.
+ellipses in 10 mm slabs (paper section 2.2.3) and the model folder. The names
+below are what a caller needs: build a model (:func:`build_heart_model` with
+:class:`ModelOptions`), write and read it back, and the stages it is made of;
+file formats, 3D Slicer files and helpers stay importable from their modules.
 """
 
-from modeling.segment import (
-    SegmentationError,
-    HeartSegmentation,
-    segment_heart,
-)
+from modeling.build import ModelBuild, build_heart_model
+from modeling.fiducials import FiducialError, find_fiducials
+from modeling.frame import FrameError, HeartFrame, fit_heart_frame
+from modeling.mesh import Mesh, MeshError
+from modeling.model import HeartModel, ModelError, make_heart_model, read_model, write_model
 from modeling.options import ModelOptions
-from modeling.greatvessels import (
-    GreatVessels,
-    trace_great_vessels,
-)
-from modeling.build import (
-    ModelBuild,
-    ModelingWarning,
-    build_heart_model,
-)
-from modeling.fiducials import (
-    FiducialError,
-    Fiducials,
-    find_fiducials,
-    order_fiducials,
-)
-from modeling.labelmap import (
-    LabelMapError,
-    LabelMap,
-    read_label_map,
-    mask_on_grid,
-)
-from modeling.surface import (
-    Mesh,
-    MeshError,
-    decimate,
-    mask_to_mesh,
-    check_mesh,
-    transform_mesh,
-    write_mesh,
-    read_ply,
-)
-from modeling.frame import (
-    FrameError,
-    SlabEllipse,
-    HeartFrame,
-    fit_heart_frame,
-    ANTERIOR_LPS,
-)
-from modeling.vessels import (
-    APEX_LAI_LPS,
-    VesselTrim,
-    base_direction,
-    trim_vessel_stubs,
-)
-from modeling.model import (
-    ModelError,
-    HeartModel,
-    make_heart_model,
-    write_model,
-    read_model,
-    SOURCE_KEYS,
-    FORMAT,
-    FORMAT_VERSION,
-)
-from modeling.render import (
-    RenderError,
-    offscreen_available,
-    render_model_png,
-    start_offscreen_probe,
-)
-from modeling.slicer import (
-    Markups,
-    SlicerFileError,
-    read_itk_transform,
-    read_markups,
-    write_itk_transform,
-    write_markups,
-)
+from modeling.render import offscreen_available, render_model_png
+from modeling.segment import SegmentationError, segment_heart
+from modeling.surface import mask_to_mesh
 
 __all__ = [
+    # a model
     "ModelOptions",
-    "APEX_LAI_LPS",
-    "ModelingWarning",
-    "base_direction",
-    "VesselTrim",
-    "trim_vessel_stubs",
     "ModelBuild",
     "build_heart_model",
-    "ANTERIOR_LPS",
-    "FORMAT",
-    "FORMAT_VERSION",
-    "FiducialError",
-    "Fiducials",
-    "FrameError",
-    "HeartFrame",
     "HeartModel",
-    "HeartSegmentation",
-    "LabelMap",
-    "LabelMapError",
-    "Mesh",
-    "MeshError",
-    "ModelError",
-    "RenderError",
-    "SOURCE_KEYS",
-    "SegmentationError",
-    "SlabEllipse",
-    "check_mesh",
-    "find_fiducials",
-    "fit_heart_frame",
     "make_heart_model",
-    "mask_on_grid",
-    "decimate",
-    "mask_to_mesh",
-    "offscreen_available",
-    "order_fiducials",
-    "read_label_map",
     "read_model",
-    "read_ply",
-    "render_model_png",
-    "segment_heart",
-    "start_offscreen_probe",
-    "GreatVessels",
-    "trace_great_vessels",
-    "transform_mesh",
-    "write_mesh",
     "write_model",
-    # 3D Slicer's files (modeling.slicer)
-    "Markups",
-    "SlicerFileError",
-    "read_itk_transform",
-    "read_markups",
-    "write_itk_transform",
-    "write_markups",
+    "render_model_png",
+    "offscreen_available",
+    # its stages
+    "segment_heart",
+    "find_fiducials",
+    "Mesh",
+    "mask_to_mesh",
+    "HeartFrame",
+    "fit_heart_frame",
+    # refusals (each a hrcore.HeartregError)
+    "ModelError",
+    "SegmentationError",
+    "FiducialError",
+    "MeshError",
+    "FrameError",
 ]

@@ -130,6 +130,19 @@ def build_heart_model(
     ------
     LabelMapError, SegmentationError
         A mask far smaller than a heart (the message gives its volume in ml).
+
+    Examples
+    --------
+    The whole chain on the sample study (a few seconds, hence skipped here):
+
+    >>> from imaging import compute_phase_report, load_study
+    >>> from modeling import ModelOptions, build_heart_model
+    >>> volume = load_study("sample_dicom/ct")
+    >>> report = compute_phase_report(volume)
+    >>> build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase,  # doctest: +SKIP
+    ...                           cardiac_phase_source=report.source, options=ModelOptions(target_faces=5000))
+    >>> build.model.mesh.n_faces <= 5000  # doctest: +SKIP
+    True
     """
     opts = ModelOptions.of(options, **overrides)
     target_faces, expected_fiducials, fiducial_rows = opts.target_faces, opts.expected_fiducials, opts.fiducial_rows

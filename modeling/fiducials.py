@@ -192,6 +192,16 @@ def find_fiducials(
     ------
     FiducialError
         If the count differs from ``expected``.
+
+    Examples
+    --------
+    The nine staples on the sample study's chest, ordered in rows:
+
+    >>> from imaging import load_study
+    >>> from modeling import find_fiducials
+    >>> volume = load_study("sample_dicom/ct")
+    >>> find_fiducials(volume.hu, volume.T_patient_from_voxel).centres_patient_mm.shape
+    (9, 3)
     """
     hu = np.asarray(hu)
     if hu.ndim != 3:

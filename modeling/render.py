@@ -101,7 +101,14 @@ def _stop_probe() -> None:
 @functools.lru_cache(maxsize=1)
 def offscreen_available(timeout_s: float = 60.0) -> bool:
     """Whether pyvista can draw offscreen here (probed once, in a subprocess,
-    started by :func:`start_offscreen_probe` or now)."""
+    started by :func:`start_offscreen_probe` or now).
+
+    Examples
+    --------
+    >>> from modeling import offscreen_available
+    >>> offscreen_available() in (True, False)  # doctest: +SKIP
+    True
+    """
     if _probe is None:
         start_offscreen_probe()
     if _probe is None:
@@ -140,6 +147,20 @@ def render_model_png(
     RenderError
         Offscreen rendering is not available or produced a blank image; the
         message says which libraries to install.
+
+    Examples
+    --------
+    Needs offscreen OpenGL (OSMesa or EGL) and takes a few seconds, hence skipped:
+
+    >>> import tempfile
+    >>> import numpy as np
+    >>> from modeling import make_heart_model, mask_to_mesh, render_model_png
+    >>> k, j, i = np.mgrid[:50, :40, :40]
+    >>> mask = ((k - 25) / 22) ** 2 + ((j - 20) / 14) ** 2 + ((i - 20) / 12) ** 2 < 1
+    >>> mesh = mask_to_mesh(mask, np.diag([2.0, 2.0, 2.0, 1.0]), target_faces=2000)
+    >>> model = make_heart_model(mesh, cardiac_phase=0.7, cardiac_phase_source="example", base_hint=[0, 0, 1])
+    >>> render_model_png(model, tempfile.mkdtemp() + "/model.png").suffix  # doctest: +SKIP
+    '.png'
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")

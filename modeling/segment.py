@@ -305,6 +305,17 @@ def segment_heart(
     ------
     SegmentationError
         If no blood pool or no heart-sized region is found.
+
+    Examples
+    --------
+    On the sample study (a few seconds, hence skipped here):
+
+    >>> from imaging import load_study
+    >>> from modeling import segment_heart
+    >>> volume = load_study("sample_dicom/ct")
+    >>> segmentation = segment_heart(volume.hu, volume.T_patient_from_voxel)  # doctest: +SKIP
+    >>> segmentation.volume_ml > 50  # doctest: +SKIP
+    True
     """
     hu = np.asarray(hu)
     if hu.ndim != 3:

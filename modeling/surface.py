@@ -24,35 +24,20 @@ closed, decimated"):
 8. verification: watertight, manifold, consistently wound, enclosed volume > 0,
    else :class:`MeshError`.
 
-:func:`write_mesh` writes binary PLY (float64 vertices) or binary STL (float32,
-80-byte header carrying ``SPACE=LPS`` the way 3D Slicer does, plus the frame).
+The :class:`~modeling.mesh.Mesh` type and its checks are :mod:`modeling.mesh`;
+files are :mod:`modeling.mesh_io`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import cached_property
-from pathlib import Path
-
 import numpy as np
-from scipy import ndimage, sparse
-from scipy.sparse import csgraph
+from scipy import ndimage
 
-from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from imaging.files import atomic_path
+from modeling.mesh import Mesh, MeshError, _vertex_components, check_mesh
 from modeling.repair import clean_adjacency, taubin_smooth
 
-__all__ = [
-    "Mesh",
-    "MeshError",
-    "mask_to_mesh",
-    "decimate",
-    "check_mesh",
-    "transform_mesh",
-    "write_mesh",
-    "read_ply",
-]
+__all__ = ["mask_to_mesh", "decimate"]
 
 #: Gaussian smoothing of the binary mask before the isosurface, in voxels.
 DEFAULT_SIGMA_VOX = 0.7
@@ -63,170 +48,6 @@ TAUBIN_MU = -0.53
 MAX_HOLE_EDGES = 1000
 
 
-class MeshError(HeartregError, ValueError):
-    """The mask or the mesh cannot make a closed, manifold, outward-oriented surface."""
-
-
-@dataclass(frozen=True, eq=False)
-class Mesh:
-    """A triangle mesh; read-only arrays.
-
-    Attributes
-    ----------
-    vertices : (n, 3) float64, mm
-        Vertex positions, in the frame the producer states (patient for
-        :func:`mask_to_mesh`).
-    faces : (m, 3) int64
-        Vertex indices of each triangle, counter-clockwise seen from outside
-        (right-hand normal points out of the enclosed volume).
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-
-    def __post_init__(self):
-        v = np.array(self.vertices, dtype=np.float64, copy=True)
-        f = np.array(self.faces, copy=True)
-        if v.ndim != 2 or v.shape[1] != 3:
-            raise ValueError(f"vertices must have shape (n, 3), got {v.shape}")
-        if f.ndim != 2 or f.shape[1] != 3:
-            raise ValueError(f"faces must have shape (m, 3), got {f.shape}")
-        if f.size and not np.issubdtype(f.dtype, np.integer):
-            raise ValueError(f"faces must be integer indices, got dtype {f.dtype}")
-        f = f.astype(np.int64)
-        if f.size and (f.min() < 0 or f.max() >= len(v)):
-            raise ValueError(
-                f"faces index vertices 0..{len(v) - 1}, found indices {f.min()}..{f.max()}"
-            )
-        if not np.all(np.isfinite(v)):
-            raise ValueError("vertices contain NaN or infinity")
-        v.setflags(write=False)
-        f.setflags(write=False)
-        object.__setattr__(self, "vertices", v)
-        object.__setattr__(self, "faces", f)
-
-    def __eq__(self, other):
-        if not isinstance(other, Mesh):
-            return NotImplemented
-        return np.array_equal(self.vertices, other.vertices) and np.array_equal(
-            self.faces, other.faces
-        )
-
-    __hash__ = None
-
-    @property
-    def n_vertices(self) -> int:
-        return int(len(self.vertices))
-
-    @property
-    def n_faces(self) -> int:
-        return int(len(self.faces))
-
-    @cached_property
-    def volume_mm3(self) -> float:
-        """Signed enclosed volume (divergence theorem); > 0 for outward normals."""
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-    @cached_property
-    def area_mm2(self) -> float:
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
-
-    @cached_property
-    def face_normals(self) -> np.ndarray:
-        """(m, 3) float64 unit normals (right-hand rule of the face winding)."""
-        a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-        n = np.cross(b - a, c - a)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-        n.setflags(write=False)
-        return n
-
-    def to_trimesh(self):
-        """A ``trimesh.Trimesh`` view (no merging or reordering of vertices)."""
-        import trimesh
-
-        return trimesh.Trimesh(
-            vertices=np.array(self.vertices), faces=np.array(self.faces), process=False
-        )
-
-
-@dataclass(frozen=True)
-class MeshCheck:
-    """Topology and orientation of a mesh (see :func:`check_mesh`)."""
-
-    watertight: bool
-    winding_consistent: bool
-    volume_mm3: float
-    euler_number: int
-    n_components: int
-
-    @property
-    def ok(self) -> bool:
-        return (
-            self.watertight
-            and self.winding_consistent
-            and self.volume_mm3 > 0
-            and self.n_components == 1
-        )
-
-
-def check_mesh(mesh: Mesh) -> MeshCheck:
-    """Check that ``mesh`` is one closed, manifold, outward-oriented surface.
-
-    Watertight means every edge is shared by exactly two faces (which also
-    rules out non-manifold edges); winding consistency means those two faces
-    traverse the edge in opposite directions; outward orientation means the
-    signed volume is positive.
-    """
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    n = max(int(mesh.n_vertices), 1)
-    a = faces.ravel()
-    b = faces[:, [1, 2, 0]].ravel()
-    directed = np.sort(a * n + b)
-    unique_directed = directed.size == 0 or bool(np.all(directed[1:] != directed[:-1]))
-    if unique_directed and not np.any(a == b):
-        # each undirected edge is there once or twice, twice exactly when its reverse is
-        # there too: closed under reversal <=> watertight <=> consistently wound
-        winding = bool(np.array_equal(directed, np.sort(b * n + a)))
-        watertight = winding and bool(len(faces))
-        n_edges = directed.size // 2 if winding else int(np.unique(np.minimum(a, b) * n + np.maximum(a, b)).size)
-    else:  # repeated directed edges, or a face that repeats a vertex
-        _, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)
-        watertight, n_edges = bool(len(faces)) and bool(np.all(counts == 2)), int(counts.size)
-        winding = unique_directed and bool(np.array_equal(directed, np.sort(b * n + a)))
-    used = np.bincount(a, minlength=mesh.n_vertices) > 0
-    labels = _vertex_components(faces, mesh.n_vertices)
-    return MeshCheck(
-        watertight=watertight,
-        winding_consistent=winding,
-        volume_mm3=mesh.volume_mm3,
-        euler_number=int(used.sum()) - n_edges + int(len(faces)),
-        n_components=int(np.count_nonzero(np.bincount(labels[used]))) if len(faces) else 0,
-    )
-
-
-def transform_mesh(T_to_from_from: np.ndarray, mesh: Mesh) -> Mesh:
-    """Map a mesh through a rigid transform (winding kept: det must be +1).
-
-    Parameters
-    ----------
-    T_to_from_from : (4, 4) float64
-        Rigid transform from the mesh's frame to the target frame.
-    mesh : Mesh
-
-    Returns
-    -------
-    Mesh
-        Same faces, vertices in the target frame.
-    """
-    T = check_transform(T_to_from_from, name="T_to_from_from")
-    if np.linalg.det(T[:3, :3]) <= 0:
-        raise ValueError("T_to_from_from must be a proper rigid transform (det > 0)")
-    return Mesh(apply_to_points(T, mesh.vertices), mesh.faces)
-
-
-# ----------------------------------------------------------------------- meshing
 def mask_to_mesh(
     mask: np.ndarray,
     T_patient_from_voxel: np.ndarray,
@@ -268,6 +89,18 @@ def mask_to_mesh(
     ------
     MeshError
         Empty mask, or a surface that repair cannot make closed and manifold.
+
+    Examples
+    --------
+    An ellipsoid of semi-axes 24, 28 and 44 mm on a 2 mm grid:
+
+    >>> import numpy as np
+    >>> from modeling import mask_to_mesh
+    >>> k, j, i = np.mgrid[:50, :40, :40]
+    >>> mask = ((k - 25) / 22) ** 2 + ((j - 20) / 14) ** 2 + ((i - 20) / 12) ** 2 < 1
+    >>> mesh = mask_to_mesh(mask, np.diag([2.0, 2.0, 2.0, 1.0]), target_faces=2000)
+    >>> mesh.n_faces <= 2000, round(mesh.volume_mm3 / (4 / 3 * np.pi * 24 * 28 * 44), 2)
+    (True, 0.99)
     """
     mask = np.asarray(mask)
     if mask.ndim != 3:
@@ -421,19 +254,6 @@ def decimate(mesh: Mesh, target_faces: int) -> Mesh:
     return out
 
 
-def _vertex_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Connected-component label of each vertex through the faces' edges."""
-    if len(faces) == 0:
-        return np.arange(n_vertices)
-    rows = np.concatenate([faces[:, 0], faces[:, 1]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2]])
-    graph = sparse.coo_matrix(
-        (np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n_vertices, n_vertices)
-    )
-    _, labels = csgraph.connected_components(graph, directed=False)
-    return labels
-
-
 def _largest_component(verts: np.ndarray, faces: np.ndarray):
     """Keep the connected component with the most faces; drop unused vertices."""
     if len(faces) == 0:
@@ -483,128 +303,3 @@ def _repair_pymeshlab(verts: np.ndarray, faces: np.ndarray, *, smooth_iterations
         np.asarray(m.vertex_matrix(), dtype=np.float64),
         np.asarray(m.face_matrix(), dtype=np.int64),
     )
-
-
-# ------------------------------------------------------------------------------ I/O
-def write_mesh(path, mesh: Mesh, *, frame_note: str, space: str = "LPS") -> Path:
-    """Write a mesh as binary PLY (``.ply``) or binary STL (``.stl``), atomically.
-
-    Parameters
-    ----------
-    path : str or Path
-        Output file; the suffix picks the format.
-    mesh : Mesh
-    frame_note : str
-        Short description of the vertices' frame, e.g. ``"patient"`` or
-        ``"heart (T_heart_from_patient in model.json)"``; stored in the PLY
-        comments and the STL header.
-    space : {"LPS", "RAS"}
-        Axis convention of the coordinates, written as ``SPACE=...`` like 3D
-        Slicer, which reads this token to decide whether to flip x and y.
-
-    Notes
-    -----
-    PLY stores float64 vertices (exact round trip); STL stores float32 vertices
-    and per-face normals (about 1e-5 mm rounding at 100 mm). The STL header is
-    80 bytes of ASCII that never starts with ``solid``.
-    """
-    path = Path(path)
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"mesh must be a Mesh, got {type(mesh).__name__}")
-    if space not in ("LPS", "RAS"):
-        raise ValueError(f"space must be 'LPS' or 'RAS', got {space!r}")
-    if "\n" in frame_note or "\r" in frame_note:
-        raise ValueError("frame_note must be a single line")
-    suffix = path.suffix.lower()
-    if suffix == ".ply":
-        data = _ply_bytes(mesh, frame_note=frame_note, space=space)
-    elif suffix == ".stl":
-        data = _stl_bytes(mesh, frame_note=frame_note, space=space)
-    else:
-        raise ValueError(f"unsupported mesh format {path.suffix!r}; use .ply or .stl")
-    _atomic_write(path, data)
-    return path
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
-def _ply_bytes(mesh: Mesh, *, frame_note: str, space: str) -> bytes:
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        "comment written by heartreg modeling.surface\n"
-        f"comment SPACE={space}\n"
-        f"comment frame {frame_note}\n"
-        "comment units mm\n"
-        f"element vertex {mesh.n_vertices}\n"
-        "property double x\nproperty double y\nproperty double z\n"
-        f"element face {mesh.n_faces}\n"
-        "property list uchar int vertex_indices\n"
-        "end_header\n"
-    ).encode("ascii")
-    vdata = np.ascontiguousarray(mesh.vertices, dtype="<f8").tobytes()
-    fdt = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
-    farr = np.empty(mesh.n_faces, dtype=fdt)
-    farr["n"] = 3
-    farr["idx"] = mesh.faces
-    return header + vdata + farr.tobytes()
-
-
-def _stl_bytes(mesh: Mesh, *, frame_note: str, space: str) -> bytes:
-    text = f"SPACE={space} FRAME={frame_note} UNITS=mm heartreg"
-    header = text.encode("ascii", errors="replace")[:80].ljust(80, b" ")
-    rec = np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
-    arr = np.zeros(mesh.n_faces, dtype=rec)
-    arr["n"] = mesh.face_normals
-    arr["v"] = mesh.vertices[mesh.faces]
-    return header + np.uint32(mesh.n_faces).tobytes() + arr.tobytes()
-
-
-def read_ply(path) -> Mesh:
-    """Read a binary little-endian triangle PLY as written by :func:`write_mesh`.
-
-    Raises
-    ------
-    MeshError
-        The file is missing, truncated, or not in that layout.
-    """
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise MeshError(f"cannot read mesh file {path}: {exc}") from exc
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
-        raise MeshError(f"{path} is not a PLY file (no 'ply' magic or 'end_header')")
-    lines = raw[:end].decode("ascii", errors="replace").splitlines()
-    body = raw[end + len(b"end_header\n") :]
-    if "format binary_little_endian 1.0" not in lines:
-        raise MeshError(f"{path}: only binary_little_endian PLY is supported; re-export it")
-    try:
-        n_v = int(next(ln.split()[2] for ln in lines if ln.startswith("element vertex")))
-        n_f = int(next(ln.split()[2] for ln in lines if ln.startswith("element face")))
-    except (StopIteration, IndexError, ValueError) as exc:
-        raise MeshError(f"{path}: PLY header lacks vertex/face counts") from exc
-    props = [ln for ln in lines if ln.startswith("property")]
-    expected = [
-        "property double x",
-        "property double y",
-        "property double z",
-        "property list uchar int vertex_indices",
-    ]
-    if props != expected:
-        raise MeshError(f"{path}: PLY properties {props} are not the heartreg layout {expected}")
-    fdt = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])
-    need = n_v * 24 + n_f * fdt.itemsize
-    if len(body) != need:
-        raise MeshError(f"{path}: PLY body has {len(body)} bytes, expected {need} (truncated?)")
-    verts = np.frombuffer(body, dtype="<f8", count=n_v * 3).reshape(n_v, 3)
-    farr = np.frombuffer(body, dtype=fdt, count=n_f, offset=n_v * 24)
-    if n_f and not np.all(farr["n"] == 3):
-        raise MeshError(f"{path}: PLY has non-triangle faces")
-    try:
-        return Mesh(verts, farr["idx"].astype(np.int64))
-    except ValueError as exc:
-        raise MeshError(f"{path}: {exc}") from exc

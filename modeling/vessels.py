@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from modeling.distance import distance_mm
-from modeling.surface import Mesh, MeshError, check_mesh
+from modeling.mesh import Mesh, MeshError, check_mesh
 
 __all__ = ["APEX_LAI_LPS", "VesselTrim", "base_direction", "trim_vessel_stubs"]
 

@@ -2,194 +2,53 @@
 
 Session reading, AM Fourier motion models (paper section 2.2.5), fiducial
 registration, ICP to the surface, the respiration-phase sweep with the
-paper's empirical metric (section 2.3) and the registration's outputs.
+paper's empirical metric (section 2.3) and the registration's outputs. The
+names below are what a caller needs: read a session, register it
+(:func:`register_session` with :class:`RegistrationOptions`) and write the
+result, or run one stage of it; file formats, ICP internals and the 4x4
+helpers (:mod:`hrcore.geometry`) stay importable from their modules.
 """
 
-from registration.transforms import (
-    TransformError,
-    make_transform,
-    check_rigid,
-    compose,
-    invert,
-    apply_to_points,
-    apply_to_vectors,
-    matrix_from_euler_xyz_deg,
-    euler_xyz_deg_from_matrix,
-    rotation_exp,
-    rotation_log,
-    se3_exp,
-    se3_log,
-    mean_rotation,
-    rotation_distance_deg,
-    translation_distance_mm,
-)
-from registration.fiducial import (
-    FiducialError,
-    FiducialRegistration,
-    rigid_fit,
-    register_fiducials,
-)
-from registration.session import (
-    SESSION_FORMAT,
-    SUPPORTED_VERSIONS,
-    SESSION_UNITS,
-    POINT_COLUMNS,
-    FIDUCIAL_COLUMNS,
-    FIDUCIAL_ORDER,
-    MIN_DURATION_S,
-    QUATERNION_TOL,
-    SessionError,
-    SessionNotFoundError,
-    PointRecord,
-    Session,
-    read_session,
-)
-from registration.motion_model import (
-    Harmonics,
-    MotionModel,
-    MotionModelError,
-    CoverageWarning,
-    design_matrix,
-    fit_motion_model,
-    predict_positions,
-)
-from registration.icp import (
-    IcpMethod,
-    SurfaceIndex,
-    ClosestPoints,
-    IcpResult,
-    closest_points,
-    closest_points_on_triangles,
-    icp,
-    icp_sweep,
-)
-from registration.spatiotemporal import (
-    PhaseSweep,
-    SpatiotemporalRegistration,
-    StaticComparison,
-    surface_centroid,
-    sweep_phase,
-    register_spatiotemporal,
-    compare_static,
-)
-from registration.result import (
-    PointFit,
-    IcpReport,
-    RegistrationResult,
-)
+from registration.fiducial import FiducialRegistration, register_fiducials
+from registration.localise import Localiser
+from registration.motion_model import Harmonics, MotionModel, fit_motion_model
+from registration.online import CausalPhases
 from registration.options import RegistrationOptions
-from registration.pipeline import (
-    RegistrationError,
-    sweep_phases,
-    point_phases,
-    register_session,
-    MIN_BEATS,
-    MIN_BREATHS,
-)
-from registration.report import (
-    REPORT_FORMAT,
-    REPORT_VERSION,
-    SWEEP_COLUMNS,
-    write_registration,
-    sweep_csv_text,
-)
-from registration.view import (
-    render_registration_png,
-)
-from registration.plus import (
-    PlusFileError,
-    PlusSequence,
-    read_plus_sequence,
-)
-from registration.online import (
-    CausalPhases,
-    StreamError,
-)
-from registration.localise import (
-    LocaliseError,
-    Localiser,
-    MapPositions,
-)
+from registration.pipeline import RegistrationError, register_session
+from registration.plus import PlusSequence, read_plus_sequence
+from registration.report import write_registration
+from registration.result import RegistrationResult
+from registration.session import Session, SessionError, read_session
+from registration.spatiotemporal import SpatiotemporalRegistration, register_spatiotemporal
+from registration.transforms import rotation_distance_deg, translation_distance_mm
+from registration.view import render_registration_png
 
 __all__ = [
+    # a registration
     "RegistrationOptions",
-    "ClosestPoints",
-    "CausalPhases",
-    "CoverageWarning",
-    "FIDUCIAL_COLUMNS",
-    "FIDUCIAL_ORDER",
-    "FiducialError",
-    "FiducialRegistration",
-    "Harmonics",
-    "IcpMethod",
-    "IcpReport",
-    "IcpResult",
-    "LocaliseError",
-    "Localiser",
-    "MIN_BEATS",
-    "MIN_BREATHS",
-    "MIN_DURATION_S",
-    "MapPositions",
-    "MotionModel",
-    "MotionModelError",
-    "POINT_COLUMNS",
-    "PhaseSweep",
-    "PointFit",
-    "PointRecord",
-    "QUATERNION_TOL",
-    "REPORT_FORMAT",
-    "REPORT_VERSION",
-    "RegistrationError",
-    "RegistrationResult",
-    "SESSION_FORMAT",
-    "SESSION_UNITS",
-    "SUPPORTED_VERSIONS",
-    "SWEEP_COLUMNS",
     "Session",
-    "SessionError",
-    "SessionNotFoundError",
-    "SpatiotemporalRegistration",
-    "StreamError",
-    "StaticComparison",
-    "SurfaceIndex",
-    "TransformError",
-    "apply_to_points",
-    "apply_to_vectors",
-    "check_rigid",
-    "closest_points",
-    "closest_points_on_triangles",
-    "compare_static",
-    "compose",
-    "design_matrix",
-    "euler_xyz_deg_from_matrix",
-    "fit_motion_model",
-    "icp",
-    "icp_sweep",
-    "invert",
-    "make_transform",
-    "matrix_from_euler_xyz_deg",
-    "mean_rotation",
-    "point_phases",
-    "predict_positions",
     "read_session",
-    "register_fiducials",
     "register_session",
-    "register_spatiotemporal",
-    "render_registration_png",
-    "rigid_fit",
-    "rotation_distance_deg",
-    "rotation_exp",
-    "rotation_log",
-    "se3_exp",
-    "se3_log",
-    "surface_centroid",
-    "sweep_csv_text",
-    "sweep_phase",
-    "sweep_phases",
-    "translation_distance_mm",
+    "RegistrationResult",
     "write_registration",
-    # PLUS sequence files (registration.plus)
-    "PlusFileError",
+    "render_registration_png",
+    # its stages
+    "FiducialRegistration",
+    "register_fiducials",
+    "Harmonics",
+    "MotionModel",
+    "fit_motion_model",
+    "SpatiotemporalRegistration",
+    "register_spatiotemporal",
+    # live localisation and PLUS recordings
+    "CausalPhases",
+    "Localiser",
     "PlusSequence",
     "read_plus_sequence",
+    # comparing poses
+    "rotation_distance_deg",
+    "translation_distance_mm",
+    # refusals (each a hrcore.HeartregError)
+    "RegistrationError",
+    "SessionError",
 ]

@@ -175,7 +175,8 @@ def make_phantom(
 
 def _anatomy_truth(config, heart, phase_c: float) -> dict:
     """The ``anatomy`` block of ``truth.json`` (docs/formats.md)."""
-    from heartreg.phantom.anatomy import ANATOMY_HU, WALL_THICKNESS_MM, ChamberHeart, vessel_origins
+    from heartreg.phantom.anatomy import ANATOMY_HU, WALL_THICKNESS_MM, ChamberHeart
+    from heartreg.phantom.great_vessels import vessel_origins
     from heartreg.phantom.chest import build_chest
 
     a = config.anatomy

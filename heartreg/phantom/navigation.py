@@ -53,7 +53,8 @@ from heartreg.phantom.layout import (
     fiducials_patient_mm,
     make_heart,
 )
-from heartreg.phantom.session import (
+from heartreg.phantom.session import reachable_patch
+from heartreg.phantom.session_format import (
     _FMT_POS,
     _ROW_FORMAT,
     FIDUCIAL_COLUMNS,
@@ -62,14 +63,10 @@ from heartreg.phantom.session import (
     SESSION_FORMAT,
     SESSION_UNITS,
     SESSION_VERSION,
-    _add_noise,
-    _drift_params,
     _format_rows,
     _pose_columns,
-    _T_drift,
-    _T_tracker_from_patient,
-    reachable_patch,
 )
+from heartreg.phantom.session_motion import _add_noise, _drift_params, _T_drift, _T_tracker_from_patient
 from heartreg.phantom.signals import (
     expiration_onsets,
     phase_from_events,

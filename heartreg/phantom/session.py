@@ -28,10 +28,14 @@ Physics and frames:
   the rotation vector ``w ~ N(0, tracker_rotation_deg)`` per component;
 - fiducials ``f_probe = inv(T*) @ T_fiducial_shift @ (f_ct + c(phi_R)) + o``:
   the CT-to-surgery skin shift, the chest wall's breathing ``c``
-  (:func:`chest_wall_displacement`, zero at the CT's phi_R*) and a touch offset
+  (:func:`~heartreg.phantom.session_motion.chest_wall_displacement`, zero at the CT's phi_R*) and a touch offset
   ``o ~ N(0, fiducial_touch_mm)`` per staple; format 2 records the stylus held on
   each staple over ``fiducial_trace_breaths`` breaths (``fiducial_trace.csv``,
   tracker noise per sample), ``fiducials.csv`` its mid-hold sample.
+
+The written format is :mod:`~heartreg.phantom.session_format`, the motions and
+noise :mod:`~heartreg.phantom.session_motion`, the returned truth
+:mod:`~heartreg.phantom.session_truth`.
 """
 
 from __future__ import annotations
@@ -40,7 +44,6 @@ import json
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +59,32 @@ from heartreg.phantom.layout import (
     fiducials_patient_mm,
     make_heart,
 )
+from heartreg.phantom.session_format import (
+    FIDUCIAL_COLUMNS,
+    FIDUCIAL_ORDER,
+    FIDUCIAL_TRACE_COLUMNS,
+    FIDUCIAL_TRACE_FILE,
+    POINT_COLUMNS,
+    SESSION_FORMAT,
+    SESSION_UNITS,
+    SESSION_VERSION,
+    _FMT_POS,
+    _ROW_FORMAT,
+    _as_written,
+    _format_rows,
+    _parse_pose_columns,
+    _pose_columns,
+)
+from heartreg.phantom.session_motion import (
+    _T_drift,
+    _T_tracker_from_patient,
+    _add_noise,
+    _drift_params,
+    _fiducial_schedule,
+    _write_fiducial_trace,
+    chest_wall_displacement,
+)
+from heartreg.phantom.session_truth import SessionPointTruth, SessionTruth
 from heartreg.phantom.signals import (
     expiration_onsets,
     phase_from_events,
@@ -79,35 +108,6 @@ __all__ = [
     "write_session",
 ]
 
-SESSION_FORMAT = "heartreg-session"
-SESSION_VERSION = 2
-SESSION_UNITS = {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"}
-POINT_COLUMNS = (
-    "time_s",
-    "robot_x_mm", "robot_y_mm", "robot_z_mm",
-    "robot_qw", "robot_qx", "robot_qy", "robot_qz",
-    "probe_x_mm", "probe_y_mm", "probe_z_mm",
-    "probe_qw", "probe_qx", "probe_qy", "probe_qz",
-    "ecg_mv", "flow_insp_lpm", "flow_exp_lpm",
-)  # fmt: skip
-FIDUCIAL_COLUMNS = ("fiducial", "x_mm", "y_mm", "z_mm")
-#: format 2: the stylus held on each staple over a breath, one continuous record.
-FIDUCIAL_TRACE_COLUMNS = (
-    "time_s", "fiducial",
-    "stylus_x_mm", "stylus_y_mm", "stylus_z_mm",
-    "probe_x_mm", "probe_y_mm", "probe_z_mm",
-    "probe_qw", "probe_qx", "probe_qy", "probe_qz",
-    "flow_insp_lpm", "flow_exp_lpm",
-)  # fmt: skip
-FIDUCIAL_TRACE_FILE = "fiducial_trace.csv"
-FIDUCIAL_ORDER = "rows superior to inferior, within a row patient right to left"
-
-#: written number formats: time, position, quaternion, ECG, flow.
-_FMT_TIME, _FMT_POS, _FMT_QUAT, _FMT_ECG, _FMT_FLOW = "%.3f", "%.4f", "%.9f", "%.4f", "%.3f"
-_ROW_FORMAT = ",".join(
-    [_FMT_TIME] + [_FMT_POS] * 3 + [_FMT_QUAT] * 4 + [_FMT_POS] * 3 + [_FMT_QUAT] * 4
-    + [_FMT_ECG, _FMT_FLOW, _FMT_FLOW]
-)  # fmt: skip
 
 #: the subxiphoid reach: heart-frame latitude band and arc of u around the
 #: direction that faces anterior-inferior (patient LPS: -y and -z).
@@ -117,217 +117,12 @@ _ANTERIOR_INFERIOR = np.array([0.0, -1.0, -0.6]) / np.linalg.norm([0.0, -1.0, -0
 #: surgery starts between 08:00 and 10:00; the robot moves 5-20 s between points.
 _START_WINDOW_S = (8 * 3600.0, 10 * 3600.0)
 _GAP_S = (5.0, 20.0)
-#: chest-wall breathing of the probe along its z (mm), and slow drift amplitudes.
+#: chest-wall breathing of the probe along its z (mm).
 _PROBE_BREATHING_MM = (2.0, 4.0)
-_DRIFT_MM = 1.5
-_DRIFT_DEG = 0.3
-_DRIFT_PERIOD_S = (600.0, 2400.0)
-_TRACE_ROW_FORMAT = ",".join(
-    [_FMT_TIME, "%d"] + [_FMT_POS] * 3 + [_FMT_POS] * 3 + [_FMT_QUAT] * 4 + [_FMT_FLOW, _FMT_FLOW]
-)
-#: stylus moves between staples in this long (s); a breath of lead-in and -out.
-_TRANSIT_S = 1.5
-#: chest-wall breathing of the 3 x 3 staples: excursion per row (superior to
-#: inferior) relative to the mid-sternum staple, the lateral columns' share, the
-#: lag of each row (in units of ``chest_wall_lag``), the lateral "bucket handle"
-#: and superior "pump handle" parts of the motion relative to the anterior one.
-_CHEST_ROW_GAIN = (0.7, 1.0, 1.25)
-_CHEST_LATERAL_GAIN = 0.75
-_CHEST_ROW_LAG = (0.0, 0.5, 1.0)
-_CHEST_LATERAL_SHARE = 0.3
-_CHEST_SUPERIOR_SHARE = 0.25
 #: separate random stream from the CT writer's, same user seed.
 _STREAM = 0x5E55
 
 
-# --------------------------------------------------------------------- truth
-@dataclass(frozen=True, eq=False)
-class SessionPointTruth:
-    """Ground truth of one attachment point.
-
-    Attributes
-    ----------
-    point_id : int
-        Record id and surface-point id in ``session.json``.
-    u, v : float
-        Surface coordinates of :meth:`AnalyticHeart.reference_points`.
-    yaw_deg : float
-        Fixed rotation of the robot about the surface normal.
-    reference_heart_mm : (3,) float64
-        End-diastolic reference point, heart construction frame.
-    position_patient_mm, normal_patient : (3,) float64
-        Position (mm) and outward unit normal in the patient frame at
-        ``(config.gating_target_phase, config.image_resp_phase)``.
-    start_s, end_s : float
-        Times of the record's first and last sample, s after midnight.
-    heart_rate_hz, resp_rate_hz : float
-        Mean rates over the record.
-    position_noise_rms_mm : (3,) float64
-        RMS per probe axis of measured minus clean ``T_probe_from_robot``
-        translation (as written to the file).
-    rotation_noise_rms_deg : float
-        RMS angle of measured relative to clean ``T_probe_from_robot`` rotation.
-    """
-
-    point_id: int
-    u: float
-    v: float
-    yaw_deg: float
-    reference_heart_mm: np.ndarray
-    position_patient_mm: np.ndarray
-    normal_patient: np.ndarray
-    start_s: float
-    end_s: float
-    heart_rate_hz: float
-    resp_rate_hz: float
-    position_noise_rms_mm: np.ndarray
-    rotation_noise_rms_deg: float
-
-    def to_dict(self) -> dict:
-        return {
-            "id": self.point_id,
-            "u": self.u,
-            "v": self.v,
-            "yaw_deg": self.yaw_deg,
-            "reference_heart_mm": self.reference_heart_mm.tolist(),
-            "position_patient_mm": self.position_patient_mm.tolist(),
-            "normal_patient": self.normal_patient.tolist(),
-            "start_s": self.start_s,
-            "end_s": self.end_s,
-            "heart_rate_hz": self.heart_rate_hz,
-            "resp_rate_hz": self.resp_rate_hz,
-            "position_noise_rms_mm": self.position_noise_rms_mm.tolist(),
-            "rotation_noise_rms_deg": self.rotation_noise_rms_deg,
-        }
-
-
-@dataclass(frozen=True, eq=False)
-class SessionTruth:
-    """What the session generator knows and the registration must recover.
-
-    Attributes
-    ----------
-    T_patient_from_probe : (4, 4) float64
-        T*, the reference probe in the CT patient frame.
-    T_fiducial_shift : (4, 4) float64
-        CT-to-surgery skin motion (patient frame): staples in surgery are
-        ``T_fiducial_shift @ f_ct``.
-    T0_patient_from_probe : (4, 4) float64
-        The fiducial registration a correct SVD of the touched (probe frame)
-        onto the CT fiducials gives; ~ ``inv(T_fiducial_shift) @ T*``.
-    T_tracker_from_patient : (4, 4) float64
-        Nominal placement of the tracker (before drift and breathing).
-    fiducials_ct_mm, fiducials_probe_mm : (9, 3) float64
-        CT staple centres (patient frame) and the touched staples as written
-        (probe frame), documented order.
-    r_peaks_s, expiration_onsets_s : (n,) float64
-        Event times on the session clock, s after midnight.
-    image_phase_c, image_phase_r : float
-        Phases of ``position_patient_mm`` (the gating target and the CT
-        breath-hold phase of the config; the true image phase phi_C* is the
-        CT writer's business).
-    points : tuple of SessionPointTruth
-    probe_breathing_mm : float
-        Chest-wall excursion of the probe along its z, full breath.
-    position_noise_rms_mm : (3,) float64
-        RMS per probe axis over all samples of all points.
-    rotation_noise_rms_deg : float
-    fiducial_touch_rms_mm : float
-        RMS per axis of touched minus true staples (true: where the CT saw them,
-        moved by the CT-to-surgery shift; the chest wall's breathing included).
-    chest_wall_ap_mm : float
-        Sternal anterior excursion over a breath.
-    fiducial_touch_phase_r : (9,) float64
-        Respiration phase of each single touch (``fiducials.csv``).
-    fiducial_trace_file : str
-        The stylus trace (format 2), or "" (format 1).
-    heart_rate_hz, resp_rate_hz : float
-        Means over points of the per-record rates (as the paper's Table 1).
-    """
-
-    T_patient_from_probe: np.ndarray
-    T_fiducial_shift: np.ndarray
-    T0_patient_from_probe: np.ndarray
-    T_tracker_from_patient: np.ndarray
-    fiducials_ct_mm: np.ndarray
-    fiducials_probe_mm: np.ndarray
-    r_peaks_s: np.ndarray
-    expiration_onsets_s: np.ndarray
-    image_phase_c: float
-    image_phase_r: float
-    points: tuple[SessionPointTruth, ...]
-    probe_breathing_mm: float
-    position_noise_rms_mm: np.ndarray
-    rotation_noise_rms_deg: float
-    fiducial_touch_rms_mm: float
-    heart_rate_hz: float
-    resp_rate_hz: float
-    chest_wall_ap_mm: float = 0.0
-    fiducial_touch_phase_r: np.ndarray | None = None
-    fiducial_trace_file: str = ""
-
-    @property
-    def u(self) -> np.ndarray:
-        """(n,) float64 surface coordinate u of every point, in point order."""
-        return np.array([p.u for p in self.points])
-
-    @property
-    def v(self) -> np.ndarray:
-        """(n,) float64 surface coordinate v of every point, in point order."""
-        return np.array([p.v for p in self.points])
-
-    def positions_at(self, heart: AnalyticHeart, phase_c: float, phase_r: float) -> np.ndarray:
-        """Patient-frame positions of all points at ``(phase_c, phase_r)``.
-
-        Parameters
-        ----------
-        heart : AnalyticHeart
-            The phantom heart (``layout.make_heart(config)``).
-        phase_c, phase_r : float
-            Cardiac and respiration phases in [0, 1).
-
-        Returns
-        -------
-        (n, 3) float64, mm, patient frame
-        """
-        u, v = self.u, self.v
-        return heart.surface_points(u, v, np.full(u.shape, phase_c), np.full(u.shape, phase_r))
-
-    def frames_at(self, heart: AnalyticHeart, phase_c: float, phase_r: float):
-        """Positions (n, 3) mm and surface frames (n, 3, 3) (z the outward normal)
-        of all points at ``(phase_c, phase_r)``, patient frame."""
-        u, v = self.u, self.v
-        return heart.surface_frames(u, v, np.full(u.shape, phase_c), np.full(u.shape, phase_r))
-
-    def to_dict(self) -> dict:
-        """JSON-ready dictionary (lists and floats)."""
-        return {
-            "T_patient_from_probe": self.T_patient_from_probe.tolist(),
-            "T_fiducial_shift": self.T_fiducial_shift.tolist(),
-            "T0_patient_from_probe": self.T0_patient_from_probe.tolist(),
-            "T_tracker_from_patient": self.T_tracker_from_patient.tolist(),
-            "fiducials_ct_mm": self.fiducials_ct_mm.tolist(),
-            "fiducials_probe_mm": self.fiducials_probe_mm.tolist(),
-            "r_peaks_s": self.r_peaks_s.tolist(),
-            "expiration_onsets_s": self.expiration_onsets_s.tolist(),
-            "image_phase_c": self.image_phase_c,
-            "image_phase_r": self.image_phase_r,
-            "points": [p.to_dict() for p in self.points],
-            "probe_breathing_mm": self.probe_breathing_mm,
-            "position_noise_rms_mm": self.position_noise_rms_mm.tolist(),
-            "rotation_noise_rms_deg": self.rotation_noise_rms_deg,
-            "fiducial_touch_rms_mm": self.fiducial_touch_rms_mm,
-            "heart_rate_hz": self.heart_rate_hz,
-            "resp_rate_hz": self.resp_rate_hz,
-            "chest_wall_ap_mm": self.chest_wall_ap_mm,
-            "fiducial_touch_phase_r": (
-                None if self.fiducial_touch_phase_r is None else self.fiducial_touch_phase_r.tolist()
-            ),
-            "fiducial_trace_file": self.fiducial_trace_file,
-        }
-
-
-# -------------------------------------------------------------------- layout
 def reachable_patch(heart: AnalyticHeart, *, phase_c: float = 0.7, phase_r: float = 0.3):
     """The subxiphoid reach on the epicardium as a box in (u, v).
 
@@ -378,59 +173,6 @@ def _spread_points(rng, heart, n, u_centre, half_width_u, v_range):
     return np.mod(u[idx], 1.0), v[idx]
 
 
-# ------------------------------------------------------------ motion helpers
-def _T_tracker_from_patient() -> np.ndarray:
-    """Tracker field generator ~300 mm from the chest, right-inferior-anterior
-    of the probe, axes turned against the patient's."""
-    T = np.eye(4)
-    R = Rotation.from_euler("xyz", [160.0, 20.0, -35.0], degrees=True)
-    origin_patient = np.array([-150.0, -330.0, -160.0])
-    T[:3, :3] = R.as_matrix().T
-    T[:3, 3] = -R.as_matrix().T @ origin_patient
-    return T
-
-
-def _drift_params(rng):
-    periods = rng.uniform(*_DRIFT_PERIOD_S, size=(2, 6))
-    phases = rng.uniform(0.0, 2 * np.pi, size=(2, 6))
-    return periods, phases
-
-
-def _T_drift(time_s, params) -> np.ndarray:
-    """Slow rigid drift of the patient in the tracker frame, (n, 4, 4)."""
-    periods, phases = params  # (2, 6): two sinusoids for each of 6 DOF
-    w = np.sin(2 * np.pi * time_s[:, None, None] / periods + phases).mean(axis=1)
-    shift = _DRIFT_MM * w[:, :3]
-    rotvec = np.deg2rad(_DRIFT_DEG) * w[:, 3:]
-    return poses(Rotation.from_rotvec(rotvec).as_matrix(), shift)
-
-
-def _add_noise(rng, T, position_mm, rotation_deg):
-    """Independent tracker noise: position per tracker axis, rotation vector per
-    component, applied on the left (tracker frame)."""
-    n = T.shape[0]
-    dR = Rotation.from_rotvec(np.deg2rad(rotation_deg) * rng.standard_normal((n, 3))).as_matrix()
-    return poses(dR @ T[:, :3, :3], T[:, :3, 3] + position_mm * rng.standard_normal((n, 3)))
-
-
-def _pose_columns(T):
-    """(n, 7): x, y, z (mm) and scalar-first unit quaternion w, x, y, z (w >= 0)."""
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    return np.hstack([T[:, :3, 3], q])
-
-
-def _as_written(cols):
-    """Pose columns rounded as the CSV writes them."""
-    return np.hstack([np.round(cols[:, :3], 4), np.round(cols[:, 3:], 9)])
-
-
-def _parse_pose_columns(cols):
-    """Inverse of :func:`_pose_columns` after rounding to the written precision."""
-    q = cols[:, 3:]
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return poses(Rotation.from_quat(q, scalar_first=True).as_matrix(), cols[:, :3])
-
-
 def _rate_in(events, start, end) -> float:
     inside = events[(events >= start) & (events <= end)]
     if len(inside) < 2:
@@ -438,115 +180,6 @@ def _rate_in(events, start, end) -> float:
     return float((len(inside) - 1) / (inside[-1] - inside[0]))
 
 
-def _format_rows(values: np.ndarray, fmt: str) -> str:
-    return "".join(fmt % tuple(row) + "\n" for row in values.tolist())
-
-
-def chest_wall_displacement(config: PhantomConfig, phase_r) -> np.ndarray:
-    """Breathing motion of the 9 staples relative to where the CT saw them.
-
-    Staple ``j`` (documented order) moves by ``A a_j (g(phi_R - l_j) -
-    g(phi_R* - l_j)) e_j``: ``A = config.chest_wall_ap_mm``, ``a_j`` its row's
-    and column's share (:data:`_CHEST_ROW_GAIN`, :data:`_CHEST_LATERAL_GAIN`),
-    ``l_j`` its row's lag (inferior rows lag: abdominal breathing), ``g`` the
-    inspiration depth and ``e_j`` anterior with a lateral (outer columns) and a
-    superior (top row) part.  The motion is not rigid, so the staples' shape
-    changes over the breath and is that of the CT only at phi_R*.
-
-    Parameters
-    ----------
-    config : PhantomConfig
-    phase_r : (n,) float
-        Respiration phases.
-
-    Returns
-    -------
-    (n, 9, 3) float64, mm, patient frame (LPS)
-    """
-    phase_r = np.atleast_1d(np.asarray(phase_r, dtype=float))
-    out = np.zeros(phase_r.shape + (9, 3))
-    if config.chest_wall_ap_mm == 0.0:
-        return out
-    for j in range(9):
-        row, col = divmod(j, 3)
-        gain = _CHEST_ROW_GAIN[row] * (1.0 if col == 1 else _CHEST_LATERAL_GAIN)
-        lag = config.chest_wall_lag * _CHEST_ROW_LAG[row]
-        g = respiratory_waveform(phase_r - lag) - respiratory_waveform(config.image_resp_phase - lag)
-        direction = np.array(
-            [_CHEST_LATERAL_SHARE * (col - 1), -1.0, _CHEST_SUPERIOR_SHARE * (row == 0)]
-        )
-        out[:, j] = config.chest_wall_ap_mm * gain * g[:, None] * direction
-    return out
-
-
-def _fiducial_schedule(config: PhantomConfig, start_s: float, rate: float):
-    """Times and staple of the fiducial trace: a breath of lead-in, each staple
-    held ``fiducial_trace_breaths`` breaths with a transit between, a breath out.
-
-    Returns time_s (n,) and fiducial (n,) int (0 while the stylus is in transit).
-    """
-    period = 1.0 / config.resp_rate_hz
-    hold = config.fiducial_trace_breaths * period
-    spans = [(0, period + 1.0)]
-    for k in range(1, 10):
-        spans.append((k, hold))
-        spans.append((0, _TRANSIT_S if k < 9 else period + 1.0))
-    labels = np.concatenate([np.full(int(round(d * rate)), k) for k, d in spans])
-    time_s = np.round(start_s + np.arange(labels.size) / rate, 3)
-    return time_s, labels
-
-
-def _write_fiducial_trace(folder, rng, config, T_star, T_tracker_from_patient, drift, breathing_mm,
-                          r_peaks, onsets, time_s, labels, offsets_mm):
-    """Write the stylus trace; return the staples as measured, probe frame, (n, 3) mm."""
-    noise = config.noise
-    rate = config.session_rate_hz
-    T_probe_from_patient = np.linalg.inv(T_star)
-    phase_r = phase_from_events(time_s, onsets)
-    f_ct = fiducials_patient_mm()
-    disp = chest_wall_displacement(config, phase_r)  # (n, 9, 3)
-    staples = f_ct[None] + disp  # patient frame at the CT's placement of the skin
-    shift = T_fiducial_shift(config)
-    staples = apply(shift, staples)
-    # between staples (and before / after) the stylus glides 20 mm above the skin
-    target = np.zeros((labels.size, 3))
-    idx = np.clip(labels - 1, 0, 8)
-    held = labels > 0
-    # in transit: from the last staple held to the next one
-    last = np.maximum.accumulate(np.where(held, np.arange(labels.size), 0))
-    prev = np.where(held, labels, labels[last])
-    prev = np.where(prev == 0, 1, prev)
-    target[held] = staples[np.flatnonzero(held), idx[held]]
-    free = ~held
-    nxt = np.minimum(prev + 1, 9)
-    rows = np.flatnonzero(free)
-    target[free] = 0.5 * (staples[rows, prev[free] - 1] + staples[rows, nxt[free] - 1]) + [0.0, -20.0, 0.0]
-    tip_probe = apply(T_probe_from_patient, target)
-    tip_probe[held] += offsets_mm[idx[held]]
-    breath = np.zeros((time_s.size, 4, 4))
-    breath[:] = np.eye(4)
-    breath[:, 2, 3] = breathing_mm * respiratory_waveform(np.nan_to_num(phase_r))
-    T_tracker_from_probe = _T_drift(time_s, drift) @ (T_tracker_from_patient @ T_star) @ breath
-    tip_tracker = np.einsum("nij,nj->ni", T_tracker_from_probe[:, :3, :3], tip_probe) + T_tracker_from_probe[:, :3, 3]
-    tip_meas = tip_tracker + noise.tracker_position_mm * rng.standard_normal(tip_tracker.shape)
-    probe_meas = _add_noise(rng, T_tracker_from_probe, noise.tracker_position_mm, noise.tracker_rotation_deg)
-    insp, expi = synthesize_airflow(
-        rng, onsets, r_peaks, start_s=time_s[0], duration_s=time_s.size / rate, rate_hz=rate,
-        noise_lpm=noise.flow_noise_lpm,
-    )
-    probe_cols = _pose_columns(probe_meas)
-    table = np.column_stack([time_s, labels, tip_meas, probe_cols, insp, expi])
-    with open(folder / FIDUCIAL_TRACE_FILE, "w", newline="") as fh:
-        fh.write(",".join(FIDUCIAL_TRACE_COLUMNS) + "\n")
-        fh.write(_format_rows(table, _TRACE_ROW_FORMAT))
-    # as a reader sees them: tip in the measured probe frame
-    Tp = _parse_pose_columns(_as_written(probe_cols))
-    tip_w = np.round(tip_meas, 4)
-    measured = np.einsum("nji,nj->ni", Tp[:, :3, :3], tip_w - Tp[:, :3, 3])
-    return measured, phase_r
-
-
-# -------------------------------------------------------------------- writer
 def write_session(
     out_dir: Path,
     config: PhantomConfig,
@@ -711,25 +344,16 @@ def _write(folder: Path, config, seed, progress, n_points, duration_s) -> Sessio
         T_tracker_from_robot = T_tracker_from_probe @ T_probe_from_robot
         meas_robot = _add_noise(rng, T_tracker_from_robot, noise.tracker_position_mm, noise.tracker_rotation_deg)
         meas_probe = _add_noise(rng, T_tracker_from_probe, noise.tracker_position_mm, noise.tracker_rotation_deg)
+        window = {"start_s": time_s[0], "duration_s": n_samples / rate, "rate_hz": rate}
         ecg = synthesize_ecg(
             rng,
             r_peaks,
-            start_s=time_s[0],
-            duration_s=n_samples / rate,
-            rate_hz=rate,
+            **window,
             noise_mv=noise.ecg_noise_mv,
             wander_mv=noise.ecg_wander_mv,
             resp_rate_hz=config.resp_rate_hz,
         )
-        insp, expi = synthesize_airflow(
-            rng,
-            onsets,
-            r_peaks,
-            start_s=time_s[0],
-            duration_s=n_samples / rate,
-            rate_hz=rate,
-            noise_lpm=noise.flow_noise_lpm,
-        )
+        insp, expi = synthesize_airflow(rng, onsets, r_peaks, **window, noise_lpm=noise.flow_noise_lpm)
         robot_cols = _pose_columns(meas_robot)
         probe_cols = _pose_columns(meas_probe)
         table = np.column_stack([time_s, robot_cols, probe_cols, ecg, insp, expi])

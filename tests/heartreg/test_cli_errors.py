@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from heartreg import cli
+from heartreg import cli, cli_parser
 from hrcore.errors import HeartregError, UsageError
 
 
@@ -13,7 +13,7 @@ def _run_phases_raising(monkeypatch, tmp_path, exc):
     def boom(args):
         raise exc
 
-    monkeypatch.setattr(cli, "_cmd_phases", boom)
+    monkeypatch.setattr(cli_parser, "_cmd_phases", boom)  # the parser binds each command
     return cli.main(["phases", str(tmp_path)])
 
 

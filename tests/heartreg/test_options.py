@@ -6,12 +6,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import doctest
-import importlib
 
 import pytest
 
-from heartreg import cli
+from heartreg import cli, cli_commands, cli_parser
 from hrcore.errors import UsageError
 from modeling.options import AUTO, ModelOptions
 from registration.motion_model import Harmonics
@@ -19,7 +17,7 @@ from registration.options import RegistrationOptions
 
 
 def _subparsers():
-    parser = cli._build_parser()
+    parser = cli_parser._build_parser()
     action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return action.choices
 
@@ -41,14 +39,14 @@ def test_flags_fill_the_option_dataclasses():
     args = parser.parse_args(["pipeline", "study", "session", "-o", "out", "--faces", "5000", "--fiducials", "0",
                               "--keep-vessels", "--harmonics", "3", "2", "1", "1", "--step", "0.02",
                               "--estimator", "eq10", "--icp-max-iterations", "80", "--no-view"])
-    m = cli._model_options(args)
+    m = cli_commands._model_options(args)
     assert m == ModelOptions(target_faces=5000, expected_fiducials=None, trim_vessels=False)
-    r = cli._registration_options(args)
+    r = cli_commands._registration_options(args)
     assert r.harmonics == Harmonics(3, 2, 1, 1) and r.phase_step == 0.02 and r.estimator == "eq10"
     assert dict(r.icp_options) == {"max_iterations": 80}
     # no flags: exactly the library's defaults
     plain = parser.parse_args(["pipeline", "study", "session", "-o", "out"])
-    assert cli._model_options(plain) == ModelOptions() and cli._registration_options(plain) == RegistrationOptions()
+    assert cli_commands._model_options(plain) == ModelOptions() and cli_commands._registration_options(plain) == RegistrationOptions()
     assert ModelOptions().expected_fiducials == AUTO  # the command's default is the library's
 
 
@@ -82,8 +80,3 @@ def test_options_are_frozen_and_overridable():
     with pytest.raises(TypeError, match="no_such_option"):
         RegistrationOptions.of(None, no_such_option=1)
 
-
-@pytest.mark.parametrize("name", ["hrcore.errors", "modeling.options", "registration.options"])
-def test_examples_run(name):
-    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS)
-    assert result.attempted > 0 and result.failed == 0

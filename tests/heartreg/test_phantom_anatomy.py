@@ -23,7 +23,8 @@ from scipy.ndimage import map_coordinates
 from heartreg.cli import main
 from heartreg.phantom import ChamberHeart, PhantomError, heart_from_truth, make_phantom
 from heartreg.phantom.anatomy import ANATOMY_HU, WALL_THICKNESS_MM
-from heartreg.phantom.chest import HU, build_chest, render_slice
+from heartreg.phantom.chest import HU, build_chest
+from heartreg.phantom.chest_render import render_slice
 from heartreg.phantom.config import PRESETS, Anatomy, config_from_dict, make_config
 from heartreg.phantom.heart import AnalyticHeart
 from heartreg.phantom.layout import make_heart

@@ -17,9 +17,11 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from heartreg.phantom import ct as ct_module
-from heartreg.phantom.chest import build_chest, render_slice
+from heartreg.phantom.chest import build_chest
+from heartreg.phantom.chest_render import render_slice
 from heartreg.phantom.config import PRESETS, SIZES, config_from_dict, make_config
-from heartreg.phantom.ct import CTStudyExistsError, plan_acquisition, write_ct_study
+from heartreg.phantom.acquisition import _streams, plan_acquisition
+from heartreg.phantom.ct import CTStudyExistsError, write_ct_study
 from heartreg.phantom.dicom_ct import GE_ACQU_CREATOR, GE_CARDIAC_CREATOR
 from heartreg.phantom.layout import FIDUCIAL_SIZE_MM, fiducials_patient_mm, make_heart
 from heartreg.phantom.signals import phase_from_events
@@ -378,7 +380,7 @@ def test_full_size_study(full_case):
     files = [f for f in (case / "ct").iterdir() if f.name != truth["ecg_file"]]
     assert len(files) == g.n_slices
     chest = build_chest(make_heart(config), anatomy=config.anatomy, phase_c=config.gating_target_phase)
-    noise_seeds = ct_module._streams(truth["seed"])[2].spawn(g.n_slices)
+    noise_seeds = _streams(truth["seed"])[2].spawn(g.n_slices)
     for k in (0, 100, 200, 287):
         ds = pydicom.dcmread(case / "ct" / truth["slice_file"][k])
         assert float(ds.ImagePositionPatient[2]) == pytest.approx(truth["slice_position_mm"][k], abs=1e-4)

@@ -17,14 +17,8 @@ from scipy.spatial.transform import Rotation
 
 from heartreg.phantom.config import PhantomConfig
 from heartreg.phantom.layout import T_fiducial_shift, T_patient_from_probe, fiducials_patient_mm, make_heart
-from heartreg.phantom.session import (
-    FIDUCIAL_COLUMNS,
-    POINT_COLUMNS,
-    REACH_V,
-    SESSION_FORMAT,
-    reachable_patch,
-    write_session,
-)
+from heartreg.phantom.session import REACH_V, reachable_patch, write_session
+from heartreg.phantom.session_format import FIDUCIAL_COLUMNS, POINT_COLUMNS, SESSION_FORMAT
 from heartreg.phantom.signals import phase_from_events
 
 N_POINTS, DURATION_S = 5, 25.0
@@ -158,7 +152,7 @@ def test_fiducials_map_to_the_shifted_ct_fiducials(written):
     """T* @ f_probe = T_shift @ (f_ct + chest wall at the touch's phase) + touch
     noise (sigma 1 mm per axis, and the tracker's 0.2 mm; the RMS over 27 values
     lies in [0.5, 1.6] sigma with probability > 0.999)."""
-    from heartreg.phantom.session import chest_wall_displacement
+    from heartreg.phantom.session_motion import chest_wall_displacement
 
     folder, truth = written
     table = np.loadtxt(folder / "fiducials.csv", delimiter=",", skiprows=1)

@@ -1,7 +1,6 @@
 """Tests of hrcore/geometry.py: checks, Kabsch and frozen arrays (the algebra of
 apply/invert/compose is tested, property-based, in tests/registration/test_transforms.py)."""
 
-import doctest
 
 import numpy as np
 import pytest
@@ -9,7 +8,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-import hrcore.geometry
 from hrcore.geometry import (
     TransformError,
     apply_to_points,
@@ -31,11 +29,6 @@ def random_rigid(rng, n=None):
     T[..., :3, 3] = rng.uniform(-200, 200, shape + (3,))
     T[..., 3, 3] = 1.0
     return T
-
-
-def test_docstring_examples_run():
-    failures, tried = doctest.testmod(hrcore.geometry)
-    assert tried > 0 and failures == 0
 
 
 @SETTINGS

@@ -13,10 +13,7 @@ import pytest
 from heartreg.cli import main
 from imaging import (
     GatingError,
-    GatingWarning,
-    PhaseFileError,
     PhaseReport,
-    SlicePhase,
     compute_phase_report,
     load_study,
     read_ecg_waveform,
@@ -24,6 +21,8 @@ from imaging import (
     read_qrs_file,
     write_phase_report,
 )
+from imaging.phase import GatingWarning, SlicePhase
+from imaging.phase_io import PhaseFileError
 
 #: the slice clocks are written with microsecond resolution: phases agree to 1e-5;
 #: the issue's tolerances (1e-3 per slice, 0.005 for the volume) leave room for

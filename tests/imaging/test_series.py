@@ -24,14 +24,10 @@ from pydicom.encaps import encapsulate
 from pydicom.uid import JPEG2000Lossless, JPEGLSLossless, RLELossless
 from scipy.spatial.transform import Rotation
 
-from imaging.series import (
-    SeriesError,
-    StudyError,
-    StudyWarning,
-    list_series,
-    load_study,
-)
-from imaging.volume import DecoderUnavailableError, SliceInfo, Volume
+from imaging.grouping import StudyError, StudyWarning
+from imaging.pixels import DecoderUnavailableError
+from imaging.series import list_series, load_study
+from imaging.volume import SeriesError, SliceInfo, Volume
 
 from . import dicom_factory as fac
 
@@ -567,7 +563,7 @@ def test_single_valued_image_type_localizer_is_recognised(tmp_path):
     """ImageType with one value ('LOCALIZER') must not be split into letters."""
     import pydicom
 
-    from imaging.discover import _upper_values
+    from imaging.dicom_values import _upper_values
 
     assert _upper_values("LOCALIZER") == ("LOCALIZER",)
     assert _upper_values(pydicom.multival.MultiValue(str, ["ORIGINAL", "primary"])) == ("ORIGINAL", "PRIMARY")
@@ -598,7 +594,7 @@ def test_a_stray_repeated_position_is_dropped_not_split(tmp_path):
 
 
 def test_zero_rescale_slope_is_a_clear_error(tmp_path):
-    from imaging import PixelDataError
+    from imaging.pixels import PixelDataError
 
     with np.errstate(divide="ignore", invalid="ignore"):  # the factory divides by the slope
         fac.write_ct_series(tmp_path, rescale=(0.0, -1024.0))

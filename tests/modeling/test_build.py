@@ -26,13 +26,13 @@ from heartreg.phantom.chest import build_chest
 from imaging import load_study
 from modeling import (
     FiducialError,
-    LabelMapError,
     SegmentationError,
     build_heart_model,
     find_fiducials,
     read_model,
     segment_heart,
 )
+from modeling.labelmap import LabelMapError
 
 from .conftest import dense_surface, distance_to_truth
 

@@ -18,7 +18,7 @@ from modeling.model import (
 )
 from modeling.fiducials import order_fiducials
 from modeling.render import RenderError, offscreen_available, render_model_png
-from modeling.surface import check_mesh
+from modeling.mesh import check_mesh
 
 from .conftest import heart_of
 

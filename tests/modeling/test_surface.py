@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from modeling.surface import Mesh, MeshError, check_mesh, mask_to_mesh, read_ply, write_mesh
+from modeling.mesh import Mesh, MeshError, check_mesh
+from modeling.mesh_io import read_ply, write_mesh
+from modeling.surface import mask_to_mesh
 
 from .conftest import PHASE_C, dense_surface, distance_to_truth, grid_around_heart, heart_of, rasterize
 

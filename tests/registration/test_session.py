@@ -431,7 +431,7 @@ def test_bad_arguments(phantom):
 def test_writer_and_reader_agree_on_the_format():
     """The phantom writes the session without importing the reader (it is the
     independent truth), so the two copies of the format's constants must agree."""
-    from heartreg.phantom import session as writer
+    from heartreg.phantom import session_format as writer
     from registration import session as reader
 
     assert writer.SESSION_FORMAT == reader.SESSION_FORMAT

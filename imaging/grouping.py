@@ -1,0 +1,324 @@
+"""Frames of a scanned folder grouped into series a user can choose from.
+
+Frames are grouped by SeriesInstanceUID, then split where one UID holds several
+stacks: by orientation (clusters of slice normals), by acquisition keys
+(``_SPLIT_KEYS``, e.g. one stack per nominal cardiac phase) and by repeated
+positions; stray repeated slices are dropped and exact duplicates removed. Each
+group is summarised as a :class:`SeriesSummary` for ``list_series``.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections import defaultdict
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from hrcore.errors import HeartregError
+
+from .discover import _Frame, _Other, _Scan, _scan
+from .volume import _files_text
+
+
+#: Slice positions closer than this (mm) are the same position.
+SAME_POSITION_MM = 0.01
+#: A stack is called axial/coronal/sagittal when its normal is this close to an axis.
+AXIS_COS = np.cos(np.radians(10.0))
+_LOADABLE = ("volume", "slice", "localizer")
+_SPLIT_KEYS = (
+    ("nominal_cardiac_percent", "NominalPercentageOfCardiacPhase"),
+    ("trigger_time_ms", "TriggerTime"),
+    ("temporal_position", "TemporalPosition"),
+    ("acquisition_number", "AcquisitionNumber"),
+)
+
+
+@dataclass(frozen=True)
+class SeriesSummary:
+    """One loadable (or listed) group of images, as `list_series` shows it.
+
+    ``kind`` is ``"volume"`` (a stack of 2+ images), ``"slice"`` (one image),
+    ``"localizer"``, ``"non-image"`` (e.g. an ECG waveform or report) or
+    ``"unusable"``; ``reason`` says why a group is not a volume or how it was split.
+    ``uid`` is the Series Instance UID; a series split into several groups has the
+    same ``uid`` in each, with ``subset`` telling them apart: select those by index.
+    """
+
+    index: int
+    uid: str
+    description: str
+    modality: str
+    n_slices: int
+    orientation: str
+    kind: str
+    reason: str
+    series_number: int | None
+    subset: str
+    n_files: int
+    files: tuple[str, ...] = field(repr=False)
+
+
+@dataclass(frozen=True)
+class _Group:
+    summary: SeriesSummary
+    frames: tuple[_Frame, ...]
+
+
+def _normal(iop) -> np.ndarray:
+    v = np.asarray(iop, dtype=np.float64)
+    n = np.cross(v[:3], v[3:])
+    norm = np.linalg.norm(n)
+    return n / norm if norm > 0 else n
+
+
+def _orientation_label(iop) -> str:
+    if iop is None:
+        return ""
+    n = np.abs(_normal(iop))
+    axis = int(np.argmax(n))
+    if n[axis] < AXIS_COS:
+        return "oblique"
+    return ("sagittal", "coronal", "axial")[axis]
+
+
+def _cluster_orientation(frames: list[_Frame]) -> list[list[_Frame]]:
+    clusters: list[tuple[np.ndarray | None, list[_Frame]]] = []
+    for f in frames:
+        key = None if f.iop is None else np.asarray(f.iop)
+        for ref, members in clusters:
+            if (ref is None and key is None) or (
+                ref is not None and key is not None and np.max(np.abs(ref - key)) < 1e-4
+            ):
+                members.append(f)
+                break
+        else:
+            clusters.append((key, [f]))
+    return [members for _, members in clusters]
+
+
+def _has_duplicates(frames: list[_Frame]) -> bool:
+    if frames[0].iop is None or any(f.ipp is None for f in frames):
+        return False
+    n = _normal(frames[0].iop)
+    pos = np.sort(np.array([f.ipp for f in frames]) @ n)
+    return bool(np.any(np.diff(pos) < SAME_POSITION_MM))
+
+
+def _split_duplicates(frames: list[_Frame]) -> tuple[list[tuple[str, list[_Frame]]], str]:
+    """Split a stack with repeated positions; returns ([(subset, frames)], reason)."""
+    for attr, label in _SPLIT_KEYS:
+        values = [getattr(f, attr) for f in frames]
+        if any(v is None for v in values) or len(set(values)) < 2:
+            continue
+        parts: dict = defaultdict(list)
+        for f, v in zip(frames, values):
+            parts[v].append(f)
+        if not any(_has_duplicates(p) for p in parts.values()):
+            return (
+                [(f"{label}={v:g}", parts[v]) for v in sorted(parts)],
+                f"series repeats slice positions; split by {label}",
+            )
+    return [("", frames)], ""
+
+
+#: Below this share of images at a repeated position, the repeats are strays
+#: (a resent or duplicated file), not a multi-phase series to split.
+STRAY_REPEAT_SHARE = 0.25
+
+
+def _drop_stray_duplicates(frames: list[_Frame]) -> tuple[list[_Frame], list[tuple[str, str]]]:
+    """Drop the few images that repeat another's position, keeping the first by
+    InstanceNumber; returns (kept, [(dropped file, kept file)]).  Nothing is
+    dropped when many images repeat (a multi-phase series: split it instead)."""
+    n = _normal(frames[0].iop)
+    pos = np.round(np.array([f.ipp for f in frames]) @ n / SAME_POSITION_MM).astype(np.int64)
+    _, inverse, counts = np.unique(pos, return_inverse=True, return_counts=True)
+    if np.mean(counts[inverse] > 1) >= STRAY_REPEAT_SHARE:
+        return frames, []
+    order = sorted(range(len(frames)), key=lambda i: (frames[i].instance_number is None, frames[i].instance_number or 0, frames[i].path))
+    first: dict[int, int] = {}
+    dropped = []
+    for i in order:
+        key = int(pos[i])
+        if key in first:
+            dropped.append((frames[i].path, frames[first[key]].path))
+        else:
+            first[key] = i
+    kept = [frames[i] for i in sorted(first.values())]
+    return kept, dropped
+
+
+def _dedupe(frames: list[_Frame]) -> tuple[list[_Frame], list[str]]:
+    seen: dict[tuple[str, int | None], _Frame] = {}
+    dropped = []
+    for f in frames:
+        key = (f.sop_instance_uid, f.frame)
+        if f.sop_instance_uid and key in seen:
+            dropped.append(f.path)
+            continue
+        seen[key] = f
+    return list(seen.values()), dropped
+
+
+def _summarise(
+    frames: list[_Frame], subset: str, reason: str, kind: str | None = None
+) -> tuple[SeriesSummary, tuple[_Frame, ...]]:
+    first = frames[0]
+    files = tuple(dict.fromkeys(f.path for f in frames))
+    if kind is None:
+        if first.is_localizer:
+            kind, reason = "localizer", reason or "ImageType says LOCALIZER"
+        elif first.iop is None or any(f.ipp is None or f.pixel_spacing is None for f in frames):
+            kind = "unusable"
+            reason = reason or "no ImagePositionPatient/ImageOrientationPatient/PixelSpacing"
+        elif _has_duplicates(frames):
+            kind = "unusable"
+            reason = (
+                "repeated slice positions that no attribute separates "
+                f"({_files_text(files, 3)})"
+            )
+        else:
+            kind = "volume" if len(frames) > 1 else "slice"
+    summary = SeriesSummary(
+        index=-1,
+        uid=first.series_instance_uid,
+        description=first.description,
+        modality=first.modality,
+        n_slices=len(frames),
+        orientation=_orientation_label(first.iop),
+        kind=kind,
+        reason=reason,
+        series_number=first.series_number,
+        subset=subset,
+        n_files=len(files),
+        files=files,
+    )
+    return summary, tuple(frames)
+
+
+def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
+    """All groups, in a deterministic order, and notes about de-duplication."""
+    notes: list[str] = []
+    by_uid: dict[str, list[_Frame]] = defaultdict(list)
+    for f in found.frames:
+        by_uid[f.series_instance_uid].append(f)
+    raw: list[tuple[SeriesSummary, tuple[_Frame, ...]]] = []
+    for uid, frames in by_uid.items():
+        frames, dropped = _dedupe(frames)
+        if dropped:
+            notes.append(
+                f"series {uid}: {len(dropped)} duplicate image(s) (same SOPInstanceUID) "
+                f"ignored: {_files_text(dropped)}"
+            )
+        subsets: dict[tuple, list[_Frame]] = defaultdict(list)
+        for f in frames:
+            subsets[(f.is_localizer, f.rows, f.columns)].append(f)
+        for (_, rows, cols), members in subsets.items():
+            for cluster in _cluster_orientation(members):
+                if cluster[0].is_localizer or not _has_duplicates(cluster):
+                    raw.append(_summarise(cluster, "", ""))
+                    continue
+                cluster, repeated = _drop_stray_duplicates(cluster)
+                if repeated:
+                    message = (
+                        f"series {uid}: {len(repeated)} image(s) repeat the position of another and "
+                        f"were ignored: " + "; ".join(f"{a} repeats {b}" for a, b in repeated[:4])
+                    )
+                    notes.append(message)
+                    warnings.warn(message, StudyWarning, stacklevel=3)
+                    raw.append(_summarise(cluster, "", ""))
+                    continue
+                parts, reason = _split_duplicates(cluster)
+                for subset, part in parts:
+                    raw.append(_summarise(part, subset, reason))
+    others: dict[str, list[_Other]] = defaultdict(list)
+    for o in found.others:
+        others[o.series_instance_uid].append(o)
+    for uid, members in others.items():
+        first = members[0]
+        files = tuple(o.path for o in members)
+        raw.append(
+            (
+                SeriesSummary(
+                    index=-1,
+                    uid=uid,
+                    description=first.description,
+                    modality=first.modality,
+                    n_slices=0,
+                    orientation="",
+                    kind="non-image",
+                    reason=f"no image (SOP Class {first.sop_class_uid})",
+                    series_number=first.series_number,
+                    subset="",
+                    n_files=len(files),
+                    files=files,
+                ),
+                (),
+            )
+        )
+    kind_rank = {"volume": 0, "slice": 1, "localizer": 2, "unusable": 3, "non-image": 4}
+    raw.sort(
+        key=lambda sf: (
+            sf[0].series_number if sf[0].series_number is not None else 1 << 30,
+            sf[0].uid,
+            kind_rank[sf[0].kind],
+            sf[0].orientation,
+            sf[0].subset,
+            sf[0].files[:1],
+        )
+    )
+    groups = [
+        _Group(summary=replace(s, index=i), frames=frames) for i, (s, frames) in enumerate(raw)
+    ]
+    return groups, notes
+
+
+def _scan_notes(found: _Scan) -> list[str]:
+    notes = []
+    if found.skipped_non_dicom:
+        notes.append(f"{len(found.skipped_non_dicom)} non-DICOM file(s) ignored")
+    if found.skipped_dicomdir:
+        notes.append(f"DICOMDIR ignored: {_files_text(found.skipped_dicomdir)}")
+    for path, why in found.skipped_broken:
+        notes.append(f"skipped unreadable DICOM file {path}: {why}")
+    return notes
+
+
+def _warn_broken(found: _Scan) -> None:
+    if found.skipped_broken:
+        listing = "; ".join(f"{p}: {why}" for p, why in found.skipped_broken[:5])
+        more = len(found.skipped_broken) - 5
+        warnings.warn(
+            f"skipped {len(found.skipped_broken)} DICOM file(s) that cannot be read: {listing}"
+            + (f"; and {more} more" if more > 0 else ""),
+            StudyWarning,
+            stacklevel=3,
+        )
+
+
+def _scan_groups(path, progress: bool):
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    found = _scan(path, progress=progress)
+    _warn_broken(found)
+    groups, notes = _group(found)
+    if not groups:
+        detail = (
+            f"{found.n_files} file(s) examined: {len(found.skipped_non_dicom)} not DICOM, "
+            f"{len(found.skipped_broken)} unreadable, {len(found.skipped_dicomdir)} DICOMDIR"
+        )
+        raise StudyError(
+            f"no DICOM images found under {os.fspath(path)!r} ({detail}); point to the folder "
+            "that holds the study's DICOM files"
+        )
+    return found, groups, _scan_notes(found) + notes
+
+
+class StudyError(HeartregError, ValueError):
+    """A study path holds nothing that can be loaded."""
+
+
+class StudyWarning(UserWarning):
+    """Something in a study was skipped or altered; details are in ``Volume.notes``."""
