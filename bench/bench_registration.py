@@ -131,7 +131,7 @@ def sweep_ours(inputs: str, warm: bool = False) -> dict:
                         points=d["points"], icp_options={"max_iterations": MAX_ITERATIONS, "warm_start": warm})
     elapsed = time.perf_counter() - t0
     return {"time_s": elapsed, "index_s": index_s, "n_faces": int(d["faces"].shape[0]),
-            "shape": list(d["points"].shape), "T": sweep.T_map_from_source.tolist(),
+            "shape": list(d["points"].shape), "T": sweep.T_heart_from_probe.tolist(),
             "iterations_mean": float(sweep.iterations.mean()), "iterations_max": int(sweep.iterations.max()),
             "converged": int(sweep.converged.sum()), "rms_median_mm": float(sorted(sweep.rms_mm)[50]),
             "best_phase": sweep.best_phase}

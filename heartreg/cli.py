@@ -298,8 +298,8 @@ def _cmd_register(args) -> int:
     T = result.T_heart_from_probe
     e = result.euler_xyz_deg
     print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")
-    print(f"  phases            phi_C* = {result.phase_c:.4f} ({result.phase_c_source}), "
-          f"phi_R* = {result.phase_r:.2f} ({result.phase_estimates[0].method})")
+    print(f"  phases            phi_C* = {result.cardiac_phase:.4f} ({result.cardiac_phase_source}), "
+          f"phi_R* = {result.respiration_phase:.2f} ({result.phase_estimates[0].method})")
     for estimate in result.phase_estimates:
         print(f"  {estimate.method:<17} {estimate.summary()}")
     print(f"  T_heart_from_probe translation ({T[0, 3]:.2f}, {T[1, 3]:.2f}, {T[2, 3]:.2f}) mm, "
@@ -382,7 +382,7 @@ def _cmd_pipeline(args) -> int:
     reg = run.registration
     print(f"pipeline written to {run.out_dir}")
     print(f"  phi_C* = {run.phase_report.volume_cardiac_phase:.4f} ({run.phase_report.source})")
-    print(f"  phi_R* = {reg.phase_r:.2f}, RMS {reg.rms_mm:.2f} mm, FRE {reg.fre_mm:.2f} mm, "
+    print(f"  phi_R* = {reg.respiration_phase:.2f}, RMS {reg.rms_mm:.2f} mm, FRE {reg.fre_mm:.2f} mm, "
           f"mean delta vs static {reg.static.mean_delta_mm:.2f} mm")
     print(f"  trust  {reg.trust.summary()}")
     print(f"  report {run.paths['report']}")

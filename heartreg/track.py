@@ -63,7 +63,7 @@ OFF_SURFACE_MM = 5.0
 #: a gap between samples longer than this many sample intervals restarts the phases.
 GAP_SAMPLES = 10
 TRACK_COLUMNS = (
-    "time_s", "phase_c", "phase_r", "quality", "flags",
+    "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
     "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
     "surface_x_mm", "surface_y_mm", "surface_z_mm", "distance_mm", "nearest_point_mm",
     "static_x_mm", "static_y_mm", "static_z_mm", "sent",
@@ -168,8 +168,8 @@ class TrackRows:
     """The outputs of a chunk (see :data:`TRACK_COLUMNS`)."""
 
     time_s: np.ndarray
-    phase_c: np.ndarray
-    phase_r: np.ndarray
+    cardiac_phase: np.ndarray
+    respiration_phase: np.ndarray
     quality: tuple
     flags: np.ndarray
     T_heart_from_robot: np.ndarray
@@ -230,13 +230,13 @@ class Tracker:
         T_probe_from_robot[:, :3, :3] = Rt @ chunk.T_tracker_from_robot[:, :3, :3]
         T_probe_from_robot[:, :3, 3] = np.einsum("mij,mj->mi", Rt, chunk.T_tracker_from_robot[:, :3, 3] - Tp[:, :3, 3])
         T_probe_from_robot[:, 3, 3] = 1.0
-        pc = np.where(chunk.status, ph.phase_c, np.nan)
-        mp = self.localiser.locate(T_probe_from_robot, pc, ph.phase_r)
+        pc = np.where(chunk.status, ph.cardiac_phase, np.nan)
+        mp = self.localiser.locate(T_probe_from_robot, pc, ph.respiration_phase)
         quality = tuple(
             _quality(int(f), float(d), float(nn), bool(s))
             for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, chunk.status)
         )
-        return TrackRows(t, ph.phase_c, ph.phase_r, quality, ph.flags, mp.T_heart_from_robot, mp.surface_mm,
+        return TrackRows(t, ph.cardiac_phase, ph.respiration_phase, quality, ph.flags, mp.T_heart_from_robot, mp.surface_mm,
                          mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
 
 
@@ -299,8 +299,8 @@ def _status_text(rows: TrackRows, i: int) -> str:
     p = rows.T_heart_from_robot[i, :3, 3]
     return json.dumps({
         "time_s": round(float(rows.time_s[i]), 4),
-        "phase_c": None if np.isnan(rows.phase_c[i]) else round(float(rows.phase_c[i]), 4),
-        "phase_r": None if np.isnan(rows.phase_r[i]) else round(float(rows.phase_r[i]), 4),
+        "cardiac_phase": None if np.isnan(rows.cardiac_phase[i]) else round(float(rows.cardiac_phase[i]), 4),
+        "respiration_phase": None if np.isnan(rows.respiration_phase[i]) else round(float(rows.respiration_phase[i]), 4),
         "quality": rows.quality[i],
         "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
         "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],
@@ -321,7 +321,7 @@ def _csv_lines(rows: TrackRows, sent: np.ndarray) -> str:
     q = np.full((m, 4), np.nan)
     if ok.any():
         q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    cols = [rows.time_s, rows.phase_c, rows.phase_r, rows.quality, rows.flags,
+    cols = [rows.time_s, rows.cardiac_phase, rows.respiration_phase, rows.quality, rows.flags,
             *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
             *rows.static_mm.T, sent.astype(int)]
     cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]

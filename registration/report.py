@@ -9,7 +9,7 @@ no patient identity, UTF-8, ``\\n`` line ends):
     reference-probe frame to the model's heart frame (mm); angles in degrees.
 ``sweep.csv``
     One row per swept respiration phase at phi_C* (paper Figs. 2B, 6, 7):
-    ``phase_r, rms_mm, tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg,
+    ``respiration_phase, rms_mm, tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg,
     translation_distance_mm, rotation_distance_deg, iterations``.
     ``t*`` and ``r*`` are the registration parameters of paper Fig. 6 in the
     heart frame: the correction ``dT = T inv(T0)`` as the displacement it gives
@@ -18,7 +18,7 @@ no patient identity, UTF-8, ``\\n`` line ends):
     ``(tx, ty, tz)`` and ``rotation_distance_deg`` the geodesic angle of ``dT``
     (paper Fig. 7, eq. 10).
 ``cardiac_sweep.csv``
-    The same columns with ``phase_c`` first, phi_C swept at phi_R* (Fig. 2A);
+    The same columns with ``cardiac_phase`` first, phi_C swept at phi_R* (Fig. 2A);
     only when the cardiac sweep was run.
 ``phase_evidence.csv``
     The evidence behind phi_R* per swept phase (:func:`phase_evidence_csv_text`).
@@ -70,8 +70,8 @@ _DPI = 110
 
 
 def sweep_csv_text(sweep: PhaseSweep) -> str:
-    """The CSV text of one sweep (header ``phase_r`` or ``phase_c``, then SWEEP_COLUMNS)."""
-    first = "phase_r" if sweep.kind == "respiration" else "phase_c"
+    """The CSV text of one sweep (header ``respiration_phase`` or ``cardiac_phase``, then SWEEP_COLUMNS)."""
+    first = "respiration_phase" if sweep.kind == "respiration" else "cardiac_phase"
     lines = [",".join((first,) + SWEEP_COLUMNS)]
     t = sweep.correction_translation_mm
     e = sweep.correction_euler_xyz_deg
@@ -158,7 +158,7 @@ def write_registration(
 def phase_evidence_csv_text(result: RegistrationResult) -> str:
     """The evidence behind phi_R*, one row per swept phase.
 
-    Columns: ``phase_r``, then per estimator (``shape``, ``eq10``) its cost
+    Columns: ``respiration_phase``, then per estimator (``shape``, ``eq10``) its cost
     (``J - min J`` for shape, unitless; translation distance minus its minimum,
     mm, for eq. 10) and the share of bootstrap resamples that chose the phase;
     then the shape estimator's terms ``cost_heart``, ``cost_fiducial``,
@@ -166,7 +166,7 @@ def phase_evidence_csv_text(result: RegistrationResult) -> str:
     """
     phases = result.respiration_sweep.phases
     by = {e.method: e for e in result.phase_estimates}
-    cols, data = ["phase_r"], [phases]
+    cols, data = ["respiration_phase"], [phases]
     for method in ("shape", "eq10"):
         e = by.get(method)
         if e is None:
@@ -225,7 +225,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     out = Path(out_dir)
     resp = result.respiration_sweep
     card = result.cardiac_sweep
-    phi_r, phi_c = result.phase_r, result.phase_c
+    phi_r, phi_c = result.respiration_phase, result.cardiac_phase
     paths = {}
 
     # Fig. 2: RMS vs phase
@@ -337,7 +337,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
                 _shade_interval(ax_j, e, "#2980b9", "90 % interval")
             colour = "#2980b9" if e.method == "shape" else "#e67e22"
             ax_b.hist(e.bootstrap_phases, bins=np.linspace(0, 1, 51), color=colour, alpha=0.6,
-                      label=f"{e.method}: {e.phase_r:.2f} [{e.interval[0]:.2f}, {e.interval[1]:.2f}]"
+                      label=f"{e.method}: {e.respiration_phase:.2f} [{e.interval[0]:.2f}, {e.interval[1]:.2f}]"
                       + ("" if e.decided else " undecided"))
         ax_j.set_ylabel("J - min J (chi-square units)")
         ax_j.set_yscale("symlog", linthresh=10.0)

@@ -148,11 +148,11 @@ class RegistrationResult:
 
     Attributes
     ----------
-    phase_c : float
+    cardiac_phase : float
         The map's cardiac phase phi_C* (from the model).
-    phase_c_source : str
+    cardiac_phase_source : str
         Where phi_C* came from.
-    phase_r : float
+    respiration_phase : float
         The estimated respiration phase phi_R* (``phase_estimates[0]``).
     T_heart_from_probe : (4, 4) float64
         Final spatiotemporal registration (ICP at (phi_C*, phi_R*)).
@@ -210,9 +210,9 @@ class RegistrationResult:
         heartreg version.
     """
 
-    phase_c: float
-    phase_c_source: str
-    phase_r: float
+    cardiac_phase: float
+    cardiac_phase_source: str
+    respiration_phase: float
     T_heart_from_probe: np.ndarray
     T0_heart_from_probe: np.ndarray
     fre_mm: float
@@ -256,14 +256,14 @@ class RegistrationResult:
         Transforms are nested lists, row-major; angles in degrees; lengths in mm.
         """
         st = self.static
-        T_static = st.T_static
+        T_static_heart_from_probe = st.T_static_heart_from_probe
         return {
             "version": self.version,
             "frames": "T_heart_from_probe maps reference-probe mm to the model's heart frame mm",
             "trust": self.trust.to_dict(),
-            "cardiac_phase": self.phase_c,
-            "cardiac_phase_source": self.phase_c_source,
-            "respiration_phase": self.phase_r,
+            "cardiac_phase": self.cardiac_phase,
+            "cardiac_phase_source": self.cardiac_phase_source,
+            "respiration_phase": self.respiration_phase,
             "respiration_phase_estimate": self.phase_estimates[0].to_dict() if self.phase_estimates else None,
             "respiration_phase_alternatives": [e.to_dict() for e in self.phase_estimates[1:]],
             "T_heart_from_probe": self.T_heart_from_probe.tolist(),
@@ -280,8 +280,8 @@ class RegistrationResult:
             "fiducials_reordered": self.fiducials_reordered,
             "fiducials_ambiguous": self.fiducials_ambiguous,
             "static": {
-                "T_heart_from_probe": T_static.tolist(),
-                "euler_xyz_deg": [float(x) for x in euler_xyz_deg_from_matrix(T_static)],
+                "T_heart_from_probe": T_static_heart_from_probe.tolist(),
+                "euler_xyz_deg": [float(x) for x in euler_xyz_deg_from_matrix(T_static_heart_from_probe)],
                 "rms_mm": float(st.rms_static_mm),
             },
             "delta_static_mean_mm": self.delta_static_mean_mm,

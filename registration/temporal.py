@@ -119,9 +119,9 @@ class FiducialCurve:
     Attributes
     ----------
     phases : (m,) float64, cycles
-    positions_source_mm : (m, 9, 3) float64
+    positions_probe_mm : (m, 9, 3) float64
         Staples at each phase (source, i.e. probe, frame), documented order.
-    T_map_from_source : (m, 4, 4) float64
+    T0_heart_from_probe : (m, 4, 4) float64
         Rigid fit of those staples onto the map's at each phase: ``T0(phi_R)``.
     residuals_mm : (m, 9) float64
         Distance of each fitted staple from its map position.
@@ -135,8 +135,8 @@ class FiducialCurve:
     """
 
     phases: np.ndarray
-    positions_source_mm: np.ndarray
-    T_map_from_source: np.ndarray
+    positions_probe_mm: np.ndarray
+    T0_heart_from_probe: np.ndarray
     residuals_mm: np.ndarray
     sse_mm2: np.ndarray
     trace_rms_mm: np.ndarray
@@ -208,8 +208,8 @@ def fiducial_curve(
     res = np.linalg.norm(fitted - target, axis=2)
     return FiducialCurve(
         phases=phases.copy(),
-        positions_source_mm=curves,
-        T_map_from_source=T,
+        positions_probe_mm=curves,
+        T0_heart_from_probe=T,
         residuals_mm=res,
         sse_mm2=np.sum(res**2, axis=1),
         trace_rms_mm=rms,
@@ -228,7 +228,7 @@ class TemporalEstimate:
     evidence : tuple of str
         The terms used: ``"heart"``, ``"fiducial_trace"``, ``"breath_hold"``,
         ``"fiducials"`` (eq. 10's T0).
-    phase_r : float, cycles
+    respiration_phase : float, cycles
     index : int
         Its index in the sweep.
     interval : (2,) float64, cycles
@@ -253,7 +253,7 @@ class TemporalEstimate:
 
     method: str
     evidence: tuple[str, ...]
-    phase_r: float
+    respiration_phase: float
     index: int
     interval: np.ndarray
     interval_offsets: np.ndarray
@@ -274,13 +274,13 @@ class TemporalEstimate:
 
     def contains(self, phase: float) -> bool:
         """True when ``phase`` lies in the interval (circularly)."""
-        d = float(_wrap(phase - self.phase_r))
+        d = float(_wrap(phase - self.respiration_phase))
         return bool(self.interval_offsets[0] - 1e-9 <= d <= self.interval_offsets[1] + 1e-9)
 
     def summary(self) -> str:
         """One line: phase, interval, and whether the data decide."""
         lo, hi = self.interval
-        text = (f"phi_R* {self.phase_r:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
+        text = (f"phi_R* {self.respiration_phase:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
                 f"[{lo:.2f}, {hi:.2f}]; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
         if not self.decided:
             text += (f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle "
@@ -291,7 +291,7 @@ class TemporalEstimate:
         return {
             "method": self.method,
             "evidence": list(self.evidence),
-            "phase": self.phase_r,
+            "phase": self.respiration_phase,
             "interval": [float(x) for x in self.interval],
             "interval_offsets": [float(x) for x in self.interval_offsets],
             "confidence": self.confidence,
@@ -383,7 +383,7 @@ def _transform_spread(Ts, best, boot_idx, vertices_mm):
 def estimate_phase(
     phases,
     distances_mm,
-    T_map_from_source,
+    T_heart_from_probe,
     vertices_mm,
     *,
     fiducials: FiducialCurve | None = None,
@@ -403,7 +403,7 @@ def estimate_phase(
         The respiration sweep.
     distances_mm : (m, n) float, mm
         Per-point distance to the map after ICP at each phase.
-    T_map_from_source : (m, 4, 4) float
+    T_heart_from_probe : (m, 4, 4) float
         ICP registration at each phase.
     vertices_mm : (V, 3) float, mm
         The map's vertices (for the transform's uncertainty).
@@ -477,7 +477,7 @@ def estimate_phase(
     lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step)
     boot = _interval(phases, usable[best], phases[boot_idx], confidence, step)
     offsets = np.array([min(lr[0], boot[0]), max(lr[1], boot[1])])
-    t_mm, t_deg = _transform_spread(np.asarray(T_map_from_source), usable[best], boot_idx, vertices_mm)
+    t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), usable[best], boot_idx, vertices_mm)
 
     def full(x):
         out = np.zeros(m)
@@ -490,7 +490,7 @@ def estimate_phase(
     return TemporalEstimate(
         method=TemporalEstimator.SHAPE.value,
         evidence=tuple(evidence),
-        phase_r=phase,
+        respiration_phase=phase,
         index=int(usable[best]),
         interval=np.mod(phase + offsets, 1.0),
         interval_offsets=offsets,
@@ -508,7 +508,7 @@ def estimate_phase(
 
 def paper_phase(
     phases,
-    T_map_from_source,
+    T_heart_from_probe,
     fiducials_source_mm,
     fiducials_map_mm,
     pivot_mm,
@@ -531,7 +531,7 @@ def paper_phase(
     Parameters
     ----------
     phases : (m,) float
-    T_map_from_source : (m, 4, 4) float
+    T_heart_from_probe : (m, 4, 4) float
         ICP registration at each phase.
     fiducials_source_mm, fiducials_map_mm : (k, 3) float, mm
         Touched staples (source frame) and the map's, corresponding rows (after
@@ -547,7 +547,7 @@ def paper_phase(
     TemporalEstimate
     """
     phases = np.asarray(phases, dtype=float)
-    Ts = np.asarray(T_map_from_source, dtype=float)
+    Ts = np.asarray(T_heart_from_probe, dtype=float)
     src = np.asarray(fiducials_source_mm, dtype=float)
     dst = np.asarray(fiducials_map_mm, dtype=float)
     if order is not None:
@@ -575,7 +575,7 @@ def paper_phase(
     return TemporalEstimate(
         method=TemporalEstimator.PAPER.value,
         evidence=("fiducials",),
-        phase_r=phase,
+        respiration_phase=phase,
         index=best,
         interval=np.mod(phase + offsets, 1.0),
         interval_offsets=offsets,

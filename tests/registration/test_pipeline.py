@@ -70,12 +70,12 @@ def test_respiration_phase_is_recovered(case):
     shape, paper = result.phase_estimates
     truth = case["truth"]["respiration_phase"]
     assert shape.method == "shape" and paper.method == "eq10"
-    assert result.phase_r == shape.phase_r and abs(result.phase_r - truth) <= 0.05
+    assert result.respiration_phase == shape.respiration_phase and abs(result.respiration_phase - truth) <= 0.05
     assert shape.contains(truth) and shape.decided
     assert "fiducial_trace" in shape.evidence and "heart" in shape.evidence
-    assert result.phase_c == pytest.approx(case["truth"]["cardiac_phase"])
+    assert result.cardiac_phase == pytest.approx(case["truth"]["cardiac_phase"])
     assert result.respiration_sweep.phases.shape == (101,)
-    assert paper.phase_r == result.respiration_sweep.best_phase
+    assert paper.respiration_phase == result.respiration_sweep.best_phase
 
 
 def test_final_transform_matches_truth_and_beats_static_and_T0(case):
@@ -86,7 +86,7 @@ def test_final_transform_matches_truth_and_beats_static_and_T0(case):
     assert t_err < 2.0 and r_err < 2.0
     t0_err, r0_err = _errors(result.T0_heart_from_probe, T_true)
     assert t0_err > 5.0  # the phantom's CT-to-surgery skin shift
-    s_err, s_rot = _errors(result.static.T_static, T_true)
+    s_err, s_rot = _errors(result.static.T_static_heart_from_probe, T_true)
     assert s_err > t_err and s_rot > r_err
     assert result.rms_mm < 0.5
     assert result.fre_mm > 0 and result.fiducial_residuals_mm.shape == (9,)
@@ -122,7 +122,7 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
                 "rms_mm", "delta_static_mean_mm", "translation_distance_mm", "rotation_distance_deg",
                 "euler_xyz_deg", "fre_mm", "point_fits", "exclusions", "parameters", "version"):
         assert key in data, key
-    assert data["respiration_phase"] == result.phase_r
+    assert data["respiration_phase"] == result.respiration_phase
     np.testing.assert_allclose(data["T_heart_from_probe"], result.T_heart_from_probe)
     np.testing.assert_allclose(data["euler_xyz_deg"], result.euler_xyz_deg)
     assert data["parameters"]["harmonics"] == {"cardiac": 5, "respiratory": 4, "coupled_cardiac": 2,
@@ -130,19 +130,19 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
     assert len(data["point_fits"]) == result.n_points
     with open(out / "sweep.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0]) == ["phase_r", *SWEEP_COLUMNS]
+    assert list(rows[0]) == ["respiration_phase", *SWEEP_COLUMNS]
     assert len(rows) == 101
     sweep = result.respiration_sweep
-    np.testing.assert_allclose([float(r["phase_r"]) for r in rows], sweep.phases, atol=1e-4)
+    np.testing.assert_allclose([float(r["respiration_phase"]) for r in rows], sweep.phases, atol=1e-4)
     np.testing.assert_allclose([float(r["translation_distance_mm"]) for r in rows],
                                sweep.translation_distance_mm, atol=1e-5)
     # tx..tz are the correction at the pivot: their norm is the translation distance
     t = np.array([[float(r[c]) for c in ("tx_mm", "ty_mm", "tz_mm")] for r in rows])
     np.testing.assert_allclose(np.linalg.norm(t, axis=1), sweep.translation_distance_mm, atol=1e-4)
     best = int(np.argmin([float(r["translation_distance_mm"]) for r in rows]))
-    assert float(rows[best]["phase_r"]) == pytest.approx(result.phase_estimates[1].phase_r)  # eq. 10
+    assert float(rows[best]["respiration_phase"]) == pytest.approx(result.phase_estimates[1].respiration_phase)  # eq. 10
     data = json.loads((out / "registration.json").read_text())
-    assert data["respiration_phase_estimate"]["phase"] == pytest.approx(result.phase_r)
+    assert data["respiration_phase_estimate"]["phase"] == pytest.approx(result.respiration_phase)
     assert data["respiration_phase_estimate"]["interval"] == pytest.approx(list(result.phase_estimates[0].interval))
     with open(out / "phase_evidence.csv", newline="") as fh:
         evidence = list(csv.DictReader(fh))
