@@ -303,7 +303,7 @@ def main(argv=None) -> int:
     rows.append(common.Row(
         step=f"heartreg register (sample phantom case, {result['n_points']} points, {result['n_faces']} faces)",
         ours=runs,
-        notes=(f"whole CLI process (start-up, reading the session, both sweeps of {result['sweep']['respiration_phases']} "
+        notes=(f"whole CLI process (start-up, reading the session, both sweeps of {len(result['respiration_sweep']['phases'])} "
                f"phases, static comparison, {n_files} output files incl. plots and the 3-D view); "
                f"stage times of the last run (s): {timings}"),
         command="heartreg register " + " ".join(str(a) for a in argv[2:]).replace(str(common.REPO_DIR) + "/", ""),

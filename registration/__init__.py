@@ -90,6 +90,8 @@ from registration.report import (
     REPORT_FORMAT,
     REPORT_VERSION,
     SWEEP_COLUMNS,
+    RegistrationFileError,
+    read_registration,
     write_registration,
     sweep_csv_text,
 )
@@ -187,6 +189,8 @@ __all__ = [
     "sweep_phase",
     "sweep_phases",
     "translation_distance_mm",
+    "read_registration",
+    "RegistrationFileError",
     "write_registration",
     # PLUS sequence files (registration.plus)
     "PlusFileError",

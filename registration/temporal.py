@@ -64,6 +64,7 @@ import numpy as np
 
 from hrcore.errors import HeartregError, UsageError
 from hrcore.geometry import kabsch
+from hrcore.jsonarrays import float_array, json_floats
 
 __all__ = [
     "TemporalEstimator",
@@ -288,18 +289,40 @@ class TemporalEstimate:
         return text
 
     def to_dict(self) -> dict:
+        """JSON-ready, keys equal to the attribute names; non-finite numbers as ``None``."""
         return {
             "method": self.method,
             "evidence": list(self.evidence),
-            "phase": self.respiration_phase,
-            "interval": [float(x) for x in self.interval],
-            "interval_offsets": [float(x) for x in self.interval_offsets],
+            "respiration_phase": self.respiration_phase,
+            "index": self.index,
+            "interval": json_floats(self.interval),
+            "interval_offsets": json_floats(self.interval_offsets),
             "confidence": self.confidence,
             "decided": self.decided,
-            "n_bootstrap": int(self.bootstrap_phases.size),
-            "transform_90_mm": self.transform_mm,
-            "transform_90_deg": self.transform_deg,
+            "bootstrap_phases": json_floats(self.bootstrap_phases),
+            "cost": json_floats(self.cost),
+            "cost_heart": json_floats(self.cost_heart),
+            "cost_fiducial": json_floats(self.cost_fiducial),
+            "cost_prior": json_floats(self.cost_prior),
+            "transform_mm": self.transform_mm,
+            "transform_deg": self.transform_deg,
         }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TemporalEstimate":
+        """The inverse of :meth:`to_dict` (``None`` reads as NaN)."""
+        return cls(
+            method=str(data["method"]),
+            evidence=tuple(str(e) for e in data["evidence"]),
+            respiration_phase=float(data["respiration_phase"]),
+            index=int(data["index"]),
+            **{k: float_array(data[k]) for k in ("interval", "interval_offsets", "bootstrap_phases", "cost",
+                                                  "cost_heart", "cost_fiducial", "cost_prior")},
+            confidence=float(data["confidence"]),
+            decided=bool(data["decided"]),
+            transform_mm=float(data["transform_mm"]),
+            transform_deg=float(data["transform_deg"]),
+        )
 
 
 def spatial_blocks(points_mm, n_blocks: int) -> np.ndarray:

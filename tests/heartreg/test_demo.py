@@ -48,7 +48,7 @@ def test_demo_outputs_agree_with_the_result(demo):
     assert len(sweep) == 101
     # eq. 10 (the sweep's smallest distance from T0) is reported beside the shape estimator
     assert sweep["respiration_phase"][np.argmin(sweep["translation_distance_mm"])] == pytest.approx(reg.phase_estimates[1].respiration_phase)
-    assert payload["respiration_phase_estimate"]["method"] == "shape"
+    assert payload["phase_estimates"][0]["method"] == "shape"
     phases = json.loads((out / "phases" / "phases.json").read_text())
     model = json.loads((out / "model" / "model.json").read_text())
     assert model["cardiac_phase"] == pytest.approx(phases["volume_cardiac_phase"])
