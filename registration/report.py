@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.output import staged_output
 from imaging.files import write_text_atomic
 from registration.figures import write_plots
 from registration.result import RegistrationResult
@@ -117,15 +118,27 @@ def sweep_csv_text(sweep: PhaseSweep) -> str:
 
 
 def write_registration(
-    result: RegistrationResult, out_dir, *, model=None, view: bool = True, fiducials_probe_mm=None
+    result: RegistrationResult, out_dir, *, overwrite: bool = False, inputs=(), model=None, view: bool = True,
+    fiducials_probe_mm=None,
 ) -> dict:
-    """Write the registration's files into ``out_dir`` (see the module docstring).
+    """Write the registration's files into the folder ``out_dir``, atomically (module docstring).
+
+    Everything is written into a staging folder beside ``out_dir`` that
+    replaces it in one rename (:func:`hrcore.output.staged_output`): a failure
+    or a signal leaves ``out_dir`` as it was, and nothing of an earlier run
+    survives in it (no stale figure or CSV of another run).
 
     Parameters
     ----------
     result : RegistrationResult
     out_dir : str or Path
-        Created if missing; files of the same names are replaced.
+        The output folder; created if missing.  An existing non-empty folder
+        is refused unless ``overwrite``.
+    overwrite : bool
+        Replace an existing non-empty ``out_dir`` (``--overwrite``).
+    inputs : iterable of str or Path
+        The inputs (model and session folders): ``out_dir`` may not be, lie
+        in or contain one of them.
     model : HeartModel, optional
         The registered model; needed for the 3-D view ``fig8_view.png``.
     view : bool
@@ -136,15 +149,33 @@ def write_registration(
     Returns
     -------
     dict
-        ``{name: Path}`` of the files written, and ``"notes"``: a list of
-        reasons for files skipped (e.g. no offscreen OpenGL).
+        ``{name: Path}`` of the files written (in ``out_dir``), and
+        ``"notes"``: a list of reasons for files skipped (e.g. no offscreen OpenGL).
+
+    Raises
+    ------
+    hrcore.output.OutputError
+        A refused ``out_dir`` (not empty without ``overwrite``, an input, not
+        writable) or a full disk.
     """
     if not isinstance(result, RegistrationResult):
         raise TypeError(f"result must be a RegistrationResult, got {type(result).__name__}")
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder; choose an output folder")
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_output(out, inputs=inputs, overwrite=overwrite) as stage:
+        paths = _write_files(result, stage, model=model, view=view, fiducials_probe_mm=fiducials_probe_mm)
+    return _moved(paths, stage, out)
+
+
+def _moved(value, stage: Path, out: Path):
+    """``value`` (paths, nested in dicts) with the staging folder replaced by ``out``."""
+    if isinstance(value, dict):
+        return {k: _moved(v, stage, out) for k, v in value.items()}
+    if isinstance(value, Path):
+        return out / value.relative_to(stage)
+    return value
+
+
+def _write_files(result: RegistrationResult, out: Path, *, model, view, fiducials_probe_mm) -> dict:
     paths: dict = {}
     payload = {"format": REPORT_FORMAT, "format_version": REPORT_VERSION}
     payload.update(result.to_dict())

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
+from hrcore.output import OutputError
 from heartreg.phantom import config as phantom_config
 from heartreg.phantom import layout, make_phantom
 from modeling.model import ModelError, make_heart_model, read_model, write_model
@@ -191,6 +192,19 @@ def test_registration_reads_back_equal_and_writes_the_same_bytes(case, tmp_path)
     assert (tmp_path / "again" / "registration.json").read_bytes() == (out / "registration.json").read_bytes()
     for name in ("sweep.csv", "cardiac_sweep.csv", "phase_evidence.csv"):
         assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes(), name
+
+
+def test_write_registration_refuses_a_full_folder_and_overwrite_leaves_nothing_stale(case, tmp_path):
+    out = tmp_path / "reg"
+    out.mkdir()
+    (out / "fig8_view.png").write_bytes(b"an earlier run's view")
+    with pytest.raises(OutputError, match="not empty.*--overwrite"):
+        write_registration(case["result"], out, view=False)
+    assert [p.name for p in out.iterdir()] == ["fig8_view.png"]
+    paths = write_registration(case["result"], out, view=False, overwrite=True)
+    assert not (out / "fig8_view.png").exists() and paths["json"] == out / "registration.json"
+    assert all(p.is_file() for k, p in paths.items() if isinstance(p, Path))
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
 
 
 def _as_format_1(result, folder):
