@@ -240,30 +240,6 @@ class Tracker:
                          mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
 
 
-def _read_registration(reg_dir) -> dict:
-    path = Path(reg_dir) / "registration.json"
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise TrackError(f"{path} not found: give the output folder of heartreg register") from None
-    except (OSError, ValueError) as exc:
-        raise TrackError(f"{path}: not readable JSON ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != "heartreg-registration":
-        raise TrackError(f"{path}: not a heartreg registration (format {data.get('format')!r})")
-    try:
-        return {
-            "T_heart_from_probe": np.array(data["T_heart_from_probe"], dtype=float).reshape(4, 4),
-            "phase_c": float(data["cardiac_phase"]),
-            "phase_r": float(data["respiration_phase"]),
-            "point_ids": [int(i) for i in data["point_ids"]],
-            "harmonics": Harmonics(**data["parameters"]["harmonics"]),
-            "coverage_bins": int(data["parameters"].get("coverage_bins", 10)),
-            "fits": {int(f["point_id"]): f for f in data["point_fits"]},
-        }
-    except (KeyError, TypeError, ValueError) as exc:
-        raise TrackError(f"{path}: missing or bad field ({exc}); re-run heartreg register") from None
-
-
 def load_tracker(model_dir, registration_dir, session_dir):
     """(Tracker, HeartModel, sample rate) for a model, a registration and its session.
 
@@ -273,25 +249,33 @@ def load_tracker(model_dir, registration_dir, session_dir):
     """
     from modeling.model import read_model
     from registration.icp import SurfaceIndex
+    from registration.report import read_registration
     from registration.session import read_session
 
     model = read_model(model_dir)
-    reg = _read_registration(registration_dir)
+    reg = read_registration(registration_dir)
     session = read_session(session_dir)
-    models = registered_models(session, reg["point_ids"], harmonics=reg["harmonics"],
-                               coverage_bins=reg["coverage_bins"])
-    for pid, m in zip(reg["point_ids"], models):
-        want = float(reg["fits"][pid]["residual_rms_3d_mm"])
+    ids = [int(i) for i in reg.point_ids]
+    parameters = reg.parameters
+    try:
+        harmonics = Harmonics(**parameters["harmonics"])
+    except (KeyError, TypeError) as exc:
+        raise TrackError(f"{Path(registration_dir) / 'registration.json'}: parameters.harmonics missing or bad "
+                         f"({exc}); re-run heartreg register") from None
+    models = registered_models(session, ids, harmonics=harmonics,
+                               coverage_bins=int(parameters.get("coverage_bins", 10)))
+    fits = {f.point_id: f for f in reg.point_fits}
+    for pid, m in zip(ids, models):
+        want = fits[pid].residual_rms_3d_mm
         if not np.isclose(m.residual_rms_3d_mm, want, rtol=1e-6, atol=1e-9):
             raise TrackError(
                 f"{session_dir}: point {pid} fits with residual {m.residual_rms_3d_mm:.6f} mm, the "
                 f"registration's was {want:.6f} mm: give the session the registration was made from"
             )
-    localiser = Localiser(models, reg["T_heart_from_probe"], reg["phase_c"], reg["phase_r"],
+    localiser = Localiser(models, reg.T_heart_from_probe, reg.cardiac_phase, reg.respiration_phase,
                           SurfaceIndex(model.mesh.vertices, model.mesh.faces))
-    fits = list(reg["fits"].values())
-    rr = 1.0 / float(np.mean([f["heart_rate_hz"] for f in fits]))
-    br = 1.0 / float(np.mean([f["resp_rate_hz"] for f in fits]))
+    rr = 1.0 / float(np.mean([f.heart_rate_hz for f in reg.point_fits]))
+    br = 1.0 / float(np.mean([f.resp_rate_hz for f in reg.point_fits]))
     return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
 
 
