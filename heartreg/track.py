@@ -236,8 +236,8 @@ class Tracker:
             _quality(int(f), float(d), float(nn), bool(s))
             for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, chunk.status)
         )
-        return TrackRows(t, ph.cardiac_phase, ph.respiration_phase, quality, ph.flags, mp.T_heart_from_robot, mp.surface_mm,
-                         mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
+        return TrackRows(t, ph.cardiac_phase, ph.respiration_phase, quality, ph.flags, mp.T_heart_from_robot,
+                         mp.surface_mm, mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
 
 
 def load_tracker(model_dir, registration_dir, session_dir):
@@ -284,7 +284,8 @@ def _status_text(rows: TrackRows, i: int) -> str:
     return json.dumps({
         "time_s": round(float(rows.time_s[i]), 4),
         "cardiac_phase": None if np.isnan(rows.cardiac_phase[i]) else round(float(rows.cardiac_phase[i]), 4),
-        "respiration_phase": None if np.isnan(rows.respiration_phase[i]) else round(float(rows.respiration_phase[i]), 4),
+        "respiration_phase": (None if np.isnan(rows.respiration_phase[i])
+                              else round(float(rows.respiration_phase[i]), 4)),
         "quality": rows.quality[i],
         "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
         "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],

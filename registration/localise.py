@@ -107,8 +107,8 @@ class Localiser:
         Ridge on the displacement gradient.
     """
 
-    def __init__(self, models: Sequence[MotionModel], T_heart_from_probe, cardiac_phase: float, respiration_phase: float,
-                 surface, *, n_neighbours: int = N_NEIGHBOURS, ridge_mm2: float = RIDGE_MM2):
+    def __init__(self, models: Sequence[MotionModel], T_heart_from_probe, cardiac_phase: float,
+                 respiration_phase: float, surface, *, n_neighbours: int = N_NEIGHBOURS, ridge_mm2: float = RIDGE_MM2):
         models = list(models)
         if len(models) < 4:
             raise LocaliseError(f"at least 4 registered points are needed to interpolate, got {len(models)}")

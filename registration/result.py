@@ -16,7 +16,7 @@ import numpy as np
 from hrcore.jsonarrays import bool_array, float_array, int_array, json_floats
 from registration.plausibility import Trust
 from registration.spatiotemporal import PhaseSweep, StaticComparison
-from registration.temporal import TemporalEstimate
+from registration.phase_estimate import TemporalEstimate
 from registration.transforms import euler_xyz_deg_from_matrix
 
 __all__ = ["PointFit", "IcpReport", "RegistrationResult"]

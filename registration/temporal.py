@@ -58,13 +58,13 @@ Hessian report).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
 
 import numpy as np
 
-from hrcore.errors import HeartregError, UsageError
+from hrcore.errors import UsageError
 from hrcore.geometry import kabsch
-from hrcore.jsonarrays import float_array, json_floats
+from registration.fiducial_curve import FiducialCurve, fiducial_curve
+from registration.phase_estimate import UNDECIDED_WIDTH, TemporalError, TemporalEstimate, _wrap
 
 __all__ = [
     "TemporalEstimator",
@@ -76,8 +76,6 @@ __all__ = [
     "paper_phase",
 ]
 
-#: an interval wider than this (cycles) means the data cannot decide phi_R*.
-UNDECIDED_WIDTH = 0.3
 #: resamples of the bootstrap, and the interval's confidence.
 N_BOOTSTRAP = 500
 CONFIDENCE = 0.9
@@ -85,8 +83,6 @@ CONFIDENCE = 0.9
 BLOCK_POINTS = 5
 #: half-width (cycles) of the window about phi_R* where each unit's cost is fitted by a quadratic.
 WINDOW = 0.04
-#: Fourier harmonics of each staple's position over the breath.
-TRACE_HARMONICS = 2
 
 
 class TemporalEstimator(str, enum.Enum):
@@ -96,233 +92,6 @@ class TemporalEstimator(str, enum.Enum):
     SHAPE = "shape"
     #: the paper's empirical metric, eq. 10: :func:`paper_phase`.
     PAPER = "eq10"
-
-
-class TemporalError(HeartregError, ValueError):
-    """Evidence that cannot give a respiration phase (a trace that misses phases, ...)."""
-
-
-def _wrap(d):
-    return (np.asarray(d, dtype=float) + 0.5) % 1.0 - 0.5
-
-
-def _fourier(phase, harmonics):
-    cols = [np.ones_like(phase)]
-    for k in range(1, harmonics + 1):
-        cols += [np.cos(2 * np.pi * k * phase), np.sin(2 * np.pi * k * phase)]
-    return np.stack(cols, axis=-1)
-
-
-@dataclass(frozen=True, eq=False)
-class FiducialCurve:
-    """The traced staples as a function of phi_R, and their fit onto the CT's.
-
-    Attributes
-    ----------
-    phases : (m,) float64, cycles
-    positions_probe_mm : (m, 9, 3) float64
-        Staples at each phase (source, i.e. probe, frame), documented order.
-    T0_heart_from_probe : (m, 4, 4) float64
-        Rigid fit of those staples onto the map's at each phase: ``T0(phi_R)``.
-    residuals_mm : (m, 9) float64
-        Distance of each fitted staple from its map position.
-    sse_mm2 : (m,) float64
-        Sum of squared residuals.
-    trace_rms_mm : (9,) float64
-        RMS of each staple's samples about its Fourier fit (tracker noise and
-        hand tremor).
-    n_samples : (9,) int64
-        Samples with a defined respiration phase per staple.
-    """
-
-    phases: np.ndarray
-    positions_probe_mm: np.ndarray
-    T0_heart_from_probe: np.ndarray
-    residuals_mm: np.ndarray
-    sse_mm2: np.ndarray
-    trace_rms_mm: np.ndarray
-    n_samples: np.ndarray
-
-
-def fiducial_curve(
-    fiducial, stylus_source_mm, phase_r, target_mm, phases, *, order=None, harmonics: int = TRACE_HARMONICS,
-    coverage_bins: int = 4,
-) -> FiducialCurve:
-    """Fit each staple's traced position over the breath and register it at every phase.
-
-    Parameters
-    ----------
-    fiducial : (s,) int
-        Staple 1..9 held at each sample, 0 in transit.
-    stylus_source_mm : (s, 3) float, mm
-        Stylus tip, source (probe) frame.
-    phase_r : (s,) float, cycles
-        Respiration phase of each sample (NaN where undefined).
-    target_mm : (9, 3) float, mm
-        The staples in the map frame, documented order.
-    phases : (m,) float, cycles
-        Phases at which to evaluate.
-    order : (9,) int, optional
-        ``target[order[i]]`` corresponds to staple ``i + 1`` (from the fiducial
-        registration); the documented order by default.
-    harmonics : int
-        Fourier harmonics per staple.
-    coverage_bins : int
-        Every staple's samples must fall in each of this many phase bins.
-
-    Returns
-    -------
-    FiducialCurve
-
-    Raises
-    ------
-    TemporalError
-        A staple held for too short a part of the breath.
-    """
-    fiducial = np.asarray(fiducial)
-    tip = np.asarray(stylus_source_mm, dtype=float)
-    phase_r = np.asarray(phase_r, dtype=float)
-    target = np.asarray(target_mm, dtype=float)
-    phases = np.asarray(phases, dtype=float)
-    n_fid = target.shape[0]
-    if order is not None:
-        target = target[np.asarray(order)]
-    basis = _fourier(phases, harmonics)
-    curves = np.empty((phases.size, n_fid, 3))
-    rms = np.empty(n_fid)
-    counts = np.empty(n_fid, dtype=np.int64)
-    for k in range(n_fid):
-        sel = (fiducial == k + 1) & np.isfinite(phase_r)
-        counts[k] = int(sel.sum())
-        bins = np.unique(np.floor(phase_r[sel] * coverage_bins).astype(int))
-        if bins.size < coverage_bins or counts[k] < 4 * (2 * harmonics + 1):
-            raise TemporalError(
-                f"fiducial trace: staple {k + 1} is held over {bins.size} of {coverage_bins} quarters of "
-                "the breath; hold each staple for at least one whole breath"
-            )
-        A = _fourier(phase_r[sel], harmonics)
-        coef, *_ = np.linalg.lstsq(A, tip[sel], rcond=None)
-        rms[k] = float(np.sqrt(np.mean(np.sum((tip[sel] - A @ coef) ** 2, axis=1))))
-        curves[:, k] = basis @ coef
-    T = kabsch(curves, np.broadcast_to(target, curves.shape))
-    fitted = np.einsum("mij,mkj->mki", T[:, :3, :3], curves) + T[:, None, :3, 3]
-    res = np.linalg.norm(fitted - target, axis=2)
-    return FiducialCurve(
-        phases=phases.copy(),
-        positions_probe_mm=curves,
-        T0_heart_from_probe=T,
-        residuals_mm=res,
-        sse_mm2=np.sum(res**2, axis=1),
-        trace_rms_mm=rms,
-        n_samples=counts,
-    )
-
-
-@dataclass(frozen=True, eq=False)
-class TemporalEstimate:
-    """phi_R* with its interval, and how it was found.
-
-    Attributes
-    ----------
-    method : str
-        ``"shape"`` or ``"eq10"`` (:class:`TemporalEstimator`).
-    evidence : tuple of str
-        The terms used: ``"heart"``, ``"fiducial_trace"``, ``"breath_hold"``,
-        ``"fiducials"`` (eq. 10's T0).
-    respiration_phase : float, cycles
-    index : int
-        Its index in the sweep.
-    interval : (2,) float64, cycles
-        90 % interval ``(low, high)`` as phases in [0, 1); ``low > high`` when it
-        wraps through 0.
-    interval_offsets : (2,) float64, cycles
-        The same as offsets from ``phase_r`` (``low <= 0 <= high``).
-    confidence : float
-    decided : bool
-        False when the interval is wider than :data:`UNDECIDED_WIDTH`.
-    bootstrap_phases : (B,) float64
-        phi_R* of every resample.
-    cost : (m,) float64
-        ``J - min J`` over the sweep (unitless, chi-square-like); for ``eq10``
-        the translation distance from T0 minus its minimum (mm).
-    cost_heart, cost_fiducial, cost_prior : (m,) float64
-        Its terms (zeros where a term is not used), each minus its own minimum.
-    transform_mm, transform_deg : float
-        90th percentile over the resamples of the mean map-vertex displacement
-        (mm) and of the rotation (deg) between ``T(phi_b)`` and ``T(phi_R*)``.
-    """
-
-    method: str
-    evidence: tuple[str, ...]
-    respiration_phase: float
-    index: int
-    interval: np.ndarray
-    interval_offsets: np.ndarray
-    confidence: float
-    decided: bool
-    bootstrap_phases: np.ndarray
-    cost: np.ndarray
-    cost_heart: np.ndarray
-    cost_fiducial: np.ndarray
-    cost_prior: np.ndarray
-    transform_mm: float
-    transform_deg: float
-
-    @property
-    def width(self) -> float:
-        """Width of the interval, cycles."""
-        return float(self.interval_offsets[1] - self.interval_offsets[0])
-
-    def contains(self, phase: float) -> bool:
-        """True when ``phase`` lies in the interval (circularly)."""
-        d = float(_wrap(phase - self.respiration_phase))
-        return bool(self.interval_offsets[0] - 1e-9 <= d <= self.interval_offsets[1] + 1e-9)
-
-    def summary(self) -> str:
-        """One line: phase, interval, and whether the data decide."""
-        lo, hi = self.interval
-        text = (f"phi_R* {self.respiration_phase:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
-                f"[{lo:.2f}, {hi:.2f}]; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
-        if not self.decided:
-            text += (f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle "
-                     "wide): trace the staples over a breath or state the breath-hold phase")
-        return text
-
-    def to_dict(self) -> dict:
-        """JSON-ready, keys equal to the attribute names; non-finite numbers as ``None``."""
-        return {
-            "method": self.method,
-            "evidence": list(self.evidence),
-            "respiration_phase": self.respiration_phase,
-            "index": self.index,
-            "interval": json_floats(self.interval),
-            "interval_offsets": json_floats(self.interval_offsets),
-            "confidence": self.confidence,
-            "decided": self.decided,
-            "bootstrap_phases": json_floats(self.bootstrap_phases),
-            "cost": json_floats(self.cost),
-            "cost_heart": json_floats(self.cost_heart),
-            "cost_fiducial": json_floats(self.cost_fiducial),
-            "cost_prior": json_floats(self.cost_prior),
-            "transform_mm": self.transform_mm,
-            "transform_deg": self.transform_deg,
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "TemporalEstimate":
-        """The inverse of :meth:`to_dict` (``None`` reads as NaN)."""
-        return cls(
-            method=str(data["method"]),
-            evidence=tuple(str(e) for e in data["evidence"]),
-            respiration_phase=float(data["respiration_phase"]),
-            index=int(data["index"]),
-            **{k: float_array(data[k]) for k in ("interval", "interval_offsets", "bootstrap_phases", "cost",
-                                                  "cost_heart", "cost_fiducial", "cost_prior")},
-            confidence=float(data["confidence"]),
-            decided=bool(data["decided"]),
-            transform_mm=float(data["transform_mm"]),
-            transform_deg=float(data["transform_deg"]),
-        )
 
 
 def spatial_blocks(points_mm, n_blocks: int) -> np.ndarray:
