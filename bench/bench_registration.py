@@ -131,7 +131,7 @@ def sweep_ours(inputs: str, warm: bool = False) -> dict:
                         points=d["points"], icp_options={"max_iterations": MAX_ITERATIONS, "warm_start": warm})
     elapsed = time.perf_counter() - t0
     return {"time_s": elapsed, "index_s": index_s, "n_faces": int(d["faces"].shape[0]),
-            "shape": list(d["points"].shape), "T": sweep.T_map_from_source.tolist(),
+            "shape": list(d["points"].shape), "T": sweep.T_heart_from_probe.tolist(),
             "iterations_mean": float(sweep.iterations.mean()), "iterations_max": int(sweep.iterations.max()),
             "converged": int(sweep.converged.sum()), "rms_median_mm": float(sorted(sweep.rms_mm)[50]),
             "best_phase": sweep.best_phase}
@@ -324,7 +324,7 @@ def _register_row(rows, n):
     rows.append(common.Row(
         step=f"heartreg register (sample phantom case, {result['n_points']} points, {result['n_faces']} faces)",
         ours=runs,
-        notes=(f"whole CLI process (start-up, reading the session, both sweeps of {result['sweep']['respiration_phases']} "
+        notes=(f"whole CLI process (start-up, reading the session, both sweeps of {len(result['respiration_sweep']['phases'])} "
                f"phases, static comparison, {n_files} output files incl. plots and the 3-D view); "
                f"stage times of the last run (s): {timings}"),
         command="heartreg register " + " ".join(str(a) for a in argv[2:]).replace(str(common.REPO_DIR) + "/", ""),

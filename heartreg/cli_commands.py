@@ -89,7 +89,7 @@ def _print_series(study_dir) -> int:
 def _cmd_phases(args) -> int:
     from imaging import write_phase_report
 
-    from hrcore.output import check_output_path, staged_output
+    from hrcore.output import check_output_path
 
     from heartreg.pipeline import phase_report_extra
 
@@ -101,9 +101,7 @@ def _cmd_phases(args) -> int:
     check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite)
     volume, report = _open_study(args)
     extra = phase_report_extra(volume, args.study_dir)
-    with staged_output(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite) as stage:
-        written = write_phase_report(report, stage, extra=extra)
-    paths = {k: args.out_dir / p.name for k, p in written.items()}
+    paths = write_phase_report(report, args.out_dir, extra=extra, overwrite=args.overwrite, inputs=inputs)
     lo, hi = 0.6, 0.8
     print(f"{report.n_slices} slices of series {volume.series.series_instance_uid}")
     print(f"  R-peak source     {report.source}")
@@ -245,7 +243,7 @@ def _cmd_register(args) -> int:
     from registration.report import write_registration
     from registration.session import read_session
 
-    from hrcore.output import check_output_path, staged_output
+    from hrcore.output import check_output_path
 
     options = _registration_options(args)
     inputs = (args.model_dir, args.session_dir)
@@ -263,14 +261,13 @@ def _cmd_register(args) -> int:
     session = read_session(args.session_dir)
     result = register_session(model, session, options=options, progress=not args.quiet)
     # staged, then one rename: a failure or a signal leaves OUT_DIR as it was
-    with staged_output(args.out_dir, inputs=inputs, overwrite=args.overwrite) as staging:
-        paths = write_registration(result, staging, model=model, view=not args.no_view,
-                                   fiducials_probe_mm=session.fiducials_probe_mm)
+    paths = write_registration(result, args.out_dir, overwrite=args.overwrite, inputs=inputs, model=model,
+                               view=not args.no_view, fiducials_probe_mm=session.fiducials_probe_mm)
     T = result.T_heart_from_probe
     e = result.euler_xyz_deg
     print(f"registration of {result.n_points} point(s) to a {result.n_faces}-face model, written to {args.out_dir}")
-    print(f"  phases            phi_C* = {result.phase_c:.4f} ({result.phase_c_source}), "
-          f"phi_R* = {result.phase_r:.2f} ({result.phase_estimates[0].method})")
+    print(f"  phases            phi_C* = {result.cardiac_phase:.4f} ({result.cardiac_phase_source}), "
+          f"phi_R* = {result.respiration_phase:.2f} ({result.phase_estimates[0].method})")
     for estimate in result.phase_estimates:
         print(f"  {estimate.method:<17} {estimate.summary()}")
     print(f"  T_heart_from_probe translation ({T[0, 3]:.2f}, {T[1, 3]:.2f}, {T[2, 3]:.2f}) mm, "
@@ -353,7 +350,7 @@ def _cmd_pipeline(args) -> int:
     reg = run.registration
     print(f"pipeline written to {run.out_dir}")
     print(f"  phi_C* = {run.phase_report.volume_cardiac_phase:.4f} ({run.phase_report.source})")
-    print(f"  phi_R* = {reg.phase_r:.2f}, RMS {reg.rms_mm:.2f} mm, FRE {reg.fre_mm:.2f} mm, "
+    print(f"  phi_R* = {reg.respiration_phase:.2f}, RMS {reg.rms_mm:.2f} mm, FRE {reg.fre_mm:.2f} mm, "
           f"mean delta vs static {reg.static.mean_delta_mm:.2f} mm")
     print(f"  trust  {reg.trust.summary()}")
     print(f"  report {run.paths['report']}")

@@ -73,7 +73,7 @@ def registration_view_html(model, reg, *, element_id: str = "view3d") -> str:
         Layer("robot's track (attachment points in recording order)", _on_surface(model.mesh.vertices, final),
               "#3b3b9a", kind="line", size_px=2.5),
         Layer("registered points, fiducial registration T0", seed, "#f2a93b", size_px=7.0, visible=False),
-        Layer(f"registered points, spatiotemporal registration (phi_R* = {reg.phase_r:.2f})", final, "#22a35a",
+        Layer(f"registered points, spatiotemporal registration (phi_R* = {reg.respiration_phase:.2f})", final, "#22a35a",
               size_px=10.0),
     ]
     return viewer_html(
@@ -161,13 +161,13 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
     t = reg.T_heart_from_probe[:3, 3]
     phase_rows = [
         (f"respiration phase phi_R* by {e.method}" + (" (used)" if k == 0 else ""),
-         f"{e.phase_r:.2f}, 90 % interval [{e.interval[0]:.2f}, {e.interval[1]:.2f}]; final T within "
+         f"{e.respiration_phase:.2f}, 90 % interval [{e.interval[0]:.2f}, {e.interval[1]:.2f}]; final T within "
          f"{e.transform_mm:.1f} mm, {e.transform_deg:.1f} deg"
          + ("" if e.decided else " — UNDECIDED: the data cannot decide phi_R*"))
         for k, e in enumerate(reg.phase_estimates)
-    ] or [("respiration phase phi_R*", reg.phase_r)]
+    ] or [("respiration phase phi_R*", reg.respiration_phase)]
     parts.append(html_table(["quantity", "value"], [
-        *phase_rows, ("cardiac phase phi_C*", reg.phase_c),
+        *phase_rows, ("cardiac phase phi_C*", reg.cardiac_phase),
         ("translation (mm)", f"{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}"),
         ("Euler X-Y-Z (deg)", ", ".join(f"{a:.2f}" for a in reg.euler_xyz_deg)),
         ("RMS point-to-surface (mm)", reg.rms_mm), ("fiducial FRE (mm)", reg.fre_mm),

@@ -52,6 +52,8 @@ from heartreg.reproduce_results import (
 )
 from hrcore.output import staged_output
 from imaging.phase_io import read_phase_report
+from modeling.model import read_model
+from registration.report import read_registration
 
 __all__ = [
     "COLUMNS",
@@ -159,12 +161,6 @@ def _miss_reason(row) -> str:
     return head + "; the error is mostly across the path, so this check does not explain the miss"
 
 
-def _read_csv(path: Path) -> dict:
-    """Columns of a CSV file with a header, as float arrays."""
-    data = np.genfromtxt(path, delimiter=",", names=True, ndmin=1)
-    return {name: np.asarray(data[name], dtype=float) for name in data.dtype.names}
-
-
 def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
     """The table row of one trial from the pipeline's files (``files`` from :func:`_read_run`)."""
     from heartreg.phantom.config import PAPER_IMAGE_PHASE
@@ -172,34 +168,33 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
     phases, model, reg, sweep = files["phases"], files["model"], files["registration"], files["sweep"]
     paper = PAPER_TABLE1[trial]
     preset = f"wood2018-trial{trial}"
-    T = {name: np.asarray(v, dtype=float) for name, v in (
-        ("final", reg["T_heart_from_probe"]), ("T0", reg["T0_heart_from_probe"]),
-        ("static", reg["static"]["T_heart_from_probe"]))}
+    T = {"final": reg.T_heart_from_probe, "T0": reg.T0_heart_from_probe,
+         "static": reg.static.T_static_heart_from_probe}
 
-    T_true = np.asarray(model["T_heart_from_patient"], dtype=float) @ np.asarray(truth["T_patient_from_probe"])
+    T_true = model.T_heart_from_patient @ np.asarray(truth["T_patient_from_probe"])
     T_probe_from_heart = np.linalg.inv(T_true)
     origin_probe = T_probe_from_heart[:3, 3]  # the fitted heart origin, probe frame
-    centroid_probe = (T_probe_from_heart @ np.append(reg["pivot_heart_mm"], 1.0))[:3]
+    centroid_probe = (T_probe_from_heart @ np.append(sweep.pivot_mm, 1.0))[:3]
     _, final_mm, final_deg = pose_error(T["final"], T_true, origin_probe)
     _, static_mm, static_deg = pose_error(T["static"], T_true, origin_probe)
     # T0's error at the sweep's pivot, heart frame: the quantity eq. 10 measures
     t0_vec, t0_mm, t0_deg = pose_error(T["T0"], T_true, centroid_probe)
-    locus = np.stack([sweep["tx_mm"], sweep["ty_mm"], sweep["tz_mm"]], axis=1)
+    locus = sweep.correction_translation_mm
     axis, path_mm = _path_axis(locus)
     along = float(abs(t0_vec @ axis) / t0_mm) if t0_mm > 0 else 0.0
 
     by_name = {r[0]: r for r in truth_rows}
-    fits = reg["point_fits"]
-    e_fit = [float(x) for x in model["euler_xyz_deg"]]
+    fits = reg.point_fits
+    e_fit = [float(x) for x in model.euler_xyz_deg]
     e_preset = [float(x) for x in truth["heart_euler_xyz_deg"]]
-    phi_r_err = float(_wrap(reg["respiration_phase"] - truth["respiration_phase"]))
-    i_rms = int(np.argmin(sweep["rms_mm"]))
+    phi_r_err = float(_wrap(reg.respiration_phase - truth["respiration_phase"]))
+    i_rms = int(np.argmin(sweep.rms_mm))
     row = {
         "trial": trial,
-        "points_used": int(reg["n_points"]),
-        "points_excluded": len(reg["exclusions"]),
-        "heart_rate_hz": float(np.mean([f["heart_rate_hz"] for f in fits])),
-        "resp_rate_hz": float(np.mean([f["resp_rate_hz"] for f in fits])),
+        "points_used": reg.n_points,
+        "points_excluded": len(reg.exclusions),
+        "heart_rate_hz": float(np.mean([f.heart_rate_hz for f in fits])),
+        "resp_rate_hz": float(np.mean([f.resp_rate_hz for f in fits])),
         "paper_heart_rate_hz": paper[1],
         "paper_resp_rate_hz": paper[2],
         "phi_c": float(phases.volume_cardiac_phase),
@@ -210,21 +205,21 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
         "euler_preset_a_deg": e_preset[0], "euler_preset_b_deg": e_preset[1], "euler_preset_g_deg": e_preset[2],
         "euler_paper_a_deg": paper[4][0], "euler_paper_b_deg": paper[4][1], "euler_paper_g_deg": paper[4][2],
         "frame_z_error_deg": float(by_name["heart frame z axis (deg)"][1]),
-        "phi_r": float(reg["respiration_phase"]),
+        "phi_r": float(reg.respiration_phase),
         "phi_r_truth": float(truth["respiration_phase"]),
         "phi_r_error": phi_r_err,
         "phi_r_within": bool(abs(phi_r_err) <= TOL_PHASE_R + 1e-9),
-        "min_translation_mm": float(reg["translation_distance_mm"]),
-        "rotation_at_min_deg": float(reg["rotation_distance_deg"]),
-        "rms_at_phi_r_mm": float(reg["rms_mm"]),
-        "rms_min_mm": float(np.min(sweep["rms_mm"])),
-        "rms_max_mm": float(np.max(sweep["rms_mm"])),
-        "rms_argmin_phase": float(sweep["phase_r"][i_rms]),
-        "sweep_unconverged": int(reg["sweep"]["respiration_phases"] - reg["sweep"]["respiration_converged"]),
-        "icp_weak_long_axis": float(abs(reg["icp"]["weakest_direction"][2])),
-        "icp_converged": bool(reg["icp"]["converged"]),
-        "mean_delta_mm": float(reg["delta_static_mean_mm"]),
-        "fre_mm": float(reg["fre_mm"]),
+        "min_translation_mm": float(reg.translation_distance_mm),
+        "rotation_at_min_deg": float(reg.rotation_distance_deg),
+        "rms_at_phi_r_mm": float(reg.rms_mm),
+        "rms_min_mm": float(np.min(sweep.rms_mm)),
+        "rms_max_mm": float(np.max(sweep.rms_mm)),
+        "rms_argmin_phase": float(sweep.phases[i_rms]),
+        "sweep_unconverged": int(np.count_nonzero(~sweep.converged)),
+        "icp_weak_long_axis": float(abs(reg.icp.weakest_direction[2])),
+        "icp_converged": bool(reg.icp.converged),
+        "mean_delta_mm": float(reg.delta_static_mean_mm),
+        "fre_mm": float(reg.fre_mm),
         "t0_error_mm": t0_mm,
         "t0_error_deg": t0_deg,
         "t0_error_along_path": along,
@@ -240,16 +235,14 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
 
 def _read_run(run_dir: Path) -> dict:
     """The pipeline's output files that the reproduction reads."""
-    reg_dir = run_dir / "registration"
-    files = {
+    reg = read_registration(run_dir / "registration")
+    return {
         "phases": read_phase_report(run_dir / "phases"),
-        "model": json.loads((run_dir / "model" / "model.json").read_text()),
-        "registration": json.loads((reg_dir / "registration.json").read_text()),
-        "sweep": _read_csv(reg_dir / "sweep.csv"),
+        "model": read_model(run_dir / "model"),
+        "registration": reg,
+        "sweep": reg.respiration_sweep,
+        "cardiac_sweep": reg.cardiac_sweep,
     }
-    card = reg_dir / "cardiac_sweep.csv"
-    files["cardiac_sweep"] = _read_csv(card) if card.exists() else None
-    return files
 
 
 def _trial_result(trial: int, trial_dir: Path, truth: dict, truth_rows: list, extra: dict,
@@ -260,20 +253,19 @@ def _trial_result(trial: int, trial_dir: Path, truth: dict, truth_rows: list, ex
     row.update(extra)
     reg, sweep, card = files["registration"], files["sweep"], files["cardiac_sweep"]
     empty = np.empty(0)
-    delta = reg["delta_static_mm"]
     return TrialResult(
         trial=trial,
         row=row,
         truth_rows=[tuple(_plain(v) for v in r) for r in truth_rows],
-        phases_r=sweep["phase_r"],
-        phases_c=empty if card is None else card["phase_c"],
-        rms_r_mm=sweep["rms_mm"],
-        rms_c_mm=empty if card is None else card["rms_mm"],
-        translation_distance_mm=sweep["translation_distance_mm"],
-        rotation_distance_deg=sweep["rotation_distance_deg"],
-        correction_translation_mm=np.stack([sweep[c] for c in ("tx_mm", "ty_mm", "tz_mm")], axis=1),
-        correction_euler_xyz_deg=np.stack([sweep[c] for c in ("rx_deg", "ry_deg", "rz_deg")], axis=1),
-        delta_mm=np.array([delta[str(i)] for i in reg["point_ids"]], dtype=float),
+        phases_r=sweep.phases,
+        phases_c=empty if card is None else card.phases,
+        rms_r_mm=sweep.rms_mm,
+        rms_c_mm=empty if card is None else card.rms_mm,
+        translation_distance_mm=sweep.translation_distance_mm,
+        rotation_distance_deg=sweep.rotation_distance_deg,
+        correction_translation_mm=sweep.correction_translation_mm,
+        correction_euler_xyz_deg=sweep.correction_euler_xyz_deg,
+        delta_mm=reg.static.delta_mm,
         slice_position_mm=np.array([s.position_mm for s in files["phases"].slices]),
         slice_phase=files["phases"].phases,
         timings_s=dict(timings),

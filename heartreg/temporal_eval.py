@@ -114,11 +114,11 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     sweep = result.respiration_sweep
     rows = []
     for est in result.phase_estimates:
-        t_mm, t_deg = _transform_error(sweep.T_map_from_source[est.index], T_true, vertices)
-        err = float(_wrap(est.phase_r - phase_r))
+        t_mm, t_deg = _transform_error(sweep.T_heart_from_probe[est.index], T_true, vertices)
+        err = float(_wrap(est.respiration_phase - phase_r))
         rows.append({
             "estimator": est.method,
-            "phase": est.phase_r,
+            "phase": est.respiration_phase,
             "phase_error": err,
             "interval_low": float(est.interval[0]),
             "interval_high": float(est.interval[1]),
@@ -137,7 +137,7 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         **_trace_evidence(model, session, sweep.phases),
         "phases": sweep.phases,
         "points_map_mm": np.asarray(result.points_probe_mm) @ np.asarray(result.T_heart_from_probe)[:3, :3].T
-        + np.asarray(result.T_heart_from_probe)[:3, 3], "distances_mm": sweep.distances_mm, "signed_distances_mm": sweep.signed_distances_mm, "T_map_from_source": sweep.T_map_from_source,
+        + np.asarray(result.T_heart_from_probe)[:3, 3], "distances_mm": sweep.distances_mm, "signed_distances_mm": sweep.signed_distances_mm, "T_heart_from_probe": sweep.T_heart_from_probe,
         "cost_fiducial": shape.cost_fiducial, "cost_heart": shape.cost_heart, "T_true": T_true,
         "vertices_mm": vertices[:: max(1, vertices.shape[0] // 2000)], "pivot_mm": sweep.pivot_mm,
         "fiducials_probe_mm": np.asarray(session.fiducials_probe_mm), "fiducials_heart_mm": model.fiducials_heart_mm,
@@ -157,7 +157,7 @@ def _trace_evidence(model, session, phases) -> dict:
     fid = register_fiducials(session.fiducials_probe_mm, model.fiducials_heart_mm)
     curve = _trace_curve(session.fiducial_trace, model.fiducials_heart_mm, phases, fid.order)
     return {"fiducial_residuals_mm": curve.residuals_mm, "fiducial_trace_rms_mm": curve.trace_rms_mm,
-            "fiducial_curve_T": curve.T_map_from_source, "fiducial_curve_source_mm": curve.positions_source_mm}
+            "fiducial_curve_T": curve.T0_heart_from_probe, "fiducial_curve_source_mm": curve.positions_probe_mm}
 
 
 def summarize(cases: Sequence[dict]) -> dict:

@@ -63,7 +63,7 @@ OFF_SURFACE_MM = 5.0
 #: a gap between samples longer than this many sample intervals restarts the phases.
 GAP_SAMPLES = 10
 TRACK_COLUMNS = (
-    "time_s", "phase_c", "phase_r", "quality", "flags",
+    "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
     "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
     "surface_x_mm", "surface_y_mm", "surface_z_mm", "distance_mm", "nearest_point_mm",
     "static_x_mm", "static_y_mm", "static_z_mm", "sent",
@@ -168,8 +168,8 @@ class TrackRows:
     """The outputs of a chunk (see :data:`TRACK_COLUMNS`)."""
 
     time_s: np.ndarray
-    phase_c: np.ndarray
-    phase_r: np.ndarray
+    cardiac_phase: np.ndarray
+    respiration_phase: np.ndarray
     quality: tuple
     flags: np.ndarray
     T_heart_from_robot: np.ndarray
@@ -230,38 +230,14 @@ class Tracker:
         T_probe_from_robot[:, :3, :3] = Rt @ chunk.T_tracker_from_robot[:, :3, :3]
         T_probe_from_robot[:, :3, 3] = np.einsum("mij,mj->mi", Rt, chunk.T_tracker_from_robot[:, :3, 3] - Tp[:, :3, 3])
         T_probe_from_robot[:, 3, 3] = 1.0
-        pc = np.where(chunk.status, ph.phase_c, np.nan)
-        mp = self.localiser.locate(T_probe_from_robot, pc, ph.phase_r)
+        pc = np.where(chunk.status, ph.cardiac_phase, np.nan)
+        mp = self.localiser.locate(T_probe_from_robot, pc, ph.respiration_phase)
         quality = tuple(
             _quality(int(f), float(d), float(nn), bool(s))
             for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, chunk.status)
         )
-        return TrackRows(t, ph.phase_c, ph.phase_r, quality, ph.flags, mp.T_heart_from_robot, mp.surface_mm,
-                         mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
-
-
-def _read_registration(reg_dir) -> dict:
-    path = Path(reg_dir) / "registration.json"
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise TrackError(f"{path} not found: give the output folder of heartreg register") from None
-    except (OSError, ValueError) as exc:
-        raise TrackError(f"{path}: not readable JSON ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != "heartreg-registration":
-        raise TrackError(f"{path}: not a heartreg registration (format {data.get('format')!r})")
-    try:
-        return {
-            "T_heart_from_probe": np.array(data["T_heart_from_probe"], dtype=float).reshape(4, 4),
-            "phase_c": float(data["cardiac_phase"]),
-            "phase_r": float(data["respiration_phase"]),
-            "point_ids": [int(i) for i in data["point_ids"]],
-            "harmonics": Harmonics(**data["parameters"]["harmonics"]),
-            "coverage_bins": int(data["parameters"].get("coverage_bins", 10)),
-            "fits": {int(f["point_id"]): f for f in data["point_fits"]},
-        }
-    except (KeyError, TypeError, ValueError) as exc:
-        raise TrackError(f"{path}: missing or bad field ({exc}); re-run heartreg register") from None
+        return TrackRows(t, ph.cardiac_phase, ph.respiration_phase, quality, ph.flags, mp.T_heart_from_robot,
+                         mp.surface_mm, mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
 
 
 def load_tracker(model_dir, registration_dir, session_dir):
@@ -273,25 +249,33 @@ def load_tracker(model_dir, registration_dir, session_dir):
     """
     from modeling.model import read_model
     from registration.icp import SurfaceIndex
+    from registration.report import read_registration
     from registration.session import read_session
 
     model = read_model(model_dir)
-    reg = _read_registration(registration_dir)
+    reg = read_registration(registration_dir)
     session = read_session(session_dir)
-    models = registered_models(session, reg["point_ids"], harmonics=reg["harmonics"],
-                               coverage_bins=reg["coverage_bins"])
-    for pid, m in zip(reg["point_ids"], models):
-        want = float(reg["fits"][pid]["residual_rms_3d_mm"])
+    ids = [int(i) for i in reg.point_ids]
+    parameters = reg.parameters
+    try:
+        harmonics = Harmonics(**parameters["harmonics"])
+    except (KeyError, TypeError) as exc:
+        raise TrackError(f"{Path(registration_dir) / 'registration.json'}: parameters.harmonics missing or bad "
+                         f"({exc}); re-run heartreg register") from None
+    models = registered_models(session, ids, harmonics=harmonics,
+                               coverage_bins=int(parameters.get("coverage_bins", 10)))
+    fits = {f.point_id: f for f in reg.point_fits}
+    for pid, m in zip(ids, models):
+        want = fits[pid].residual_rms_3d_mm
         if not np.isclose(m.residual_rms_3d_mm, want, rtol=1e-6, atol=1e-9):
             raise TrackError(
                 f"{session_dir}: point {pid} fits with residual {m.residual_rms_3d_mm:.6f} mm, the "
                 f"registration's was {want:.6f} mm: give the session the registration was made from"
             )
-    localiser = Localiser(models, reg["T_heart_from_probe"], reg["phase_c"], reg["phase_r"],
+    localiser = Localiser(models, reg.T_heart_from_probe, reg.cardiac_phase, reg.respiration_phase,
                           SurfaceIndex(model.mesh.vertices, model.mesh.faces))
-    fits = list(reg["fits"].values())
-    rr = 1.0 / float(np.mean([f["heart_rate_hz"] for f in fits]))
-    br = 1.0 / float(np.mean([f["resp_rate_hz"] for f in fits]))
+    rr = 1.0 / float(np.mean([f.heart_rate_hz for f in reg.point_fits]))
+    br = 1.0 / float(np.mean([f.resp_rate_hz for f in reg.point_fits]))
     return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
 
 
@@ -299,8 +283,9 @@ def _status_text(rows: TrackRows, i: int) -> str:
     p = rows.T_heart_from_robot[i, :3, 3]
     return json.dumps({
         "time_s": round(float(rows.time_s[i]), 4),
-        "phase_c": None if np.isnan(rows.phase_c[i]) else round(float(rows.phase_c[i]), 4),
-        "phase_r": None if np.isnan(rows.phase_r[i]) else round(float(rows.phase_r[i]), 4),
+        "cardiac_phase": None if np.isnan(rows.cardiac_phase[i]) else round(float(rows.cardiac_phase[i]), 4),
+        "respiration_phase": (None if np.isnan(rows.respiration_phase[i])
+                              else round(float(rows.respiration_phase[i]), 4)),
         "quality": rows.quality[i],
         "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
         "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],
@@ -321,7 +306,7 @@ def _csv_lines(rows: TrackRows, sent: np.ndarray) -> str:
     q = np.full((m, 4), np.nan)
     if ok.any():
         q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    cols = [rows.time_s, rows.phase_c, rows.phase_r, rows.quality, rows.flags,
+    cols = [rows.time_s, rows.cardiac_phase, rows.respiration_phase, rows.quality, rows.flags,
             *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
             *rows.static_mm.T, sent.astype(int)]
     cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.output import staged_output
 from imaging.files import atomic_path, write_text_atomic
 from imaging.phase import MOTION_FREE_WINDOW, PhaseReport, SlicePhase
 
@@ -68,10 +69,35 @@ def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per sl
     plt.close(fig)
 
 
-def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = None) -> dict:
-    """Write ``phases.csv``, ``phases.json`` and ``phases.png`` into ``out_dir``.
+def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = None, overwrite: bool = False,
+                       inputs=()) -> dict:
+    """Write ``phases.csv``, ``phases.json`` and ``phases.png`` into the folder ``out_dir``, atomically.
 
-    Returns the paths written, by name.
+    The files are written into a staging folder beside ``out_dir`` that
+    replaces it in one rename (:func:`hrcore.output.staged_output`): a failure
+    leaves ``out_dir`` as it was, and no file of an earlier run survives.
+
+    Parameters
+    ----------
+    report : PhaseReport
+    out_dir : str or Path
+        Created if missing; an existing non-empty folder is refused unless ``overwrite``.
+    extra : dict, optional
+        More keys for ``phases.json`` (the series and study description of the command).
+    overwrite : bool
+        Replace an existing non-empty ``out_dir`` (``--overwrite``).
+    inputs : iterable of str or Path
+        The inputs (study folder, QRS file): ``out_dir`` may not be, lie in or contain one.
+
+    Returns
+    -------
+    dict
+        The paths written (in ``out_dir``), by name: ``csv``, ``json``, ``png``.
+
+    Raises
+    ------
+    hrcore.output.OutputError
+        A refused ``out_dir`` or a full disk.
 
     Examples
     --------
@@ -85,15 +111,14 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     True
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {name: out_dir / f"phases.{name}" for name in ("csv", "json", "png")}
-    write_text_atomic(paths["csv"], _csv_text(report))
-    payload = report.to_dict()
-    if extra:
-        payload.update(extra)
-    write_text_atomic(paths["json"], json.dumps(payload, indent=1) + "\n")
-    plot_phases(report, paths["png"])
-    return paths
+    with staged_output(out_dir, inputs=inputs, overwrite=overwrite) as stage:
+        write_text_atomic(stage / "phases.csv", _csv_text(report))
+        payload = report.to_dict()
+        if extra:
+            payload.update(extra)
+        write_text_atomic(stage / "phases.json", json.dumps(payload, indent=1) + "\n")
+        plot_phases(report, stage / "phases.png")
+    return {name: out_dir / f"phases.{name}" for name in ("csv", "json", "png")}
 
 
 def read_phase_report(out_dir) -> PhaseReport:

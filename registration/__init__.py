@@ -16,7 +16,7 @@ from registration.online import CausalPhases
 from registration.options import RegistrationOptions
 from registration.pipeline import RegistrationError, register_session
 from registration.plus import PlusSequence, read_plus_sequence
-from registration.report import write_registration
+from registration.report import RegistrationFileError, read_registration, write_registration
 from registration.result import RegistrationResult
 from registration.session import Session, SessionError, read_session
 from registration.spatiotemporal import SpatiotemporalRegistration, register_spatiotemporal
@@ -30,6 +30,7 @@ __all__ = [
     "read_session",
     "register_session",
     "RegistrationResult",
+    "read_registration",
     "write_registration",
     "render_registration_png",
     # its stages

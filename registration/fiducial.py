@@ -55,7 +55,7 @@ class FiducialRegistration:
 
     Attributes
     ----------
-    T_target_from_source : (4, 4) float64
+    T_heart_from_probe : (4, 4) float64
         Maps source points onto target points.
     fre_rms_mm : float
         Fiducial registration error, RMS of the residuals, mm.
@@ -74,7 +74,7 @@ class FiducialRegistration:
         from geometry alone.
     """
 
-    T_target_from_source: np.ndarray
+    T_heart_from_probe: np.ndarray
     fre_rms_mm: float
     residuals_mm: np.ndarray
     order: np.ndarray
@@ -124,7 +124,7 @@ def rigid_fit(source, target, *, weights=None) -> np.ndarray:
     Returns
     -------
     (4, 4) float64
-        ``T_target_from_source`` minimising ``sum w_i |T s_i - t_i|^2``, with a
+        ``T_heart_from_probe`` minimising ``sum w_i |T s_i - t_i|^2``, with a
         proper rotation (det +1) even when the points are coplanar or noisy.
 
     Raises

@@ -70,7 +70,7 @@ class IcpResult:
 
     Attributes
     ----------
-    T_target_from_source : (4, 4) float64
+    T_heart_from_probe : (4, 4) float64
         Maps the source points onto the surface's frame.
     rms_mm : float
         RMS point-to-surface distance over all points at the solution.
@@ -100,7 +100,7 @@ class IcpResult:
         the points slide; the solution along ``weakest_direction`` is not unique.
     """
 
-    T_target_from_source: np.ndarray
+    T_heart_from_probe: np.ndarray
     rms_mm: float
     rms_inlier_mm: float
     distances_mm: np.ndarray
@@ -179,7 +179,7 @@ def icp(
     surface : SurfaceIndex or (vertices, faces)
         Target surface (e.g. the heart model, map frame).
     T_init : (4, 4) float, optional
-        Initial ``T_target_from_source`` (the fiducial seed); identity by default.
+        Initial ``T_heart_from_probe`` (the fiducial seed); identity by default.
     method : IcpMethod or str
         ``"point_to_plane"`` (default, converges in few iterations) or
         ``"point_to_point"``.
@@ -225,7 +225,7 @@ def icp(
     evals = np.clip(evals, 0.0, None)
     cond = float(evals[-1] / evals[0]) if evals[0] > 0 else float("inf")
     return IcpResult(
-        T_target_from_source=T,
+        T_heart_from_probe=T,
         rms_mm=float(np.sqrt(np.mean(d**2))),
         rms_inlier_mm=float(np.sqrt(np.mean(d[sel] ** 2))),
         distances_mm=d,
@@ -248,7 +248,7 @@ def icp_sweep(points, surface, **options):
 
     Returns
     -------
-    T_target_from_source : (m, 4, 4) float64
+    T_heart_from_probe : (m, 4, 4) float64
     rms_mm : (m,) float64
         RMS point-to-surface distance at each solution.
     iterations : (m,) int64
@@ -303,7 +303,7 @@ def icp_sweep_distances(
 
     Returns
     -------
-    T_target_from_source : (m, 4, 4) float64
+    T_heart_from_probe : (m, 4, 4) float64
     distances_mm : (m, n) float64
         Point-to-surface distance of every point at each solution.
     iterations : (m,) int64

@@ -97,7 +97,7 @@ class Localiser:
         The registered points' motion models (probe frame), same harmonics.
     T_heart_from_probe : (4, 4) float
         The registration.
-    phase_c, phase_r : float, cycles
+    cardiac_phase, respiration_phase : float, cycles
         The image phases phi_C*, phi_R* of the registration.
     surface : SurfaceIndex or (vertices, faces)
         The model surface in the heart frame.
@@ -107,8 +107,8 @@ class Localiser:
         Ridge on the displacement gradient.
     """
 
-    def __init__(self, models: Sequence[MotionModel], T_heart_from_probe, phase_c: float, phase_r: float,
-                 surface, *, n_neighbours: int = N_NEIGHBOURS, ridge_mm2: float = RIDGE_MM2):
+    def __init__(self, models: Sequence[MotionModel], T_heart_from_probe, cardiac_phase: float,
+                 respiration_phase: float, surface, *, n_neighbours: int = N_NEIGHBOURS, ridge_mm2: float = RIDGE_MM2):
         models = list(models)
         if len(models) < 4:
             raise LocaliseError(f"at least 4 registered points are needed to interpolate, got {len(models)}")
@@ -116,7 +116,7 @@ class Localiser:
         if any(m.harmonics != h for m in models):
             raise LocaliseError("all motion models must have the same harmonics")
         T = check_transform(T_heart_from_probe, name="T_heart_from_probe")
-        for name, value in (("phase_c", phase_c), ("phase_r", phase_r)):
+        for name, value in (("cardiac_phase", cardiac_phase), ("respiration_phase", respiration_phase)):
             if not (0.0 <= float(value) <= 1.0):
                 raise ValueError(f"{name} must be a phase in [0, 1], got {value!r}")
         self.harmonics = h
@@ -132,11 +132,11 @@ class Localiser:
         Ww = np.einsum("nij,nkj->kni", R, np.stack([m.coef_rotation for m in models]))
         self._W = np.concatenate([Wt.reshape(-1, 3 * n), Ww.reshape(-1, 3 * n)], axis=1)  # (k, 6n)
         self._mean = np.concatenate([np.stack([m.mean_position_mm for m in models]).ravel(), np.zeros(3 * n)])
-        star = self._evaluate(np.array([float(phase_c)]), np.array([float(phase_r)]))[0]
+        star = self._evaluate(np.array([float(cardiac_phase)]), np.array([float(respiration_phase)]))[0]
         self._star_pos = star[: 3 * n].reshape(n, 3)
         self._star_rot = star[3 * n:].reshape(n, 3)
-        self.phase_c = float(phase_c)
-        self.phase_r = float(phase_r)
+        self.cardiac_phase = float(cardiac_phase)
+        self.respiration_phase = float(respiration_phase)
         S = self.surface
         self._tri = [tuple(a) + tuple(b) + tuple(c) + tuple(d) for a, b, c, d in
                      zip(S._a.tolist(), S._ab.tolist(), S._ac.tolist(), S._dots.tolist())]

@@ -404,7 +404,7 @@ class PhaseChunk:
 
     Attributes
     ----------
-    phase_c, phase_r : (m,) float64, cycles
+    cardiac_phase, respiration_phase : (m,) float64, cycles
         Cardiac and respiration phase in [0, 1); NaN where undefined.
     flags : (m,) int64
         :class:`PhaseFlag` bits.
@@ -414,8 +414,8 @@ class PhaseChunk:
         ``(start of expiration, confirmed at)`` confirmed in the chunk, s.
     """
 
-    phase_c: np.ndarray
-    phase_r: np.ndarray
+    cardiac_phase: np.ndarray
+    respiration_phase: np.ndarray
     flags: np.ndarray
     r_peaks: tuple
     onsets: tuple

@@ -203,12 +203,12 @@ ICP_MAX_ITERATIONS = 50
 
 @dataclass(frozen=True)
 class _Chosen:
-    phase_r: float
-    T_map_from_source: np.ndarray
+    respiration_phase: float
+    T_heart_from_probe: np.ndarray
     rms_mm: float
     translation_distance_mm: float
     rotation_distance_deg: float
-    points_source_mm: np.ndarray
+    points_probe_mm: np.ndarray
 
 
 def _trace_curve(trace, fid_model, phases, order):
@@ -312,7 +312,7 @@ def register_session(
         fid = register_fiducials(fid_probe, fid_model, max_fre_mm=max_fre_mm)
     except FiducialError as exc:
         raise RegistrationError(f"fiducial registration failed: {exc}") from exc
-    T0 = fid.T_target_from_source
+    T0 = fid.T_heart_from_probe
     timings["fiducials"] = time.perf_counter() - t
     if fid.reordered:
         notes.append(
@@ -381,10 +381,10 @@ def register_session(
             notes.append(f"the fiducial trace was not used: {exc}")
     vertices = model.mesh.vertices
     shape = estimate_phase(
-        phases, resp.distances_mm, resp.T_map_from_source, vertices, fiducials=curve,
+        phases, resp.distances_mm, resp.T_heart_from_probe, vertices, fiducials=curve,
         breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd, points_mm=means_map,
     )
-    paper = paper_phase(phases, resp.T_map_from_source, fid_probe, fid_model, pivot, vertices, order=fid.order)
+    paper = paper_phase(phases, resp.T_heart_from_probe, fid_probe, fid_model, pivot, vertices, order=fid.order)
     chosen, other = (shape, paper) if estimator is TemporalEstimator.SHAPE else (paper, shape)
     timings["phase_estimate"] = time.perf_counter() - t
     if not chosen.decided:
@@ -395,18 +395,18 @@ def register_session(
         )
     best = chosen.index
     reg = _Chosen(
-        phase_r=float(chosen.phase_r),
-        T_map_from_source=resp.T_map_from_source[best].copy(),
+        respiration_phase=float(chosen.respiration_phase),
+        T_heart_from_probe=resp.T_heart_from_probe[best].copy(),
         rms_mm=float(resp.rms_mm[best]),
         translation_distance_mm=float(resp.translation_distance_mm[best]),
         rotation_distance_deg=float(resp.rotation_distance_deg[best]),
-        points_source_mm=_points_at(models, model.cardiac_phase, chosen.phase_r)[0],
+        points_probe_mm=_points_at(models, model.cardiac_phase, chosen.respiration_phase)[0],
     )
     card = None
     if cardiac_sweep:
         t = time.perf_counter()
         card = sweep_phase(
-            models, surface, T0, fixed_phase=reg.phase_r, kind="cardiac",
+            models, surface, T0, fixed_phase=reg.respiration_phase, kind="cardiac",
             phases=phases_c, pivot_mm=pivot, icp_options=options,
         )
         timings["cardiac_sweep"] = time.perf_counter() - t
@@ -420,7 +420,7 @@ def register_session(
 
     # ---- final ICP again, for its degeneracy report (same seed and points: same T)
     t = time.perf_counter()
-    final = icp(reg.points_source_mm, surface, T_init=T0, **options)
+    final = icp(reg.points_probe_mm, surface, T_init=T0, **options)
     report = IcpReport(
         hessian_eigenvalues=frozen(final.hessian_eigenvalues),
         weakest_direction=frozen(final.weakest_direction),
@@ -440,11 +440,11 @@ def register_session(
             f"the final ICP did not converge within {options.get('max_iterations', ICP_MAX_ITERATIONS)} "
             "iterations; raise the limit (--icp-max-iterations)"
         )
-    static = compare_static(models, surface, T0, reg.T_map_from_source, reg.points_source_mm,
+    static = compare_static(models, surface, T0, reg.T_heart_from_probe, reg.points_probe_mm,
                             icp_options=options)
     timings["static"] = time.perf_counter() - t
 
-    normals = np.stack([m.predict_normal(model.cardiac_phase, reg.phase_r)[0] for m in models])
+    normals = np.stack([m.predict_normal(model.cardiac_phase, reg.respiration_phase)[0] for m in models])
     timings["total"] = time.perf_counter() - t_start
     params = {
         "harmonics": {
@@ -469,10 +469,10 @@ def register_session(
         "session_pose_source": session.pose_source,
     }
     return RegistrationResult(
-        phase_c=float(model.cardiac_phase),
-        phase_c_source=model.cardiac_phase_source,
-        phase_r=float(reg.phase_r),
-        T_heart_from_probe=frozen(reg.T_map_from_source),
+        cardiac_phase=float(model.cardiac_phase),
+        cardiac_phase_source=model.cardiac_phase_source,
+        respiration_phase=float(reg.respiration_phase),
+        T_heart_from_probe=frozen(reg.T_heart_from_probe),
         T0_heart_from_probe=frozen(T0),
         fre_mm=float(fid.fre_rms_mm),
         fiducial_residuals_mm=frozen(fid.residuals_mm),
@@ -481,13 +481,13 @@ def register_session(
         rms_mm=float(reg.rms_mm),
         translation_distance_mm=float(reg.translation_distance_mm),
         rotation_distance_deg=float(reg.rotation_distance_deg),
-        euler_xyz_deg=frozen(euler_xyz_deg_from_matrix(reg.T_map_from_source)),
+        euler_xyz_deg=frozen(euler_xyz_deg_from_matrix(reg.T_heart_from_probe)),
         respiration_sweep=resp,
         cardiac_sweep=card,
         static=static,
         phase_estimates=(chosen, other),
         point_ids=frozen(np.array([f.point_id for f in fits], dtype=np.int64)),
-        points_probe_mm=frozen(reg.points_source_mm),
+        points_probe_mm=frozen(reg.points_probe_mm),
         normals_probe=frozen(normals),
         mean_points_probe_mm=frozen(np.stack([m.mean_position_mm for m in models])),
         point_fits=tuple(fits),

@@ -211,6 +211,11 @@ class TrustReason:
     def to_dict(self) -> dict:
         return {"code": self.code, "level": self.level.value, "message": self.message}
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrustReason":
+        """The inverse of :meth:`to_dict`."""
+        return cls(str(data["code"]), TrustLevel(data["level"]), str(data["message"]))
+
 
 @dataclass(frozen=True)
 class Trust:
@@ -228,6 +233,11 @@ class Trust:
 
     def to_dict(self) -> dict:
         return {"level": self.level.value, "reasons": [r.to_dict() for r in self.reasons]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Trust":
+        """The inverse of :meth:`to_dict`."""
+        return cls(TrustLevel(data["level"]), tuple(TrustReason.from_dict(r) for r in data["reasons"]))
 
     def summary(self) -> str:
         """One line: the level and the reasons' codes."""

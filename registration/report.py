@@ -1,15 +1,20 @@
-"""Registration outputs: ``registration.json``, sweep CSVs and the paper's plots.
+"""Registration outputs: ``registration.json``, sweep CSVs, the paper's plots; and reading them back.
 
 Files written by :func:`write_registration` into ``OUT_DIR`` (all atomically,
 no patient identity, UTF-8, ``\\n`` line ends):
 
 ``registration.json``
-    :meth:`RegistrationResult.to_dict` plus ``format`` (``"heartreg-registration"``)
-    and ``format_version`` (1).  Transforms are 4 x 4 row-major lists mapping the
-    reference-probe frame to the model's heart frame (mm); angles in degrees.
+    :meth:`RegistrationResult.to_dict` plus ``format`` (``"heartreg-registration"``),
+    ``format_version`` (2) and ``files``.  Every attribute of the result but
+    ``timings_s`` is stored under its own name, exactly, so that
+    :func:`read_registration` gives back an equal :class:`RegistrationResult`
+    (the sweeps too: they are read from here, not from the CSVs).  Transforms
+    are 4 x 4 row-major lists mapping the reference-probe frame to the model's
+    heart frame (mm); angles in degrees.  Lists of numbers are written on one
+    line each.
 ``sweep.csv``
     One row per swept respiration phase at phi_C* (paper Figs. 2B, 6, 7):
-    ``phase_r, rms_mm, tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg,
+    ``respiration_phase, rms_mm, tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg,
     translation_distance_mm, rotation_distance_deg, iterations``.
     ``t*`` and ``r*`` are the registration parameters of paper Fig. 6 in the
     heart frame: the correction ``dT = T inv(T0)`` as the displacement it gives
@@ -18,13 +23,13 @@ no patient identity, UTF-8, ``\\n`` line ends):
     ``(tx, ty, tz)`` and ``rotation_distance_deg`` the geodesic angle of ``dT``
     (paper Fig. 7, eq. 10).
 ``cardiac_sweep.csv``
-    The same columns with ``phase_c`` first, phi_C swept at phi_R* (Fig. 2A);
+    The same columns with ``cardiac_phase`` first, phi_C swept at phi_R* (Fig. 2A);
     only when the cardiac sweep was run.
 ``phase_evidence.csv``
     The evidence behind phi_R* per swept phase (:func:`phase_evidence_csv_text`).
 ``fig2_rms.png``, ``fig6_parameters.png``, ``fig7_distances.png``, ``fig9_delta.png``
-    The paper's Figs. 2, 6, 7 and 9 for this registration (matplotlib, Agg);
-    Fig. 7 shades each estimator's 90 % interval of phi_R*.
+    The paper's Figs. 2, 6, 7 and 9 for this registration
+    (:mod:`registration.figures`); Fig. 7 shades each estimator's 90 % interval of phi_R*.
 ``fig10_phase.png``
     The shape estimator's cost terms over phi_R and the bootstrap phases.
 ``fig8_view.png``
@@ -33,27 +38,43 @@ no patient identity, UTF-8, ``\\n`` line ends):
 ``ProbeTo*.tfm``, ``points_registered.mrk.json``, ``fiducials_touched.mrk.json``
     The same registration for 3D Slicer (:mod:`registration.slicer`,
     ``docs/slicer.md``).
+
+Format version 1 (heartreg before format 2) is still read: its keys
+``respiration_phase_estimate``/``respiration_phase_alternatives`` and the
+summary ``static`` and ``sweep`` objects are converted, the sweeps come from
+``sweep.csv``/``cardiac_sweep.csv`` (6 decimals; first column ``phase_r`` or
+``phase_c``).  What version 1 never stored reads as NaN and the result says so
+in its ``notes``: the predicted points and normals, the mean positions, the
+static comparison's projected points, the sweeps' transforms, Euler angles and
+per-point distances, and the phase estimates' cost curves and bootstrap
+phases; a sweep's ``converged`` is ``iterations`` below the ICP limit.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 from pathlib import Path
 
 import numpy as np
 
-from imaging.files import atomic_path, write_text_atomic
+from hrcore.errors import HeartregError
+from hrcore.output import staged_output
+from imaging.files import write_text_atomic
+from registration.figures import write_plots
 from registration.result import RegistrationResult
 from registration.slicer import write_slicer_files
 from registration.spatiotemporal import PhaseSweep
 
 __all__ = [
-    "REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "write_registration", "sweep_csv_text",
-    "phase_evidence_csv_text",
+    "REPORT_FORMAT", "REPORT_VERSION", "SWEEP_COLUMNS", "RegistrationFileError", "write_registration",
+    "read_registration", "sweep_csv_text", "phase_evidence_csv_text",
 ]
 
 REPORT_FORMAT = "heartreg-registration"
-REPORT_VERSION = 1
+REPORT_VERSION = 2
+JSON_FILE = "registration.json"
 SWEEP_COLUMNS = (
     "rms_mm",
     "tx_mm",
@@ -66,12 +87,19 @@ SWEEP_COLUMNS = (
     "rotation_distance_deg",
     "iterations",
 )
-_DPI = 110
+#: Notes added to a result read from a format-1 file.
+V1_NOTE = ("read from a format-1 registration.json: the predicted points and normals, the mean positions, "
+           "the static projections, the sweeps' transforms and per-point distances and the phase estimates' "
+           "curves were not stored and are NaN")
+
+
+class RegistrationFileError(HeartregError, ValueError):
+    """A ``registration.json`` (or its sweep CSV) that cannot be read back."""
 
 
 def sweep_csv_text(sweep: PhaseSweep) -> str:
-    """The CSV text of one sweep (header ``phase_r`` or ``phase_c``, then SWEEP_COLUMNS)."""
-    first = "phase_r" if sweep.kind == "respiration" else "phase_c"
+    """The CSV text of one sweep (header ``respiration_phase`` or ``cardiac_phase``, then SWEEP_COLUMNS)."""
+    first = "respiration_phase" if sweep.kind == "respiration" else "cardiac_phase"
     lines = [",".join((first,) + SWEEP_COLUMNS)]
     t = sweep.correction_translation_mm
     e = sweep.correction_euler_xyz_deg
@@ -90,15 +118,27 @@ def sweep_csv_text(sweep: PhaseSweep) -> str:
 
 
 def write_registration(
-    result: RegistrationResult, out_dir, *, model=None, view: bool = True, fiducials_probe_mm=None
+    result: RegistrationResult, out_dir, *, overwrite: bool = False, inputs=(), model=None, view: bool = True,
+    fiducials_probe_mm=None,
 ) -> dict:
-    """Write the registration's files into ``out_dir`` (see the module docstring).
+    """Write the registration's files into the folder ``out_dir``, atomically (module docstring).
+
+    Everything is written into a staging folder beside ``out_dir`` that
+    replaces it in one rename (:func:`hrcore.output.staged_output`): a failure
+    or a signal leaves ``out_dir`` as it was, and nothing of an earlier run
+    survives in it (no stale figure or CSV of another run).
 
     Parameters
     ----------
     result : RegistrationResult
     out_dir : str or Path
-        Created if missing; files of the same names are replaced.
+        The output folder; created if missing.  An existing non-empty folder
+        is refused unless ``overwrite``.
+    overwrite : bool
+        Replace an existing non-empty ``out_dir`` (``--overwrite``).
+    inputs : iterable of str or Path
+        The inputs (model and session folders): ``out_dir`` may not be, lie
+        in or contain one of them.
     model : HeartModel, optional
         The registered model; needed for the 3-D view ``fig8_view.png``.
     view : bool
@@ -109,15 +149,33 @@ def write_registration(
     Returns
     -------
     dict
-        ``{name: Path}`` of the files written, and ``"notes"``: a list of
-        reasons for files skipped (e.g. no offscreen OpenGL).
+        ``{name: Path}`` of the files written (in ``out_dir``), and
+        ``"notes"``: a list of reasons for files skipped (e.g. no offscreen OpenGL).
+
+    Raises
+    ------
+    hrcore.output.OutputError
+        A refused ``out_dir`` (not empty without ``overwrite``, an input, not
+        writable) or a full disk.
     """
     if not isinstance(result, RegistrationResult):
         raise TypeError(f"result must be a RegistrationResult, got {type(result).__name__}")
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder; choose an output folder")
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_output(out, inputs=inputs, overwrite=overwrite) as stage:
+        paths = _write_files(result, stage, model=model, view=view, fiducials_probe_mm=fiducials_probe_mm)
+    return _moved(paths, stage, out)
+
+
+def _moved(value, stage: Path, out: Path):
+    """``value`` (paths, nested in dicts) with the staging folder replaced by ``out``."""
+    if isinstance(value, dict):
+        return {k: _moved(v, stage, out) for k, v in value.items()}
+    if isinstance(value, Path):
+        return out / value.relative_to(stage)
+    return value
+
+
+def _write_files(result: RegistrationResult, out: Path, *, model, view, fiducials_probe_mm) -> dict:
     paths: dict = {}
     payload = {"format": REPORT_FORMAT, "format_version": REPORT_VERSION}
     payload.update(result.to_dict())
@@ -126,8 +184,8 @@ def write_registration(
         payload["files"]["phase_evidence"] = "phase_evidence.csv"
     if result.cardiac_sweep is not None:
         payload["files"]["cardiac_sweep"] = "cardiac_sweep.csv"
-    paths["json"] = out / "registration.json"
-    write_text_atomic(paths["json"], json.dumps(payload, indent=1, allow_nan=False) + "\n")
+    paths["json"] = out / JSON_FILE
+    write_text_atomic(paths["json"], json_text(payload))
     paths["sweep"] = out / "sweep.csv"
     write_text_atomic(paths["sweep"], sweep_csv_text(result.respiration_sweep))
     if result.cardiac_sweep is not None:
@@ -158,7 +216,7 @@ def write_registration(
 def phase_evidence_csv_text(result: RegistrationResult) -> str:
     """The evidence behind phi_R*, one row per swept phase.
 
-    Columns: ``phase_r``, then per estimator (``shape``, ``eq10``) its cost
+    Columns: ``respiration_phase``, then per estimator (``shape``, ``eq10``) its cost
     (``J - min J`` for shape, unitless; translation distance minus its minimum,
     mm, for eq. 10) and the share of bootstrap resamples that chose the phase;
     then the shape estimator's terms ``cost_heart``, ``cost_fiducial``,
@@ -166,7 +224,7 @@ def phase_evidence_csv_text(result: RegistrationResult) -> str:
     """
     phases = result.respiration_sweep.phases
     by = {e.method: e for e in result.phase_estimates}
-    cols, data = ["phase_r"], [phases]
+    cols, data = ["respiration_phase"], [phases]
     for method in ("shape", "eq10"):
         e = by.get(method)
         if e is None:
@@ -183,172 +241,131 @@ def phase_evidence_csv_text(result: RegistrationResult) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _shade_interval(ax, estimate, colour, label):
-    """Shade a phase interval (wrapping through 0 drawn as two spans)."""
-    lo, hi = (float(x) for x in estimate.interval)
-    if estimate.width >= 1.0 - 1e-9:
-        spans = [(0.0, 1.0)]
-    elif lo <= hi:
-        spans = [(lo, hi)]
-    else:
-        spans = [(lo, 1.0), (0.0, hi)]
-    for k, (a, b) in enumerate(spans):
-        ax.axvspan(a, b, color=colour, alpha=0.15, lw=0, label=label if k == 0 else None)
+def json_text(payload) -> str:
+    """JSON text with one key per line and every list of numbers on one line."""
+    return _dumps(payload, 0) + "\n"
 
 
-# ------------------------------------------------------------------ plots
-def _figure(ncols, width=11.0, height=4.2):
-    from matplotlib.figure import Figure  # no pyplot: no global backend state
-
-    fig = Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
-    axes = fig.subplots(1, ncols, squeeze=False)[0]
-    return fig, axes
-
-
-def _save(fig, path: Path) -> Path:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
+def _dumps(obj, level: int) -> str:
+    pad, inner = " " * level, " " * (level + 1)
+    if isinstance(obj, dict) and obj:
+        items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, level + 1)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(obj, (list, tuple)) and any(isinstance(v, (dict, list, tuple)) for v in obj):
+        return "[\n" + ",\n".join(inner + _dumps(v, level + 1) for v in obj) + "\n" + pad + "]"
+    if isinstance(obj, (list, tuple)):
+        return "[" + ", ".join(json.dumps(v, allow_nan=False) for v in obj) + "]"
+    return json.dumps(obj, allow_nan=False)
 
 
-def _mark(ax, x, label, colour="#c0392b"):
-    ax.axvline(x, color=colour, linestyle="--", linewidth=1.2, label=label)
+def read_registration(out_dir) -> RegistrationResult:
+    """Read the ``registration.json`` of :func:`write_registration` back.
 
-
-def write_plots(result: RegistrationResult, out_dir) -> dict:
-    """Write fig2_rms, fig6_parameters, fig7_distances and fig9_delta PNGs.
+    Parameters
+    ----------
+    out_dir : str or Path
+        The output folder of :func:`write_registration` (``heartreg register -o``).
 
     Returns
     -------
-    dict of Path by name ("fig2", "fig6", "fig7", "fig9").
+    RegistrationResult
+        Equal to the one written (format 2), field by field and bit for bit,
+        except ``timings_s`` (not stored: empty).  A format-1 file gives NaN for
+        what it never stored (module docstring) and says so in ``notes``.
+
+    Raises
+    ------
+    RegistrationFileError
+        One line naming the file: missing, unreadable, not JSON, another
+        format or format version, or a missing or bad field.
     """
-    out = Path(out_dir)
-    resp = result.respiration_sweep
-    card = result.cardiac_sweep
-    phi_r, phi_c = result.phase_r, result.phase_c
-    paths = {}
+    path = Path(out_dir) / JSON_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RegistrationFileError(f"{path} not found: give the output folder of heartreg register") from None
+    except OSError as exc:
+        raise RegistrationFileError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    except ValueError as exc:
+        raise RegistrationFileError(f"{path}: not JSON ({exc}); re-run heartreg register") from None
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt != REPORT_FORMAT:
+        raise RegistrationFileError(f"{path}: not a heartreg registration (format {fmt!r}, expected {REPORT_FORMAT!r})")
+    version = data.get("format_version")
+    if version not in (1, REPORT_VERSION):
+        raise RegistrationFileError(
+            f"{path}: format version {version!r} is not one this heartreg reads (1 or {REPORT_VERSION}); "
+            "update heartreg or re-run heartreg register"
+        )
+    try:
+        if version == 1:
+            data = _upgrade_v1(data, path.parent)
+        return RegistrationResult.from_dict(data)
+    except KeyError as exc:
+        raise RegistrationFileError(f"{path}: missing field {exc.args[0]!r}; re-run heartreg register") from None
+    except OSError as exc:
+        raise RegistrationFileError(
+            f"{exc.filename or path}: cannot read it ({exc.strerror or exc}); a format-1 registration "
+            "needs its sweep CSVs beside registration.json"
+        ) from None
+    except (TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise RegistrationFileError(f"{path}: bad field ({exc}); re-run heartreg register") from None
 
-    # Fig. 2: RMS vs phase
-    fig, (ax_c, ax_r) = _figure(2)
-    if card is not None:
-        ax_c.plot(card.phases, card.rms_mm, color="#2c3e50", marker=".", markersize=3)
-        _mark(ax_c, phi_c, f"image phase $\\varphi_C^*$ = {phi_c:.2f}")
-        ax_c.legend(loc="upper right", fontsize=8)
-    else:
-        ax_c.text(0.5, 0.5, "cardiac sweep not run", ha="center", va="center", transform=ax_c.transAxes)
-    ax_c.set_title(f"(A) cardiac phase swept at $\\varphi_R$ = {phi_r:.2f}", fontsize=10)
-    ax_c.set_xlabel("cardiac phase $\\varphi_C$")
-    ax_r.plot(resp.phases, resp.rms_mm, color="#2c3e50", marker=".", markersize=3)
-    method = result.phase_estimates[0].method if result.phase_estimates else "eq10"
-    _mark(ax_r, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f} ({method})")
-    ax_r.legend(loc="upper right", fontsize=8)
-    ax_r.set_title(f"(B) respiration phase swept at $\\varphi_C^*$ = {phi_c:.2f}", fontsize=10)
-    ax_r.set_xlabel("respiration phase $\\varphi_R$")
-    for ax in (ax_c, ax_r):
-        ax.set_ylabel("RMS point-to-surface error (mm)")
-        ax.set_xlim(0, 1)
-        ax.set_ylim(bottom=0)
-        ax.grid(alpha=0.3)
-    fig.suptitle("Registration error over phase (cf. Wood et al. 2018, Fig. 2)", fontsize=11)
-    paths["fig2"] = _save(fig, out / "fig2_rms.png")
 
-    # Fig. 6: registration parameters vs phi_R
-    fig, (ax_t, ax_e) = _figure(2)
-    colours = ("#c0392b", "#27ae60", "#2980b9")
-    for j, (c, name) in enumerate(zip(colours, "xyz")):
-        ax_t.plot(resp.phases, resp.correction_translation_mm[:, j], color=c, label=f"$t_{name}$")
-        ax_e.plot(resp.phases, resp.correction_euler_xyz_deg[:, j], color=c, label=f"$r_{name}$")
-    for ax, unit, title in ((ax_t, "mm", "(A) translation"), (ax_e, "deg", "(B) rotation, Euler X-Y-Z")):
-        _mark(ax, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f}", colour="#7f8c8d")
-        ax.axhline(0.0, color="black", linewidth=0.6)
-        ax.set_xlabel("respiration phase $\\varphi_R$")
-        ax.set_ylabel(unit)
-        ax.set_xlim(0, 1)
-        ax.set_title(title, fontsize=10)
-        lo, hi = ax.get_ylim()
-        ax.set_ylim(lo, hi + 0.25 * (hi - lo))  # room for the legend
-        ax.legend(fontsize=8, ncol=4, loc="upper right")
-        ax.grid(alpha=0.3)
-    fig.suptitle(
-        "Correction $T\\,T_0^{-1}$ of the fiducial registration, heart frame, at the heart centre "
-        "(cf. Fig. 6)", fontsize=11,
-    )
-    paths["fig6"] = _save(fig, out / "fig6_parameters.png")
+def _upgrade_v1(data: dict, folder: Path) -> dict:
+    """A format-1 payload in the form of format 2 (module docstring)."""
+    d = dict(data)
+    ids = [int(i) for i in d["point_ids"]]
+    nan3 = [[None] * 3 for _ in ids]
+    max_it = int(dict(d["parameters"].get("icp_options") or {}).get("max_iterations", 50))
+    files = d.get("files") or {}
+    d["respiration_sweep"] = _v1_sweep(folder / files.get("sweep", "sweep.csv"), "respiration",
+                                       d["cardiac_phase"], d["pivot_heart_mm"], max_it)
+    card = files.get("cardiac_sweep")
+    d["cardiac_sweep"] = None if card is None else _v1_sweep(folder / card, "cardiac", d["respiration_phase"],
+                                                             d["pivot_heart_mm"], max_it)
+    st = d["static"]
+    d["static"] = {
+        "T_static_heart_from_probe": st["T_heart_from_probe"], "rms_static_mm": st["rms_mm"],
+        "mean_delta_mm": d["delta_static_mean_mm"], "delta_mm": [d["delta_static_mm"][str(i)] for i in ids],
+        "projected_static_mm": nan3, "projected_spatiotemporal_mm": nan3,
+    }
+    for key in ("points_probe_mm", "normals_probe", "mean_points_probe_mm"):
+        d[key] = nan3
+    phases = np.asarray(d["respiration_sweep"]["phases"], dtype=float)
+    estimates = [d.get("respiration_phase_estimate"), *(d.get("respiration_phase_alternatives") or [])]
+    d["phase_estimates"] = [_v1_estimate(e, phases) for e in estimates if e]
+    d["notes"] = [*d["notes"], V1_NOTE]
+    return d
 
-    # Fig. 7: distance magnitudes vs phi_R
-    fig, (ax_t, ax_r) = _figure(2)
-    ax_t.plot(resp.phases, resp.translation_distance_mm, color="#2c3e50")
-    ax_r.plot(resp.phases, resp.rotation_distance_deg, color="#2c3e50")
-    estimates = {e.method: e for e in result.phase_estimates}
-    i = result.phase_estimates[0].index if result.phase_estimates else resp.best_index
-    j = resp.best_index
-    if i != j:
-        ax_t.plot([resp.phases[j]], [resp.translation_distance_mm[j]], "s", color="#e67e22",
-                  label=f"eq. 10 minimum at {resp.phases[j]:.2f}")
-    ax_t.plot([phi_r], [resp.translation_distance_mm[i]], "o", color="#c0392b",
-              label=f"$\\varphi_R^*$ = {phi_r:.2f}: {resp.translation_distance_mm[i]:.2f} mm")
-    ax_r.plot([phi_r], [resp.rotation_distance_deg[i]], "o", color="#c0392b",
-              label=f"at $\\varphi_R^*$: {resp.rotation_distance_deg[i]:.2f} deg")
-    for method, colour in (("shape", "#2980b9"), ("eq10", "#e67e22")):
-        if method in estimates:
-            e = estimates[method]
-            for ax in (ax_t, ax_r):
-                _shade_interval(ax, e, colour, f"{method} 90 % interval" + ("" if e.decided else " (undecided)"))
-    for ax, unit, title in ((ax_t, "mm", "(A) translation distance from $T_0$"),
-                            (ax_r, "deg", "(B) rotation distance from $T_0$")):
-        _mark(ax, phi_r, None)
-        ax.set_xlabel("respiration phase $\\varphi_R$")
-        ax.set_ylabel(unit)
-        ax.set_xlim(0, 1)
-        ax.set_ylim(bottom=0)
-        ax.set_title(title, fontsize=10)
-        ax.legend(fontsize=8, loc="upper right")
-        ax.grid(alpha=0.3)
-    fig.suptitle("Distance of the registration from the fiducial seed (cf. Fig. 7, eq. 10)", fontsize=11)
-    paths["fig7"] = _save(fig, out / "fig7_distances.png")
 
-    # Fig. 9: delta per point
-    fig, (ax,) = _figure(1, width=7.5, height=4.2)
-    delta = result.static.delta_mm
-    ax.plot(result.point_ids, delta, "o", color="#2980b9", markersize=4, label="$\\delta_i$ per point")
-    ax.axhline(result.delta_static_mean_mm, color="#c0392b", linewidth=1.5,
-               label=f"mean {result.delta_static_mean_mm:.2f} mm ({delta.size} points)")
-    ax.set_xlabel("point id")
-    ax.set_ylabel("$\\delta_i$ (mm)")
-    ax.set_ylim(0, 1.3 * max(float(delta.max()), 1e-3))  # room for the legend
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", ncol=2)
-    ax.set_title("Surface distance between spatiotemporal and static registration (cf. Fig. 9)",
-                 fontsize=10)
-    paths["fig9"] = _save(fig, out / "fig9_delta.png")
+def _v1_estimate(e: dict, phases: np.ndarray) -> dict:
+    nan_m = [None] * phases.size
+    return {
+        "method": e["method"], "evidence": e["evidence"], "respiration_phase": e["phase"],
+        "index": int(np.argmin(np.abs(phases - float(e["phase"])))), "interval": e["interval"],
+        "interval_offsets": e["interval_offsets"], "confidence": e["confidence"], "decided": e["decided"],
+        "bootstrap_phases": [None] * int(e["n_bootstrap"]), "cost": nan_m, "cost_heart": nan_m,
+        "cost_fiducial": nan_m, "cost_prior": nan_m,
+        "transform_mm": e["transform_90_mm"], "transform_deg": e["transform_90_deg"],
+    }
 
-    # Fig. 10 (ours): the evidence behind phi_R* and its bootstrap
-    if result.phase_estimates:
-        fig, (ax_j, ax_b) = _figure(2)
-        for e in result.phase_estimates:
-            if e.method == "shape":
-                ax_j.plot(resp.phases, e.cost, color="#2c3e50", label="J, all terms")
-                if "heart" in e.evidence:
-                    ax_j.plot(resp.phases, e.cost_heart, color="#c0392b", lw=1, label="heart shape")
-                if "fiducial_trace" in e.evidence:
-                    ax_j.plot(resp.phases, e.cost_fiducial, color="#27ae60", lw=1, label="chest staples (trace)")
-                if "breath_hold" in e.evidence:
-                    ax_j.plot(resp.phases, e.cost_prior, color="#8e44ad", lw=1, label="stated breath-hold")
-                _shade_interval(ax_j, e, "#2980b9", "90 % interval")
-            colour = "#2980b9" if e.method == "shape" else "#e67e22"
-            ax_b.hist(e.bootstrap_phases, bins=np.linspace(0, 1, 51), color=colour, alpha=0.6,
-                      label=f"{e.method}: {e.phase_r:.2f} [{e.interval[0]:.2f}, {e.interval[1]:.2f}]"
-                      + ("" if e.decided else " undecided"))
-        ax_j.set_ylabel("J - min J (chi-square units)")
-        ax_j.set_yscale("symlog", linthresh=10.0)
-        ax_j.set_title("(A) shape estimator: cost over the respiration phase", fontsize=10)
-        ax_b.set_ylabel("bootstrap resamples")
-        ax_b.set_title("(B) phi_R* of each bootstrap resample", fontsize=10)
-        for ax in (ax_j, ax_b):
-            ax.set_xlabel("respiration phase $\\varphi_R$")
-            ax.set_xlim(0, 1)
-            ax.legend(fontsize=8, loc="upper right")
-            ax.grid(alpha=0.3)
-        fig.suptitle("The image's respiration phase: evidence and uncertainty", fontsize=11)
-        paths["fig10"] = _save(fig, out / "fig10_phase.png")
-    return paths
+
+def _v1_sweep(path: Path, kind: str, fixed_phase, pivot_mm, max_iterations: int) -> dict:
+    """A sweep CSV (either version's first column) in the JSON form of format 2."""
+    rows = list(csv.reader(io.StringIO(path.read_text(encoding="utf-8"))))
+    firsts = ("phase_r", "respiration_phase") if kind == "respiration" else ("phase_c", "cardiac_phase")
+    if not rows or rows[0][0] not in firsts or tuple(rows[0][1:]) != SWEEP_COLUMNS:
+        raise ValueError(f"{path.name}: header {rows[0] if rows else []} is not a {kind} sweep's")
+    a = np.array(rows[1:], dtype=float).reshape(-1, len(SWEEP_COLUMNS) + 1)
+    m = a.shape[0]
+    iterations = a[:, -1].astype(int)
+    return {
+        "kind": kind, "fixed_phase": fixed_phase, "phases": a[:, 0].tolist(), "rms_mm": a[:, 1].tolist(),
+        "T_heart_from_probe": np.full((m, 4, 4), None).tolist(),
+        "correction_translation_mm": a[:, 2:5].tolist(), "correction_euler_xyz_deg": a[:, 5:8].tolist(),
+        "translation_distance_mm": a[:, 8].tolist(), "rotation_distance_deg": a[:, 9].tolist(),
+        "euler_xyz_deg": np.full((m, 3), None).tolist(), "iterations": iterations.tolist(),
+        "converged": [bool(i < max_iterations) for i in iterations], "pivot_mm": pivot_mm,
+        "distances_mm": None, "signed_distances_mm": None,
+    }

@@ -13,9 +13,10 @@ from typing import Mapping
 
 import numpy as np
 
+from hrcore.jsonarrays import bool_array, float_array, int_array, json_floats
 from registration.plausibility import Trust
 from registration.spatiotemporal import PhaseSweep, StaticComparison
-from registration.temporal import TemporalEstimate
+from registration.phase_estimate import TemporalEstimate
 from registration.transforms import euler_xyz_deg_from_matrix
 
 __all__ = ["PointFit", "IcpReport", "RegistrationResult"]
@@ -99,6 +100,20 @@ class PointFit:
             "notes": list(self.notes),
         }
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "PointFit":
+        """The inverse of :meth:`to_dict` (a ``null`` condition number reads as infinity)."""
+        ints = ("point_id", "surface_point", "n_samples", "n_used", "n_nan_phase", "n_beats", "n_breaths",
+                "n_outlier_samples")
+        floats = ("heart_rate_hz", "resp_rate_hz", "residual_rms_3d_mm", "residual_rms_deg")
+        return cls(
+            **{k: int(data[k]) for k in ints},
+            **{k: float(data[k]) for k in floats},
+            residual_rms_mm=float_array(data["residual_rms_mm"], (3,)),
+            condition_number=_float_or_inf(data["condition_number"]),
+            notes=tuple(str(n) for n in data["notes"]),
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class IcpReport:
@@ -138,6 +153,19 @@ class IcpReport:
             "rms_inlier_mm": self.rms_inlier_mm,
         }
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "IcpReport":
+        """The inverse of :meth:`to_dict`."""
+        return cls(
+            hessian_eigenvalues=float_array(data["hessian_eigenvalues"], (6,)),
+            weakest_direction=float_array(data["weakest_direction"], (6,)),
+            condition_number=_float_or_inf(data["condition_number"]),
+            degenerate=bool(data["degenerate"]),
+            iterations=int(data["iterations"]),
+            converged=bool(data["converged"]),
+            rms_inlier_mm=float(data["rms_inlier_mm"]),
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class RegistrationResult:
@@ -148,11 +176,11 @@ class RegistrationResult:
 
     Attributes
     ----------
-    phase_c : float
+    cardiac_phase : float
         The map's cardiac phase phi_C* (from the model).
-    phase_c_source : str
+    cardiac_phase_source : str
         Where phi_C* came from.
-    phase_r : float
+    respiration_phase : float
         The estimated respiration phase phi_R* (``phase_estimates[0]``).
     T_heart_from_probe : (4, 4) float64
         Final spatiotemporal registration (ICP at (phi_C*, phi_R*)).
@@ -210,9 +238,9 @@ class RegistrationResult:
         heartreg version.
     """
 
-    phase_c: float
-    phase_c_source: str
-    phase_r: float
+    cardiac_phase: float
+    cardiac_phase_source: str
+    respiration_phase: float
     T_heart_from_probe: np.ndarray
     T0_heart_from_probe: np.ndarray
     fre_mm: float
@@ -251,39 +279,40 @@ class RegistrationResult:
         return float(self.static.mean_delta_mm)
 
     def to_dict(self) -> dict:
-        """JSON-ready summary (sweeps are in their own CSV files).
+        """JSON-ready form, the body of ``registration.json`` (format version 2).
 
+        Every attribute but ``timings_s`` is stored under its own name (sweeps,
+        static comparison, point fits and phase estimates as nested objects
+        whose keys are their attribute names), exactly: floats as their
+        shortest exact decimal, non-finite array entries as ``null``.  Derived
+        values for a reader of the file are added beside them
+        (``euler_xyz_deg`` of T0 and of the static registration,
+        ``translation_mm``, ``pivot_heart_mm``, ``n_points``,
+        ``delta_static_mm`` per point id, ``delta_static_mean_mm``).
         Transforms are nested lists, row-major; angles in degrees; lengths in mm.
         """
         st = self.static
-        T_static = st.T_static
         return {
             "version": self.version,
             "frames": "T_heart_from_probe maps reference-probe mm to the model's heart frame mm",
             "trust": self.trust.to_dict(),
-            "cardiac_phase": self.phase_c,
-            "cardiac_phase_source": self.phase_c_source,
-            "respiration_phase": self.phase_r,
-            "respiration_phase_estimate": self.phase_estimates[0].to_dict() if self.phase_estimates else None,
-            "respiration_phase_alternatives": [e.to_dict() for e in self.phase_estimates[1:]],
-            "T_heart_from_probe": self.T_heart_from_probe.tolist(),
-            "T0_heart_from_probe": self.T0_heart_from_probe.tolist(),
-            "euler_xyz_deg": [float(x) for x in self.euler_xyz_deg],
-            "translation_mm": [float(x) for x in self.T_heart_from_probe[:3, 3]],
-            "T0_euler_xyz_deg": [float(x) for x in euler_xyz_deg_from_matrix(self.T0_heart_from_probe)],
+            "cardiac_phase": self.cardiac_phase,
+            "cardiac_phase_source": self.cardiac_phase_source,
+            "respiration_phase": self.respiration_phase,
+            "T_heart_from_probe": json_floats(self.T_heart_from_probe),
+            "T0_heart_from_probe": json_floats(self.T0_heart_from_probe),
+            "euler_xyz_deg": json_floats(self.euler_xyz_deg),
+            "translation_mm": json_floats(self.T_heart_from_probe[:3, 3]),
+            "T0_euler_xyz_deg": json_floats(euler_xyz_deg_from_matrix(self.T0_heart_from_probe)),
             "rms_mm": self.rms_mm,
             "translation_distance_mm": self.translation_distance_mm,
             "rotation_distance_deg": self.rotation_distance_deg,
-            "pivot_heart_mm": [float(x) for x in self.respiration_sweep.pivot_mm],
+            "pivot_heart_mm": json_floats(self.respiration_sweep.pivot_mm),
             "fre_mm": self.fre_mm,
-            "fiducial_residuals_mm": [float(x) for x in self.fiducial_residuals_mm],
+            "fiducial_residuals_mm": json_floats(self.fiducial_residuals_mm),
             "fiducials_reordered": self.fiducials_reordered,
             "fiducials_ambiguous": self.fiducials_ambiguous,
-            "static": {
-                "T_heart_from_probe": T_static.tolist(),
-                "euler_xyz_deg": [float(x) for x in euler_xyz_deg_from_matrix(T_static)],
-                "rms_mm": float(st.rms_static_mm),
-            },
+            "static": static_to_dict(st),
             "delta_static_mean_mm": self.delta_static_mean_mm,
             "delta_static_mm": {str(int(i)): float(d) for i, d in zip(self.point_ids, st.delta_mm)},
             "icp": self.icp.to_dict(),
@@ -292,14 +321,127 @@ class RegistrationResult:
             "point_fits": [p.to_dict() for p in self.point_fits],
             "exclusions": [{"point_id": int(i), "reason": r} for i, r in self.exclusions],
             "n_faces": self.n_faces,
-            "sweep": {
-                "respiration_phases": len(self.respiration_sweep.phases),
-                "respiration_converged": int(np.count_nonzero(self.respiration_sweep.converged)),
-                "cardiac_phases": 0 if self.cardiac_sweep is None else len(self.cardiac_sweep.phases),
-            },
             "parameters": dict(self.parameters),
             "notes": list(self.notes),
+            "points_probe_mm": json_floats(self.points_probe_mm),
+            "normals_probe": json_floats(self.normals_probe),
+            "mean_points_probe_mm": json_floats(self.mean_points_probe_mm),
+            "phase_estimates": [e.to_dict() for e in self.phase_estimates],
+            "respiration_sweep": sweep_to_dict(self.respiration_sweep),
+            "cardiac_sweep": None if self.cardiac_sweep is None else sweep_to_dict(self.cardiac_sweep),
         }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "RegistrationResult":
+        """The inverse of :meth:`to_dict` (``timings_s`` is empty: it is not stored).
+
+        Raises
+        ------
+        KeyError, TypeError, ValueError
+            A missing field or a value of the wrong kind or shape
+            (:func:`registration.report.read_registration` turns them into one
+            line naming the file).
+        """
+        ids = int_array(data["point_ids"], (-1,))
+        n = ids.shape[0]
+        card = data["cardiac_sweep"]
+        return cls(
+            cardiac_phase=float(data["cardiac_phase"]),
+            cardiac_phase_source=str(data["cardiac_phase_source"]),
+            respiration_phase=float(data["respiration_phase"]),
+            T_heart_from_probe=float_array(data["T_heart_from_probe"], (4, 4)),
+            T0_heart_from_probe=float_array(data["T0_heart_from_probe"], (4, 4)),
+            fre_mm=float(data["fre_mm"]),
+            fiducial_residuals_mm=float_array(data["fiducial_residuals_mm"], (-1,)),
+            fiducials_reordered=bool(data["fiducials_reordered"]),
+            fiducials_ambiguous=bool(data["fiducials_ambiguous"]),
+            rms_mm=float(data["rms_mm"]),
+            translation_distance_mm=float(data["translation_distance_mm"]),
+            rotation_distance_deg=float(data["rotation_distance_deg"]),
+            euler_xyz_deg=float_array(data["euler_xyz_deg"], (3,)),
+            respiration_sweep=sweep_from_dict(data["respiration_sweep"]),
+            cardiac_sweep=None if card is None else sweep_from_dict(card),
+            static=static_from_dict(data["static"], n),
+            point_ids=ids,
+            points_probe_mm=float_array(data["points_probe_mm"], (n, 3)),
+            normals_probe=float_array(data["normals_probe"], (n, 3)),
+            mean_points_probe_mm=float_array(data["mean_points_probe_mm"], (n, 3)),
+            point_fits=tuple(PointFit.from_dict(p) for p in data["point_fits"]),
+            exclusions=tuple((int(e["point_id"]), str(e["reason"])) for e in data["exclusions"]),
+            icp=IcpReport.from_dict(data["icp"]),
+            trust=Trust.from_dict(data["trust"]),
+            phase_estimates=tuple(TemporalEstimate.from_dict(e) for e in data["phase_estimates"]),
+            parameters=dict(data["parameters"]),
+            notes=tuple(str(x) for x in data["notes"]),
+            n_faces=int(data["n_faces"]),
+            version=str(data["version"]),
+        )
+
+
+# ------------------------------------------------------------------ nested values
+_SWEEP_FLOATS = ("phases", "rms_mm", "T_heart_from_probe", "translation_distance_mm", "rotation_distance_deg",
+                 "correction_translation_mm", "correction_euler_xyz_deg", "euler_xyz_deg", "pivot_mm")
+
+
+def sweep_to_dict(sweep: PhaseSweep) -> dict:
+    """A :class:`PhaseSweep` as JSON values, keys equal to its attribute names."""
+    out = {"kind": sweep.kind, "fixed_phase": float(sweep.fixed_phase)}
+    out.update({k: json_floats(getattr(sweep, k)) for k in _SWEEP_FLOATS})
+    out["iterations"] = [int(i) for i in sweep.iterations]
+    out["converged"] = [bool(c) for c in sweep.converged]
+    for k in ("distances_mm", "signed_distances_mm"):
+        value = getattr(sweep, k)
+        out[k] = None if value is None else json_floats(value)
+    return out
+
+
+def sweep_from_dict(data: dict) -> PhaseSweep:
+    """The inverse of :func:`sweep_to_dict`."""
+    m = len(data["phases"])
+    shapes = {"phases": (m,), "rms_mm": (m,), "T_heart_from_probe": (m, 4, 4), "translation_distance_mm": (m,),
+              "rotation_distance_deg": (m,), "correction_translation_mm": (m, 3),
+              "correction_euler_xyz_deg": (m, 3), "euler_xyz_deg": (m, 3), "pivot_mm": (3,)}
+    kind = str(data["kind"])
+    if kind not in ("respiration", "cardiac"):
+        raise ValueError(f"sweep kind must be 'respiration' or 'cardiac', got {kind!r}")
+    return PhaseSweep(
+        kind=kind,
+        fixed_phase=float(data["fixed_phase"]),
+        **{k: float_array(data[k], shapes[k]) for k in _SWEEP_FLOATS},
+        iterations=int_array(data["iterations"], (m,)),
+        converged=bool_array(data["converged"], (m,)),
+        **{k: None if data[k] is None else float_array(data[k], (m, -1))
+           for k in ("distances_mm", "signed_distances_mm")},
+    )
+
+
+def static_to_dict(st: StaticComparison) -> dict:
+    """A :class:`StaticComparison` as JSON values (plus its transform's Euler angles)."""
+    return {
+        "T_static_heart_from_probe": json_floats(st.T_static_heart_from_probe),
+        "euler_xyz_deg": json_floats(euler_xyz_deg_from_matrix(st.T_static_heart_from_probe)),
+        "rms_static_mm": float(st.rms_static_mm),
+        "mean_delta_mm": float(st.mean_delta_mm),
+        "delta_mm": json_floats(st.delta_mm),
+        "projected_static_mm": json_floats(st.projected_static_mm),
+        "projected_spatiotemporal_mm": json_floats(st.projected_spatiotemporal_mm),
+    }
+
+
+def static_from_dict(data: dict, n: int) -> StaticComparison:
+    """The inverse of :func:`static_to_dict` for ``n`` points."""
+    return StaticComparison(
+        T_static_heart_from_probe=float_array(data["T_static_heart_from_probe"], (4, 4)),
+        rms_static_mm=float(data["rms_static_mm"]),
+        projected_static_mm=float_array(data["projected_static_mm"], (n, 3)),
+        projected_spatiotemporal_mm=float_array(data["projected_spatiotemporal_mm"], (n, 3)),
+        delta_mm=float_array(data["delta_mm"], (n,)),
+        mean_delta_mm=float(data["mean_delta_mm"]),
+    )
+
+
+def _float_or_inf(x) -> float:
+    return math.inf if x is None else float(x)
 
 
 def _finite_or_none(x):

@@ -43,7 +43,7 @@ def _transforms(result: RegistrationResult) -> dict:
     return {
         "": result.T_heart_from_probe,
         "_fiducial": result.T0_heart_from_probe,
-        "_static": result.static.T_static,
+        "_static": result.static.T_static_heart_from_probe,
     }
 
 
@@ -103,7 +103,7 @@ def write_slicer_files(
     paths["points"] = write_markups(
         out / POINTS_FILE, result.points_probe_mm, labels=[f"P{int(i)}" for i in result.point_ids],
         name="registered points", color=(0.1, 0.55, 0.25),
-        descriptions=[f"point {int(i)}: motion-model position at phi_C* = {result.phase_c:.3f}, "
-                      f"phi_R* = {result.phase_r:.2f}, reference-probe frame" for i in result.point_ids],
+        descriptions=[f"point {int(i)}: motion-model position at phi_C* = {result.cardiac_phase:.3f}, "
+                      f"phi_R* = {result.respiration_phase:.2f}, reference-probe frame" for i in result.point_ids],
     )
     return paths

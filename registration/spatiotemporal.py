@@ -82,7 +82,7 @@ class PhaseSweep:
         The phase held constant.
     rms_mm : (m,) float64
         RMS point-to-surface distance after ICP at each phase.
-    T_map_from_source : (m, 4, 4) float64
+    T_heart_from_probe : (m, 4, 4) float64
         ICP result at each phase.
     translation_distance_mm : (m,) float64
         ``|T s - T0 s|`` with ``s = inv(T0) pivot`` (module docstring).
@@ -109,7 +109,7 @@ class PhaseSweep:
     phases: np.ndarray
     fixed_phase: float
     rms_mm: np.ndarray
-    T_map_from_source: np.ndarray
+    T_heart_from_probe: np.ndarray
     translation_distance_mm: np.ndarray
     rotation_distance_deg: np.ndarray
     correction_translation_mm: np.ndarray
@@ -138,31 +138,31 @@ class SpatiotemporalRegistration:
 
     Attributes
     ----------
-    phase_c : float
+    cardiac_phase : float
         The map's cardiac phase phi_C* (given).
-    phase_r : float
+    respiration_phase : float
         The estimated respiration phase phi_R* (argmin translation distance).
-    T_map_from_source : (4, 4) float64
+    T_heart_from_probe : (4, 4) float64
         ICP registration at (phi_C*, phi_R*).
-    T0 : (4, 4) float64
+    T0_heart_from_probe : (4, 4) float64
         The fiducial seed.
     rms_mm, translation_distance_mm, rotation_distance_deg : float
         At phi_R*.
-    points_source_mm : (n, 3) float64
+    points_probe_mm : (n, 3) float64
         Predicted points at (phi_C*, phi_R*), source frame.
     respiration_sweep : PhaseSweep
     cardiac_sweep : PhaseSweep or None
         Sweep over phi_C at phi_R* (paper Fig. 2A) when asked.
     """
 
-    phase_c: float
-    phase_r: float
-    T_map_from_source: np.ndarray
-    T0: np.ndarray
+    cardiac_phase: float
+    respiration_phase: float
+    T_heart_from_probe: np.ndarray
+    T0_heart_from_probe: np.ndarray
     rms_mm: float
     translation_distance_mm: float
     rotation_distance_deg: float
-    points_source_mm: np.ndarray
+    points_probe_mm: np.ndarray
     respiration_sweep: PhaseSweep
     cardiac_sweep: PhaseSweep | None = None
 
@@ -173,7 +173,7 @@ class StaticComparison:
 
     Attributes
     ----------
-    T_static : (4, 4) float64
+    T_static_heart_from_probe : (4, 4) float64
         ``T_bar``: ICP of the mean positions, seeded by T0.
     rms_static_mm : float
         RMS point-to-surface distance of the mean positions under ``T_bar``.
@@ -187,7 +187,7 @@ class StaticComparison:
     mean_delta_mm : float
     """
 
-    T_static: np.ndarray
+    T_static_heart_from_probe: np.ndarray
     rms_static_mm: float
     projected_static_mm: np.ndarray
     projected_spatiotemporal_mm: np.ndarray
@@ -225,7 +225,7 @@ def _points_at(models, phase_c, phase_r) -> np.ndarray:
 def sweep_phase(
     models: Sequence[MotionModel] | None,
     surface,
-    T0,
+    T0_heart_from_probe,
     *,
     fixed_phase: float,
     kind: str = "respiration",
@@ -242,8 +242,8 @@ def sweep_phase(
         Motion models of the n points (source frame); None when ``points`` are given.
     surface : SurfaceIndex or (vertices, faces)
         The map surface (map frame, mm).
-    T0 : (4, 4) float
-        Fiducial registration ``T_map_from_source``, the seed of every ICP.
+    T0_heart_from_probe : (4, 4) float
+        Fiducial registration (heart <- probe), the seed of every ICP.
     fixed_phase : float, cycles
         phi_C for a respiration sweep, phi_R for a cardiac sweep.
     kind : {"respiration", "cardiac"}
@@ -265,7 +265,7 @@ def sweep_phase(
     if kind not in ("respiration", "cardiac"):
         raise ValueError(f"kind must be 'respiration' or 'cardiac', got {kind!r}")
     surface = _as_surface(surface)
-    T0 = check_transform(T0, name="T0")
+    T0 = check_transform(T0_heart_from_probe, name="T0_heart_from_probe")
     phases = DEFAULT_PHASES if phases is None else np.asarray(phases, dtype=float)
     if phases.ndim != 1 or phases.size == 0:
         raise ValueError(f"phases must have shape (m,), got {phases.shape}")
@@ -295,7 +295,7 @@ def sweep_phase(
     dT = Ts @ invert(T0)
     shift = dT[:, :3, :3] @ pivot + dT[:, :3, 3] - pivot
     return PhaseSweep(
-        kind=kind, phases=phases.copy(), fixed_phase=float(fixed_phase), rms_mm=rms, T_map_from_source=Ts,
+        kind=kind, phases=phases.copy(), fixed_phase=float(fixed_phase), rms_mm=rms, T_heart_from_probe=Ts,
         translation_distance_mm=np.linalg.norm(shift, axis=1), rotation_distance_deg=rotation_distance_deg(Ts, T0),
         correction_translation_mm=shift, correction_euler_xyz_deg=euler_xyz_deg_from_matrix(dT),
         euler_xyz_deg=euler_xyz_deg_from_matrix(Ts), iterations=iterations, converged=converged, pivot_mm=pivot,
@@ -306,8 +306,8 @@ def sweep_phase(
 def register_spatiotemporal(
     models: Sequence[MotionModel],
     surface,
-    T0,
-    phase_c: float,
+    T0_heart_from_probe,
+    cardiac_phase: float,
     *,
     phases_r=None,
     pivot_mm=None,
@@ -323,9 +323,9 @@ def register_spatiotemporal(
         One per attachment point, source (probe) frame.
     surface : SurfaceIndex or (vertices, faces)
         Map surface, map frame.
-    T0 : (4, 4) float
-        Fiducial registration ``T_map_from_source``.
-    phase_c : float, cycles
+    T0_heart_from_probe : (4, 4) float
+        Fiducial registration (heart <- probe).
+    cardiac_phase : float, cycles
         The map's cardiac phase phi_C*.
     phases_r : (m,) float, optional
         Respiration phases to sweep (0..1 step 0.01 by default).
@@ -343,9 +343,10 @@ def register_spatiotemporal(
     SpatiotemporalRegistration
     """
     surface = _as_surface(surface)
-    T0 = check_transform(T0, name="T0")
+    T0 = check_transform(T0_heart_from_probe, name="T0_heart_from_probe")
+    phase_c = cardiac_phase
     if not 0.0 <= phase_c <= 1.0:
-        raise ValueError(f"phase_c must be a phase in [0, 1], got {phase_c}")
+        raise ValueError(f"cardiac_phase must be a phase in [0, 1], got {phase_c}")
     pivot = surface_centroid(surface) if pivot_mm is None else pivot_mm
     resp = sweep_phase(
         models,
@@ -372,14 +373,14 @@ def register_spatiotemporal(
             icp_options=icp_options,
         )
     return SpatiotemporalRegistration(
-        phase_c=float(phase_c),
-        phase_r=phase_r,
-        T_map_from_source=resp.T_map_from_source[best].copy(),
-        T0=T0.copy(),
+        cardiac_phase=float(phase_c),
+        respiration_phase=phase_r,
+        T_heart_from_probe=resp.T_heart_from_probe[best].copy(),
+        T0_heart_from_probe=T0.copy(),
         rms_mm=float(resp.rms_mm[best]),
         translation_distance_mm=float(resp.translation_distance_mm[best]),
         rotation_distance_deg=float(resp.rotation_distance_deg[best]),
-        points_source_mm=_points_at(models, phase_c, phase_r)[0],
+        points_probe_mm=_points_at(models, phase_c, phase_r)[0],
         respiration_sweep=resp,
         cardiac_sweep=card,
     )
@@ -388,7 +389,7 @@ def register_spatiotemporal(
 def compare_static(
     mean_points,
     surface,
-    T0,
+    T0_heart_from_probe,
     T_spatiotemporal,
     points_spatiotemporal,
     *,
@@ -402,10 +403,10 @@ def compare_static(
         Mean position of each point, source frame (models give their
         ``mean_position_mm``).
     surface : SurfaceIndex or (vertices, faces)
-    T0 : (4, 4) float
+    T0_heart_from_probe : (4, 4) float
         Seed of the static ICP.
     T_spatiotemporal : (4, 4) float
-        The spatiotemporal registration ``T_map_from_source``.
+        The spatiotemporal registration ``T_heart_from_probe``.
     points_spatiotemporal : (n, 3) float, mm
         Predicted points at (phi_C*, phi_R*), source frame, same order.
     icp_options : mapping, optional
@@ -415,7 +416,7 @@ def compare_static(
     StaticComparison
     """
     surface = _as_surface(surface)
-    T0 = check_transform(T0, name="T0")
+    T0 = check_transform(T0_heart_from_probe, name="T0_heart_from_probe")
     T_st = check_transform(T_spatiotemporal, name="T_spatiotemporal")
     if not isinstance(mean_points, np.ndarray) and all(
         isinstance(m, MotionModel) for m in mean_points
@@ -432,12 +433,12 @@ def compare_static(
     options = dict(icp_options or {})
     options.pop("T_init", None)
     static = icp(mean_points, surface, T_init=T0, **options)
-    T_bar = static.T_target_from_source
+    T_bar = static.T_heart_from_probe
     proj_static = closest_points(surface, apply_to_points(T_bar, mean_points)).points
     proj_st = closest_points(surface, apply_to_points(T_st, p_st)).points
     delta = np.linalg.norm(proj_st - proj_static, axis=1)
     return StaticComparison(
-        T_static=T_bar,
+        T_static_heart_from_probe=T_bar,
         rms_static_mm=static.rms_mm,
         projected_static_mm=proj_static,
         projected_spatiotemporal_mm=proj_st,

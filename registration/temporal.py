@@ -58,12 +58,13 @@ Hessian report).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
 
 import numpy as np
 
-from hrcore.errors import HeartregError, UsageError
+from hrcore.errors import UsageError
 from hrcore.geometry import kabsch
+from registration.fiducial_curve import FiducialCurve, fiducial_curve
+from registration.phase_estimate import UNDECIDED_WIDTH, TemporalError, TemporalEstimate, _wrap
 
 __all__ = [
     "TemporalEstimator",
@@ -75,8 +76,6 @@ __all__ = [
     "paper_phase",
 ]
 
-#: an interval wider than this (cycles) means the data cannot decide phi_R*.
-UNDECIDED_WIDTH = 0.3
 #: resamples of the bootstrap, and the interval's confidence.
 N_BOOTSTRAP = 500
 CONFIDENCE = 0.9
@@ -84,8 +83,6 @@ CONFIDENCE = 0.9
 BLOCK_POINTS = 5
 #: half-width (cycles) of the window about phi_R* where each unit's cost is fitted by a quadratic.
 WINDOW = 0.04
-#: Fourier harmonics of each staple's position over the breath.
-TRACE_HARMONICS = 2
 
 
 class TemporalEstimator(str, enum.Enum):
@@ -95,211 +92,6 @@ class TemporalEstimator(str, enum.Enum):
     SHAPE = "shape"
     #: the paper's empirical metric, eq. 10: :func:`paper_phase`.
     PAPER = "eq10"
-
-
-class TemporalError(HeartregError, ValueError):
-    """Evidence that cannot give a respiration phase (a trace that misses phases, ...)."""
-
-
-def _wrap(d):
-    return (np.asarray(d, dtype=float) + 0.5) % 1.0 - 0.5
-
-
-def _fourier(phase, harmonics):
-    cols = [np.ones_like(phase)]
-    for k in range(1, harmonics + 1):
-        cols += [np.cos(2 * np.pi * k * phase), np.sin(2 * np.pi * k * phase)]
-    return np.stack(cols, axis=-1)
-
-
-@dataclass(frozen=True, eq=False)
-class FiducialCurve:
-    """The traced staples as a function of phi_R, and their fit onto the CT's.
-
-    Attributes
-    ----------
-    phases : (m,) float64, cycles
-    positions_source_mm : (m, 9, 3) float64
-        Staples at each phase (source, i.e. probe, frame), documented order.
-    T_map_from_source : (m, 4, 4) float64
-        Rigid fit of those staples onto the map's at each phase: ``T0(phi_R)``.
-    residuals_mm : (m, 9) float64
-        Distance of each fitted staple from its map position.
-    sse_mm2 : (m,) float64
-        Sum of squared residuals.
-    trace_rms_mm : (9,) float64
-        RMS of each staple's samples about its Fourier fit (tracker noise and
-        hand tremor).
-    n_samples : (9,) int64
-        Samples with a defined respiration phase per staple.
-    """
-
-    phases: np.ndarray
-    positions_source_mm: np.ndarray
-    T_map_from_source: np.ndarray
-    residuals_mm: np.ndarray
-    sse_mm2: np.ndarray
-    trace_rms_mm: np.ndarray
-    n_samples: np.ndarray
-
-
-def fiducial_curve(
-    fiducial, stylus_source_mm, phase_r, target_mm, phases, *, order=None, harmonics: int = TRACE_HARMONICS,
-    coverage_bins: int = 4,
-) -> FiducialCurve:
-    """Fit each staple's traced position over the breath and register it at every phase.
-
-    Parameters
-    ----------
-    fiducial : (s,) int
-        Staple 1..9 held at each sample, 0 in transit.
-    stylus_source_mm : (s, 3) float, mm
-        Stylus tip, source (probe) frame.
-    phase_r : (s,) float, cycles
-        Respiration phase of each sample (NaN where undefined).
-    target_mm : (9, 3) float, mm
-        The staples in the map frame, documented order.
-    phases : (m,) float, cycles
-        Phases at which to evaluate.
-    order : (9,) int, optional
-        ``target[order[i]]`` corresponds to staple ``i + 1`` (from the fiducial
-        registration); the documented order by default.
-    harmonics : int
-        Fourier harmonics per staple.
-    coverage_bins : int
-        Every staple's samples must fall in each of this many phase bins.
-
-    Returns
-    -------
-    FiducialCurve
-
-    Raises
-    ------
-    TemporalError
-        A staple held for too short a part of the breath.
-    """
-    fiducial = np.asarray(fiducial)
-    tip = np.asarray(stylus_source_mm, dtype=float)
-    phase_r = np.asarray(phase_r, dtype=float)
-    target = np.asarray(target_mm, dtype=float)
-    phases = np.asarray(phases, dtype=float)
-    n_fid = target.shape[0]
-    if order is not None:
-        target = target[np.asarray(order)]
-    basis = _fourier(phases, harmonics)
-    curves = np.empty((phases.size, n_fid, 3))
-    rms = np.empty(n_fid)
-    counts = np.empty(n_fid, dtype=np.int64)
-    for k in range(n_fid):
-        sel = (fiducial == k + 1) & np.isfinite(phase_r)
-        counts[k] = int(sel.sum())
-        bins = np.unique(np.floor(phase_r[sel] * coverage_bins).astype(int))
-        if bins.size < coverage_bins or counts[k] < 4 * (2 * harmonics + 1):
-            raise TemporalError(
-                f"fiducial trace: staple {k + 1} is held over {bins.size} of {coverage_bins} quarters of "
-                "the breath; hold each staple for at least one whole breath"
-            )
-        A = _fourier(phase_r[sel], harmonics)
-        coef, *_ = np.linalg.lstsq(A, tip[sel], rcond=None)
-        rms[k] = float(np.sqrt(np.mean(np.sum((tip[sel] - A @ coef) ** 2, axis=1))))
-        curves[:, k] = basis @ coef
-    T = kabsch(curves, np.broadcast_to(target, curves.shape))
-    fitted = np.einsum("mij,mkj->mki", T[:, :3, :3], curves) + T[:, None, :3, 3]
-    res = np.linalg.norm(fitted - target, axis=2)
-    return FiducialCurve(
-        phases=phases.copy(),
-        positions_source_mm=curves,
-        T_map_from_source=T,
-        residuals_mm=res,
-        sse_mm2=np.sum(res**2, axis=1),
-        trace_rms_mm=rms,
-        n_samples=counts,
-    )
-
-
-@dataclass(frozen=True, eq=False)
-class TemporalEstimate:
-    """phi_R* with its interval, and how it was found.
-
-    Attributes
-    ----------
-    method : str
-        ``"shape"`` or ``"eq10"`` (:class:`TemporalEstimator`).
-    evidence : tuple of str
-        The terms used: ``"heart"``, ``"fiducial_trace"``, ``"breath_hold"``,
-        ``"fiducials"`` (eq. 10's T0).
-    phase_r : float, cycles
-    index : int
-        Its index in the sweep.
-    interval : (2,) float64, cycles
-        90 % interval ``(low, high)`` as phases in [0, 1); ``low > high`` when it
-        wraps through 0.
-    interval_offsets : (2,) float64, cycles
-        The same as offsets from ``phase_r`` (``low <= 0 <= high``).
-    confidence : float
-    decided : bool
-        False when the interval is wider than :data:`UNDECIDED_WIDTH`.
-    bootstrap_phases : (B,) float64
-        phi_R* of every resample.
-    cost : (m,) float64
-        ``J - min J`` over the sweep (unitless, chi-square-like); for ``eq10``
-        the translation distance from T0 minus its minimum (mm).
-    cost_heart, cost_fiducial, cost_prior : (m,) float64
-        Its terms (zeros where a term is not used), each minus its own minimum.
-    transform_mm, transform_deg : float
-        90th percentile over the resamples of the mean map-vertex displacement
-        (mm) and of the rotation (deg) between ``T(phi_b)`` and ``T(phi_R*)``.
-    """
-
-    method: str
-    evidence: tuple[str, ...]
-    phase_r: float
-    index: int
-    interval: np.ndarray
-    interval_offsets: np.ndarray
-    confidence: float
-    decided: bool
-    bootstrap_phases: np.ndarray
-    cost: np.ndarray
-    cost_heart: np.ndarray
-    cost_fiducial: np.ndarray
-    cost_prior: np.ndarray
-    transform_mm: float
-    transform_deg: float
-
-    @property
-    def width(self) -> float:
-        """Width of the interval, cycles."""
-        return float(self.interval_offsets[1] - self.interval_offsets[0])
-
-    def contains(self, phase: float) -> bool:
-        """True when ``phase`` lies in the interval (circularly)."""
-        d = float(_wrap(phase - self.phase_r))
-        return bool(self.interval_offsets[0] - 1e-9 <= d <= self.interval_offsets[1] + 1e-9)
-
-    def summary(self) -> str:
-        """One line: phase, interval, and whether the data decide."""
-        lo, hi = self.interval
-        text = (f"phi_R* {self.phase_r:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
-                f"[{lo:.2f}, {hi:.2f}]; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
-        if not self.decided:
-            text += (f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle "
-                     "wide): trace the staples over a breath or state the breath-hold phase")
-        return text
-
-    def to_dict(self) -> dict:
-        return {
-            "method": self.method,
-            "evidence": list(self.evidence),
-            "phase": self.phase_r,
-            "interval": [float(x) for x in self.interval],
-            "interval_offsets": [float(x) for x in self.interval_offsets],
-            "confidence": self.confidence,
-            "decided": self.decided,
-            "n_bootstrap": int(self.bootstrap_phases.size),
-            "transform_90_mm": self.transform_mm,
-            "transform_90_deg": self.transform_deg,
-        }
 
 
 def spatial_blocks(points_mm, n_blocks: int) -> np.ndarray:
@@ -383,7 +175,7 @@ def _transform_spread(Ts, best, boot_idx, vertices_mm):
 def estimate_phase(
     phases,
     distances_mm,
-    T_map_from_source,
+    T_heart_from_probe,
     vertices_mm,
     *,
     fiducials: FiducialCurve | None = None,
@@ -403,7 +195,7 @@ def estimate_phase(
         The respiration sweep.
     distances_mm : (m, n) float, mm
         Per-point distance to the map after ICP at each phase.
-    T_map_from_source : (m, 4, 4) float
+    T_heart_from_probe : (m, 4, 4) float
         ICP registration at each phase.
     vertices_mm : (V, 3) float, mm
         The map's vertices (for the transform's uncertainty).
@@ -477,7 +269,7 @@ def estimate_phase(
     lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step)
     boot = _interval(phases, usable[best], phases[boot_idx], confidence, step)
     offsets = np.array([min(lr[0], boot[0]), max(lr[1], boot[1])])
-    t_mm, t_deg = _transform_spread(np.asarray(T_map_from_source), usable[best], boot_idx, vertices_mm)
+    t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), usable[best], boot_idx, vertices_mm)
 
     def full(x):
         out = np.zeros(m)
@@ -490,7 +282,7 @@ def estimate_phase(
     return TemporalEstimate(
         method=TemporalEstimator.SHAPE.value,
         evidence=tuple(evidence),
-        phase_r=phase,
+        respiration_phase=phase,
         index=int(usable[best]),
         interval=np.mod(phase + offsets, 1.0),
         interval_offsets=offsets,
@@ -508,7 +300,7 @@ def estimate_phase(
 
 def paper_phase(
     phases,
-    T_map_from_source,
+    T_heart_from_probe,
     fiducials_source_mm,
     fiducials_map_mm,
     pivot_mm,
@@ -531,7 +323,7 @@ def paper_phase(
     Parameters
     ----------
     phases : (m,) float
-    T_map_from_source : (m, 4, 4) float
+    T_heart_from_probe : (m, 4, 4) float
         ICP registration at each phase.
     fiducials_source_mm, fiducials_map_mm : (k, 3) float, mm
         Touched staples (source frame) and the map's, corresponding rows (after
@@ -547,7 +339,7 @@ def paper_phase(
     TemporalEstimate
     """
     phases = np.asarray(phases, dtype=float)
-    Ts = np.asarray(T_map_from_source, dtype=float)
+    Ts = np.asarray(T_heart_from_probe, dtype=float)
     src = np.asarray(fiducials_source_mm, dtype=float)
     dst = np.asarray(fiducials_map_mm, dtype=float)
     if order is not None:
@@ -575,7 +367,7 @@ def paper_phase(
     return TemporalEstimate(
         method=TemporalEstimator.PAPER.value,
         evidence=("fiducials",),
-        phase_r=phase,
+        respiration_phase=phase,
         index=best,
         interval=np.mod(phase + offsets, 1.0),
         interval_offsets=offsets,

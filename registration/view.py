@@ -117,7 +117,7 @@ def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
     rms = [float(np.sqrt(np.mean(d**2))) for d in dists]
     titles = [
         f"(A) fiducial registration $T_0$: RMS {rms[0]:.2f} mm",
-        f"(B) spatiotemporal registration, $\\varphi_R^*$ = {result.phase_r:.2f}: RMS {rms[1]:.2f} mm",
+        f"(B) spatiotemporal registration, $\\varphi_R^*$ = {result.respiration_phase:.2f}: RMS {rms[1]:.2f} mm",
     ]
     cmap = colormaps[POINT_CMAP]
     handles = [
@@ -129,7 +129,7 @@ def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
     ]
     return compose_figure(
         panels, size=size, titles=titles, handles=handles,
-        suptitle=f"Registered points on the heart model at $\\varphi_C^*$ = {result.phase_c:.2f} "
+        suptitle=f"Registered points on the heart model at $\\varphi_C^*$ = {result.cardiac_phase:.2f} "
                  "(cf. Wood et al. 2018, Fig. 8)",
         colorbar=(cmap, 0.0, vmax, "distance to the surface (mm)"),
     )

@@ -42,13 +42,13 @@ def test_demo_outputs_agree_with_the_result(demo):
     out, run, rows = demo
     reg = run.registration
     payload = json.loads((out / "registration" / "registration.json").read_text())
-    assert payload["respiration_phase"] == pytest.approx(reg.phase_r)
+    assert payload["respiration_phase"] == pytest.approx(reg.respiration_phase)
     np.testing.assert_allclose(payload["T_heart_from_probe"], reg.T_heart_from_probe)
     sweep = np.genfromtxt(out / "registration" / "sweep.csv", delimiter=",", names=True)
     assert len(sweep) == 101
     # eq. 10 (the sweep's smallest distance from T0) is reported beside the shape estimator
-    assert sweep["phase_r"][np.argmin(sweep["translation_distance_mm"])] == pytest.approx(reg.phase_estimates[1].phase_r)
-    assert payload["respiration_phase_estimate"]["method"] == "shape"
+    assert sweep["respiration_phase"][np.argmin(sweep["translation_distance_mm"])] == pytest.approx(reg.phase_estimates[1].respiration_phase)
+    assert payload["phase_estimates"][0]["method"] == "shape"
     phases = json.loads((out / "phases" / "phases.json").read_text())
     model = json.loads((out / "model" / "model.json").read_text())
     assert model["cardiac_phase"] == pytest.approx(phases["volume_cardiac_phase"])
@@ -69,7 +69,7 @@ def test_cli_pipeline_on_a_users_folders(demo, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "phi_R*" in text and (dest / "report.html").exists()
     reg = json.loads((dest / "registration" / "registration.json").read_text())
-    assert abs(reg["respiration_phase"] - run.registration.phase_r) <= 0.02
+    assert abs(reg["respiration_phase"] - run.registration.respiration_phase) <= 0.02
     assert len(np.genfromtxt(dest / "registration" / "sweep.csv", delimiter=",", names=True)) == 51
 
 

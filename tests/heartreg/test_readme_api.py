@@ -28,5 +28,8 @@ def test_the_python_example_runs(sample_case, tmp_path, monkeypatch, capsys):
     np.testing.assert_allclose(model.mesh.vertices, build.model.mesh.vertices, atol=1e-4)
     assert model.cardiac_phase == build.model.cardiac_phase
     assert phases.volume_cardiac_phase == report.volume_cardiac_phase
-    assert abs(result.phase_c - truth["cardiac_phase"]) < 0.01
+    assert abs(result.cardiac_phase - truth["cardiac_phase"]) < 0.01
     assert (tmp_path / "out" / "registration" / "registration.json").is_file()
+    again = scope["again"]
+    np.testing.assert_array_equal(again.T_heart_from_probe, result.T_heart_from_probe)
+    assert again.respiration_phase == result.respiration_phase and again.point_ids.tolist() == result.point_ids.tolist()

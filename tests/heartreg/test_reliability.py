@@ -393,9 +393,9 @@ def test_disk_full_during_phases_leaves_nothing_and_names_the_file(case, tmp_pat
 def test_disk_full_during_register_leaves_no_json_without_figures(case, tmp_path, monkeypatch, capsys):
     """A full disk after registration.json and the CSVs, at the second figure: no
     folder holding them without the figures; one line naming the figure."""
-    import registration.report
+    import registration.figures
 
-    draw = registration.report._save
+    draw = registration.figures._save
     drawn = []
 
     def full_at_the_second(fig, path):
@@ -404,7 +404,7 @@ def test_disk_full_during_register_leaves_no_json_without_figures(case, tmp_path
             raise OSError(28, "No space left on device", str(path))
         return draw(fig, path)
 
-    monkeypatch.setattr(registration.report, "_save", full_at_the_second)
+    monkeypatch.setattr(registration.figures, "_save", full_at_the_second)
     before = digest(case["session"])
     rc = main(["register", str(case["model"]), str(case["session"]), "-o", str(tmp_path / "reg"), "-q",
                "--step", "0.5", "--no-view"])

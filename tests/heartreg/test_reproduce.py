@@ -60,7 +60,7 @@ def test_table_agrees_with_each_trials_outputs_and_truth(repro):
         assert int(row["points_used"]) == reg["n_points"] == N_POINTS
         # eq. 10 read back from the sweep file (written to 6 decimals)
         i = int(np.argmin(sweep["translation_distance_mm"]))
-        assert sweep["phase_r"][i] == pytest.approx(float(row["phi_r"]), abs=1e-9)
+        assert sweep["respiration_phase"][i] == pytest.approx(float(row["phi_r"]), abs=1e-9)
         assert float(row["min_translation_mm"]) == pytest.approx(sweep["translation_distance_mm"][i], abs=1e-5)
         assert float(row["rotation_at_min_deg"]) == pytest.approx(sweep["rotation_distance_deg"][i], abs=1e-5)
         assert float(row["rms_max_mm"]) == pytest.approx(sweep["rms_mm"].max(), abs=1e-5)

@@ -130,7 +130,7 @@ def test_causal_cardiac_phase_lags_the_offline_one_by_the_detection_delay(nav, l
     rows = nav["rows"]
     record = read_session(nav["root"] / "navigation").points[0]
     offline, _, peaks, _ = point_phases(record)
-    live = _column(rows, "phase_c")[:, 0]
+    live = _column(rows, "cardiac_phase")[:, 0]
     both = np.isfinite(live) & np.isfinite(offline)
     d = np.mod(live[both] - offline[both] + 0.5, 1.0) - 0.5
     # most of each beat agrees closely (only the RR estimate differs); the beat
@@ -158,7 +158,7 @@ def test_phases_do_not_depend_on_the_chunking(nav):
     for size in (7, 1):  # 1: a live stream's sample at a time
         cp = CausalPhases(100.0, rr_prior_s=0.9, breath_prior_s=5.0)
         parts = [cp.update(*(a[i:i + size] for a in args)) for i in range(0, n, size)]
-        for name in ("phase_c", "phase_r", "flags"):
+        for name in ("cardiac_phase", "respiration_phase", "flags"):
             np.testing.assert_array_equal(np.concatenate([getattr(p, name) for p in parts]), getattr(whole, name))
         assert sum((p.r_peaks for p in parts), ()) == whole.r_peaks
 
@@ -250,7 +250,7 @@ def test_openigtlink_input_gives_the_replay_results(nav, loaded, tmp_path):
         got = list(csv.DictReader(fh))
     with open(tmp_path / "ref.csv", newline="") as fh:
         want = list(csv.DictReader(fh))[:n]
-    assert [r["phase_c"] for r in got] == [r["phase_c"] for r in want]
+    assert [r["cardiac_phase"] for r in got] == [r["cardiac_phase"] for r in want]
     a = _column(got, "map_x_mm", "map_y_mm", "map_z_mm")
     b = _column(want, "map_x_mm", "map_y_mm", "map_z_mm")
     np.testing.assert_allclose(a, b, atol=2e-3, equal_nan=True)  # poses went as float32

@@ -10,6 +10,8 @@ import numpy as np
 import pydicom
 import pytest
 
+from hrcore.output import OutputError
+
 from heartreg.cli import main
 from imaging import (
     GatingError,
@@ -176,6 +178,11 @@ def test_phase_report_round_trip_and_bad_files(tmp_path):
         r_peaks_s=np.array([0.0, 0.8, 1.6]), jumps=(0,), fraction_in_window=1.0, notes=("a note",),
     )
     write_phase_report(report, tmp_path / "a")
+    (tmp_path / "a" / "stale.txt").write_text("an earlier run's file")
+    with pytest.raises(OutputError, match="not empty.*--overwrite"):  # never overwritten silently
+        write_phase_report(report, tmp_path / "a")
+    write_phase_report(report, tmp_path / "a", overwrite=True)  # the writer removes what the new run does not write
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["phases.csv", "phases.json", "phases.png"]
     back = read_phase_report(tmp_path / "a")
     assert back.slices[0] == report.slices[0] and np.isnan(back.slices[1].time_s)
     assert back.to_dict() == report.to_dict()

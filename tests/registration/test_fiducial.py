@@ -28,7 +28,7 @@ def random_case(seed, n=9, noise_mm=0.0):
 def test_exact_points_give_the_exact_transform(seed):
     T, source, target = random_case(seed)
     result = register_fiducials(source, target)
-    np.testing.assert_allclose(result.T_target_from_source, T, atol=1e-8)
+    np.testing.assert_allclose(result.T_heart_from_probe, T, atol=1e-8)
     assert result.fre_rms_mm < 1e-8
     assert not result.reordered
 
@@ -43,11 +43,11 @@ def test_noisy_points_recover_the_transform_within_the_noise(seed):
     T, source, target = random_case(seed, noise_mm=1.0)
     result = register_fiducials(source, target)
     centre = source.mean(axis=0)
-    err = apply_to_points(result.T_target_from_source, centre) - apply_to_points(T, centre)
+    err = apply_to_points(result.T_heart_from_probe, centre) - apply_to_points(T, centre)
     assert np.linalg.norm(err) < 2.0
     s = np.linalg.svd(source - centre, compute_uv=False)
     rot_sigma_deg = np.degrees(1.0 / np.hypot(s[1], s[2]))
-    assert rotation_distance_deg(result.T_target_from_source, T) < 5 * np.sqrt(3) * rot_sigma_deg
+    assert rotation_distance_deg(result.T_heart_from_probe, T) < 5 * np.sqrt(3) * rot_sigma_deg
     # FRE of n points fitted with 6 dof: E[FRE^2] = 3 sigma^2 (n - 2) / n
     assert 0.3 < result.fre_rms_mm < 2.5
     assert result.residuals_mm.shape == (9,)
@@ -76,7 +76,7 @@ def test_permuted_order_is_recovered(seed):
     # target[perm][order[i]] must be target[i]
     np.testing.assert_array_equal(perm[result.order], np.arange(8))
     assert result.reordered != np.array_equal(perm, np.arange(8))
-    assert rotation_distance_deg(result.T_target_from_source, T) < 2.0
+    assert rotation_distance_deg(result.T_heart_from_probe, T) < 2.0
     assert result.fre_rms_mm < 1.0
 
 
@@ -88,7 +88,7 @@ def test_phantom_fiducials_register_to_the_shifted_skin():
     touched = apply_to_points(T_probe_from_patient @ shift, ct)  # probe frame
     result = register_fiducials(touched, ct)
     expected = invert(shift) @ layout.T_patient_from_probe()  # the fiducial T0
-    np.testing.assert_allclose(result.T_target_from_source, expected, atol=1e-8)
+    np.testing.assert_allclose(result.T_heart_from_probe, expected, atol=1e-8)
     assert not result.reordered and not result.ambiguous
 
 

@@ -89,8 +89,8 @@ def test_icp_recovers_a_known_transform_on_the_heart(heart_mesh, heart_index, tr
     # point-to-point creeps along the weakest direction (roll about the long
     # axis) in ever smaller steps, so it stops a little short: looser bound.
     tol = 0.2 if method == "point_to_plane" else 0.5
-    assert translation_distance_mm(result.T_target_from_source, T_true, src_centre) < tol
-    assert rotation_distance_deg(result.T_target_from_source, T_true) < tol
+    assert translation_distance_mm(result.T_heart_from_probe, T_true, src_centre) < tol
+    assert rotation_distance_deg(result.T_heart_from_probe, T_true) < tol
     assert result.rms_mm < 0.15
     assert result.converged or method == "point_to_point"
     assert not result.degenerate
@@ -140,7 +140,7 @@ def test_trimming_ignores_outliers(heart_index, trial1_heart):
     centre = trial1_heart.origin_patient_mm
 
     def err(r):  # mm at the heart centre + degrees
-        T = r.T_target_from_source
+        T = r.T_heart_from_probe
         return translation_distance_mm(T, np.eye(4), centre) + rotation_distance_deg(T, np.eye(4))
 
     assert err(trimmed) < 0.15

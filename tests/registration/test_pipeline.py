@@ -20,12 +20,13 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
+from hrcore.output import OutputError
 from heartreg.phantom import config as phantom_config
 from heartreg.phantom import layout, make_phantom
 from modeling.model import ModelError, make_heart_model, read_model, write_model
 from modeling.surface import Mesh
 from registration.pipeline import RegistrationError, register_session, sweep_phases
-from registration.report import SWEEP_COLUMNS, write_registration
+from registration.report import SWEEP_COLUMNS, RegistrationFileError, read_registration, write_registration
 from registration.session import SessionError, read_session
 from registration.transforms import apply_to_points, invert, rotation_distance_deg, translation_distance_mm
 
@@ -70,12 +71,12 @@ def test_respiration_phase_is_recovered(case):
     shape, paper = result.phase_estimates
     truth = case["truth"]["respiration_phase"]
     assert shape.method == "shape" and paper.method == "eq10"
-    assert result.phase_r == shape.phase_r and abs(result.phase_r - truth) <= 0.05
+    assert result.respiration_phase == shape.respiration_phase and abs(result.respiration_phase - truth) <= 0.05
     assert shape.contains(truth) and shape.decided
     assert "fiducial_trace" in shape.evidence and "heart" in shape.evidence
-    assert result.phase_c == pytest.approx(case["truth"]["cardiac_phase"])
+    assert result.cardiac_phase == pytest.approx(case["truth"]["cardiac_phase"])
     assert result.respiration_sweep.phases.shape == (101,)
-    assert paper.phase_r == result.respiration_sweep.best_phase
+    assert paper.respiration_phase == result.respiration_sweep.best_phase
 
 
 def test_final_transform_matches_truth_and_beats_static_and_T0(case):
@@ -86,7 +87,7 @@ def test_final_transform_matches_truth_and_beats_static_and_T0(case):
     assert t_err < 2.0 and r_err < 2.0
     t0_err, r0_err = _errors(result.T0_heart_from_probe, T_true)
     assert t0_err > 5.0  # the phantom's CT-to-surgery skin shift
-    s_err, s_rot = _errors(result.static.T_static, T_true)
+    s_err, s_rot = _errors(result.static.T_static_heart_from_probe, T_true)
     assert s_err > t_err and s_rot > r_err
     assert result.rms_mm < 0.5
     assert result.fre_mm > 0 and result.fiducial_residuals_mm.shape == (9,)
@@ -122,7 +123,7 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
                 "rms_mm", "delta_static_mean_mm", "translation_distance_mm", "rotation_distance_deg",
                 "euler_xyz_deg", "fre_mm", "point_fits", "exclusions", "parameters", "version"):
         assert key in data, key
-    assert data["respiration_phase"] == result.phase_r
+    assert data["respiration_phase"] == result.respiration_phase
     np.testing.assert_allclose(data["T_heart_from_probe"], result.T_heart_from_probe)
     np.testing.assert_allclose(data["euler_xyz_deg"], result.euler_xyz_deg)
     assert data["parameters"]["harmonics"] == {"cardiac": 5, "respiratory": 4, "coupled_cardiac": 2,
@@ -130,20 +131,20 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
     assert len(data["point_fits"]) == result.n_points
     with open(out / "sweep.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0]) == ["phase_r", *SWEEP_COLUMNS]
+    assert list(rows[0]) == ["respiration_phase", *SWEEP_COLUMNS]
     assert len(rows) == 101
     sweep = result.respiration_sweep
-    np.testing.assert_allclose([float(r["phase_r"]) for r in rows], sweep.phases, atol=1e-4)
+    np.testing.assert_allclose([float(r["respiration_phase"]) for r in rows], sweep.phases, atol=1e-4)
     np.testing.assert_allclose([float(r["translation_distance_mm"]) for r in rows],
                                sweep.translation_distance_mm, atol=1e-5)
     # tx..tz are the correction at the pivot: their norm is the translation distance
     t = np.array([[float(r[c]) for c in ("tx_mm", "ty_mm", "tz_mm")] for r in rows])
     np.testing.assert_allclose(np.linalg.norm(t, axis=1), sweep.translation_distance_mm, atol=1e-4)
     best = int(np.argmin([float(r["translation_distance_mm"]) for r in rows]))
-    assert float(rows[best]["phase_r"]) == pytest.approx(result.phase_estimates[1].phase_r)  # eq. 10
+    assert float(rows[best]["respiration_phase"]) == pytest.approx(result.phase_estimates[1].respiration_phase)  # eq. 10
     data = json.loads((out / "registration.json").read_text())
-    assert data["respiration_phase_estimate"]["phase"] == pytest.approx(result.phase_r)
-    assert data["respiration_phase_estimate"]["interval"] == pytest.approx(list(result.phase_estimates[0].interval))
+    assert data["phase_estimates"][0]["respiration_phase"] == result.respiration_phase
+    assert data["phase_estimates"][0]["interval"] == list(result.phase_estimates[0].interval)
     with open(out / "phase_evidence.csv", newline="") as fh:
         evidence = list(csv.DictReader(fh))
     share = np.array([float(r["shape_bootstrap_share"]) for r in evidence])
@@ -156,6 +157,123 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
     assert (out / "fig8_view.png").is_file() or any("fig8" in n for n in case["paths"]["notes"])
     text = (out / "registration.json").read_text()
     assert str(case["root"]) not in text  # no paths (a folder name can identify a patient)
+
+
+def _assert_same(a, b, where="result"):
+    """Field by field: arrays bit for bit (NaN equal to NaN), nested frozen values recursively."""
+    if dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        for f in dataclasses.fields(a):
+            _assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype and not b.flags.writeable, where
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    elif isinstance(a, (tuple, list)):
+        assert len(a) == len(b), where
+        for k, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{where}[{k}]")
+    else:
+        assert a == b and type(a) is type(b), (where, a, b)
+
+
+def test_registration_reads_back_equal_and_writes_the_same_bytes(case, tmp_path):
+    result, out = case["result"], case["root"] / "out"
+    back = read_registration(out)
+    for f in dataclasses.fields(result):
+        if f.name == "timings_s":  # kept out of the file: the same inputs give the same bytes
+            assert back.timings_s == {}
+            continue
+        if f.name == "parameters":
+            assert json.dumps(back.parameters) == json.dumps(result.parameters)
+            continue
+        _assert_same(getattr(result, f.name), getattr(back, f.name), f.name)
+    assert back.cardiac_sweep is not None and back.respiration_sweep.distances_mm.shape == (101, N_POINTS)
+    write_registration(back, tmp_path / "again", view=False)
+    assert (tmp_path / "again" / "registration.json").read_bytes() == (out / "registration.json").read_bytes()
+    for name in ("sweep.csv", "cardiac_sweep.csv", "phase_evidence.csv"):
+        assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes(), name
+
+
+def test_write_registration_refuses_a_full_folder_and_overwrite_leaves_nothing_stale(case, tmp_path):
+    out = tmp_path / "reg"
+    out.mkdir()
+    (out / "fig8_view.png").write_bytes(b"an earlier run's view")
+    with pytest.raises(OutputError, match="not empty.*--overwrite"):
+        write_registration(case["result"], out, view=False)
+    assert [p.name for p in out.iterdir()] == ["fig8_view.png"]
+    paths = write_registration(case["result"], out, view=False, overwrite=True)
+    assert not (out / "fig8_view.png").exists() and paths["json"] == out / "registration.json"
+    assert all(p.is_file() for k, p in paths.items() if isinstance(p, Path))
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
+
+
+def _as_format_1(result, folder):
+    """Write the registration.json heartreg wrote before format 2 (its keys and summaries)."""
+    st = result.static
+    est = [{"method": e.method, "evidence": list(e.evidence), "phase": e.respiration_phase,
+            "interval": list(e.interval), "interval_offsets": list(e.interval_offsets),
+            "confidence": e.confidence, "decided": e.decided, "n_bootstrap": int(e.bootstrap_phases.size),
+            "transform_90_mm": e.transform_mm, "transform_90_deg": e.transform_deg} for e in result.phase_estimates]
+    v2 = result.to_dict()
+    keep = ("version", "frames", "trust", "cardiac_phase", "cardiac_phase_source", "respiration_phase",
+            "T_heart_from_probe", "T0_heart_from_probe", "euler_xyz_deg", "translation_mm", "T0_euler_xyz_deg",
+            "rms_mm", "translation_distance_mm", "rotation_distance_deg", "pivot_heart_mm", "fre_mm",
+            "fiducial_residuals_mm", "fiducials_reordered", "fiducials_ambiguous", "delta_static_mean_mm",
+            "delta_static_mm", "icp", "n_points", "point_ids", "point_fits", "exclusions", "n_faces",
+            "parameters", "notes")
+    v1 = {"format": "heartreg-registration", "format_version": 1, **{k: v2[k] for k in keep}}
+    v1["respiration_phase_estimate"], v1["respiration_phase_alternatives"] = est[0], est[1:]
+    v1["static"] = {"T_heart_from_probe": v2["static"]["T_static_heart_from_probe"],
+                    "euler_xyz_deg": v2["static"]["euler_xyz_deg"], "rms_mm": st.rms_static_mm}
+    v1["sweep"] = {"respiration_phases": 101, "respiration_converged": 101, "cardiac_phases": 21}
+    v1["files"] = {"sweep": "sweep.csv", "phase_evidence": "phase_evidence.csv", "cardiac_sweep": "cardiac_sweep.csv"}
+    folder.mkdir()
+    (folder / "registration.json").write_text(json.dumps(v1, indent=1))
+
+
+def test_format_1_registration_still_reads(case, tmp_path):
+    result, out = case["result"], case["root"] / "out"
+    v1_dir = tmp_path / "v1"
+    _as_format_1(result, v1_dir)
+    for name, old, new in (("sweep.csv", "phase_r", "respiration_phase"), ("cardiac_sweep.csv", "phase_c", "cardiac_phase")):
+        (v1_dir / name).write_text((out / name).read_text().replace(new, old, 1))
+    back = read_registration(v1_dir)
+    for name in ("cardiac_phase", "respiration_phase", "T_heart_from_probe", "T0_heart_from_probe", "fre_mm",
+                 "point_ids", "point_fits", "exclusions", "icp", "trust", "n_faces", "version", "euler_xyz_deg"):
+        _assert_same(getattr(result, name), getattr(back, name), name)
+    assert back.notes[:-1] == result.notes and "format-1" in back.notes[-1]
+    assert np.isnan(back.points_probe_mm).all() and back.points_probe_mm.shape == (N_POINTS, 3)
+    np.testing.assert_array_equal(back.static.T_static_heart_from_probe, result.static.T_static_heart_from_probe)
+    np.testing.assert_array_equal(back.static.delta_mm, result.static.delta_mm)
+    sweep, want = back.respiration_sweep, result.respiration_sweep
+    np.testing.assert_allclose(sweep.translation_distance_mm, want.translation_distance_mm, atol=1e-6)
+    np.testing.assert_allclose(sweep.phases, want.phases, atol=1e-4)
+    assert back.cardiac_sweep.kind == "cardiac" and len(back.cardiac_sweep.phases) == 21
+    assert [e.index for e in back.phase_estimates] == [e.index for e in result.phase_estimates]
+    assert [e.respiration_phase for e in back.phase_estimates] == [e.respiration_phase for e in result.phase_estimates]
+
+
+@pytest.mark.parametrize("damage, match", [
+    (None, "registration.json not found"),
+    ("{not json", "not JSON"),
+    ('{"format": "heartreg-model", "format_version": 2}', "not a heartreg registration"),
+    ('{"format": "heartreg-registration", "format_version": 7}', "format version 7"),
+    ("drop:respiration_sweep", "missing field 'respiration_sweep'"),
+    ("drop:static", "missing field 'static'"),
+])
+def test_bad_registration_files_are_one_line_naming_the_file(case, tmp_path, damage, match):
+    folder = tmp_path / "bad"
+    folder.mkdir()
+    if damage is not None and damage.startswith("drop:"):
+        data = json.loads((case["root"] / "out" / "registration.json").read_text())
+        del data[damage[5:]]
+        damage = json.dumps(data)
+    if damage is not None:
+        (folder / "registration.json").write_text(damage)
+    with pytest.raises(RegistrationFileError, match=match) as info:
+        read_registration(folder)
+    message = str(info.value)
+    assert "\n" not in message and str(folder / "registration.json") in message
 
 
 def test_cli_register_end_to_end(case, tmp_path, capsys):

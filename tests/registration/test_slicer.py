@@ -97,7 +97,7 @@ def test_tfm_read_by_simpleitk_moves_ct_fiducials_onto_touched_ones(registered):
                                ct @ T_probe_from_patient[:3, :3].T + T_probe_from_patient[:3, 3], atol=1e-9)
     # every transform of the result, as heartreg reads it back: the to-parent matrix
     for suffix, T in (("", result.T_heart_from_probe), ("_fiducial", result.T0_heart_from_probe),
-                      ("_static", result.static.T_static)):
+                      ("_static", result.static.T_static_heart_from_probe)):
         np.testing.assert_allclose(read_itk_transform(registered["out"] / f"ProbeToHeart{suffix}.tfm"), T,
                                    atol=1e-12)
         np.testing.assert_allclose(read_itk_transform(registered["out"] / f"ProbeToPatient{suffix}.tfm"),

@@ -47,7 +47,7 @@ def errors(T, T_star, heart):
 def test_icp_at_the_true_phases_recovers_T_star(case, heart_index, trial1_heart, trial1_config):
     points = predict_positions(case["models"], PHASE_C, trial1_config.image_resp_phase)[0]
     result = icp(points, heart_index, T_init=case["T0"])
-    t_err, r_err = errors(result.T_target_from_source, case["T_star"], trial1_heart)
+    t_err, r_err = errors(result.T_heart_from_probe, case["T_star"], trial1_heart)
     # the seed is ~7 mm / 2.7 deg off; model noise averages out over 60 x 1500 samples
     assert errors(case["T0"], case["T_star"], trial1_heart)[0] > 5.0
     assert t_err < 0.5
@@ -59,9 +59,9 @@ def test_respiration_sweep_picks_a_phase_where_the_heart_sits_as_imaged(case, tr
     reg = case["reg"]
     sweep = reg.respiration_sweep
     assert sweep.phases.shape == sweep.rms_mm.shape == sweep.translation_distance_mm.shape == (51,)
-    assert sweep.T_map_from_source.shape == (51, 4, 4)
+    assert sweep.T_heart_from_probe.shape == (51, 4, 4)
     assert sweep.euler_xyz_deg.shape == sweep.correction_euler_xyz_deg.shape == (51, 3)
-    assert reg.phase_r == sweep.best_phase
+    assert reg.respiration_phase == sweep.best_phase
     assert reg.translation_distance_mm == pytest.approx(sweep.translation_distance_mm.min())
     # ICP converges where the predicted heart has the map's shape; far from phi_R* the
     # respiration's non-rigid part (the phantom's stretch) leaves it creeping to the limit
@@ -69,9 +69,9 @@ def test_respiration_sweep_picks_a_phase_where_the_heart_sits_as_imaged(case, tr
     # Trial 1's fiducial error runs across the heart's respiratory path (a loop in
     # the sagittal plane), so the ICP solution nearest T0 is the one at the image
     # phase: the paper's eq. 10 recovers phi_R* to within its +-0.05 claim.
-    assert abs(reg.phase_r - trial1_config.image_resp_phase) <= 0.05
+    assert abs(reg.respiration_phase - trial1_config.image_resp_phase) <= 0.05
     # and the heart at phi_R* sits where it was imaged (< 1.5 mm at its centre)
-    displacement = trial1_heart.T_resp(reg.phase_r)  # relative to the image phase
+    displacement = trial1_heart.T_resp(reg.respiration_phase)  # relative to the image phase
     centre = trial1_heart.origin_patient_mm
     assert np.linalg.norm(displacement[:3, :3] @ centre + displacement[:3, 3] - centre) < 1.5
     # the minimum is the fiducial error seen at the heart (~9.5 mm, paper: 9.9 mm)
@@ -80,9 +80,9 @@ def test_respiration_sweep_picks_a_phase_where_the_heart_sits_as_imaged(case, tr
 
 def test_final_registration_is_close_to_truth_and_better_than_static(case, heart_index, trial1_heart, trial1_config):
     reg = case["reg"]
-    t_err, r_err = errors(reg.T_map_from_source, case["T_star"], trial1_heart)
+    t_err, r_err = errors(reg.T_heart_from_probe, case["T_star"], trial1_heart)
     assert t_err < 1.0 and r_err < 0.6
-    static = compare_static(case["models"], heart_index, case["T0"], reg.T_map_from_source, reg.points_source_mm)
+    static = compare_static(case["models"], heart_index, case["T0"], reg.T_heart_from_probe, reg.points_probe_mm)
     assert static.delta_mm.shape == (60,)
     assert static.mean_delta_mm == pytest.approx(static.delta_mm.mean())
     # against the truth: where each point really is on the map
@@ -91,7 +91,7 @@ def test_final_registration_is_close_to_truth_and_better_than_static(case, heart
     st_err = np.linalg.norm(static.projected_spatiotemporal_mm - truth, axis=1).mean()
     static_err = np.linalg.norm(static.projected_static_mm - truth, axis=1).mean()
     assert st_err < static_err
-    s_t, s_r = errors(static.T_static, case["T_star"], trial1_heart)
+    s_t, s_r = errors(static.T_static_heart_from_probe, case["T_star"], trial1_heart)
     assert s_t > t_err
 
 
@@ -99,7 +99,7 @@ def test_cardiac_sweep_has_its_minimum_in_diastole(case):
     # The map was made at phi_C = 0.65 (diastasis): the RMS is low over the
     # still window 0.6..0.8 and high in systole (paper Fig. 2A shape).
     card = case["reg"].cardiac_sweep
-    assert card.kind == "cardiac" and card.fixed_phase == case["reg"].phase_r
+    assert card.kind == "cardiac" and card.fixed_phase == case["reg"].respiration_phase
     best = card.phases[np.argmin(card.rms_mm)]
     assert 0.5 <= best <= 0.9
     systole = (card.phases > 0.2) & (card.phases < 0.4)
@@ -113,7 +113,7 @@ def test_translation_distance_definition(case, heart_index):
     np.testing.assert_allclose(sweep.pivot_mm, pivot)
     T0 = case["T0"]
     s = apply_to_points(invert(T0), pivot)
-    expected = translation_distance_mm(sweep.T_map_from_source, T0, s)
+    expected = translation_distance_mm(sweep.T_heart_from_probe, T0, s)
     np.testing.assert_allclose(sweep.translation_distance_mm, expected, atol=1e-9)
 
 
@@ -137,7 +137,7 @@ def test_the_sweep_converges_and_equals_icp_phase_by_phase(case, heart_index):
         points = predict_positions(case["models"], PHASE_C, sweep.phases[i])[0]
         single = icp(points, heart_index, T_init=case["T0"])
         assert single.converged and single.iterations == sweep.iterations[i]
-        np.testing.assert_allclose(single.T_target_from_source, sweep.T_map_from_source[i], atol=1e-9)
+        np.testing.assert_allclose(single.T_heart_from_probe, sweep.T_heart_from_probe[i], atol=1e-9)
         np.testing.assert_allclose(single.distances_mm, sweep.distances_mm[i], atol=1e-9)
 
 
@@ -147,7 +147,7 @@ def test_point_to_point_sweeps_in_one_batch_too(case, heart_index):
                         icp_options={"method": "point_to_point", "max_iterations": 200})
     for i in range(2):
         single = icp(points[i], heart_index, T_init=case["T0"], method="point_to_point", max_iterations=200)
-        np.testing.assert_allclose(single.T_target_from_source, sweep.T_map_from_source[i], atol=1e-9)
+        np.testing.assert_allclose(single.T_heart_from_probe, sweep.T_heart_from_probe[i], atol=1e-9)
         assert single.converged == sweep.converged[i]
 
 

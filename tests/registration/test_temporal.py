@@ -41,7 +41,7 @@ def test_shape_estimate_recovers_the_phase_and_its_interval_covers_it():
     for phase_true in (0.05, 0.62, 0.97):
         est = estimate_phase(PHASES, _distances(rng, phase_true), _identity_sweep(101), vertices)
         # the misfit's minimum is exactly at the truth; 0.02 allows for the 0.05 mm jitter
-        assert abs(_wrap(est.phase_r - phase_true)) <= 0.02
+        assert abs(_wrap(est.respiration_phase - phase_true)) <= 0.02
         assert est.contains(phase_true) and est.decided
         assert est.width < 0.15
         assert est.interval_offsets[0] <= 0 <= est.interval_offsets[1]
@@ -58,7 +58,7 @@ def test_flat_evidence_is_undecided_and_a_stated_breath_hold_decides():
     assert "cannot decide" in est.summary()
     held = estimate_phase(PHASES, d, _identity_sweep(101), vertices, breath_hold_phase=0.4, breath_hold_sd=0.02)
     # the prior (sd 0.02) against the flat term's chance wiggles (a few chi-square units)
-    assert held.decided and held.contains(0.4) and abs(_wrap(held.phase_r - 0.4)) <= 0.1
+    assert held.decided and held.contains(0.4) and abs(_wrap(held.respiration_phase - 0.4)) <= 0.1
     assert "breath_hold" in held.evidence
 
 
@@ -118,8 +118,8 @@ def test_traced_staples_find_the_phase_at_which_the_chest_had_the_ct_shape():
         assert abs(_wrap(PHASES[best] - phase_true)) <= 0.02
         at_truth = int(round(phase_true * 100))
         # at the true phase the rigid fit is T's inverse up to the noise (0.2 mm / sqrt(9 staples))
-        np.testing.assert_allclose(curve.T_map_from_source[at_truth][:3, :3], np.linalg.inv(T)[:3, :3], atol=0.005)
-        np.testing.assert_allclose(curve.T_map_from_source[at_truth][:3, 3], np.linalg.inv(T)[:3, 3], atol=0.3)
+        np.testing.assert_allclose(curve.T0_heart_from_probe[at_truth][:3, :3], np.linalg.inv(T)[:3, :3], atol=0.005)
+        np.testing.assert_allclose(curve.T0_heart_from_probe[at_truth][:3, 3], np.linalg.inv(T)[:3, 3], atol=0.3)
         assert np.all(curve.trace_rms_mm < 0.45)  # 0.2 mm per axis: 0.35 mm in 3-D
         assert curve.residuals_mm[best].max() < 0.3
 
@@ -142,13 +142,13 @@ def test_paper_eq10_picks_the_registration_closest_to_T0():
     source = (staples_map - T_true[:3, 3]) + 0.3 * rng.standard_normal((9, 3))
     est = paper_phase(PHASES, Ts, source, staples_map, np.zeros(3), rng.normal(0, 40, (100, 3)))
     # T0 is T_true up to 0.3 mm touch noise; |path| < 0.5 mm only within ~0.01 of 0.42
-    assert abs(_wrap(est.phase_r - 0.42)) <= 0.02 and est.contains(0.42)
+    assert abs(_wrap(est.respiration_phase - 0.42)) <= 0.02 and est.contains(0.42)
     # a T0 error of 4 mm along the path moves the minimum where the path makes up for it
     shifted = source - np.array([0.0, 0.0, 4.0])
     biased = paper_phase(PHASES, Ts, shifted, staples_map, np.zeros(3), rng.normal(0, 40, (100, 3)))
     # 8 sin(2 pi (phi - 0.42)) = 4 twice a cycle: 0.42 + 1/12 and 0.42 + 5/12
     expected = 0.42 + np.array([1.0, 5.0]) / 12
-    assert np.abs(_wrap(biased.phase_r - expected)).min() <= 0.02
+    assert np.abs(_wrap(biased.respiration_phase - expected)).min() <= 0.02
     assert not biased.contains(0.42)  # resampling the staples cannot reveal a shift of them all
 
 
@@ -168,7 +168,7 @@ def test_errors_shared_by_neighbouring_points_widen_the_interval():
         d = np.sqrt(0.2**2 + misfit**2)
         plain = estimate_phase(PHASES, d, _identity_sweep(101), vertices)
         blocks = estimate_phase(PHASES, d, _identity_sweep(101), vertices, points_mm=points)
-        assert blocks.phase_r == plain.phase_r and blocks.width >= plain.width
+        assert blocks.respiration_phase == plain.respiration_phase and blocks.width >= plain.width
         covered["independent"] += plain.contains(0.5)
         covered["blocks"] += blocks.contains(0.5)
     assert covered["blocks"] >= 7 and covered["independent"] <= 4

@@ -1,0 +1,135 @@
+"""phi_R* with its interval: the value :mod:`registration.temporal`'s estimators return.
+
+:class:`TemporalEstimate` (written in ``registration.json``'s
+``phase_estimates``, read back by :meth:`TemporalEstimate.from_dict`) and
+:class:`TemporalError`, the error of evidence that cannot give a phase.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hrcore.errors import HeartregError
+from hrcore.jsonarrays import float_array, json_floats
+
+__all__ = ["TemporalError", "TemporalEstimate"]
+
+#: an interval wider than this (cycles) means the data cannot decide phi_R*.
+UNDECIDED_WIDTH = 0.3
+
+
+class TemporalError(HeartregError, ValueError):
+    """Evidence that cannot give a respiration phase (a trace that misses phases, ...)."""
+
+
+def _wrap(d):
+    return (np.asarray(d, dtype=float) + 0.5) % 1.0 - 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class TemporalEstimate:
+    """phi_R* with its interval, and how it was found.
+
+    Attributes
+    ----------
+    method : str
+        ``"shape"`` or ``"eq10"`` (:class:`TemporalEstimator`).
+    evidence : tuple of str
+        The terms used: ``"heart"``, ``"fiducial_trace"``, ``"breath_hold"``,
+        ``"fiducials"`` (eq. 10's T0).
+    respiration_phase : float, cycles
+    index : int
+        Its index in the sweep.
+    interval : (2,) float64, cycles
+        90 % interval ``(low, high)`` as phases in [0, 1); ``low > high`` when it
+        wraps through 0.
+    interval_offsets : (2,) float64, cycles
+        The same as offsets from ``phase_r`` (``low <= 0 <= high``).
+    confidence : float
+    decided : bool
+        False when the interval is wider than :data:`UNDECIDED_WIDTH`.
+    bootstrap_phases : (B,) float64
+        phi_R* of every resample.
+    cost : (m,) float64
+        ``J - min J`` over the sweep (unitless, chi-square-like); for ``eq10``
+        the translation distance from T0 minus its minimum (mm).
+    cost_heart, cost_fiducial, cost_prior : (m,) float64
+        Its terms (zeros where a term is not used), each minus its own minimum.
+    transform_mm, transform_deg : float
+        90th percentile over the resamples of the mean map-vertex displacement
+        (mm) and of the rotation (deg) between ``T(phi_b)`` and ``T(phi_R*)``.
+    """
+
+    method: str
+    evidence: tuple[str, ...]
+    respiration_phase: float
+    index: int
+    interval: np.ndarray
+    interval_offsets: np.ndarray
+    confidence: float
+    decided: bool
+    bootstrap_phases: np.ndarray
+    cost: np.ndarray
+    cost_heart: np.ndarray
+    cost_fiducial: np.ndarray
+    cost_prior: np.ndarray
+    transform_mm: float
+    transform_deg: float
+
+    @property
+    def width(self) -> float:
+        """Width of the interval, cycles."""
+        return float(self.interval_offsets[1] - self.interval_offsets[0])
+
+    def contains(self, phase: float) -> bool:
+        """True when ``phase`` lies in the interval (circularly)."""
+        d = float(_wrap(phase - self.respiration_phase))
+        return bool(self.interval_offsets[0] - 1e-9 <= d <= self.interval_offsets[1] + 1e-9)
+
+    def summary(self) -> str:
+        """One line: phase, interval, and whether the data decide."""
+        lo, hi = self.interval
+        text = (f"phi_R* {self.respiration_phase:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
+                f"[{lo:.2f}, {hi:.2f}]; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
+        if not self.decided:
+            text += (f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle "
+                     "wide): trace the staples over a breath or state the breath-hold phase")
+        return text
+
+    def to_dict(self) -> dict:
+        """JSON-ready, keys equal to the attribute names; non-finite numbers as ``None``."""
+        return {
+            "method": self.method,
+            "evidence": list(self.evidence),
+            "respiration_phase": self.respiration_phase,
+            "index": self.index,
+            "interval": json_floats(self.interval),
+            "interval_offsets": json_floats(self.interval_offsets),
+            "confidence": self.confidence,
+            "decided": self.decided,
+            "bootstrap_phases": json_floats(self.bootstrap_phases),
+            "cost": json_floats(self.cost),
+            "cost_heart": json_floats(self.cost_heart),
+            "cost_fiducial": json_floats(self.cost_fiducial),
+            "cost_prior": json_floats(self.cost_prior),
+            "transform_mm": self.transform_mm,
+            "transform_deg": self.transform_deg,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TemporalEstimate":
+        """The inverse of :meth:`to_dict` (``None`` reads as NaN)."""
+        return cls(
+            method=str(data["method"]),
+            evidence=tuple(str(e) for e in data["evidence"]),
+            respiration_phase=float(data["respiration_phase"]),
+            index=int(data["index"]),
+            **{k: float_array(data[k]) for k in ("interval", "interval_offsets", "bootstrap_phases", "cost",
+                                                  "cost_heart", "cost_fiducial", "cost_prior")},
+            confidence=float(data["confidence"]),
+            decided=bool(data["decided"]),
+            transform_mm=float(data["transform_mm"]),
+            transform_deg=float(data["transform_deg"]),
+        )

@@ -1,0 +1,319 @@
+"""Reading the files of a session folder: tables, point records, poses, fiducials.
+
+The checks behind :func:`registration.session.read_session`: every CSV's
+header, numbers, units and clock, the quaternions, the PLUS sequence poses,
+the touched and the traced fiducials, each refused with a
+:class:`~registration.session_format.SessionError` naming the file, the
+column and the row.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hrcore.geometry import frozen
+from registration.plus import PlusFileError, read_plus_sequence
+from registration.session_format import (
+    FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, N_FIDUCIALS, PLUS_TIME_TOL,
+    PLUS_TRANSFORMS, POINT_COLUMNS, QUATERNION_TOL, RATE_TOL, SIGNAL_COLUMNS, FiducialTrace, PointRecord,
+    SessionError, SessionNotFoundError,
+)
+
+def _check_relative(file: Path, key: str, name: str) -> None:
+    p = PurePosixPath(name)
+    if p.is_absolute() or ".." in p.parts or "\\" in name:
+        raise SessionError(
+            f"{file}: {key} = {name!r} must be a relative path inside the session folder, "
+            "with '/' separators"
+        )
+
+
+def _read_header(file: Path, rel: str, required) -> list[int]:
+    if file.exists() and not file.is_file():
+        raise SessionError(f"{rel} is not a regular file (a folder, named pipe or device); give the CSV file")
+    try:
+        with open(file, encoding="utf-8-sig", newline="") as fh:  # -sig: Excel's "CSV UTF-8" BOM
+            header = fh.readline(1 << 16)
+    except FileNotFoundError:
+        raise SessionNotFoundError(f"{rel} is listed in session.json but missing from the folder") from None
+    except UnicodeDecodeError:
+        raise SessionError(f"{rel}: not a UTF-8 text CSV file") from None
+    names = [c.strip() for c in header.strip().split(",")]
+    dupes = sorted({c for c in names if names.count(c) > 1})
+    if dupes:
+        raise SessionError(f"{rel}: header repeats column(s) {', '.join(dupes)}")
+    missing = [c for c in required if c not in names]
+    if missing:
+        raise SessionError(
+            f"{rel}: missing column(s) {', '.join(missing)}; the header must hold "
+            f"{', '.join(required)}"
+        )
+    return [names.index(c) for c in required]
+
+
+def _load_table(file: Path, rel: str, usecols: list[int], names) -> np.ndarray:
+    # every row must have the header's number of fields: np.loadtxt with usecols
+    # would read a row with an extra field shifted, without a word
+    size = file.stat().st_size
+    if size > MAX_CSV_BYTES:
+        raise SessionError(
+            f"{rel} holds {size / 1e6:.0f} MB, more than the {MAX_CSV_BYTES / 1e6:.0f} MB of hours of "
+            "samples; split the record or check that it is the right file"
+        )
+    lines = [line for line in file.read_bytes().splitlines() if line.strip()]
+    if lines:
+        width = lines[0].count(b",")
+        if any(line.count(b",") != width for line in lines[1:]):
+            raise SessionError(_locate_bad_cell(file, rel, usecols, names) or f"{rel}: rows differ in field count")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "Empty input file"
+            data = np.loadtxt(file, delimiter=",", skiprows=1, usecols=usecols, ndmin=2, dtype=np.float64)
+    except ValueError as exc:
+        raise SessionError(_locate_bad_cell(file, rel, usecols, names) or f"{rel}: {exc}") from None
+    return data
+
+
+def _locate_bad_cell(file: Path, rel: str, usecols: list[int], names) -> str | None:
+    """Slow path after a parse failure: the first line that does not parse."""
+    with open(file, encoding="utf-8-sig", errors="replace", newline="") as fh:  # bad bytes: a bad cell
+        width = len(fh.readline().split(","))
+        for line_no, line in enumerate(fh, start=2):
+            if not line.strip():
+                continue
+            cells = line.rstrip("\r\n").split(",")
+            if len(cells) != width:
+                return f"{rel}: line {line_no} has {len(cells)} fields, the header has {width}"
+            for col, name in zip(usecols, names):
+                try:
+                    float(cells[col])
+                except ValueError:
+                    return (
+                        f"{rel}: column {name!r}, row {line_no - 1} (line {line_no}): "
+                        f"{cells[col].strip()!r} is not a number"
+                    )
+    return None
+
+
+def _check_finite(data: np.ndarray, rel: str, columns) -> None:
+    bad = ~np.isfinite(data)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise SessionError(
+            f"{rel}: column {columns[col]!r}, row {row + 1} (line {row + 2}): value "
+            f"{float(data[row, col])!r} is not finite ({int(bad.sum())} such values in the file); "
+            "remove or re-record the point"
+        )
+
+
+def _unit_of(column: str) -> str:
+    for suffix, unit in (("_mm", "mm"), ("_s", "s"), ("_mv", "mV"), ("_lpm", "L/min")):
+        if column.endswith(suffix):
+            return unit
+    return ""
+
+
+def _check_magnitude(data: np.ndarray, rel: str, columns) -> None:
+    """Refuse values no tracker, clock or amplifier gives (e.g. a pose of 1e30 mm)."""
+    limits = np.array([MAX_ABS[_unit_of(c)] for c in columns])
+    bad = np.abs(data) > limits
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        unit = _unit_of(columns[col])
+        raise SessionError(
+            f"{rel}: column {columns[col]!r}, row {row + 1} (line {row + 2}): value "
+            f"{float(data[row, col]):.6g}{' ' + unit if unit else ''} is beyond the plausible "
+            f"{limits[col]:g}{' ' + unit if unit else ''} ({int(bad.sum())} such values in the file); "
+            "check the logger's units or remove the point"
+        )
+
+
+def _read_samples(folder: Path, rel: str, columns, rate_hz: float) -> np.ndarray:
+    """The checked rows of a sample table: every column there, finite, plausible, on the declared clock."""
+    file = folder / rel
+    data = _load_table(file, rel, _read_header(file, rel, columns), columns)
+    if data.shape[0] and data.shape[1] != len(columns):
+        raise SessionError(f"{rel}: expected {len(columns)} columns, read {data.shape[1]}")
+    data = data.reshape(-1, len(columns))
+    _check_finite(data, rel, columns)
+    _check_magnitude(data, rel, columns)
+    _check_clock(data[:, 0], rel, rate_hz)
+    return data
+
+
+def _point_record(entry: dict, rate_hz: float, time_s, T_probe_from_robot, signals) -> PointRecord:
+    """The record of ``entry``; ``signals`` (n, 3): ECG mV, inspiratory and expiratory flow L/min."""
+    return PointRecord(
+        point_id=int(entry["id"]),
+        surface_point=int(entry["surface_point"]),
+        file=entry["file"],
+        time_s=frozen(time_s),
+        T_probe_from_robot=frozen(T_probe_from_robot),
+        ecg_mv=frozen(signals[:, 0]),
+        flow_insp_lpm=frozen(signals[:, 1]),
+        flow_exp_lpm=frozen(signals[:, 2]),
+        rate_hz=rate_hz,
+    )
+
+
+def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float) -> PointRecord:
+    rel = entry["file"]
+    data = _read_samples(folder, rel, POINT_COLUMNS, rate_hz)
+    q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
+    q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
+    T = _probe_from_robot(_matrices(q_robot), data[:, 1:4], _matrices(q_probe), data[:, 8:11])
+    return _point_record(entry, rate_hz, data[:, 0], T, data[:, 15:18])
+
+
+def _check_clock(time_s: np.ndarray, rel: str, rate_hz: float) -> None:
+    steps = np.diff(time_s)
+    if (steps <= 0).any():
+        row = int(np.argmax(steps <= 0)) + 1
+        raise SessionError(
+            f"{rel}: column 'time_s' is not strictly increasing at row {row + 1} "
+            f"(line {row + 2}): {float(time_s[row - 1])!r} then {float(time_s[row])!r}"
+        )
+    if steps.size:
+        median = float(np.median(steps))
+        if abs(median * rate_hz - 1.0) > RATE_TOL:
+            raise SessionError(
+                f"{rel}: column 'time_s' has a median step of {median:.6g} s but session.json "
+                f"declares sample_rate_hz = {rate_hz:g}"
+            )
+
+
+def _probe_from_robot(R_robot, t_robot, R_probe, t_probe) -> np.ndarray:
+    """(n, 4, 4) ``inv(T_tracker_from_probe) @ T_tracker_from_robot`` from rotations and translations.
+
+    One computation for every pose source, so that the same poses give the same
+    bits whether they were read from CSV quaternions or PLUS matrices.
+    """
+    R_robot = np.ascontiguousarray(R_robot, dtype=np.float64)
+    R_probe_T = np.ascontiguousarray(np.swapaxes(R_probe, 1, 2), dtype=np.float64)
+    d = np.ascontiguousarray(np.asarray(t_robot, dtype=np.float64) - np.asarray(t_probe, dtype=np.float64))
+    T = np.zeros((R_robot.shape[0], 4, 4))
+    T[:, :3, :3] = R_probe_T @ R_robot
+    T[:, :3, 3] = np.einsum("nij,nj->ni", R_probe_T, d)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cache: dict, notes: list) -> PointRecord:
+    """A record whose ECG and flow are in a CSV file and poses in a PLUS sequence file."""
+    rel, poses_rel = entry["file"], entry["poses"]
+    data = _read_samples(folder, rel, SIGNAL_COLUMNS, rate_hz)
+    if poses_rel not in cache:
+        if not (folder / poses_rel).is_file():
+            raise SessionNotFoundError(f"{poses_rel} is listed in session.json but missing from the folder")
+        try:
+            cache[poses_rel] = read_plus_sequence(folder / poses_rel)
+        except PlusFileError as exc:
+            raise SessionError(str(exc)) from None
+    seq = cache[poses_rel]
+    offset = meta.get("poses_time_offset_s", 0.0)
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
+        raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
+    try:
+        T_robot, T_probe = (seq.transform(name) for name in PLUS_TRANSFORMS)
+    except PlusFileError as exc:
+        raise SessionError(str(exc)) from None
+    # each sample takes the frame nearest in time, which must be within a quarter step
+    t_frames = seq.time_s + float(offset)
+    t, n = data[:, 0], len(t_frames)
+    after = np.searchsorted(t_frames, t)
+    lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
+    k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
+    far = np.abs(t_frames[k] - data[:, 0]) > PLUS_TIME_TOL / rate_hz
+    if far.any():
+        row = int(np.argmax(far))
+        raise SessionError(
+            f"{rel}: row {row + 1} (time_s {float(data[row, 0]):.3f}) has no frame in {poses_rel} within "
+            f"{PLUS_TIME_TOL / rate_hz:g} s ({int(far.sum())} such rows); check the PLUS clock "
+            "(session.json 'poses_time_offset_s')"
+        )
+    ok = seq.valid[PLUS_TRANSFORMS[0]][k] & seq.valid[PLUS_TRANSFORMS[1]][k]
+    if not ok.all():
+        notes.append(f"point {entry['id']}: {int((~ok).sum())} of {len(ok)} samples dropped, "
+                     f"the tracker marked the pose invalid in {poses_rel}")
+        data, k = data[ok], k[ok]
+    Tr, Tp = T_robot[k], T_probe[k]
+    T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
+    return _point_record(entry, rate_hz, data[:, 0], T, data[:, 1:4])
+
+
+def _matrices(q_wxyz: np.ndarray) -> np.ndarray:
+    if q_wxyz.shape[0] == 0:
+        return np.zeros((0, 3, 3))
+    return Rotation.from_quat(q_wxyz, scalar_first=True).as_matrix()
+
+
+def _unit_quaternions(q: np.ndarray, rel: str, sensor: str, tol: float) -> np.ndarray:
+    norm = np.linalg.norm(q, axis=1)
+    off = np.abs(norm - 1.0) > tol
+    if off.any():
+        row = int(np.argmax(off))
+        raise SessionError(
+            f"{rel}: columns {sensor}_qw..{sensor}_qz, row {row + 1} (line {row + 2}): "
+            f"quaternion norm {norm[row]:.6g} is not 1 (tolerance {tol:g}; {int(off.sum())} "
+            "such rows); check the quaternion order (w, x, y, z) and the logger"
+        )
+    return q / norm[:, None]
+
+
+def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
+    file = folder / rel
+    cols = _read_header(file, rel, FIDUCIAL_COLUMNS)
+    data = _load_table(file, rel, cols, FIDUCIAL_COLUMNS)
+    if data.shape != (N_FIDUCIALS, len(FIDUCIAL_COLUMNS)):
+        raise SessionError(
+            f"{rel}: expected {N_FIDUCIALS} fiducial rows of {', '.join(FIDUCIAL_COLUMNS)}, "
+            f"got {data.shape[0]} row(s); touch all 9 staples in the documented order"
+        )
+    _check_finite(data, rel, FIDUCIAL_COLUMNS)
+    _check_magnitude(data, rel, FIDUCIAL_COLUMNS)
+    labels = data[:, 0]
+    if not np.array_equal(labels, np.arange(1, N_FIDUCIALS + 1)):
+        raise SessionError(
+            f"{rel}: column 'fiducial' must number the staples 1..9 in order ({FIDUCIAL_ORDER}), "
+            f"got {labels.tolist()}"
+        )
+    return frozen(data[:, 1:4])
+
+
+def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrace:
+    file = folder / rel
+    cols = _read_header(file, rel, FIDUCIAL_TRACE_COLUMNS)
+    data = _load_table(file, rel, cols, FIDUCIAL_TRACE_COLUMNS).reshape(-1, len(FIDUCIAL_TRACE_COLUMNS))
+    _check_finite(data, rel, FIDUCIAL_TRACE_COLUMNS)
+    time_s = data[:, 0]
+    steps = np.diff(time_s)
+    if (steps <= 0).any():
+        row = int(np.argmax(steps <= 0)) + 1
+        raise SessionError(f"{rel}: column 'time_s' is not strictly increasing at row {row + 1} (line {row + 2})")
+    labels = data[:, 1]
+    bad = (labels != np.round(labels)) | (labels < 0) | (labels > N_FIDUCIALS)
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise SessionError(
+            f"{rel}: column 'fiducial', row {row + 1} (line {row + 2}): {labels[row]!r} is not a staple "
+            f"number 1..{N_FIDUCIALS} (or 0 in transit)"
+        )
+    missing = sorted(set(range(1, N_FIDUCIALS + 1)) - set(labels.astype(int).tolist()))
+    if missing:
+        raise SessionError(f"{rel}: staple(s) {missing} never held; trace all {N_FIDUCIALS} staples")
+    q = _unit_quaternions(data[:, 8:12], rel, "probe", QUATERNION_TOL)
+    R_probe_T = np.swapaxes(_matrices(q), 1, 2)
+    tip = np.einsum("nij,nj->ni", R_probe_T, data[:, 2:5] - data[:, 5:8])
+    return FiducialTrace(
+        file=rel,
+        time_s=frozen(time_s),
+        fiducial=frozen(labels, np.int64),
+        stylus_probe_mm=frozen(tip),
+        flow_insp_lpm=frozen(data[:, 12]),
+        flow_exp_lpm=frozen(data[:, 13]),
+        rate_hz=rate_hz,
+    )
