@@ -41,25 +41,7 @@ from registration.session_tables import (
     _check_relative, _read_fiducial_trace, _read_fiducials, _read_plus_point, _read_point,
 )
 
-__all__ = [
-    "SESSION_FORMAT",
-    "SUPPORTED_VERSIONS",
-    "SESSION_UNITS",
-    "POINT_COLUMNS",
-    "FIDUCIAL_COLUMNS",
-    "FIDUCIAL_TRACE_COLUMNS",
-    "SIGNAL_COLUMNS",
-    "PLUS_TRANSFORMS",
-    "FIDUCIAL_ORDER",
-    "MIN_DURATION_S",
-    "QUATERNION_TOL",
-    "SessionError",
-    "SessionNotFoundError",
-    "PointRecord",
-    "FiducialTrace",
-    "Session",
-    "read_session",
-]
+__all__ = ["read_session"]  # the format's names are importable from here too (imported above)
 
 
 # --------------------------------------------------------------------- reader
