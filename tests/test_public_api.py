@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hrcore", "imaging", "modeling", "registration")
 #: Modules whose docstrings carry further examples (module level, helpers).
 EXTRA_MODULES = ("hrcore.errors", "hrcore.geometry", "hrcore.output", "modeling.options", "registration.localise",
-                 "registration.options")
+                 "registration.online", "registration.options")
 
 
 def _public_functions(package: str):
