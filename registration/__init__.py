@@ -51,5 +51,6 @@ __all__ = [
     "translation_distance_mm",
     # refusals (each a hrcore.HeartregError)
     "RegistrationError",
+    "RegistrationFileError",
     "SessionError",
 ]

@@ -268,6 +268,21 @@ def register_session(
         The model's cardiac phase is unknown, the model has no fiducials or
         another number than the session, fewer
         than 3 points can be used, or the fiducials cannot be registered.
+
+    Examples
+    --------
+    On a case written by ``heartreg phantom case`` and its model (``heartreg
+    model``); a registration takes seconds to minutes, hence skipped here:
+
+    >>> from modeling import read_model
+    >>> from registration import RegistrationOptions, read_session, register_session
+    >>> model = read_model("out/model")  # doctest: +SKIP
+    >>> session = read_session("case/session")  # doctest: +SKIP
+    >>> result = register_session(model, session, options=RegistrationOptions(phase_step=0.02))  # doctest: +SKIP
+    >>> 0.0 <= result.respiration_phase <= 1.0, result.T_heart_from_probe.shape  # doctest: +SKIP
+    (True, (4, 4))
+    >>> result.trust.level in ("ok", "caution", "poor")  # doctest: +SKIP
+    True
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")

@@ -110,7 +110,7 @@ _FIELD = {
 
 
 def read_plus_sequence(path) -> PlusSequence:
-    """Read the poses of a PLUS sequence file (``.seq.mha``, ``.igs.mha``, ``.igs.nrrd``, ...).
+    r"""Read the poses of a PLUS sequence file (``.seq.mha``, ``.igs.mha``, ``.igs.nrrd``, ...).
 
     Parameters
     ----------
@@ -127,6 +127,33 @@ def read_plus_sequence(path) -> PlusSequence:
         Missing file, no frames, a frame without ``Timestamp``, repeated
         timestamps, a transform that is not 16 finite numbers of a rigid pose,
         or a transform missing from some frames.
+
+    Examples
+    --------
+    A two-frame MetaImage header as PLUS writes it (tracking only, no image);
+    the tracker lost the robot in the second frame.
+
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from registration import read_plus_sequence
+    >>> header = "\n".join([
+    ...     "ObjectType = Image", "NDims = 3", "DimSize = 1 1 2", "ElementType = MET_UCHAR",
+    ...     "Seq_Frame0000_Timestamp = 33321.25",
+    ...     "Seq_Frame0000_RobotToTrackerTransform = 1 0 0 10 0 1 0 20 0 0 1 30 0 0 0 1",
+    ...     "Seq_Frame0000_RobotToTrackerTransformStatus = OK",
+    ...     "Seq_Frame0001_Timestamp = 33321.26",
+    ...     "Seq_Frame0001_RobotToTrackerTransform = 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1",
+    ...     "Seq_Frame0001_RobotToTrackerTransformStatus = INVALID",
+    ...     "ElementDataFile = LOCAL", ""])
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = Path(folder.name) / "rec.seq.mha"
+    >>> _ = path.write_text(header + "\0\0")
+    >>> seq = read_plus_sequence(path)
+    >>> seq.n_frames, seq.time_s.tolist(), seq.valid["RobotToTracker"].tolist()
+    (2, [33321.25, 33321.26], [True, False])
+    >>> seq.transform("RobotToTracker")[:, :3, 3].tolist()  # T_tracker_from_robot, mm; NaN where invalid
+    [[10.0, 20.0, 30.0], [nan, nan, nan]]
+    >>> folder.cleanup()
     """
     path = Path(path)
     if not path.name.lower().endswith(PLUS_SUFFIXES):

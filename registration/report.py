@@ -157,6 +157,23 @@ def write_registration(
     hrcore.output.OutputError
         A refused ``out_dir`` (not empty without ``overwrite``, an input, not
         writable) or a full disk.
+
+    Examples
+    --------
+    ``result`` and ``model`` from :func:`register_session` and
+    :func:`modeling.read_model` (skipped here, the repository ships no session):
+
+    >>> from registration import read_registration, write_registration
+    >>> paths = write_registration(result, "out/registration", model=model)  # doctest: +SKIP
+    >>> paths["json"], paths["fig8"]  # doctest: +SKIP
+    (PosixPath('out/registration/registration.json'), PosixPath('out/registration/fig8_view.png'))
+    >>> write_registration(result, "out/registration", model=model)  # doctest: +SKIP
+    Traceback (most recent call last):
+        ...
+    hrcore.output.OutputError: ... out/registration is not empty; choose an empty folder or pass --overwrite
+    >>> paths = write_registration(result, "out/registration", model=model, overwrite=True)  # doctest: +SKIP
+    >>> read_registration("out/registration").respiration_phase == result.respiration_phase  # doctest: +SKIP
+    True
     """
     if not isinstance(result, RegistrationResult):
         raise TypeError(f"result must be a RegistrationResult, got {type(result).__name__}")
@@ -278,6 +295,24 @@ def read_registration(out_dir) -> RegistrationResult:
     RegistrationFileError
         One line naming the file: missing, unreadable, not JSON, another
         format or format version, or a missing or bad field.
+
+    Examples
+    --------
+    The round trip of a registration (``result`` from :func:`register_session`;
+    skipped here, the repository ships no session):
+
+    >>> from registration import read_registration, write_registration
+    >>> paths = write_registration(result, "out/registration", view=False)  # doctest: +SKIP
+    >>> again = read_registration("out/registration")  # doctest: +SKIP
+    >>> bool((again.T_heart_from_probe == result.T_heart_from_probe).all())  # doctest: +SKIP
+    True
+
+    A folder without ``registration.json`` is refused in one line:
+
+    >>> read_registration("no_such_folder")
+    Traceback (most recent call last):
+        ...
+    registration.report.RegistrationFileError: no_such_folder/registration.json not found: give the output folder of heartreg register
     """
     path = Path(out_dir) / JSON_FILE
     try:

@@ -76,6 +76,23 @@ def read_session(
     SessionError
         Anything that breaks the format, naming the file, column and row; or no
         usable record at all.
+
+    Examples
+    --------
+    A session recorded in surgery, or written by ``heartreg phantom case``
+    (which the repository does not ship, hence skipped):
+
+    >>> from registration import read_session
+    >>> session = read_session("case/session")  # doctest: +SKIP
+    >>> len(session.points), session.fiducials_probe_mm.shape  # doctest: +SKIP
+    (8, (9, 3))
+
+    A folder that is not there is refused in one line:
+
+    >>> read_session("no_such_folder")
+    Traceback (most recent call last):
+        ...
+    registration.session_format.SessionNotFoundError: session folder no_such_folder does not exist
     """
     if not min_duration_s >= 0:
         raise ValueError(f"min_duration_s must be >= 0 s, got {min_duration_s!r}")

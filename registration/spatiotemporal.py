@@ -341,6 +341,35 @@ def register_spatiotemporal(
     Returns
     -------
     SpatiotemporalRegistration
+
+    Examples
+    --------
+    Nine points on an ellipsoidal "heart" (semi-axes 40, 30 and 50 mm) that
+    breathe up to 12 mm along z and lie on the surface at phi_R = 0.3; the
+    probe frame is the heart frame, so the fiducial seed is the identity.  Of
+    the swept phases, 0.3 is the one whose registration stays closest to it.
+
+    >>> import numpy as np
+    >>> import trimesh
+    >>> from registration import Harmonics, fit_motion_model, register_spatiotemporal
+    >>> sphere = trimesh.creation.icosphere(subdivisions=3)
+    >>> vertices_mm = np.asarray(sphere.vertices) * [40.0, 30.0, 50.0]
+    >>> faces = np.asarray(sphere.faces)
+    >>> t_s = np.arange(0.0, 30.0, 0.02)
+    >>> phase_c, phase_r = (1.2 * t_s) % 1.0, (0.25 * t_s) % 1.0
+    >>> models = []
+    >>> for point_mm in vertices_mm[::80]:
+    ...     T = np.tile(np.eye(4), (t_s.size, 1, 1))
+    ...     T[:, :3, 3] = point_mm
+    ...     T[:, 2, 3] += 6.0 * (np.cos(2 * np.pi * (phase_r - 0.3)) - 1.0)
+    ...     models.append(fit_motion_model(phase_c, phase_r, T, harmonics=Harmonics(1, 1, 0, 0)))
+    >>> len(models)
+    9
+    >>> reg = register_spatiotemporal(models, (vertices_mm, faces), np.eye(4), cardiac_phase=0.5,
+    ...                               phases_r=np.arange(10) / 10)
+    >>> print(f"phi_R* = {reg.respiration_phase:.2f}, {reg.translation_distance_mm:.3f} mm from T0, "
+    ...       f"RMS {reg.rms_mm:.3f} mm")
+    phi_R* = 0.30, 0.000 mm from T0, RMS 0.000 mm
     """
     surface = _as_surface(surface)
     T0 = check_transform(T0_heart_from_probe, name="T0_heart_from_probe")

@@ -263,6 +263,18 @@ def rotation_distance_deg(T_a, T_b) -> np.ndarray:
     -------
     (...) float64, degrees in [0, 180]
         The angle of ``R_a^T R_b``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.spatial.transform import Rotation
+    >>> from registration import rotation_distance_deg
+    >>> T_a, T_b = np.eye(4), np.eye(4)
+    >>> T_b[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    >>> print(round(float(rotation_distance_deg(T_a, T_b)), 6))
+    30.0
+    >>> rotation_distance_deg(T_a, np.stack([T_a, T_b])).round(6).tolist()  # a stack of poses
+    [0.0, 30.0]
     """
     A = np.asarray(T_a, dtype=float)[..., :3, :3]
     B = np.asarray(T_b, dtype=float)[..., :3, :3]
@@ -288,6 +300,26 @@ def translation_distance_mm(T_a, T_b, point_mm=None) -> np.ndarray:
     Returns
     -------
     (...) float64, mm
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.spatial.transform import Rotation
+    >>> from registration import translation_distance_mm
+    >>> T_a, T_b = np.eye(4), np.eye(4)
+    >>> T_b[:3, 3] = [3.0, 4.0, 0.0]
+    >>> print(round(float(translation_distance_mm(T_a, T_b)), 6))
+    5.0
+
+    A rotation moves points away from its axis: 90 degrees about z sends the
+    point 10 mm along x a distance 10 * sqrt(2) away.
+
+    >>> T_b = np.eye(4)
+    >>> T_b[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    >>> print(round(float(translation_distance_mm(T_a, T_b)), 6))
+    0.0
+    >>> print(round(float(translation_distance_mm(T_a, T_b, point_mm=[10.0, 0.0, 0.0])), 3))
+    14.142
     """
     A = check_transform(T_a, name="T_a", stack=True, finite=False)
     B = check_transform(T_b, name="T_b", stack=True, finite=False)

@@ -56,6 +56,20 @@ def render_registration_png(
     ------
     RenderError
         No offscreen OpenGL (the message says what to install), or VTK failed.
+
+    Examples
+    --------
+    The view :func:`write_registration` writes as ``fig8_view.png``, of a
+    registration read back with the model it was registered to (skipped here:
+    the repository ships no registration, and drawing needs offscreen OpenGL,
+    :func:`modeling.offscreen_available`):
+
+    >>> from modeling import read_model
+    >>> from registration import read_registration, render_registration_png
+    >>> model = read_model("out/model")  # doctest: +SKIP
+    >>> result = read_registration("out/registration")  # doctest: +SKIP
+    >>> render_registration_png(model, result, "registration.png", size=(1000, 500))  # doctest: +SKIP
+    PosixPath('registration.png')
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")

@@ -18,7 +18,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hrcore", "imaging", "modeling", "registration")
 #: Modules whose docstrings carry further examples (module level, helpers).
-EXTRA_MODULES = ("hrcore.errors", "hrcore.geometry", "hrcore.output", "modeling.options", "registration.options")
+EXTRA_MODULES = ("hrcore.errors", "hrcore.geometry", "hrcore.output", "modeling.options", "registration.localise",
+                 "registration.online", "registration.options")
 
 
 def _public_functions(package: str):
@@ -42,7 +43,7 @@ def test_contracts_list_the_public_names(package):
     assert listed == set(importlib.import_module(package).__all__)
 
 
-@pytest.mark.parametrize("package", ["hrcore", "imaging", "modeling"])
+@pytest.mark.parametrize("package", PACKAGES)
 def test_every_public_function_has_examples(package):
     missing = [name for name, func in _public_functions(package) if "Examples\n" not in (func.__doc__ or "")]
     assert not missing, f"{package}: no Examples section in {missing}"
