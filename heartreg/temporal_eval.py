@@ -68,7 +68,8 @@ def _transform_error(T, T_true, vertices):
     return mean_mm, float(np.degrees(np.arccos(cos)))
 
 
-def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", work_dir=None) -> dict:
+def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", work_dir=None,
+             slice_phases: bool = True) -> dict:
     """One phantom case, registered by both estimators and scored against the truth.
 
     Parameters
@@ -81,6 +82,9 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     size : {"sample", "full"}
     work_dir : path, optional
         Where the temporary case folder goes (removed afterwards).
+    slice_phases : bool
+        Predict each point at the cardiac phase of the CT slices it lies on
+        (:mod:`registration.slice_phase`); False: every point at phi_C*.
 
     Returns
     -------
@@ -92,6 +96,7 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     from modeling import build_heart_model
     from registration import read_session
     from registration.pipeline import register_session
+    from registration.slice_phase import SlicePhases
 
     from heartreg.phantom.generate import make_phantom
     from heartreg.pipeline import open_study
@@ -103,9 +108,10 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         volume, report = open_study(tmp / "case" / "ct")
         build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase,
                                   cardiac_phase_source=report.source, target_faces=20000, expected_fiducials=9)
+        slices = SlicePhases.from_report(report, volume.T_patient_from_voxel) if slice_phases else None
         del volume
         session = read_session(tmp / "case" / "session")
-        result = register_session(build.model, session, cardiac_sweep=False)
+        result = register_session(build.model, session, cardiac_sweep=False, slice_phases=slices)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     model = build.model

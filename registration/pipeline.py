@@ -49,6 +49,7 @@ from registration.motion_model import (
 from registration.plausibility import assess_coverage, assess_trust, outlier_samples
 from registration.result import IcpReport, PointFit, RegistrationResult
 from registration.session import PointRecord, Session
+from registration.slice_phase import SlicePhases, point_cardiac_phases, predict_at_point_phases
 from registration.spatiotemporal import (
     compare_static,
     _points_at,
@@ -237,6 +238,7 @@ def register_session(
     *,
     options: RegistrationOptions | None = None,
     progress: bool = False,
+    slice_phases: SlicePhases | None = None,
     **overrides,
 ) -> RegistrationResult:
     """Register a session to a heart model in space and in respiration phase.
@@ -257,6 +259,10 @@ def register_session(
         ``harmonics=(3, 2, 1, 1)``.
     progress : bool
         A progress bar on stderr over the points.
+    slice_phases : SlicePhases, optional
+        The CT's cardiac phase slice by slice: each point is then predicted at
+        the phase of the slices it lies on rather than at phi_C*
+        (:mod:`registration.slice_phase`).
 
     Returns
     -------
@@ -365,9 +371,12 @@ def register_session(
     pivot = surface_centroid(surface)
     timings["surface_index"] = time.perf_counter() - t
     t = time.perf_counter()
+    # each point at its slices' cardiac phase when the CT's are given (registration/slice_phase.py)
+    point_pc = None if slice_phases is None else point_cardiac_phases(means_map, model.T_heart_from_patient, slice_phases)
     resp = sweep_phase(
-        models, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
+        None if point_pc is not None else models, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
         phases=phases, pivot_mm=pivot, icp_options=options,
+        points=None if point_pc is None else predict_at_point_phases(models, point_pc, phases),
     )
     timings["respiration_sweep"] = time.perf_counter() - t
 
@@ -400,7 +409,8 @@ def register_session(
         rms_mm=float(resp.rms_mm[best]),
         translation_distance_mm=float(resp.translation_distance_mm[best]),
         rotation_distance_deg=float(resp.rotation_distance_deg[best]),
-        points_source_mm=_points_at(models, model.cardiac_phase, chosen.phase_r)[0],
+        points_source_mm=(_points_at(models, model.cardiac_phase, chosen.phase_r) if point_pc is None
+                          else predict_at_point_phases(models, point_pc, [chosen.phase_r]))[0],
     )
     card = None
     if cardiac_sweep:
