@@ -49,7 +49,7 @@ from registration.motion_model import (
 from registration.plausibility import assess_coverage, assess_trust, outlier_samples
 from registration.result import IcpReport, PointFit, RegistrationResult
 from registration.session import PointRecord, Session
-from registration.slice_phase import SlicePhases, point_cardiac_phases, predict_at_point_phases
+from registration.slice_phase import point_cardiac_phases, predict_at_point_phases
 from registration.spatiotemporal import (
     compare_static,
     _points_at,
@@ -238,7 +238,6 @@ def register_session(
     *,
     options: RegistrationOptions | None = None,
     progress: bool = False,
-    slice_phases: SlicePhases | None = None,
     **overrides,
 ) -> RegistrationResult:
     """Register a session to a heart model in space and in respiration phase.
@@ -259,10 +258,6 @@ def register_session(
         ``harmonics=(3, 2, 1, 1)``.
     progress : bool
         A progress bar on stderr over the points.
-    slice_phases : SlicePhases, optional
-        The CT's cardiac phase slice by slice: each point is then predicted at
-        the phase of the slices it lies on rather than at phi_C*
-        (:mod:`registration.slice_phase`).
 
     Returns
     -------
@@ -291,6 +286,8 @@ def register_session(
     icp_options, min_beats, min_breaths = opts.icp_options, opts.min_beats, opts.min_breaths
     coverage_bins, max_fre_mm = opts.coverage_bins, opts.max_fre_mm
     breath_hold_phase, breath_hold_sd = opts.breath_hold_phase, opts.breath_hold_sd
+    # the CT's cardiac phase slice by slice, when the model carries it (registration/slice_phase.py)
+    slice_phases = getattr(model, "slice_phases", None) if opts.slice_phases else None
     phases = sweep_phases(phase_step)
     phases_c = phases if cardiac_phase_step is None else sweep_phases(cardiac_phase_step)
     options = dict(icp_options or {})
@@ -474,6 +471,7 @@ def register_session(
         "estimator": estimator.value,
         "breath_hold_phase": None if breath_hold_phase is None else float(breath_hold_phase),
         "breath_hold_sd": float(breath_hold_sd),
+        "slice_phases": slice_phases is not None,
         "session_format_version": int(session.format_version),
         "session_sample_rate_hz": float(session.sample_rate_hz),
         "session_pose_source": session.pose_source,

@@ -25,69 +25,21 @@ and two others): at the true phase the points of the early stack come from
 0.95 mm RMS to 0.18 mm, and the final T at the true phase of trial 1 from
 2.0 mm, 2.8 deg to 0.26 mm, 0.23 deg; the 90 % interval then covers the truth
 in 4 of 7 cases (1 of 7 at phi_C*); but phi_R* itself moves little: the heart
-term still prefers a phase 0.07-0.3 off, a bias this does not explain.  Not
-yet the default: the model (``model.json``) does not carry the slice phases.
+term still prefers a phase 0.07-0.3 off, a bias this does not explain.
+
+The model carries the slice phases (``HeartModel.slice_phases``, written by
+``heartreg model``); :func:`registration.register_session` uses them unless
+``RegistrationOptions.slice_phases`` is off (``--no-slice-phases``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from hrcore.geometry import apply_to_points
+from modeling.slice_phases import SlicePhases
 
 __all__ = ["SlicePhases", "point_cardiac_phases", "predict_at_point_phases"]
-
-
-@dataclass(frozen=True, eq=False)
-class SlicePhases:
-    """Cardiac phase of each CT slice, and where the slices lie.
-
-    Attributes
-    ----------
-    positions_mm : (k,) float64, mm
-        Slice centres along ``normal_patient`` (``ImagePositionPatient . normal``).
-    phases : (k,) float64, cycles
-        Cardiac phase of each slice (:class:`imaging.phase.PhaseReport`).
-    normal_patient : (3,) float64
-        Unit slice normal, patient frame.
-    """
-
-    positions_mm: np.ndarray
-    phases: np.ndarray
-    normal_patient: np.ndarray
-
-    def __post_init__(self):
-        pos = np.asarray(self.positions_mm, dtype=float).ravel()
-        ph = np.asarray(self.phases, dtype=float).ravel()
-        normal = np.asarray(self.normal_patient, dtype=float).ravel()
-        if pos.size == 0 or pos.shape != ph.shape:
-            raise ValueError(f"positions_mm and phases must have the same shape (k,), k >= 1; got {pos.shape}, {ph.shape}")
-        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(ph))):
-            raise ValueError("slice positions and phases must be finite")
-        if normal.shape != (3,) or not np.linalg.norm(normal) > 0:
-            raise ValueError(f"normal_patient must be a non-zero (3,) vector, got {normal}")
-        order = np.argsort(pos, kind="stable")
-        object.__setattr__(self, "positions_mm", pos[order])
-        object.__setattr__(self, "phases", ph[order])
-        object.__setattr__(self, "normal_patient", normal / np.linalg.norm(normal))
-
-    @classmethod
-    def from_report(cls, report, T_patient_from_voxel) -> SlicePhases:
-        """From a phase report (:func:`imaging.compute_phase_report`) and the volume's affine."""
-        normal = np.asarray(T_patient_from_voxel, dtype=float)[:3, 2]
-        return cls(
-            positions_mm=np.array([s.position_mm for s in report.slices]),
-            phases=np.array([s.cardiac_phase for s in report.slices]),
-            normal_patient=normal,
-        )
-
-    @property
-    def spread(self) -> float:
-        """Largest circular distance of a slice phase from their circular mean (cycles)."""
-        mean = np.angle(np.mean(np.exp(2j * np.pi * self.phases))) / (2 * np.pi)
-        return float(np.max(np.abs((self.phases - mean + 0.5) % 1.0 - 0.5)))
 
 
 def point_cardiac_phases(points_map_mm, T_map_from_patient, slices: SlicePhases) -> np.ndarray:
