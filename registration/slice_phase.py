@@ -25,7 +25,11 @@ and two others): at the true phase the points of the early stack come from
 0.95 mm RMS to 0.18 mm, and the final T at the true phase of trial 1 from
 2.0 mm, 2.8 deg to 0.26 mm, 0.23 deg; the 90 % interval then covers the truth
 in 4 of 7 cases (1 of 7 at phi_C*); but phi_R* itself moves little: the heart
-term still prefers a phase 0.07-0.3 off, a bias this does not explain.
+term still prefers a phase 0.07-0.3 off, a bias this does not explain alone.
+Together with coupled harmonics that can hold the phantom's modulated beat
+c(phi_C) (1 + 0.2 cos 2 pi phi_R) (``harmonics=(5, 4, 5, 1)``; the default
+Hmc = 2 cannot) phi_R* of trials 1 and 5, seed 4, comes from +0.29/-0.29 to
+-0.03/+0.01 (docs/reproduction.md, "Beyond eq. 10").
 
 The model carries the slice phases (``HeartModel.slice_phases``, written by
 ``heartreg model``); :func:`registration.register_session` uses them unless
