@@ -29,7 +29,8 @@ term still prefers a phase 0.07-0.3 off, a bias this does not explain alone.
 Together with coupled harmonics that can hold the phantom's modulated beat
 c(phi_C) (1 + 0.2 cos 2 pi phi_R) (``harmonics=(5, 4, 5, 1)``; the default
 Hmc = 2 cannot) phi_R* of trials 1 and 5, seed 4, comes from +0.29/-0.29 to
--0.03/+0.01 (docs/reproduction.md, "Beyond eq. 10").
+-0.03/+0.01, and with ``(5, 4, 5, 2)`` trial 6's from -0.28 to 0.00
+(docs/reproduction.md, "Beyond eq. 10").
 
 The model carries the slice phases (``HeartModel.slice_phases``, written by
 ``heartreg model``); :func:`registration.register_session` uses them unless
