@@ -142,6 +142,8 @@ def _registration_options(args):
         kw["harmonics"] = tuple(args.harmonics)
     if args.breath_hold_phase is not None:
         kw["breath_hold_phase"] = args.breath_hold_phase
+    if args.no_slice_phases:
+        kw["slice_phases"] = False
     if args.icp_max_iterations is not None:
         if args.icp_max_iterations < 1:
             raise UsageError(f"max_iterations (--icp-max-iterations) must be >= 1, got {args.icp_max_iterations}")
@@ -152,8 +154,9 @@ def _registration_options(args):
 def _open_model_input(args):
     """The model command's CT (a DICOM study folder or a NIfTI file) and its phase.
 
-    Returns ``(volume, phase, source)``; ``phase`` is None when the CT has no
-    ECG gating (a model needs none: its phase is then recorded as unknown).
+    Returns ``(volume, phase, source, slice_phases)``; ``phase`` and
+    ``slice_phases`` are None when the CT has no ECG gating (a model needs
+    none: its phase is then recorded as unknown).
     """
     from imaging.nifti import is_nifti_path, read_nifti_volume
 
@@ -162,14 +165,17 @@ def _open_model_input(args):
     if is_nifti_path(args.study_dir):
         if args.qrs is not None or args.series is not None:
             raise UsageError(f"--qrs and --series apply to DICOM studies, not to the NIfTI file {args.study_dir}")
-        return read_nifti_volume(args.study_dir), None, "a NIfTI volume has no slice clock"
+        return read_nifti_volume(args.study_dir), None, "a NIfTI volume has no slice clock", None
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
         warn=lambda msg: print(msg, file=sys.stderr), phase_required=False,
     )
     if isinstance(report, str):
-        return volume, None, report
-    return volume, report.volume_cardiac_phase, report.source
+        return volume, None, report, None
+    from modeling.slice_phases import SlicePhases
+
+    slices = SlicePhases.from_report(report, volume.T_patient_from_voxel)
+    return volume, report.volume_cardiac_phase, report.source, slices
 
 
 def _cmd_model(args) -> int:
@@ -187,7 +193,7 @@ def _cmd_model(args) -> int:
     inputs = (args.study_dir, args.qrs, args.mask)
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
     start_offscreen_probe()  # beside the work: the picture needs its answer only at the end
-    volume, phase, phase_source = _open_model_input(args)
+    volume, phase, phase_source, slice_phases = _open_model_input(args)
     from tqdm import tqdm
 
     # the stages of build_heart_model (mask, mesh, fiducials, frame), then the write
@@ -201,6 +207,7 @@ def _cmd_model(args) -> int:
         volume,
         cardiac_phase=phase,
         cardiac_phase_source=phase_source,
+        slice_phases=slice_phases,
         mask_path=args.mask,
         label=args.label,
         options=options,
@@ -252,7 +259,9 @@ def _cmd_register(args) -> int:
     if args.cardiac_phase is not None:
         if not 0.0 <= args.cardiac_phase < 1.0:
             raise UsageError(f"--cardiac-phase must be a phase in [0, 1), got {args.cardiac_phase}")
-        model = dataclasses.replace(model, cardiac_phase=args.cardiac_phase, cardiac_phase_source="--cardiac-phase")
+        # the given phase replaces the CT's, slice by slice too
+        model = dataclasses.replace(model, cardiac_phase=args.cardiac_phase, cardiac_phase_source="--cardiac-phase",
+                                    slice_phases=None)
     elif model.cardiac_phase is None:
         raise UsageError(
             f"the cardiac phase of model {args.model_dir} is unknown (its CT was not ECG-gated); "

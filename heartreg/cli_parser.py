@@ -96,6 +96,9 @@ def _add_registration_options(p) -> None:
     p.add_argument("--breath-hold-phase", type=_finite, default=None, metavar="PHASE",
                    help=f"the CT's breath-hold respiration phase if known (sd {defaults.breath_hold_sd}), "
                         "used by --estimator shape")
+    p.add_argument("--no-slice-phases", action="store_true",
+                   help="predict every point at the model's phi_C* (as the paper), not at the cardiac phase "
+                        "of the CT slices it lies on")
     p.add_argument("--icp-max-iterations", type=int, default=None, metavar="N",
                    help="most ICP steps per phase (default 50); ICP stops before on a step below 0.001 mm "
                    "and 0.001 deg or a loss that falls by less than 1e-4, and says where the limit stopped it")

@@ -154,6 +154,7 @@ def run_pipeline(
     from imaging import write_phase_report
     from modeling import build_heart_model, offscreen_available, render_model_png, write_model
     from modeling.render import start_offscreen_probe
+    from modeling.slice_phases import SlicePhases
     from registration import read_session
     from registration.pipeline import register_session
     from registration.report import write_registration
@@ -185,6 +186,7 @@ def run_pipeline(
             volume,
             cardiac_phase=report.volume_cardiac_phase,
             cardiac_phase_source=report.source,
+            slice_phases=SlicePhases.from_report(report, volume.T_patient_from_voxel),
             mask_path=mask,
             label=label,
             options=model_options,

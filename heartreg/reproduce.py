@@ -299,7 +299,7 @@ def _run_trial(k, trial_dir, *, size, seed, n_points, phase_step, progress, say)
     # the run and trial.json staged beside the case, moved in at the end (trial.json last)
     with staged_output(trial_dir, parts=TRIAL_PARTS, overwrite=True, what="trial folder") as stage:
         run = run_pipeline(trial_dir / "case" / "ct", trial_dir / "case" / "session", stage / "run",
-                           registration_options=RegistrationOptions(phase_step=phase_step, estimator="eq10"),
+                           registration_options=RegistrationOptions(phase_step=phase_step, estimator="eq10", slice_phases=False),
                            progress=progress)
         t_pipeline = time.perf_counter() - t
         truth_rows = make_truth_rows(run, truth)

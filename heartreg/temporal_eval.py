@@ -68,7 +68,8 @@ def _transform_error(T, T_true, vertices):
     return mean_mm, float(np.degrees(np.arccos(cos)))
 
 
-def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", work_dir=None) -> dict:
+def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", work_dir=None,
+             slice_phases: bool | None = None) -> dict:
     """One phantom case, registered by both estimators and scored against the truth.
 
     Parameters
@@ -81,6 +82,11 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     size : {"sample", "full"}
     work_dir : path, optional
         Where the temporary case folder goes (removed afterwards).
+    slice_phases : bool, optional
+        Predict each point at the cardiac phase of the CT slices it lies on
+        (:mod:`registration.slice_phase`; the model carries them); False: every
+        point at phi_C*; None (default): what ``heartreg register`` does
+        (``RegistrationOptions.slice_phases``).
 
     Returns
     -------
@@ -92,6 +98,7 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     from modeling import build_heart_model
     from registration import read_session
     from registration.pipeline import register_session
+    from modeling.slice_phases import SlicePhases
 
     from heartreg.phantom.generate import make_phantom
     from heartreg.pipeline import open_study
@@ -101,11 +108,13 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         truth = make_phantom(tmp / "case", preset=preset, size=size, seed=int(seed),
                              image_resp_phase=float(phase_r))
         volume, report = open_study(tmp / "case" / "ct")
-        build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase,
-                                  cardiac_phase_source=report.source, target_faces=20000, expected_fiducials=9)
+        build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase, cardiac_phase_source=report.source,
+                                  slice_phases=SlicePhases.from_report(report, volume.T_patient_from_voxel),
+                                  target_faces=20000, expected_fiducials=9)
         del volume
         session = read_session(tmp / "case" / "session")
-        result = register_session(build.model, session, cardiac_sweep=False)
+        options = {} if slice_phases is None else {"slice_phases": bool(slice_phases)}
+        result = register_session(build.model, session, cardiac_sweep=False, **options)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     model = build.model

@@ -95,6 +95,7 @@ def build_heart_model(
     *,
     cardiac_phase: float | None,
     cardiac_phase_source: str,
+    slice_phases=None,
     mask_path=None,
     label: int | str | None = None,
     options: ModelOptions | None = None,
@@ -110,6 +111,10 @@ def build_heart_model(
         The volume's phase phi_C* and where it came from (imaging's PhaseReport);
         None with the reason when the CT is not gated (the phase is then unknown
         and registration asks for it).
+    slice_phases : SlicePhases, optional
+        The volume's cardiac phase slice by slice
+        (:meth:`modeling.slice_phases.SlicePhases.from_report`); kept in the
+        model so that registration predicts each point at its slices' phase.
     mask_path : path, optional
         An external label map (NIfTI, NRRD, DICOM SEG, or a TotalSegmentator
         output folder) instead of the automatic segmentation; resampled onto the
@@ -282,6 +287,7 @@ def build_heart_model(
         source=source,
         parameters=parameters,
         base_hint=base_hint,
+        slice_phases=slice_phases,
     )
     apex = -model.frame.axes_patient[:, 2]
     if apex[0] < -APEX_RIGHT_MAX or apex @ APEX_LAI_LPS <= 0:  # to the patient's right, or away from L-A-I

@@ -5,7 +5,7 @@ Folder layout written by :func:`write_model` (format ``heartreg-model`` 1)::
     MODEL_DIR/
         heart.ply    binary PLY, float64 vertices, heart frame, mm, outward normals
         heart.stl    binary STL, float32, same surface (header: SPACE=LPS FRAME=heart)
-        model.json   transform, Euler angles, ellipses, phase, fiducials, parameters
+        model.json   transform, Euler angles, ellipses, phase (and each slice's), fiducials, parameters
 
 and, for 3D Slicer (:mod:`modeling.slicer`; ``docs/slicer.md``)::
 
@@ -39,6 +39,7 @@ from modeling.frame import HeartFrame, fit_heart_frame
 from modeling.mesh import Mesh, MeshError, check_mesh, transform_mesh
 from modeling.mesh_io import read_ply, write_mesh
 from modeling.slab_ellipses import SlabEllipse
+from modeling.slice_phases import SlicePhases
 from modeling.slicer import write_itk_transform, write_markups
 
 __all__ = [
@@ -136,6 +137,9 @@ class HeartModel:
         Parameters that produced the model (JSON values).
     version : str
         heartreg version.
+    slice_phases : SlicePhases or None
+        The CT's cardiac phase slice by slice (:mod:`modeling.slice_phases`);
+        None when unknown (a CT without a slice clock, a model written before).
     """
 
     mesh: Mesh
@@ -146,6 +150,7 @@ class HeartModel:
     source: Mapping = field(default_factory=dict)
     parameters: Mapping = field(default_factory=dict)
     version: str = field(default_factory=_default_version)
+    slice_phases: SlicePhases | None = None
 
     def __post_init__(self):
         if not isinstance(self.mesh, Mesh):
@@ -157,6 +162,8 @@ class HeartModel:
             raise ValueError(f"cardiac_phase must be a phase in [0, 1) or None (unknown), got {self.cardiac_phase}")
         if not isinstance(self.cardiac_phase_source, str) or not self.cardiac_phase_source:
             raise ValueError("cardiac_phase_source must be a non-empty string saying where phi_C came from")
+        if self.slice_phases is not None and not isinstance(self.slice_phases, SlicePhases):
+            raise TypeError(f"slice_phases must be a SlicePhases or None, got {type(self.slice_phases).__name__}")
         fid = np.array(self.fiducials_patient_mm, dtype=np.float64).reshape(-1, 3)
         if not np.all(np.isfinite(fid)):
             raise ValueError("fiducials_patient_mm contains NaN or infinity")
@@ -184,6 +191,7 @@ class HeartModel:
             and dict(self.source) == dict(other.source)
             and dict(self.parameters) == dict(other.parameters)
             and self.version == other.version
+            and self.slice_phases == other.slice_phases
         )
 
     __hash__ = None
@@ -221,6 +229,7 @@ def make_heart_model(
     parameters: Mapping | None = None,
     slab_mm: float = 10.0,
     base_hint=None,
+    slice_phases: SlicePhases | None = None,
 ) -> HeartModel:
     """Fit the heart frame to a patient-frame mesh and build the model.
 
@@ -266,6 +275,7 @@ def make_heart_model(
         fiducials_patient_mm=fid,
         source=dict(source or {}),
         parameters=params,
+        slice_phases=slice_phases,
     )
 
 
@@ -282,6 +292,7 @@ def _model_json(model: HeartModel) -> dict:
         "euler_xyz_deg": list(fr.euler_xyz_deg),
         "cardiac_phase": model.cardiac_phase,
         "cardiac_phase_source": model.cardiac_phase_source,
+        "slice_phases": None if model.slice_phases is None else model.slice_phases.to_dict(),
         "fiducials_heart_mm": model.fiducials_heart_mm.tolist(),
         "fiducials_patient_mm": model.fiducials_patient_mm.tolist(),
         "mesh_files": list(MESH_FILES),
@@ -457,6 +468,7 @@ def read_model(model_dir) -> HeartModel:
             source=meta["source"],
             parameters=meta["parameters"],
             version=str(meta["version"]),
+            slice_phases=None if meta.get("slice_phases") is None else SlicePhases.from_dict(meta["slice_phases"]),
         )
     except MeshError as exc:
         raise ModelError(f"{ply}: {exc}") from exc

@@ -61,6 +61,11 @@ class RegistrationOptions:
     breath_hold_phase : float, optional
         The CT's breath-hold respiration phase if known (``--breath-hold-phase``),
         with standard deviation ``breath_hold_sd`` (cycles); used by ``"shape"``.
+    slice_phases : bool
+        Predict each point at the cardiac phase of the CT slices it lies on
+        when the model carries them (``HeartModel.slice_phases``;
+        :mod:`registration.slice_phase`); False (``--no-slice-phases``): every
+        point at the model's phi_C*, as the paper.
     """
 
     harmonics: Harmonics = Harmonics()
@@ -75,6 +80,7 @@ class RegistrationOptions:
     estimator: str = "shape"
     breath_hold_phase: float | None = None
     breath_hold_sd: float = 0.05
+    slice_phases: bool = True
 
     def __post_init__(self):
         h = self.harmonics

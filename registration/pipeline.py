@@ -49,6 +49,7 @@ from registration.motion_model import (
 from registration.plausibility import assess_coverage, assess_trust, outlier_samples
 from registration.result import IcpReport, PointFit, RegistrationResult
 from registration.session import PointRecord, Session
+from registration.slice_phase import point_cardiac_phases, predict_at_point_phases
 from registration.spatiotemporal import (
     compare_static,
     _points_at,
@@ -300,6 +301,8 @@ def register_session(
     icp_options, min_beats, min_breaths = opts.icp_options, opts.min_beats, opts.min_breaths
     coverage_bins, max_fre_mm = opts.coverage_bins, opts.max_fre_mm
     breath_hold_phase, breath_hold_sd = opts.breath_hold_phase, opts.breath_hold_sd
+    # the CT's cardiac phase slice by slice, when the model carries it (registration/slice_phase.py)
+    slice_phases = getattr(model, "slice_phases", None) if opts.slice_phases else None
     phases = sweep_phases(phase_step)
     phases_c = phases if cardiac_phase_step is None else sweep_phases(cardiac_phase_step)
     options = dict(icp_options or {})
@@ -380,9 +383,12 @@ def register_session(
     pivot = surface_centroid(surface)
     timings["surface_index"] = time.perf_counter() - t
     t = time.perf_counter()
+    # each point at its slices' cardiac phase when the CT's are given (registration/slice_phase.py)
+    point_pc = None if slice_phases is None else point_cardiac_phases(means_map, model.T_heart_from_patient, slice_phases)
     resp = sweep_phase(
-        models, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
+        None if point_pc is not None else models, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
         phases=phases, pivot_mm=pivot, icp_options=options,
+        points=None if point_pc is None else predict_at_point_phases(models, point_pc, phases),
     )
     timings["respiration_sweep"] = time.perf_counter() - t
 
@@ -415,7 +421,8 @@ def register_session(
         rms_mm=float(resp.rms_mm[best]),
         translation_distance_mm=float(resp.translation_distance_mm[best]),
         rotation_distance_deg=float(resp.rotation_distance_deg[best]),
-        points_probe_mm=_points_at(models, model.cardiac_phase, chosen.respiration_phase)[0],
+        points_probe_mm=(_points_at(models, model.cardiac_phase, chosen.respiration_phase) if point_pc is None
+                          else predict_at_point_phases(models, point_pc, [chosen.respiration_phase]))[0],
     )
     card = None
     if cardiac_sweep:
@@ -479,6 +486,7 @@ def register_session(
         "estimator": estimator.value,
         "breath_hold_phase": None if breath_hold_phase is None else float(breath_hold_phase),
         "breath_hold_sd": float(breath_hold_sd),
+        "slice_phases": slice_phases is not None,
         "session_format_version": int(session.format_version),
         "session_sample_rate_hz": float(session.sample_rate_hz),
         "session_pose_source": session.pose_source,

@@ -38,12 +38,14 @@ def test_flags_fill_the_option_dataclasses():
     parser = cli.command_parser()
     args = parser.parse_args(["pipeline", "study", "session", "-o", "out", "--faces", "5000", "--fiducials", "0",
                               "--keep-vessels", "--harmonics", "3", "2", "1", "1", "--step", "0.02",
-                              "--estimator", "eq10", "--icp-max-iterations", "80", "--no-view"])
+                              "--estimator", "eq10", "--icp-max-iterations", "80", "--no-view",
+                              "--no-slice-phases"])
     m = cli_commands._model_options(args)
     assert m == ModelOptions(target_faces=5000, expected_fiducials=None, trim_vessels=False)
     r = cli_commands._registration_options(args)
     assert r.harmonics == Harmonics(3, 2, 1, 1) and r.phase_step == 0.02 and r.estimator == "eq10"
     assert dict(r.icp_options) == {"max_iterations": 80}
+    assert r.slice_phases is False and RegistrationOptions().slice_phases is True
     # no flags: exactly the library's defaults
     plain = parser.parse_args(["pipeline", "study", "session", "-o", "out"])
     assert cli_commands._model_options(plain) == ModelOptions() and cli_commands._registration_options(plain) == RegistrationOptions()

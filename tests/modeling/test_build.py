@@ -181,6 +181,9 @@ def test_cli_model(sample_case, tmp_path, capsys):
     payload = json.loads((out / "model.json").read_text())
     assert abs(payload["n_faces"] - 8000) <= 80 and payload["watertight"] is True  # decimation: within 1 %
     assert abs(payload["cardiac_phase"] - truth["cardiac_phase"]) < 0.005
+    # the model carries the CT's phase slice by slice; phi_C* is their mean, the slices run along z
+    assert np.mean(payload["slice_phases"]["phases"]) == pytest.approx(payload["cardiac_phase"], abs=1e-9)
+    assert len(model.slice_phases.phases) > 10 and np.allclose(np.abs(model.slice_phases.normal_patient), [0, 0, 1])
     assert "PHANTOM" not in (out / "model.json").read_text()
     mesh = trimesh.load(out / "heart.stl")
     assert mesh.is_watertight and len(mesh.faces) == payload["n_faces"]

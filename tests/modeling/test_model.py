@@ -168,3 +168,27 @@ def test_render_error_is_clear(model, tmp_path, monkeypatch):
     monkeypatch.setattr(render, "offscreen_available", lambda: False)
     with pytest.raises(RenderError, match="libosmesa6"):
         render.render_model_png(model, tmp_path / "v.png")
+
+
+def test_slice_phases_round_trip_and_older_files(model, tmp_path):
+    import dataclasses
+
+    from modeling.slice_phases import SlicePhases
+
+    slices = SlicePhases(-40.0 + 2.5 * np.arange(8), [0.63] * 4 + [0.49] * 4, [0.0, 0.0, 1.0])
+    with_slices = dataclasses.replace(model, slice_phases=slices)
+    assert with_slices != model and model.slice_phases is None
+    out = write_model(with_slices, tmp_path / "m")
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["slice_phases"]["phases"] == [0.63] * 4 + [0.49] * 4
+    assert read_model(out) == with_slices
+    # a model.json written before the field (or by a CT without a slice clock) reads as None
+    del meta["slice_phases"]
+    (out / "model.json").write_text(json.dumps(meta))
+    assert read_model(out).slice_phases is None
+    meta["slice_phases"] = {"positions_mm": [0.0, 1.0], "phases": [0.5]}
+    (out / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="slice_phases|normal_patient|same shape"):
+        read_model(out)
+    with pytest.raises(TypeError, match="slice_phases"):
+        dataclasses.replace(model, slice_phases={"phases": [0.5]})

@@ -351,3 +351,25 @@ def test_options_are_checked():
     assert sweep_phases(0.01).shape == (101,)
     with pytest.raises(ValueError, match=r"step \(--step\) must be in"):
         sweep_phases(0.0)
+
+
+def test_the_models_slice_phases_are_used_unless_switched_off(case):
+    """Slices all at phi_C* give the phi_C* answer; a stack imaged at another phase changes it; the option turns them off."""
+    from modeling.slice_phases import SlicePhases
+
+    model, session = case["model"], case["session"]
+    pc = model.cardiac_phase
+    z = np.arange(-200.0, 200.0, 2.5)  # beyond the heart either way along the patient's z
+    mid_z = np.median(apply_to_points(model.T_patient_from_heart, model.mesh.vertices)[:, 2])
+    early = SlicePhases(z, np.where(z < mid_z, (pc - 0.3) % 1.0, pc), [0.0, 0.0, 1.0])
+
+    def register(slices, **kw):
+        return register_session(dataclasses.replace(model, slice_phases=slices), session, phase_step=0.1,
+                                cardiac_sweep=False, **kw).respiration_sweep.distances_mm
+
+    off = register_session(dataclasses.replace(model, slice_phases=early), session, phase_step=0.1,
+                           cardiac_sweep=False, slice_phases=False)
+    assert off.parameters["slice_phases"] is False
+    plain = off.respiration_sweep.distances_mm
+    assert np.allclose(register(SlicePhases(z, np.full(z.size, pc), [0.0, 0.0, 1.0])), plain, atol=1e-6)
+    assert not np.allclose(register(early), plain, atol=1e-3)
