@@ -172,8 +172,8 @@ def test_the_sweep_equals_the_sweep_searching_afresh_at_every_iteration(case, he
     monkeypatch.setattr(icp_module, "PointSetTracker", Afresh)
     ref = sweep_phase(case["models"], heart_index, case["T0"], fixed_phase=PHASE_C, phases=phases)
     np.testing.assert_array_equal(fast.iterations, ref.iterations)
-    dT = fast.T_map_from_source @ np.linalg.inv(ref.T_map_from_source)
+    dT = fast.T_heart_from_probe @ np.linalg.inv(ref.T_heart_from_probe)
     centre = surface_centroid(heart_index)  # where the heart is: the correction's shift there, mm
     assert np.linalg.norm(dT[:, :3, :3] @ centre + dT[:, :3, 3] - centre, axis=1).max() < 1e-6
-    assert rotation_distance_deg(fast.T_map_from_source, ref.T_map_from_source).max() < 1e-4
+    assert rotation_distance_deg(fast.T_heart_from_probe, ref.T_heart_from_probe).max() < 1e-4
     np.testing.assert_allclose(fast.distances_mm, ref.distances_mm, rtol=0, atol=1e-9)
