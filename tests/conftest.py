@@ -27,10 +27,11 @@ settings.load_profile("heartreg")
 SAMPLE_SEED = 0
 
 
-def shared_phantom(tmp_path_factory, name: str, **options) -> tuple[Path, dict]:
-    """``make_phantom(folder, **options)`` once per test run, whichever worker asks first.
+def shared_folder(tmp_path_factory, name: str, make, done: str) -> Path:
+    """A folder made by ``make(folder)`` once per test run, whichever worker asks first.
 
-    Returns the folder and its truth. Tests read the folder, never write into it.
+    ``done`` is the file (relative to the folder) whose presence says the folder is
+    complete: ``make`` must write it last.  Tests read the folder, never write into it.
     """
     root = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):
@@ -38,8 +39,16 @@ def shared_phantom(tmp_path_factory, name: str, **options) -> tuple[Path, dict]:
     out = root / f"shared-{name}"
     with open(root / f"shared-{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
-        if not (out / "truth.json").is_file():  # make_phantom moves the case in whole, truth.json included
-            make_phantom(out, overwrite=True, **options)
+        if not (out / done).is_file():
+            make(out)
+    return out
+
+
+def shared_phantom(tmp_path_factory, name: str, **options) -> tuple[Path, dict]:
+    """``make_phantom(folder, **options)`` once per test run: the folder and its truth."""
+    # make_phantom moves the case in whole, truth.json included
+    out = shared_folder(tmp_path_factory, name, lambda out: make_phantom(out, overwrite=True, **options),
+                        "truth.json")
     return out, load_truth(out)
 
 
@@ -55,6 +64,23 @@ def full_case(tmp_path_factory):
     """A full-size phantom CT (512 x 512 x 288, 0.49 mm pixels, 0.625 mm slices)."""
     return shared_phantom(tmp_path_factory, "full_case", preset="wood2018-trial3", size="full", seed=1,
                           session=False)
+
+
+@pytest.fixture(scope="session")
+def sample_outputs(sample_case, tmp_path_factory):
+    """``heartreg phases`` and ``heartreg model`` on the sample CT with their default
+    options, once per run: the folder holding ``phases/`` and ``model/``."""
+    from heartreg.cli import main
+
+    case_dir, _ = sample_case
+
+    def make(out: Path) -> None:
+        for command in ("phases", "model"):
+            if not (out / command).exists():  # staged: a folder there is complete
+                assert main([command, str(case_dir / "ct"), "-o", str(out / command), "-q"]) == 0
+        (out / "done").write_text("")
+
+    return shared_folder(tmp_path_factory, "sample_outputs", make, "done")
 
 
 def load_truth(case_dir):
