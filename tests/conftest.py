@@ -4,6 +4,10 @@ The phantom (heartreg.phantom) is the independent ground truth: every stage is
 tested against the values in its truth.json. Under pytest-xdist (``make test``)
 the workers share one copy of each case: the first to need it writes it, the
 others wait for it (a file lock beside their temporary folders).
+
+``make test`` gives each worker a whole test file at a time (``--dist loadfile``),
+in collection order; the costliest files are collected first (``COSTLIEST_FIRST``)
+so that none of them starts last and holds the run while the other worker idles.
 """
 
 from __future__ import annotations
@@ -22,6 +26,45 @@ from heartreg.phantom import make_phantom
 # again with the same example, and the suite does not turn red by chance.
 settings.register_profile("heartreg", derandomize=True, print_blob=True)
 settings.load_profile("heartreg")
+
+#: Test files that cost the most CPU, the costliest first (measured one file at a
+#: time, user + sys of the test process and its children; a file that takes more
+#: than ~20 s belongs here).  The rest follow in pytest's own order.
+COSTLIEST_FIRST = (
+    "tests/heartreg/test_batch.py",  # two Dask clusters, seven sample-case runs
+    "tests/heartreg/test_reproduce.py",  # two trials, phantom to figures
+    "tests/heartreg/test_demo.py",  # the demo (100 points) and two pipeline commands
+    "tests/modeling/test_realct.py",  # the real CT, segmented
+    "tests/heartreg/test_kill.py",  # three commands as subprocesses, run again in-process
+    "tests/heartreg/test_track.py",  # a model from the sample CT, a registration, a replay
+    "tests/modeling/test_build.py",  # the full-size case's model
+    "tests/imaging/test_phase.py",  # the full-size case's phases
+    "tests/heartreg/test_phantom_ct.py",  # five sample CTs and the full-size case's slices
+    "tests/heartreg/test_reliability.py",
+    "tests/registration/test_pipeline.py",
+)
+
+
+def pytest_configure(config):
+    # xdist would hand out the files with the most tests first (its "loadscope
+    # reorder"); COSTLIEST_FIRST is the better order
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """The files of ``COSTLIEST_FIRST`` first, in its order; tests keep their order within a file."""
+    rank = {name: k for k, name in enumerate(COSTLIEST_FIRST)}
+    root = Path(__file__).resolve().parents[1]
+
+    def key(item):
+        try:
+            return rank.get(Path(item.path).resolve().relative_to(root).as_posix(), len(rank))
+        except ValueError:  # a file outside the repository (pytest given a path elsewhere)
+            return len(rank)
+
+    items.sort(key=key)
+
 
 #: Seed of the shared sample case; its CT has no ectopic hit (phases 0.68-0.75).
 SAMPLE_SEED = 0
