@@ -27,21 +27,30 @@ from heartreg.phantom import make_phantom
 settings.register_profile("heartreg", derandomize=True, print_blob=True)
 settings.load_profile("heartreg")
 
-#: Test files that cost the most CPU, the costliest first (measured one file at a
-#: time, user + sys of the test process and its children; a file that takes more
-#: than ~20 s belongs here).  The rest follow in pytest's own order.
+#: Test files that cost the most CPU, the costliest first: user + sys of the test
+#: process and its children, measured one file after another on a loaded machine
+#: (December 2026, the shared cases below built once; seconds).  A file that takes more than
+#: ~10 s belongs here.  The rest follow in pytest's own order.
 COSTLIEST_FIRST = (
-    "tests/heartreg/test_batch.py",  # two Dask clusters, seven sample-case runs
-    "tests/heartreg/test_reproduce.py",  # two trials, phantom to figures
-    "tests/heartreg/test_demo.py",  # the demo (100 points) and two pipeline commands
-    "tests/modeling/test_realct.py",  # the real CT, segmented
-    "tests/heartreg/test_kill.py",  # three commands as subprocesses, run again in-process
-    "tests/heartreg/test_track.py",  # a model from the sample CT, a registration, a replay
-    "tests/modeling/test_build.py",  # the full-size case's model
-    "tests/imaging/test_phase.py",  # the full-size case's phases
-    "tests/heartreg/test_phantom_ct.py",  # five sample CTs and the full-size case's slices
-    "tests/heartreg/test_reliability.py",
-    "tests/registration/test_pipeline.py",
+    "tests/heartreg/test_batch.py",  # ~90 + its killed local cluster: two Dask clusters, 7 sample-case runs
+    "tests/heartreg/test_reproduce.py",  # 98: two trials, phantom to figures, on a local Dask cluster
+    "tests/heartreg/test_demo.py",  # 83: the demo (100 points) and two pipeline commands
+    "tests/modeling/test_build.py",  # 71: writes the full-size case and models it
+    "tests/heartreg/test_kill.py",  # 64: three commands as subprocesses, run again in-process
+    "tests/registration/test_pipeline.py",  # 30
+    "tests/heartreg/test_reliability.py",  # 28
+    "tests/heartreg/test_phantom_anatomy.py",  # 25
+    "tests/heartreg/test_no_patient_data.py",  # 24
+    "tests/heartreg/test_temporal_eval.py",  # 23
+    "tests/modeling/test_realct.py",  # 23
+    "tests/modeling/test_surface.py",  # 19
+    "tests/heartreg/test_track.py",  # 18
+    "tests/registration/test_slicer.py",  # 16
+    "tests/heartreg/test_phantom_cli.py",  # 14
+    "tests/modeling/test_frame.py",  # 12
+    "tests/heartreg/test_readme_api.py",  # 12
+    "tests/heartreg/test_phantom_ct.py",  # 11 (reads the full-size case: after test_build)
+    "tests/imaging/test_phase.py",  # 10 (reads the full-size case: after test_build)
 )
 
 
