@@ -43,36 +43,33 @@ from registration.session import read_session
 
 
 @pytest.fixture(scope="module")
-def nav(sample_case, tmp_path_factory):
-    from heartreg.pipeline import open_study
-    from modeling import build_heart_model, write_model
+def nav(sample_case, sample_outputs, tmp_path_factory):
     from modeling.model import read_model
     from registration.pipeline import register_session
     from registration.report import write_registration
 
     case_dir, truth = sample_case
     root = tmp_path_factory.mktemp("track")
-    volume, report = open_study(case_dir / "ct")
-    build = build_heart_model(volume, cardiac_phase=report.volume_cardiac_phase, cardiac_phase_source=report.source)
-    model = read_model(write_model(build.model, root / "model"))
+    model_dir = sample_outputs / "model"  # ``heartreg model`` of the sample CT (default options)
+    model = read_model(model_dir)
     session = read_session(case_dir / "session")
     result = register_session(model, session, cardiac_sweep=False)
     write_registration(result, root / "registration", view=False)
     write_navigation(case_dir, out_dir=root)
     log = root / "track.csv"
-    status = main(["track", str(root / "model"), str(root / "registration"), str(case_dir / "session"),
+    status = main(["track", str(model_dir), str(root / "registration"), str(case_dir / "session"),
                    "--replay", str(root / "navigation"), "--log", str(log), "-q"])
     assert status == 0
     with open(log, newline="") as fh:
         rows = list(csv.DictReader(fh))
-    return dict(root=root, case=case_dir, truth=truth, model=model, rows=rows,
+    return dict(root=root, model_dir=model_dir, case=case_dir, truth=truth, model=model, rows=rows,
                 nav_truth=NavigationTruth.read(root, case_dir))
 
 
 @pytest.fixture(scope="module")
 def loaded(nav):
     """The tracker parts (motion models re-fitted once); ``fresh()`` gives a new tracker."""
-    tracker, _, rate = load_tracker(nav["root"] / "model", nav["root"] / "registration", nav["case"] / "session")
+    tracker, _, rate = load_tracker(nav["model_dir"], nav["root"] / "registration", nav["case"] / "session")
     return lambda: Tracker(tracker.localiser, rate, **tracker._priors)
 
 
@@ -287,10 +284,10 @@ def test_rate_limiter_and_ctrl_c(nav, loaded, tmp_path):
 
 def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
     root = nav["root"]
-    status = main(["track", str(root / "model"), str(tmp_path), str(nav["case"] / "session"), "--log", str(tmp_path / "x.csv")])
+    status = main(["track", str(nav["model_dir"]), str(tmp_path), str(nav["case"] / "session"), "--log", str(tmp_path / "x.csv")])
     assert status == 1
     assert "registration.json not found" in capsys.readouterr().err
-    status = main(["track", str(root / "model"), str(root / "registration"), str(root / "navigation"),
+    status = main(["track", str(nav["model_dir"]), str(root / "registration"), str(root / "navigation"),
                    "--log", str(tmp_path / "x.csv")])
     assert status == 1
     assert "give the session the registration was made from" in capsys.readouterr().err

@@ -22,7 +22,7 @@ import pytest
 from heartreg.cli import main
 from hrcore.output import OutputError
 from heartreg.phantom import config as phantom_config
-from heartreg.phantom import layout, make_phantom
+from heartreg.phantom import layout
 from modeling.model import ModelError, make_heart_model, read_model, write_model
 from modeling.surface import Mesh
 from registration.pipeline import RegistrationError, register_session, sweep_phases
@@ -37,9 +37,11 @@ N_POINTS = 30
 
 
 @pytest.fixture(scope="module")
-def case(tmp_path_factory):
+def case(sample_case, tmp_path_factory):
+    # the session-wide sample case: trial 1, sample size, seed 0, 30 points (read only)
+    phantom, truth = sample_case
+    assert (truth["preset"], truth["size"], truth["seed"], truth["config"]["n_points"]) == (PRESET, "sample", 0, N_POINTS)
     root = tmp_path_factory.mktemp("pipeline")
-    truth = make_phantom(root / "phantom", preset=PRESET, size="sample", seed=0, n_points=N_POINTS)
     heart = layout.make_heart(phantom_config.PRESETS[PRESET])
     vertices, faces = heart_grid_mesh(heart, truth["cardiac_phase"], truth["respiration_phase"])
     built = make_heart_model(
@@ -49,11 +51,11 @@ def case(tmp_path_factory):
         fiducials_patient_mm=truth["fiducials_patient_mm"],
     )
     model = read_model(write_model(built, root / "model"))
-    session = read_session(root / "phantom" / "session")
+    session = read_session(phantom / "session")
     result = register_session(model, session, cardiac_phase_step=0.05)
     paths = write_registration(result, root / "out", model=model)
     T_true = model.T_heart_from_patient @ np.asarray(truth["T_patient_from_probe"])
-    return dict(root=root, truth=truth, model=model, session=session, result=result, paths=paths,
+    return dict(root=root, phantom=phantom, truth=truth, model=model, session=session, result=result, paths=paths,
                 T_true=T_true)
 
 
@@ -156,7 +158,8 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
     # the 3-D view is drawn, or skipped with a reason (no offscreen OpenGL)
     assert (out / "fig8_view.png").is_file() or any("fig8" in n for n in case["paths"]["notes"])
     text = (out / "registration.json").read_text()
-    assert str(case["root"]) not in text  # no paths (a folder name can identify a patient)
+    # no paths (a folder name can identify a patient): neither the output's nor the session's
+    assert str(case["root"]) not in text and str(case["phantom"]) not in text
 
 
 def _assert_same(a, b, where="result"):
@@ -278,7 +281,7 @@ def test_bad_registration_files_are_one_line_naming_the_file(case, tmp_path, dam
 
 def test_cli_register_end_to_end(case, tmp_path, capsys):
     out = tmp_path / "reg"
-    rc = main(["register", str(case["root"] / "model"), str(case["root"] / "phantom" / "session"),
+    rc = main(["register", str(case["root"] / "model"), str(case["phantom"] / "session"),
                "-o", str(out), "--step", "0.05", "--no-view", "-q"])
     assert rc == 0
     text = capsys.readouterr().out
@@ -289,7 +292,7 @@ def test_cli_register_end_to_end(case, tmp_path, capsys):
     assert abs(data["respiration_phase"] - case["truth"]["respiration_phase"]) <= 0.05
     # the same inputs give the same bytes; a second run into the folder needs --overwrite
     first = {p.name: p.read_bytes() for p in out.iterdir() if p.suffix in (".json", ".csv")}
-    args = ["register", str(case["root"] / "model"), str(case["root"] / "phantom" / "session"),
+    args = ["register", str(case["root"] / "model"), str(case["phantom"] / "session"),
             "-o", str(out), "--step", "0.05", "--no-view", "-q"]
     assert main(args) == 1 and "--overwrite" in capsys.readouterr().err
     assert main(args + ["--overwrite"]) == 0
@@ -297,7 +300,7 @@ def test_cli_register_end_to_end(case, tmp_path, capsys):
 
 
 def test_cli_missing_model_folder_is_one_clear_line(case, tmp_path, capsys):
-    rc = main(["register", str(tmp_path / "nope"), str(case["root"] / "phantom" / "session"),
+    rc = main(["register", str(tmp_path / "nope"), str(case["phantom"] / "session"),
                "-o", str(tmp_path / "out")])
     assert rc == 1
     err = capsys.readouterr().err
@@ -315,7 +318,7 @@ def test_fiducial_count_mismatch_is_an_error(case, tmp_path):
         register_session(no_fid, case["session"], cardiac_sweep=False)
     # a session folder that lists 8 touched staples is refused by the reader
     session_dir = tmp_path / "session"
-    shutil.copytree(case["root"] / "phantom" / "session", session_dir)
+    shutil.copytree(case["phantom"] / "session", session_dir)
     lines = (session_dir / "fiducials.csv").read_text().splitlines()
     (session_dir / "fiducials.csv").write_text("\n".join(lines[:-1]) + "\n")
     with pytest.raises(SessionError, match="fiducials.csv"):
@@ -329,7 +332,7 @@ def _truncate(path: Path, seconds: float, rate_hz: float = 100.0):
 
 def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     session_dir = tmp_path / "session"
-    shutil.copytree(case["root"] / "phantom" / "session", session_dir)
+    shutil.copytree(case["phantom"] / "session", session_dir)
     _truncate(session_dir / "points" / "point_000.csv", 8.0)   # reader: shorter than 10 s
     _truncate(session_dir / "points" / "point_001.csv", 12.0)  # at most 2 breaths of 5 s
     session = read_session(session_dir)
