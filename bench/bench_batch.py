@@ -9,7 +9,7 @@ through the batch's own machinery (:func:`heartreg.batch.open_client`,
 fresh local cluster of 1, then 2 worker processes (one thread each), into a
 fresh output folder each run.  Timed: from the first case submitted to the
 last record back (cases per minute); the cluster's start and the workers'
-imports (done once by a warm-up call on every worker) are not, and are given
+start-up (imports and the offscreen-OpenGL probe, done once by a warm-up call on every worker) are not, and are given
 in the notes.  Peak memory: each worker process's own peak RSS
 (``getrusage(RUSAGE_SELF).ru_maxrss``, asked of every worker after the run);
 the table gives the largest.
@@ -27,13 +27,27 @@ import common
 
 
 def _warm_up() -> float:
-    """Import what a case needs (on a worker); return the seconds it took."""
+    """A worker's start-up (on a worker): import what a case needs (the modules the stages import
+    on first use too) and probe offscreen OpenGL.
+
+    The probe (a child process drawing one picture, ~3 s of CPU) runs once per
+    worker process, whatever the number of cases; left in the timing, it
+    falls on the first case, beside the other worker's work.  Returns the seconds.
+    """
     t = time.perf_counter()
     import heartreg.cli  # noqa: F401
     import imaging  # noqa: F401
     import modeling  # noqa: F401
     import registration  # noqa: F401
+    import fast_simplification  # noqa: F401 - what the model stage imports on first use
+    import matplotlib.figure  # noqa: F401
+    import pymeshlab
+    import pyvista  # noqa: F401
+    import skimage.measure  # noqa: F401
+    from modeling.render import offscreen_available
 
+    pymeshlab.MeshSet()  # loads its plugins (~0.7 s), once per process
+    offscreen_available()
     return time.perf_counter() - t
 
 
@@ -94,7 +108,7 @@ def main(argv=None) -> int:
             rates[workers] = 60 * args.cases / timing.median_s
             notes = (f"{rates[workers]:.1f} cases/min; per-worker peak "
                      f"{', '.join(f'{m:.0f}' for m in done[-1]['peak_mb'])} MB; cluster start "
-                     f"{done[-1]['start_s']:.1f} s and worker imports {done[-1]['imports_s']:.1f} s not timed")
+                     f"{done[-1]['start_s']:.1f} s and worker start-up (imports, offscreen probe) {done[-1]['imports_s']:.1f} s not timed")
             if workers == 2:
                 notes += f"; scaling {rates[2] / rates[1]:.2f}x over 1 worker"
             rows.append(common.Row(

@@ -26,3 +26,14 @@ def test_release_free_memory_returns_freed_heap():
     assert release_free_memory() is True
     assert _rss_mb() < held - 300  # at least 300 of the 480 MB given back
     assert _rss_mb() < before + 100
+
+
+def test_no_explicit_trim_where_glibc_is_told_when_to_trim(monkeypatch):
+    import hrcore.memory as memory
+
+    calls = []
+    monkeypatch.setattr(memory, "_malloc_trim", lambda: lambda pad: calls.append(pad) or 1)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")  # as Dask's nanny sets it for its workers
+    assert memory.release_free_memory() is False and calls == []
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    assert memory.release_free_memory() is True and calls == [0]
