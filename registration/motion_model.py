@@ -412,14 +412,24 @@ def predict_positions(models: Sequence[MotionModel], phase_c, phase_r) -> np.nda
     -------
     (m, n, 3) float64, mm, probe frame
     """
+    return predict_from_design(models, design_matrix(phase_c, phase_r, common_harmonics(models)))
+
+
+def common_harmonics(models: Sequence[MotionModel]) -> Harmonics:
+    """The harmonics every model shares (a prediction needs one design matrix)."""
     if len(models) == 0:
         raise ValueError("models must not be empty")
     h = models[0].harmonics
     if any(m.harmonics != h for m in models):
         raise ValueError("all models must have the same harmonics")
-    X = design_matrix(phase_c, phase_r, h)  # (m, k)
+    return h
+
+
+def predict_from_design(models: Sequence[MotionModel], X) -> np.ndarray:
+    """(m, n, 3) positions, probe frame, from the regressors ``X``: (m, k), the same
+    phase pairs for every point, or (n, m, k), each point at its own phases."""
     W = np.stack([m.coef_translation for m in models])  # (n, k, 3)
     R = np.stack([m.mean_rotation for m in models])  # (n, 3, 3)
     t = np.stack([m.mean_position_mm for m in models])  # (n, 3)
-    local = np.einsum("mk,nkj->mnj", X, W)
+    local = np.einsum("mk,nkj->mnj" if np.ndim(X) == 2 else "nmk,nkj->mnj", X, W)
     return t[None] + np.einsum("nij,mnj->mni", R, local)

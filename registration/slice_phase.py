@@ -86,17 +86,12 @@ def predict_at_point_phases(models, point_phases_c, phases_r) -> np.ndarray:
     -------
     (m, n, 3) float64, mm, source (probe) frame
     """
-    from registration.motion_model import design_matrix
+    from registration.motion_model import common_harmonics, design_matrix, predict_from_design
 
     models = list(models)
     pc = np.asarray(point_phases_c, dtype=float).ravel()
     pr = np.atleast_1d(np.asarray(phases_r, dtype=float))
     if pc.shape != (len(models),):
         raise ValueError(f"point_phases_c must have shape ({len(models)},), got {pc.shape}")
-    h = models[0].harmonics
-    X = design_matrix(np.repeat(pc, pr.size), np.tile(pr, pc.size), h).reshape(pc.size, pr.size, -1)
-    W = np.stack([m.coef_translation for m in models])  # (n, k, 3)
-    R = np.stack([m.mean_rotation for m in models])
-    t = np.stack([m.mean_position_mm for m in models])
-    local = np.einsum("nmk,nkj->mnj", X, W)
-    return t[None] + np.einsum("nij,mnj->mni", R, local)
+    X = design_matrix(np.repeat(pc, pr.size), np.tile(pr, pc.size), common_harmonics(models))
+    return predict_from_design(models, X.reshape(pc.size, pr.size, -1))
