@@ -6,7 +6,7 @@ lists), that can be a hundred MB or more that no later stage reuses, and every
 later stage's peak sits on top of it.  :func:`release_free_memory` asks glibc
 to return it (``malloc_trim``); elsewhere it does nothing.
 
-A process whose environment sets ``MALLOC_TRIM_THRESHOLD_`` (Dask's nanny
+A process started with ``MALLOC_TRIM_THRESHOLD_`` in its environment (Dask's nanny
 sets it for every worker, with ``distributed.nanny.pre-spawn-environ``) has
 told glibc when to give memory back, and that also turns off glibc's rising
 mmap threshold: large arrays then live in mappings of their own and go back
@@ -19,7 +19,6 @@ ran 1.54x faster than on one with it and 1.84x without it
 from __future__ import annotations
 
 import ctypes
-import os
 import functools
 
 __all__ = ["release_free_memory"]
@@ -36,6 +35,20 @@ def _malloc_trim():
     return fn
 
 
+@functools.lru_cache(maxsize=1)
+def _glibc_trims_by_itself() -> bool:
+    """Whether this process *started* with ``MALLOC_TRIM_THRESHOLD_`` set.
+
+    glibc reads it once, at start-up, so the environment as it is now does
+    not tell: Dask sets it in the parent process while it spawns workers.
+    """
+    try:
+        with open("/proc/self/environ", "rb") as f:
+            return b"\0MALLOC_TRIM_THRESHOLD_=" in b"\0" + f.read()
+    except OSError:  # not Linux: no malloc_trim either
+        return False
+
+
 def release_free_memory() -> bool:
     """Return the heap's free pages to the system (glibc ``malloc_trim(0)``, ~10 ms).
 
@@ -45,7 +58,7 @@ def release_free_memory() -> bool:
         Whether any memory was returned (False where the C library has no
         ``malloc_trim`` or ``MALLOC_TRIM_THRESHOLD_`` is set).
     """
-    if os.environ.get("MALLOC_TRIM_THRESHOLD_"):  # glibc trims by itself (the module docstring)
+    if _glibc_trims_by_itself():  # the module docstring
         return False
     fn = _malloc_trim()
     return bool(fn(0)) if fn is not None else False

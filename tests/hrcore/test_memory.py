@@ -33,7 +33,20 @@ def test_no_explicit_trim_where_glibc_is_told_when_to_trim(monkeypatch):
 
     calls = []
     monkeypatch.setattr(memory, "_malloc_trim", lambda: lambda pad: calls.append(pad) or 1)
-    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")  # as Dask's nanny sets it for its workers
+    monkeypatch.setattr(memory, "_glibc_trims_by_itself", lambda: True)  # a Dask worker's start
     assert memory.release_free_memory() is False and calls == []
-    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    monkeypatch.setattr(memory, "_glibc_trims_by_itself", lambda: False)
     assert memory.release_free_memory() is True and calls == [0]
+
+
+def test_the_start_environment_decides_not_the_current_one(monkeypatch):
+    import subprocess
+
+    import hrcore.memory as memory
+
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")  # set now, after this process started
+    memory._glibc_trims_by_itself.cache_clear()
+    assert memory._glibc_trims_by_itself() is False
+    code = "import hrcore.memory as m; print(m._glibc_trims_by_itself())"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "True"  # a process started with it
