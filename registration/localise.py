@@ -427,7 +427,7 @@ def registered_models(session, point_ids, *, harmonics, coverage_bins: int = 10)
 
     from imaging.events import SignalError
     from registration.motion_model import CoverageWarning, fit_motion_model
-    from registration.pipeline import point_phases
+    from registration.point_models import point_phases
 
     by_id = {r.point_id: r for r in session.points}
     models = []

@@ -1,22 +1,11 @@
 """The registration pipeline: a heart model and a session in, one registration out.
 
-Wood et al. 2018, sections 2.2.4, 2.2.5 and 2.3.  For every attachment point of
-the session:
-
-1. R-peaks are detected in the point's ECG (:func:`imaging.ecg.detect_r_peaks`)
-   and the cardiac phase of each sample follows from them; the starts of
-   expiration are found in the ventilator flows
-   (:func:`imaging.respiration.expiration_onsets`) and give the respiration
-   phase.  Samples outside the covered events have no phase (NaN): they are
-   dropped and counted, never extrapolated.
-2. A point with fewer than ``min_beats`` complete heartbeats or ``min_breaths``
-   complete breaths, or whose signals give no events at all, is *excluded* and
-   the reason is recorded (never silently).
-3. The AM dual Fourier model (paper eq. 6-8) is fitted by linear least squares;
-   phases that leave part of the cycle empty are recorded as a note.
-
-Then the fiducial registration ``T0`` (heart frame <- probe frame) of the
-touched staples onto the model's fiducials, the sweep over the respiration
+Wood et al. 2018, sections 2.2.4, 2.2.5 and 2.3.  The phases and motion
+model of every attachment point of the session
+(:func:`registration.point_models.fit_point_models`: points without enough
+heartbeats or breaths are excluded with the reason, never silently); the
+fiducial registration ``T0`` (heart frame <- probe frame) of the touched
+staples onto the model's fiducials; the sweep over the respiration
 phase at the map's cardiac phase phi_C* with the empirical phi_R* of eq. 10,
 the sweep over the cardiac phase at phi_R* (paper Fig. 2A), the final
 ``T_heart_from_probe`` with the ICP's degeneracy report, and the comparison
@@ -26,29 +15,22 @@ with the static (mean-position) registration (paper 2.3.2).
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from hrcore.errors import HeartregError, UsageError
 from hrcore.geometry import apply_to_points, frozen
-from imaging.ecg import cardiac_phase, detect_r_peaks
 from imaging.events import SignalError
 from imaging.respiration import expiration_onsets, respiration_phase
 from modeling.model import HeartModel
 from registration.fiducial import FiducialError, register_fiducials
 from registration.options import MIN_BEATS, MIN_BREATHS, RegistrationOptions
 from registration.icp import SurfaceIndex, icp
-from registration.motion_model import (
-    CoverageWarning,
-    MotionModel,
-    MotionModelError,
-    fit_motion_model,
-)
-from registration.plausibility import assess_coverage, assess_trust, outlier_samples
-from registration.result import IcpReport, PointFit, RegistrationResult
-from registration.session import PointRecord, Session
+from registration.plausibility import assess_coverage, assess_trust
+from registration.result import IcpReport, RegistrationResult
+from registration.point_models import fit_point_models
+from registration.session import Session
 from registration.slice_phase import point_cardiac_phases, predict_at_point_phases
 from registration.spatiotemporal import (
     compare_static,
@@ -68,7 +50,6 @@ from registration.transforms import euler_xyz_deg_from_matrix
 __all__ = [
     "RegistrationError",
     "sweep_phases",
-    "point_phases",
     "register_session",
     "MIN_BEATS",
     "MIN_BREATHS",
@@ -107,97 +88,6 @@ def sweep_phases(step: float) -> np.ndarray:
     return np.linspace(0.0, 1.0, int(round(n)) + 1)
 
 
-def point_phases(record: PointRecord):
-    """Cardiac and respiration phase of every sample of one record.
-
-    Parameters
-    ----------
-    record : PointRecord
-
-    Returns
-    -------
-    phase_c, phase_r : (n,) float64, cycles
-        NaN where the phase is undefined.
-    r_peaks_s, onsets_s : (m,) float64, s
-        Detected R-peaks and starts of expiration.
-
-    Raises
-    ------
-    imaging.events.SignalError
-        The ECG or the flows give fewer than two events.
-    """
-    t = record.time_s
-    peaks = detect_r_peaks(record.ecg_mv, record.rate_hz, start_s=float(t[0]))
-    onsets = expiration_onsets(
-        rate_hz=record.rate_hz,
-        flow_exp_lpm=record.flow_exp_lpm,
-        flow_insp_lpm=record.flow_insp_lpm,
-        start_s=float(t[0]),
-    )
-    return cardiac_phase(t, peaks.times_s), respiration_phase(t, onsets), peaks.times_s, onsets
-
-
-def _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins):
-    """(MotionModel, PointFit) or raise _Excluded(reason)."""
-    try:
-        phase_c, phase_r, peaks, onsets = point_phases(record)
-    except SignalError as exc:
-        raise _Excluded(f"{record.file}: {exc}") from None
-    n_beats, n_breaths = peaks.size - 1, onsets.size - 1
-    if n_beats < min_beats:
-        raise _Excluded(
-            f"{record.file}: {n_beats} complete heartbeat(s) detected, fewer than "
-            f"min_beats = {min_beats}; record longer or check the ECG lead"
-        )
-    if n_breaths < min_breaths:
-        raise _Excluded(
-            f"{record.file}: {n_breaths} complete breath(s) detected, fewer than "
-            f"min_breaths = {min_breaths}; record at least {min_breaths + 1} starts of expiration"
-        )
-    notes = []
-    outliers = outlier_samples(record.T_probe_from_robot[:, :3, 3], record.rate_hz)
-    if outliers.any():  # tracker glitches: a NaN phase leaves the sample out of the fit
-        phase_c = np.where(outliers, np.nan, phase_c)
-        notes.append(
-            f"point {record.point_id}: {int(outliers.sum())} outlier sample(s) (robot position far from "
-            f"its running median, first at t = {float(record.time_s[outliers][0]):.2f} s) left out of its motion model"
-        )
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", CoverageWarning)
-        try:
-            model = fit_motion_model(
-                phase_c, phase_r, record.T_probe_from_robot,
-                harmonics=harmonics, coverage_bins=coverage_bins,
-            )
-        except MotionModelError as exc:
-            raise _Excluded(f"{record.file}: {exc}") from None
-    for w in caught:
-        if issubclass(w.category, CoverageWarning):
-            notes.append(f"point {record.point_id}: {w.message}")
-    fit = PointFit(
-        point_id=record.point_id,
-        surface_point=record.surface_point,
-        n_samples=record.n_samples,
-        n_used=model.n_samples,
-        n_nan_phase=model.n_dropped,
-        n_beats=int(n_beats),
-        n_breaths=int(n_breaths),
-        heart_rate_hz=float(n_beats / (peaks[-1] - peaks[0])),
-        resp_rate_hz=float(n_breaths / (onsets[-1] - onsets[0])),
-        residual_rms_mm=frozen(model.residual_rms_mm),
-        residual_rms_3d_mm=float(model.residual_rms_3d_mm),
-        residual_rms_deg=float(model.residual_rms_deg),
-        condition_number=float(model.condition_number),
-        notes=tuple(notes),
-        n_outlier_samples=int(outliers.sum()),
-    )
-    return model, fit
-
-
-class _Excluded(Exception):
-    """Internal: a point left out, with the reason as message."""
-
-
 #: ICP's iteration limit when ``icp_options`` gives none (``registration.icp.icp``).
 ICP_MAX_ITERATIONS = 50
 
@@ -222,14 +112,6 @@ def _trace_curve(trace, fid_model, phases, order):
     )
     phase_r = respiration_phase(trace.time_s, onsets)
     return fiducial_curve(trace.fiducial, trace.stylus_probe_mm, phase_r, fid_model, phases, order=order)
-
-
-def _progress(enabled: bool, total: int, desc: str):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="point", leave=False)
 
 
 def register_session(
@@ -344,25 +226,11 @@ def register_session(
 
     # ---- phases and motion models per point
     t = time.perf_counter()
-    exclusions = list(session.exclusions)
-    models: list[MotionModel] = []
-    fits: list[PointFit] = []
-    bar = _progress(progress, len(session.points), "motion models")
-    try:
-        for record in session.points:
-            try:
-                m, f = _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins)
-            except _Excluded as exc:
-                exclusions.append((record.point_id, str(exc)))
-            else:
-                models.append(m)
-                fits.append(f)
-                notes.extend(f.notes)
-            if bar is not None:
-                bar.update()
-    finally:
-        if bar is not None:
-            bar.close()
+    models, fits, exclusions, point_notes = fit_point_models(
+        session, harmonics, min_beats=min_beats, min_breaths=min_breaths, coverage_bins=coverage_bins,
+        progress=progress,
+    )
+    notes.extend(point_notes)
     timings["motion_models"] = time.perf_counter() - t
     if len(models) < 3:
         reasons = "; ".join(f"point {i}: {r}" for i, r in exclusions[:5])

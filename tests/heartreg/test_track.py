@@ -38,7 +38,7 @@ from heartreg.track import (
     session_chunks,
 )
 from registration.online import CausalPhases
-from registration.pipeline import point_phases
+from registration.point_models import point_phases
 from registration.session import read_session
 
 
