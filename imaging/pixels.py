@@ -13,7 +13,8 @@ import numpy as np
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-from .discover import DEFLATED_UID, _Frame
+from .dicom_file import DEFLATED_UID
+from .discover import _Frame
 from hrcore.errors import HeartregError
 from .volume import OUTSIDE_HU, SeriesError, _files_text, _Plan
 
