@@ -1,4 +1,4 @@
-"""The layering of DESIGN.md section 2, checked on every module's imports.
+"""The layering of DESIGN.md section 2, checked on every module's imports, and module sizes.
 
 Imports only point down ``heartreg -> registration -> modeling -> imaging ->
 hrcore``; the phantom (``heartreg.phantom``) is the independent ground truth and
@@ -83,3 +83,17 @@ def test_every_domain_error_derives_from_heartregerror():
                 ):
                     outside.append(f"{module.__name__}.{name}")
     assert not outside, "errors outside the HeartregError family: " + ", ".join(outside)
+
+
+#: Issue 11: modules of one concept each, "under ~500 lines".
+MAX_MODULE_LINES = 500
+
+
+def test_every_module_stays_under_the_size_limit():
+    long = []
+    for package in sorted(ALLOWED):
+        for path in _modules(package):
+            n = len(path.read_text(encoding="utf-8").splitlines())
+            if n > MAX_MODULE_LINES:
+                long.append(f"{path.relative_to(ROOT)}: {n} lines")
+    assert not long, f"modules over {MAX_MODULE_LINES} lines (split by concept):\n" + "\n".join(long)
