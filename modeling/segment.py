@@ -20,8 +20,11 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    opening by ``heart_radius_mm`` (larger than any vessel's radius, smaller than
    the heart's) gives the heart body; of what it leaves out, branches reaching
    farther than ``vessel_length_mm`` from the body are tubes leaving the heart
-   (ascending aorta, pulmonary trunk, venae cavae) and are cut
-   ``vessel_root_mm`` from the body; shorter ones (apex, auricles) are kept.
+   (ascending aorta, pulmonary trunk, venae cavae; without contrast also the
+   atria with them, and the liver under the diaphragm), followed out from the
+   body while thicker than ``chamber_radius_mm`` and cut where they get
+   thinner, at least ``vessel_root_mm`` from the body; shorter ones (apex,
+   auricles) are kept.
    The full-resolution tissue mask within ``margin_mm`` of the result is the
    heart, holes filled;
 6. *remove the great vessels' lumen down to their valves* (contrast CT only):
