@@ -198,8 +198,10 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
     the body in shells :data:`ROOT_SHELL_MM` thick, the branch is still heart
     (an atrium, the outflow tract: thicker than a vessel) while some voxel of
     the shell lies deeper than ``chamber_radius_mm`` inside ``body``; the
-    branch is cut at the first thinner shell, and never nearer the body than
-    ``root_mm``.  Without contrast the atria and the great vessels form one
+    branch is cut at the first thinner shell, never nearer the body than
+    ``root_mm`` and never farther than ``2 * heart_radius_mm`` (an atrium
+    reaches about one body-ball diameter past the ventricles; a liver pressed
+    broadly against the heart has no thin shell).  Without contrast the atria and the great vessels form one
     branch of soft tissue, and the heart's contact with the liver another
     (the diaphragm is its narrowest shell); with a fixed cut the atria went
     with the vessels.  Shorter branches (apex, auricles, the corners of the
@@ -239,7 +241,8 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
         branch = labels == label
         thickest = np.zeros(int(shell[branch].max()) + 2)
         np.maximum.at(thickest, shell[branch], depth[branch])
-        root = max(root_mm, float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM)
+        thick_mm = float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM
+        root = max(root_mm, min(thick_mm, 2.0 * heart_radius_mm))
         cut |= branch & (distance > root)
         cuts_mm.append(root)
     kept = _largest_component(body & ~cut)
