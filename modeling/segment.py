@@ -20,8 +20,11 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    opening by ``heart_radius_mm`` (larger than any vessel's radius, smaller than
    the heart's) gives the heart body; of what it leaves out, branches reaching
    farther than ``vessel_length_mm`` from the body are tubes leaving the heart
-   (ascending aorta, pulmonary trunk, venae cavae) and are cut
-   ``vessel_root_mm`` from the body; shorter ones (apex, auricles) are kept.
+   (ascending aorta, pulmonary trunk, venae cavae; without contrast also the
+   atria with them, and the liver under the diaphragm), followed out from the
+   body while thicker than ``chamber_radius_mm`` and cut where they get
+   thinner, at least ``vessel_root_mm`` from the body; shorter ones (apex,
+   auricles) are kept.
    The full-resolution tissue mask within ``margin_mm`` of the result is the
    heart, holes filled;
 6. *remove the great vessels' lumen down to their valves* (contrast CT only):
@@ -44,6 +47,9 @@ from modeling.distance import distance_mm
 from modeling.greatvessels import trace_great_vessels
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
+
+#: Thickness (mm) of the distance shells in which a great-vessel branch's radius is followed out from the heart body.
+ROOT_SHELL_MM = 5.0
 
 
 class SegmentationError(HeartregError, ValueError):
@@ -182,15 +188,24 @@ def _mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
     return seed, between
 
 
-def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm):
+def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm, chamber_radius_mm):
     """Cut the tubes leaving the heart body at their root, whatever their calibre.
 
     The heart body is what an opening by a ball of ``heart_radius_mm`` keeps
     (thicker than any great vessel); the rest of ``body`` are its branches and
     corners.  A branch (connected component of the rest) that reaches farther
-    than ``vessel_length_mm`` from the body is a vessel: its voxels farther than
-    ``root_mm`` from the body are removed.  Shorter branches (apex, auricles,
-    the corners of the ventricles) are kept whole.
+    than ``vessel_length_mm`` from the body holds a vessel.  Walking out from
+    the body in shells :data:`ROOT_SHELL_MM` thick, the branch is still heart
+    (an atrium, the outflow tract: thicker than a vessel) while some voxel of
+    the shell lies deeper than ``chamber_radius_mm`` inside ``body``; the
+    branch is cut at the first thinner shell, never nearer the body than
+    ``root_mm`` and never farther than ``2 * heart_radius_mm`` (an atrium
+    reaches about one body-ball diameter past the ventricles; a liver pressed
+    broadly against the heart has no thin shell).  Without contrast the atria and the great vessels form one
+    branch of soft tissue, and the heart's contact with the liver another
+    (the diaphragm is its narrowest shell); with a fixed cut the atria went
+    with the vessels.  Shorter branches (apex, auricles, the corners of the
+    ventricles) are kept whole.
 
     Returns
     -------
@@ -217,13 +232,26 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
     vessels = np.flatnonzero(np.asarray(reach) > vessel_length_mm) + 1
     if vessels.size == 0:
         return body, f"vessel cut: no branch reaches farther than {vessel_length_mm:.0f} mm from the heart body"
-    cut = np.isin(labels, vessels) & (distance > root_mm)
+    depth = distance_mm(body, spacing_kji)
+    shell = (distance // ROOT_SHELL_MM).astype(np.int64)
+    cut = np.zeros_like(body)
+    order = np.argsort(-np.asarray(reach)[vessels - 1])
+    cuts_mm = []
+    for label in vessels[order]:
+        branch = labels == label
+        thickest = np.zeros(int(shell[branch].max()) + 2)
+        np.maximum.at(thickest, shell[branch], depth[branch])
+        thick_mm = float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM
+        root = max(root_mm, min(thick_mm, 2.0 * heart_radius_mm))
+        cut |= branch & (distance > root)
+        cuts_mm.append(root)
     kept = _largest_component(body & ~cut)
     removed_ml = float((body & ~kept).sum() * np.prod(spacing_kji) / 1000.0)
     return kept, (
         f"great vessels cut at their root: {vessels.size} branch(es) reaching "
-        f"{', '.join(f'{r:.0f}' for r in sorted(np.asarray(reach)[vessels - 1], reverse=True))} mm from the "
-        f"heart body, cut {root_mm:.0f} mm from it ({removed_ml:.0f} ml removed)"
+        f"{', '.join(f'{r:.0f}' for r in np.asarray(reach)[vessels - 1][order])} mm from the "
+        f"heart body, cut {', '.join(f'{c:.0f}' for c in cuts_mm)} mm from it where thinner than "
+        f"{chamber_radius_mm:.0f} mm in radius ({removed_ml:.0f} ml removed)"
     )
 
 
@@ -239,6 +267,7 @@ def segment_heart(
     heart_radius_mm: float = 20.0,
     vessel_length_mm: float = 25.0,
     vessel_root_mm: float = 10.0,
+    chamber_radius_mm: float = 17.0,
     margin_mm: float = 1.0,
     smooth_mm: float = 0.6,
     coarse_mm: float = 2.0,
@@ -276,6 +305,11 @@ def segment_heart(
         Vessels are cut this far from the heart body (at their root); their
         contrast lumen is traced to the valves apart (``trace_vessels``), so
         this tissue-level cut keeps off the atrial roofs and the outflow tract.
+    chamber_radius_mm : float
+        A branch of the heart body is followed out while it is thicker than
+        this (an atrium, 18-25 mm in inscribed radius; a great vessel with its
+        wall, at most ~16 mm) and cut where it gets thinner, at the earliest
+        ``vessel_root_mm`` from the body.
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
@@ -394,7 +428,7 @@ def segment_heart(
     core = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
     core, cut_note = _cut_great_vessels(
         core, seed_mask[box], cspacing, heart_radius_mm=heart_radius_mm,
-        vessel_length_mm=vessel_length_mm, root_mm=vessel_root_mm,
+        vessel_length_mm=vessel_length_mm, root_mm=vessel_root_mm, chamber_radius_mm=chamber_radius_mm,
     )
     notes.append(cut_note)
     reach = margin_mm + 0.5 * float(np.max(cspacing))
@@ -428,7 +462,7 @@ def segment_heart(
     parameters = dict(
         hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), vessel_radius_mm=vessel_radius_mm,
         heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm, vessel_root_mm=vessel_root_mm,
-        margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
+        chamber_radius_mm=chamber_radius_mm, margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
         min_pool_radius_mm=min_pool_radius_mm, lung_hu=lung_hu, soft_hu=list(soft_hu), contrast=contrast,
         trace_vessels=trace_vessels,
         seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),

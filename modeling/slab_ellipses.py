@@ -150,6 +150,7 @@ def _fit_slabs(v: np.ndarray, z: np.ndarray, slab_mm: float, min_points: int):
         c2, minor2 = fit["centre"], fit["minor"]
         out.append(
             {
+                "slab": k,
                 "centre": c2[0] * e1 + c2[1] * e2 + t[sel].mean() * z,
                 "minor": minor2[0] * e1 + minor2[1] * e2,
                 "a": fit["a"],
@@ -159,6 +160,26 @@ def _fit_slabs(v: np.ndarray, z: np.ndarray, slab_mm: float, min_points: int):
             }
         )
     return out, rejected
+
+
+def _longest_run(slabs: list) -> list:
+    """The longest run of accepted slabs with no rejected slab between them.
+
+    ``slabs`` as returned by :func:`_fit_slabs` (in slab order); ties go to the
+    run with more vertices. A run ends where a slab's cross-section is no
+    single ellipse (the base, where atria and great vessels divide the
+    section), so what lies beyond such a gap -- a vessel stub, an atrial roof
+    -- does not tilt the line through the body's centres.
+    """
+    runs = []
+    for s in slabs:
+        if runs and s["slab"] == runs[-1][-1]["slab"] + 1:
+            runs[-1].append(s)
+        else:
+            runs.append([s])
+    if not runs:
+        return []
+    return max(runs, key=lambda run: (len(run), sum(s["n"] for s in run)))
 
 
 def _fit_ellipse(pts: np.ndarray):

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from heartreg.phantom import config
 from modeling.frame import FrameError, fit_heart_frame
+from modeling.slab_ellipses import _fit_line, _fit_slabs
 
 from .conftest import WOOD_PRESETS, heart_of
 
@@ -88,6 +89,20 @@ def test_pointed_end_is_apex():
     frame = fit_heart_frame(v @ R.T)
     assert frame.base_rule == "cross-section"
     assert _angle_deg(frame.axes_patient[:, 2], R[:, 2]) < 0.5
+
+
+def test_stub_beyond_a_gap_does_not_tilt_the_axis():
+    """A vessel stub past the base, off the axis, with an empty slab between: only the body's run of slabs counts."""
+    body = _ellipsoid((20.0, 30.0, 60.0))
+    a, h = np.meshgrid(np.linspace(0, 2 * np.pi, 40, endpoint=False), np.linspace(72.0, 100.0, 30), indexing="ij")
+    stub = np.stack([25.0 + 8.0 * np.cos(a), 8.0 * np.sin(a), h], axis=-1).reshape(-1, 3)
+    v = np.concatenate([body, stub])
+    frame = fit_heart_frame(v, base_hint=[0.0, 0.0, 1.0])
+    assert _angle_deg(frame.axes_patient[:, 2], np.array([0.0, 0.0, 1.0])) < 0.5
+    assert max(e.height_mm for e in frame.ellipses) < 60.0 - frame.origin_patient_mm[2]  # no stub ellipse
+    # every accepted slab on the line, the stub tilts it
+    slabs, _ = _fit_slabs(v, frame.axes_patient[:, 2], 10.0, 30)
+    assert _angle_deg(_fit_line([s["centre"] for s in slabs])[1], np.array([0.0, 0.0, 1.0])) > 3.0
 
 
 @settings(max_examples=15, deadline=None)

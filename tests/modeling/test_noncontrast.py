@@ -65,11 +65,17 @@ def test_no_contrast_seeds_between_the_lungs(chest4):
     assert any("no contrast vessels leave the heart" in w for w in caught)
 
 
-@pytest.mark.xfail(strict=True, reason="not reached: without contrast the heart (10 mm slices) is found only in part "
-                   "(~360 ml: the lower ventricles; the atria are lost with the upper mediastinum in the vessel cut) "
-                   "and its apex then points right")
 def test_heart_volume_and_apex(chest4):
+    """Issue 9: an adult heart's volume, the apex towards patient left-anterior-inferior.
+
+    Measured 447 ml, apex . LAI 0.98.  The soft tissue between the lungs holds the heart, the liver's dome
+    beneath the diaphragm and the great vessels above it: two long branches of the heart body.  Cut 10 mm from
+    the body (as before), the atria went with the vessels (362 ml, the lower ventricles, apex to the right);
+    now each branch is followed while thicker than a chamber (17 mm radius): the upper one to 25 mm (the
+    atria), the liver's to 10 mm (the diaphragm is its narrowest shell).
+    """
     _, seg, build, _ = chest4
     assert 400.0 <= seg.volume_ml <= 1100.0  # issue 9: an adult heart with the 10 mm slices' partial volume
+    assert "cut 10, 25 mm from it" in " ".join(seg.notes)
     apex = -build.model.frame.axes_patient[:, 2]
-    assert apex @ APEX_LAI_LPS > 0.5
+    assert apex @ APEX_LAI_LPS > 0.7

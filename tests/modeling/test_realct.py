@@ -91,6 +91,15 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   for widen ratios 1.1-1.35, saddle ratios 0.7-0.9, peak spacings 6-10 mm
   (no chamber is reached; 1.15-1.25 take 30 ml more lumen: ``ref & ~pa``
   0.895 on the mask, but the full reference's p95 rises to 15 mm).
+- the frame (session seg9, round 2): with every accepted slab ellipse on the
+  long axis, the automatic and the mask model were 11.0 deg apart, the
+  reference with and without its pulmonary artery 9.9 deg; the mask model's
+  line ran through two pulmonary-trunk slabs beyond five rejected base slabs.
+  Through the longest run of adjacent slabs only: 1.2 and 3.7 deg (the
+  automatic model vs the reference less its pulmonary artery 17.7 -> 3.4).
+  Other rules tried, every pair within 5 deg for none: only the slabs within
+  0.5-0.8 of the length from the apex (8.9-31 deg), dropping centres farther
+  than 3, 5 or 8 mm from the line (0.6-19 deg).
 """
 
 from __future__ import annotations
@@ -193,7 +202,8 @@ def test_model_with_no_options(realct, auto_model):
     # (see the module docstring for what the reference includes; the issue's
     # targets are in test_issue_targets).
     assert m["dice"] >= 0.86 and m["msd_mm"] <= 3.7 and m["p95_mm"] <= 12.5, m
-    # the long axis follows the reference's principal axis (measured 7 deg)
+    # the long axis follows the reference's principal axis (measured 12.6 deg: the frame's line runs through
+    # the ventricular slabs, the principal axis leans towards the atria and the pulmonary trunk the reference holds)
     z = model.frame.axes_patient[:, 2]
     assert _angle_deg(z, principal_axis(reference, volume.T_patient_from_voxel)) <= 15.0
     apex = -z  # towards patient left, anterior, inferior (LPS: +x, -y, -z)
@@ -215,22 +225,30 @@ def test_model_from_reference_mask(realct, mask_model, auto_model):
     assert m["dice"] >= 0.98 and m["msd_mm"] <= 0.5, m
     apex = -model.frame.axes_patient[:, 2]
     assert apex @ APEX_LAI_LPS > 0.7
-    # the automatic model's frame: same apex->base sign, axes close (measured 11.0 deg; the issue's 5 deg
-    # is in test_issue_targets)
-    auto = read_model(auto_model[2])
-    assert _angle_deg(auto.frame.axes_patient[:, 2], model.frame.axes_patient[:, 2], signed=True) <= 20.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 9's targets are not reached yet (measured Dice 0.879, MSD 3.3 mm, "
-                   "p95 10.6 mm, frame 11.0 deg); see the module docstring for why part of the gap is the reference "
+def test_frame_from_mesh_and_mask_agree(auto_model, mask_model):
+    """Issue 9: the same frame within 5 deg from the automatic mesh and from the reference mask.
+
+    Measured 1.2 deg (z, same apex->base sign) and 4.5 deg (x); before the line was fitted through the
+    longest run of adjacent slabs only, 11.0 deg: the reference's pulmonary trunk (two narrow slabs beyond a
+    gap at the base) and the automatic model's base tilted it.  The reference less its pulmonary artery:
+    3.7 deg from the reference, 3.4 deg from the automatic model (9.9 and 17.7 before).
+    """
+    auto, given = read_model(auto_model[2]), read_model(mask_model[2])
+    a, g = auto.frame.axes_patient, given.frame.axes_patient
+    assert _angle_deg(a[:, 2], g[:, 2], signed=True) <= 5.0
+    assert _angle_deg(a[:, 0], g[:, 0], signed=True) <= 10.0
+
+
+@pytest.mark.xfail(strict=True, reason="issue 9's surface targets are not reached yet (measured Dice 0.879, MSD "
+                   "3.3 mm, p95 10.6 mm); see the module docstring for why part of the gap is the reference "
                    "(against it less its pulmonary artery: Dice 0.892, MSD 2.8 mm, p95 7.5 mm); its p95 cannot be met with "
                    "the pulmonary artery cut at its valve (the reference less its own pulmonary artery: p95 19.5 mm)")
-def test_issue_targets(realct, auto_model, mask_model):
+def test_issue_targets(realct, auto_model):
     volume, _, reference = realct
-    auto, m = _metrics(auto_model[2], volume, reference)
-    given = read_model(mask_model[2])
+    _, m = _metrics(auto_model[2], volume, reference)
     assert m["dice"] >= 0.92 and m["msd_mm"] <= 1.5 and m["p95_mm"] <= 5.0, m
-    assert _angle_deg(auto.frame.axes_patient[:, 2], given.frame.axes_patient[:, 2], signed=True) <= 5.0
 
 
 def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model):
