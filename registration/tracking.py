@@ -11,11 +11,12 @@ What a search proved
 --------------------
 A search at ``q0`` lists search sites, each with a lower bound on its face's
 distance from ``q0`` (the exact distance where the face was evaluated, else
-the site's distance less its radius), and proves every face with no listed
+the distance from the disk around the site in the face's plane that holds
+the site's part of the face), and proves every face with no listed
 site at least ``excluded`` away.  Each bound is an affine function of the
 query point: a point's distance from a triangle (or from a site's ball) is a
-convex function whose gradient at ``q0`` is the unit vector from the closest
-point to ``q0``, so ``d(q) >= d(q0) + g . (q - q0)``.  At a nearby ``q``
+convex function (so is its distance from a disk) whose gradient at ``q0`` is
+the unit vector from the closest point to ``q0``, so ``d(q) >= d(q0) + g . (q - q0)``.  At a nearby ``q``
 (``delta = |q - q0|``) the closest point found at ``q0`` is at most
 ``U = |q - foot|`` away; only the listed faces whose bound at ``q`` is at
 most ``U`` can be nearer, and no unlisted one when ``U <= excluded - delta``.
@@ -30,13 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from registration.closest import ClosestPoints, SurfaceIndex, _face_d2, _finish, _lower_best, _search
+from registration.closest import _SLACK_MM, ClosestPoints, SurfaceIndex, _face_d2, _finish, _lower_best, _search
 
 __all__ = ["PointSetTracker"]
-
-#: Slack (mm) on the bounds' comparisons: a face tied with the nearest within
-#: rounding is evaluated, never skipped.
-_SLACK_MM = 1e-9
 
 
 @dataclass
@@ -72,16 +69,14 @@ def _searched(surface: SurfaceIndex, q, k, width):
     """
     best, proof = _search(surface, q, k)
     sites, lower, excluded = proof["sites"], proof["lower"], proof["excluded"]
-    ev, offsets = proof["evaluated"], proof["offsets"]
+    offsets = proof["offsets"]
     if sites.shape[1] > width:
         order = np.argpartition(lower, width, axis=1)
         keep, drop = order[:, :width], order[:, width:]
         excluded = np.minimum(excluded, np.take_along_axis(lower, drop, axis=1).min(axis=1))
-        sites, lower, ev = (np.take_along_axis(x, keep, axis=1) for x in (sites, lower, ev))
+        sites, lower = (np.take_along_axis(x, keep, axis=1) for x in (sites, lower))
         offsets = np.take_along_axis(offsets, keep[:, :, None], axis=1)
-    away = q[:, None] - surface.tree.data[sites]
-    grad = _unit(away, np.linalg.norm(away, axis=2))
-    grad[ev] = _unit(offsets[ev], lower[ev])
+    grad = _unit(offsets, lower)
     return best, _Bounds(q.copy(), np.zeros_like(q), excluded, sites, lower, grad)
 
 
