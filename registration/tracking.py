@@ -160,6 +160,7 @@ class PointSetTracker:
 
     def __init__(self, surface: SurfaceIndex, m: int, n: int, *, k: int = 128, stride: int = 8, width: int = 64):
         self.surface, self.n, self.k, self.stride = surface, n, k, stride
+        self._stride = stride  # the current stride: widened while the waves settle every set
         self.width = int(min(k, width, surface._site_face.shape[0]))
         self.anchors = _Anchors(self.width)
         self.row = np.full(m * n, -1, dtype=np.int64)  # each slot's anchor row; -1: none yet
@@ -176,20 +177,25 @@ class PointSetTracker:
         todo = self._reuse(out, q, np.arange(q.shape[0]), slots, slots)
         # waves outwards from every stride-th set: each set from its neighbour towards the nearest fresh one
         a = sets.size
-        fresh = np.unique(np.r_[np.arange(0, a, self.stride), a - 1])
+        fresh = np.unique(np.r_[np.arange(0, a, self._stride), a - 1])
         pos = np.arange(a)
         j = np.clip(np.searchsorted(fresh, pos), 1, fresh.size - 1) if fresh.size > 1 else np.zeros(a, dtype=int)
         nearest = np.where(np.abs(pos - fresh[j - 1]) <= np.abs(pos - fresh[j]), fresh[j - 1], fresh[j])
         wave = np.abs(pos - nearest)
         donor = pos - np.sign(pos - nearest)
         todo_wave = wave[todo // n]
+        tried = failed = 0  # points of the waves, and those their neighbours did not settle
         for w in range(int(todo_wave.max()) + 1 if todo.size else 0):
             rows = todo[todo_wave == w]
             if w > 0 and rows.size:
+                tried += rows.size
                 rows = self._reuse(out, q, rows, slots[donor[rows // n] * n + rows % n], slots[rows])
+                failed += rows.size
             if rows.size:
                 best, found = _searched(self.surface, q[rows], self.k, self.width, self.anchors)
                 self._settle(out, q, rows, best[1], found, slots[rows])
+        wide = failed <= 0.01 * tried
+        self._stride = min(4 * self.stride, 2 * self._stride) if wide else max(self.stride, self._stride // 2)
         return out
 
     def _settle(self, out, q, rows, face, anchor_rows, dst):
