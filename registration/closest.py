@@ -105,8 +105,9 @@ class SurfaceIndex:
             owners.append(np.repeat(ids, bary.shape[0]))
         self.site_radius_mm = float(max(site_radius, (radii / m).max()))
         self._site_face = np.concatenate(owners)
-        # each site's own radius: every point of its (sub-)triangle lies within it
+        # each site's own radius: every point of its (sub-)triangle lies within it, in its face's plane
         self._site_radius = (radii / m)[self._site_face]
+        self._site_normal = self.normals[self._site_face]
         self.tree = cKDTree(np.concatenate(sites))
 
     @property
@@ -271,6 +272,36 @@ def _lower_best(best, rows, faces, d2, key):
     best_d2[r], best_face[r], best_key[r] = d2[hit], faces[hit], key[hit]
 
 
+#: Slack (mm) on the bounds' comparisons: a face tied with the nearest within
+#: rounding is evaluated, never skipped.
+_SLACK_MM = 1e-9
+
+
+def _site_bounds(surface, q, sites):
+    """Lower bounds on the distance of q (n, 3) from the sub-triangles of ``sites`` (n, s).
+
+    A site's (sub-)triangle lies in its face's plane within the site's radius
+    of the site: in a disk.  The distance from that disk bounds the
+    triangle's from below; far from the surface, where the sites' balls all
+    reach about as near, the disks of the faces beside the foot stay away.
+
+    Returns
+    -------
+    lower : (n, s) float64, mm
+    offsets : (n, s, 3) float64, mm
+        q less its closest point on each disk (``offsets / lower`` is the
+        bound's gradient, a unit vector).
+    """
+    v = q[:, None] - surface.tree.data[sites]
+    normal = surface._site_normal[sites]
+    h = np.einsum("nsi,nsi->ns", v, normal)
+    along = v - h[..., None] * normal  # in the plane, from the site
+    rho = np.linalg.norm(along, axis=2)
+    out = np.maximum(rho - surface._site_radius[sites], 0.0)
+    offsets = h[..., None] * normal + along * np.divide(out, rho, out=np.zeros_like(rho), where=rho > 0)[..., None]
+    return np.sqrt(h**2 + out**2), offsets
+
+
 def _ball_search(best, surface, q, rows):
     """Settle ``rows`` by every site within their best distance plus the largest site radius (in place)."""
     best_d2 = best[0]
@@ -280,10 +311,10 @@ def _ball_search(best, surface, q, rows):
     lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
     sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
     rr = np.repeat(rows, lengths)
-    # a face can hold a point nearer than the best only if one of its sites lies within
-    # the best distance plus that site's radius; the others are skipped unevaluated
+    # a face can hold a point nearer than the best only if the disk of one of its sites
+    # (:func:`_site_bounds`) lies within the best distance; the others are skipped unevaluated
     dist = np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1)
-    keep = dist - surface._site_radius[sites] <= np.sqrt(best_d2[rr])
+    keep = _site_bounds(surface, q[rr], sites[:, None])[0][:, 0] <= np.sqrt(best_d2[rr]) + _SLACK_MM
     rr, faces, dist = rr[keep], surface._site_face[sites[keep]], dist[keep]
     _lower_best(best, rr, faces, _face_d2(surface, q, rr, faces), dist)
 
@@ -294,10 +325,10 @@ def _search(surface, q, k):
     Returns ``best`` (d2, face, key: the site distance) per point and what the
     search proved, for :mod:`registration.tracking`: the listed ``sites``
     (n, kc), the ``lower`` bounds on their faces' distances (exact where
-    ``evaluated``, with the ``offsets`` (n, kc, 3) of q from the closest
-    points; else site distance less site radius) and ``excluded``: every face
-    with no listed site is at least that far (-inf where the listed sites did
-    not settle the point).
+    ``evaluated``, else the distance from the site's disk, :func:`_site_bounds`)
+    with the ``offsets`` (n, kc, 3) of q from the points where they are
+    attained, and ``excluded``: every face with no listed site is at least that
+    far (-inf where the listed sites did not settle the point).
     """
     n = q.shape[0]
     n_sites = surface._site_face.shape[0]
@@ -305,14 +336,13 @@ def _search(surface, q, k):
     dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
     dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
     faces = surface._site_face[idx]
-    lower = dist_s - surface._site_radius[idx]
-    offsets = np.zeros((n, kc, 3))
+    lower, offsets = _site_bounds(surface, q, idx)
     evaluated = np.zeros((n, kc), dtype=bool)
     # the nearest site's face bounds the distance
     d2, offsets[:, 0] = _face_d2(surface, q, np.arange(n), faces[:, 0], offsets=True)
     best = (d2, faces[:, 0].copy(), dist_s[:, 0].copy())
     lower[:, 0] = np.sqrt(d2)
-    r, c = np.nonzero(lower[:, 1:] <= lower[:, :1])
+    r, c = np.nonzero(lower[:, 1:] <= lower[:, :1] + _SLACK_MM)
     c += 1
     d2, offsets[r, c] = _face_d2(surface, q, r, faces[r, c], offsets=True)
     lower[r, c] = np.sqrt(d2)
