@@ -32,8 +32,8 @@ settings.load_profile("heartreg")
 #: (December 2026, the shared cases below built once; seconds).  A file that takes more than
 #: ~10 s belongs here.  The rest follow in pytest's own order.
 COSTLIEST_FIRST = (
-    "tests/heartreg/test_batch.py",  # ~90 + its killed local cluster: two Dask clusters, 7 sample-case runs
-    "tests/heartreg/test_reproduce.py",  # 98: two trials, phantom to figures, on a local Dask cluster
+    "tests/heartreg/test_batch.py",  # 76 + its killed cluster: two Dask clusters (2 + 1 workers), 7 sample-case runs
+    "tests/heartreg/test_reproduce.py",  # 90: two trials, phantom to figures, on a one-worker local Dask cluster
     "tests/heartreg/test_demo.py",  # 83: the demo (100 points) and two pipeline commands
     "tests/modeling/test_build.py",  # 71: writes the full-size case and models it
     "tests/heartreg/test_kill.py",  # 64: three commands as subprocesses, run again in-process

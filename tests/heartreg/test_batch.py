@@ -5,7 +5,7 @@ whole chain (phases, model, register with the sample session's first 8 points),
 two only phases and model with different options, and one is broken (a study
 folder without DICOM).  The batch is started in a child process on its own
 local cluster and killed after two cases finish; the restart runs on a
-scheduler started separately (the module's one other cluster) and must run
+scheduler started separately with one worker (the module's one other cluster) and must run
 only the rest, and every output must be the bytes the single commands write
 (the commands are deterministic: same inputs, same bytes).
 """
@@ -78,12 +78,15 @@ def _files(folder: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def scheduler():
-    """A scheduler and two workers in their own process (127.0.0.1, ephemeral port): its address."""
+    """A scheduler and one worker in their own process (127.0.0.1, ephemeral port): its address.
+
+    One worker is enough to be another cluster (the restart's two or so cases run one
+    after the other); each worker process more costs seconds of imports."""
     script = (
         "import sys\n"
         "from distributed import LocalCluster\n"
         "if __name__ == '__main__':\n"
-        "    c = LocalCluster(n_workers=2, threads_per_worker=1, host='127.0.0.1', scheduler_port=0,\n"
+        "    c = LocalCluster(n_workers=1, threads_per_worker=1, host='127.0.0.1', scheduler_port=0,\n"
         "                     dashboard_address=None)\n"
         "    print(c.scheduler_address, flush=True)\n"
         "    sys.stdin.read()\n"  # until the fixture closes stdin

@@ -63,14 +63,16 @@ def test_demo_outputs_agree_with_the_result(demo):
 def test_cli_pipeline_on_a_users_folders(demo, tmp_path, capsys):
     out, run, _ = demo
     dest = tmp_path / "run"
+    # the 3-D view is left out (--no-view): the demo above draws it and its page is checked below
     code = main(["pipeline", str(SAMPLE_DIR / "ct"), str(out / "session_case" / "session"), "-o", str(dest),
-                 "-q", "--step", "0.02"])
+                 "-q", "--step", "0.02", "--no-view"])
     assert code == 0
     text = capsys.readouterr().out
     assert "phi_R*" in text and (dest / "report.html").exists()
     reg = json.loads((dest / "registration" / "registration.json").read_text())
     assert abs(reg["respiration_phase"] - run.registration.respiration_phase) <= 0.02
     assert len(np.genfromtxt(dest / "registration" / "sweep.csv", delimiter=",", names=True)) == 51
+    assert not (dest / "registration" / "fig8_view.png").exists()
 
 
 def test_cli_pipeline_bad_session(tmp_path, capsys):

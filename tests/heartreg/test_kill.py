@@ -48,7 +48,7 @@ def _argv(command: str, case, out: Path) -> list[str]:
         "register": ["register", str(case["model"]), str(case["session"]), "-o", str(out), "--step", "0.5",
                      "--no-view", *fast],
         "pipeline": ["pipeline", str(case["ct"]), str(case["session"]), "-o", str(out), "--step", "0.5",
-                     "--faces", "2000", *fast],
+                     "--faces", "2000", "--no-view", *fast],
     }[command]
 
 

@@ -2,7 +2,8 @@
 
 Trial 1 errs across the respiratory path (the empirical metric finds the
 image phase); trial 4's preset errs along it, the designed miss.  30 points per
-session keep the run near 25 s; the comparisons below are exact (the table is
+session, sweeps of 0.02 cycles (51 phases; 0.3 is one of them) and one local
+Dask worker keep the run short; the comparisons below are exact (the table is
 made from the same values the per-trial outputs hold) or to the CSV's rounding.
 """
 
@@ -20,13 +21,15 @@ from heartreg.reproduce import ReproduceError, TOL_PHASE_R, reproduce
 
 TRIALS = (1, 4)
 N_POINTS = 30
+#: the sweeps' phase step (cycles) and their number of phases
+STEP, N_PHASES = 0.02, 51
 
 
 @pytest.fixture(scope="module")
 def repro(tmp_path_factory):
     out = tmp_path_factory.mktemp("repro")
     code = main(["reproduce", "-o", str(out), "--size", "sample", "--trials", *map(str, TRIALS),
-                 "--points", str(N_POINTS), "-q"])
+                 "--points", str(N_POINTS), "--step", str(STEP), "--workers", "1", "-q"])
     assert code == 0
     rows = {int(r["trial"]): r for r in csv.DictReader((out / "reproduction.csv").open())}
     payload = json.loads((out / "reproduction.json").read_text())
@@ -108,7 +111,7 @@ def test_figure_data_hold_every_trials_curves_and_the_means(repro):
     for panel in figs["fig2"]["panels"]:
         curves, (mean,) = by_kind(panel, "trial"), by_kind(panel, "mean")
         assert [c["label"] for c in curves] == [f"trial {k}" for k in TRIALS]
-        assert all(len(c["x"]) == len(c["y"]) == 101 for c in curves)
+        assert all(len(c["x"]) == len(c["y"]) == N_PHASES for c in curves)
         np.testing.assert_allclose(mean["y"], np.mean([c["y"] for c in curves], axis=0))
     resp = figs["fig2"]["panels"][1]
     for k, c in zip(TRIALS, by_kind(resp, "trial")):
@@ -169,7 +172,7 @@ def test_pngs_are_drawn_pictures(repro, name):
 def test_tables_and_page(repro):
     out, rows, _, _ = repro
     md = (out / "reproduction.md").read_text()
-    assert "heartreg reproduce -o" in md and "--trials 1 4" in md
+    assert "heartreg reproduce -o" in md and "--trials 1 4" in md and f"--step {STEP}" in md
     # one row in each table: Table 1, registration, time
     assert md.count("\n| 1 |") == 3 and md.count("\n| 4 |") == 3
     assert "## Where our synthetic numbers differ from the paper and why" in md
@@ -197,7 +200,7 @@ def test_cli_rejects_unknown_trials(tmp_path, capsys):
 def test_report_only_redraws_the_same_tables_from_the_run_files(repro):
     out = repro[0]
     before = {name: (out / name).read_bytes() for name in ("reproduction.csv", "figures.json")}
-    result = reproduce(out, size="sample", trials=TRIALS, n_points=N_POINTS, rerun=False)
+    result = reproduce(out, size="sample", trials=TRIALS, n_points=N_POINTS, phase_step=STEP, rerun=False)
     assert [t.trial for t in result.trials] == list(TRIALS)
     for name, data in before.items():
         assert (out / name).read_bytes() == data, name
