@@ -8,6 +8,13 @@ others wait for it (a file lock beside their temporary folders).
 ``make test`` gives each worker a whole test file at a time (``--dist loadfile``),
 in collection order; the costliest files are collected first (``COSTLIEST_FIRST``)
 so that none of them starts last and holds the run while the other worker idles.
+
+Under xdist one worker runs per core, so each worker (and every command a test
+starts) computes on one BLAS thread: two OpenBLAS threads per worker on a
+machine already busy with the other workers spin against each other (measured:
+a registration's motion-model fits took 4-6 times longer).  The library's
+results do not depend on the thread count (``hrcore.blas``, tested on one and
+two threads by ``tests/hrcore/test_blas.py``).
 """
 
 from __future__ import annotations
@@ -17,10 +24,20 @@ import json
 import os
 from pathlib import Path
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")  # before numpy loads its BLAS; inherited by the commands tests run
+
 import pytest
 from hypothesis import settings
 
 from heartreg.phantom import make_phantom
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    from threadpoolctl import threadpool_limits
+
+    # in case numpy's BLAS was loaded before this file (by a plugin): one thread from here on
+    _ONE_BLAS_THREAD = threadpool_limits(limits=1, user_api="blas")
 
 # The same examples on every run (CI included): a property test that fails, fails
 # again with the same example, and the suite does not turn red by chance.
