@@ -100,14 +100,15 @@ def project_panel(scene: Scene, *, size, towards_camera, up, focus) -> tuple[np.
     ax.set_ylim(-height / 2 / px_per_mm, height / 2 / px_per_mm)
     ax.set_axis_off()
 
-    # every part as polygons in the picture with a depth; drawn far to near in one collection
+    # every part as quadrilaterals in the picture with a depth (a triangle repeats a corner: one
+    # array, matplotlib's fast path), drawn far to near; the balls, round, go in between
     polygons, depths, colours, smooth = [], [], [], []
 
-    def add(polys, depth, rgba, antialiased):
-        polygons.extend(polys)
-        depths.append(np.broadcast_to(np.asarray(depth, float), (len(polys),)))
-        colours.append(np.broadcast_to(np.asarray(rgba, float), (len(polys), 4)))
-        smooth.append(np.full(len(polys), antialiased))
+    def add(quads, depth, rgba, antialiased):
+        polygons.append(np.asarray(quads, float).reshape(-1, 4, 2))
+        depths.append(np.broadcast_to(np.asarray(depth, float), (len(polygons[-1]),)))
+        colours.append(np.broadcast_to(np.asarray(rgba, float), (len(polygons[-1]), 4)))
+        smooth.append(np.full(len(polygons[-1]), antialiased))
 
     for vertices, faces, colour, opacity in scene.surfaces:
         v = np.asarray(vertices, float) - focus
@@ -123,7 +124,7 @@ def project_panel(scene: Scene, *, size, towards_camera, up, focus) -> tuple[np.
         rgba = np.empty((len(f), 4))
         rgba[:, :3] = np.clip(np.outer(shade, to_rgb(colour)), 0.0, 1.0)
         rgba[:, 3] = opacity
-        add(list(tri @ to_picture), tri.mean(axis=1) @ towards, rgba, False)
+        add((tri @ to_picture)[:, [0, 1, 2, 2]], tri.mean(axis=1) @ towards, rgba, False)
 
     def band(p3, half_width_mm, rgba):
         """A polyline as quads of one segment each (for their own depths)."""
@@ -135,7 +136,7 @@ def project_panel(scene: Scene, *, size, towards_camera, up, focus) -> tuple[np.
         along = half_width_mm * np.stack([n[:, 1], -n[:, 0]], axis=1)  # overlapping ends: no seams
         a, b = q[:-1] - along, q[1:] + along
         quads = np.stack([a + off, b + off, b - off, a - off], axis=1)
-        add(list(quads), 0.5 * (p3[:-1] + p3[1:]) @ towards + LINE_OFFSET_MM, rgba, True)
+        add(quads, 0.5 * (p3[:-1] + p3[1:]) @ towards + LINE_OFFSET_MM, rgba, True)
 
     for points, colour, width_px in scene.lines:
         band(points, 0.5 * width_px / px_per_mm, to_rgba(colour))
@@ -148,18 +149,28 @@ def project_panel(scene: Scene, *, size, towards_camera, up, focus) -> tuple[np.
         if np.linalg.norm(d) > 1e-9:
             across = np.array([-d[1], d[0]]) / np.linalg.norm(d) * tip_radius_mm
             n2 = (neck - focus) @ to_picture
-            add([np.array([n2 + across, (start + vector - focus) @ to_picture, n2 - across])],
+            add([n2 + across, (start + vector - focus) @ to_picture, n2 - across, n2 - across],
                 (neck - focus) @ towards, to_rgba(colour), True)
-    ring = np.stack([np.cos(np.linspace(0, 2 * np.pi, 33)), np.sin(np.linspace(0, 2 * np.pi, 33))], axis=1)
-    for centre, radius_mm, colour in scene.balls:
-        c = np.asarray(centre, float) - focus
-        add([c @ to_picture + radius_mm * ring], c @ towards + radius_mm, to_rgba(colour), True)
-
     depth = np.concatenate(depths)
     order = np.argsort(depth, kind="stable")  # far to near
-    ax.add_collection(PolyCollection([polygons[i] for i in order], facecolors=np.concatenate(colours)[order],
-                                     edgecolors="none", linewidths=0.0,
-                                     antialiaseds=list(np.concatenate(smooth)[order])))
+    quads, rgba = np.concatenate(polygons)[order], np.concatenate(colours)[order]
+    antialiased, depth = np.concatenate(smooth)[order], depth[order]
+    ring = np.stack([np.cos(np.linspace(0, 2 * np.pi, 33)), np.sin(np.linspace(0, 2 * np.pi, 33))], axis=1)
+    balls = sorted(((float((np.asarray(c, float) - focus) @ towards) + r, np.asarray(c, float) - focus, r, colour)
+                    for c, r, colour in scene.balls), key=lambda b: b[0])
+    cuts = np.searchsorted(depth, [b[0] for b in balls]).tolist() + [len(depth)]
+    start = 0
+    for z, cut in enumerate(cuts):
+        if cut > start:
+            ax.add_collection(PolyCollection(quads[start:cut], facecolors=rgba[start:cut], edgecolors="none",
+                                             linewidths=0.0, antialiaseds=list(antialiased[start:cut]), zorder=2 * z),
+                              autolim=False)
+        start = cut
+        if z < len(balls):
+            _, c, radius_mm, colour = balls[z]
+            ax.add_collection(PolyCollection([c @ to_picture + radius_mm * ring], facecolors=[colour],
+                                             edgecolors="#202020", linewidths=0.5, zorder=2 * z + 1),
+                              autolim=False)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
     return np.asarray(canvas.buffer_rgba())[..., :3].copy(), float(px_per_mm)
