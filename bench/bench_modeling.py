@@ -6,7 +6,7 @@ plus one ECG waveform DICOM, ``bench/out/data/full_ct/ct``), generated once.
 Steps, each in a fresh child process (see ``common.py``):
 
 - ``heartreg model STUDY -o OUT -q``: the whole command line (start-up, imports,
-  reading, phases, model, files, the PNG picture when offscreen OpenGL works).
+  reading, phases, model, files, the PNG picture).
 - reference, alternately with it: dicom2stl (SimpleITK + VTK) on the same CT
   series (its 288 CT files hard-linked into ``bench/out/data/full_ct_ctonly``,
   the ECG waveform left out), ``dicom2stl -i 0 --enable largest -T TMP -o
@@ -126,11 +126,8 @@ def ct_only_folder(study_dir: str, out_dir: str) -> dict:
 def _run_stages(study_dir: str, out_dir: str, meter: _Meter | None, picture: bool = True) -> dict:
     from hrcore.memory import release_free_memory
     from imaging import compute_phase_report, load_study, read_ecg_waveform
-    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
-    from modeling.render import start_offscreen_probe
+    from modeling import build_heart_model, render_model_png, write_model
 
-    if picture:
-        start_offscreen_probe()  # as the CLI: at the start, beside the work
     meter = meter or _Meter()
     meter.start("load")
     volume = load_study(study_dir)
@@ -146,15 +143,12 @@ def _run_stages(study_dir: str, out_dir: str, meter: _Meter | None, picture: boo
     del volume  # as the CLI: the CT is freed before the files and the picture
     release_free_memory()
     out = write_model(build.model, out_dir, overwrite=True)
-    rendered = False
     if picture:
-        meter.start("picture")  # the probe's answer (if not in yet) is waited for here
-        if offscreen_available():
-            render_model_png(build.model, Path(out) / "model.png")
-            rendered = True
+        meter.start("picture")  # matplotlib only, as the CLI
+        render_model_png(build.model, Path(out) / "model.png")
     meter.stop()
     return {**volume_info, "build_timings_s": dict(build.timings_s),
-            "n_faces": int(build.model.mesh.faces.shape[0]), "picture": rendered}
+            "n_faces": int(build.model.mesh.faces.shape[0]), "picture": picture}
 
 
 def stages(study_dir: str, out_dir: str) -> dict:
@@ -296,7 +290,7 @@ def main(argv=None) -> int:
         "fiducials": "find_fiducials (9 skin staples)",
         "frame": "make_heart_model (heart-centric frame from slab ellipses)",
         "write": "write_model (PLY, STL, model.json)",
-        "picture": "render_model_png (offscreen VTK), as the CLI does",
+        "picture": "render_model_png (matplotlib, no OpenGL), as the CLI does",
     }
     for name in STAGES:
         if name not in info["stages"]:

@@ -179,8 +179,7 @@ def _open_model_input(args):
 
 
 def _cmd_model(args) -> int:
-    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
-    from modeling.render import start_offscreen_probe
+    from modeling import build_heart_model, render_model_png, write_model
 
     if args.list_series:
         return _print_series(args.study_dir)
@@ -192,7 +191,6 @@ def _cmd_model(args) -> int:
     options = _model_options(args)
     inputs = (args.study_dir, args.qrs, args.mask)
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
-    start_offscreen_probe()  # beside the work: the picture needs its answer only at the end
     volume, phase, phase_source, slice_phases = _open_model_input(args)
     from tqdm import tqdm
 
@@ -219,13 +217,11 @@ def _cmd_model(args) -> int:
     del volume  # the CT is done with: the picture's memory comes on top of what is left
     release_free_memory()
     out = Path(args.out_dir)
-    picture = "skipped (no offscreen OpenGL: install libosmesa6 or libegl1)"
     # the picture is drawn inside the staging folder: the model appears complete or not at all
     with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite) as staging:
         write_model(model, staging, overwrite=True)
-        if offscreen_available():
-            render_model_png(model, staging / "model.png")
-            picture = str(out / "model.png")
+        render_model_png(model, staging / "model.png")  # matplotlib only: no OpenGL needed
+    picture = str(out / "model.png")
     bar.update(1)
     bar.close()
     e = model.frame.euler_xyz_deg

@@ -152,7 +152,7 @@ def run_pipeline(
     top of the HTML report (the demo).
     """
     from imaging import write_phase_report
-    from modeling import build_heart_model, offscreen_available, render_model_png, write_model
+    from modeling import build_heart_model, render_model_png, write_model
     from modeling.render import start_offscreen_probe
     from modeling.slice_phases import SlicePhases
     from registration import read_session
@@ -171,7 +171,7 @@ def run_pipeline(
     with staged_output(
         out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS,
     ) as staging:
-        start_offscreen_probe()  # beside the work: the picture needs its answer only after the model
+        start_offscreen_probe()  # beside the work: the registration's view needs its answer at the end
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")
         volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
@@ -193,8 +193,7 @@ def run_pipeline(
         )
         model_dir = write_model(build.model, staging / "model")
         paths["model"] = model_dir
-        if offscreen_available():
-            paths["model_png"] = render_model_png(build.model, model_dir / "model.png")
+        paths["model_png"] = render_model_png(build.model, model_dir / "model.png")  # no OpenGL needed
         timings["model"] = time.perf_counter() - t
 
         t = time.perf_counter()

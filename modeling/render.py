@@ -4,16 +4,18 @@ Two views of the patient frame side by side: coronal (seen from the front,
 patient's left on the picture's right) and sagittal (seen from the patient's
 left). The mesh is drawn semi-opaque, the slab ellipses as yellow lines, the
 heart frame's x, y, z as red, green, blue arrows, the fiducials as grey
-spheres.  Each view is rendered by pyvista in parallel projection, cut to what
-it shows and laid out by matplotlib (:func:`compose_figure`) with titles, a
-legend for every colour and marker, and a scale bar per view.
+spheres.  Each view is drawn in parallel projection by matplotlib alone
+(:func:`modeling.projection.project_panel`: no OpenGL, a fraction of VTK's
+memory and time), cut to what it shows and laid out (:func:`compose_figure`)
+with titles, a legend for every colour and marker, and a scale bar per view.
 
-Offscreen OpenGL: VTK picks its window from ``VTK_DEFAULT_OPENGL_WINDOW``
+The registration's 3-D view (:mod:`registration.view`) draws its panels with
+pyvista (:func:`render_panel`) and needs offscreen OpenGL: VTK picks its window from ``VTK_DEFAULT_OPENGL_WINDOW``
 (``vtkOSOpenGLRenderWindow`` needs Debian's ``libosmesa6``;
 ``vtkEGLRenderWindow`` needs ``libegl1 libgl1``); without the variable and
 without an X display, VTK 9.4+ falls back to EGL. Because a missing GL stack
 can abort the process inside VTK, :func:`offscreen_available` first probes it
-in a subprocess; when it fails :func:`render_model_png` raises
+in a subprocess; when it fails :func:`render_png` raises
 :class:`RenderError` and the caller skips the picture.
 """
 
@@ -145,12 +147,11 @@ def render_model_png(
     Raises
     ------
     RenderError
-        Offscreen rendering is not available or produced a blank image; the
-        message says which libraries to install.
+        The drawing failed or came out blank.
 
     Examples
     --------
-    Needs offscreen OpenGL (OSMesa or EGL) and takes a few seconds, hence skipped:
+    A second or so, hence skipped:
 
     >>> import tempfile
     >>> import numpy as np
@@ -164,10 +165,11 @@ def render_model_png(
     """
     if not isinstance(model, HeartModel):
         raise TypeError(f"model must be a HeartModel, got {type(model).__name__}")
-    return render_png(lambda size: _draw(model, ellipses=ellipses, size=size), path, size=size, what="the model")
+    return render_png(lambda size: _draw(model, ellipses=ellipses, size=size), path, size=size, what="the model",
+                      opengl=False)
 
 
-def render_png(draw, path, *, size: tuple[int, int], what: str) -> Path:
+def render_png(draw, path, *, size: tuple[int, int], what: str, opengl: bool = True) -> Path:
     """Run an offscreen drawing and save its image as a PNG, atomically.
 
     Parameters
@@ -179,6 +181,8 @@ def render_png(draw, path, *, size: tuple[int, int], what: str) -> Path:
     size : (width, height) int, pixels
     what : str
         What is drawn, for error messages.
+    opengl : bool
+        Whether ``draw`` needs offscreen OpenGL (checked first).
 
     Raises
     ------
@@ -192,7 +196,7 @@ def render_png(draw, path, *, size: tuple[int, int], what: str) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"path must end in .png, got {path.name}")
-    if not offscreen_available():
+    if opengl and not offscreen_available():
         raise RenderError(
             "offscreen OpenGL is not available: install Debian's libosmesa6 (and set "
             "VTK_DEFAULT_OPENGL_WINDOW=vtkOSOpenGLRenderWindow) or libegl1 libgl1 "
@@ -347,13 +351,12 @@ def compose_figure(panels, *, size, titles, handles, suptitle, orientation=None,
 
 
 def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
-    import pyvista as pv
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
+    from modeling.projection import Scene, project_panel
+
     mesh = model.mesh_patient()
-    faces = np.hstack([np.full((mesh.n_faces, 1), 3), mesh.faces]).ravel()
-    surf = pv.PolyData(np.asarray(mesh.vertices), faces)
     frame = model.frame
     origin = frame.origin_patient_mm
     axes = frame.axes_patient
@@ -362,29 +365,26 @@ def _draw(model: HeartModel, *, ellipses: bool, size) -> np.ndarray:
     fid = model.fiducials_patient_mm
     phase = "unknown" if model.cardiac_phase is None else f"{model.cardiac_phase:.2f}"
 
-    def add(plotter):
-        plotter.add_mesh(surf, color=MESH_COLOUR, opacity=0.55, smooth_shading=True)
-        if ellipses:
-            for e in frame.ellipses:
-                ring = e.points(96)
-                plotter.add_mesh(pv.lines_from_points(np.vstack([ring, ring[:1]])), color=ELLIPSE_COLOUR,
-                                 line_width=3)
-                plotter.add_mesh(pv.Sphere(radius=1.2, center=e.centre_mm), color=ELLIPSE_COLOUR)
-        for axis, colour in zip(axes.T, AXIS_COLOURS):
-            plotter.add_mesh(pv.Arrow(start=origin, direction=axis, scale=arrow_mm, tip_length=0.12,
-                                      tip_radius=0.04, shaft_radius=0.015), color=colour)
-        for f in fid:
-            plotter.add_mesh(pv.Sphere(radius=2.5, center=f), color=FIDUCIAL_COLOUR)
+    scene = Scene(surfaces=[(mesh.vertices, mesh.faces, MESH_COLOUR, 0.55)])
+    if ellipses:
+        for e in frame.ellipses:
+            ring = e.points(96)
+            scene.lines.append((np.vstack([ring, ring[:1]]), ELLIPSE_COLOUR, 3))
+            scene.balls.append((e.centre_mm, 1.2, ELLIPSE_COLOUR))
+    for axis, colour in zip(axes.T, AXIS_COLOURS):  # as pyvista's Arrow(tip_length=0.12, tip_radius=0.04, ...)
+        scene.arrows.append((origin, arrow_mm * axis, colour, 0.015 * arrow_mm, 0.04 * arrow_mm, 0.12 * arrow_mm))
+    for f in fid:
+        scene.balls.append((f, 2.5, FIDUCIAL_COLOUR))
 
-    scene = np.vstack([mesh.vertices, fid]) if len(fid) else mesh.vertices
-    focus = 0.5 * (scene.min(axis=0) + scene.max(axis=0))
+    points = np.vstack([mesh.vertices, fid]) if len(fid) else mesh.vertices
+    focus = 0.5 * (points.min(axis=0) + points.max(axis=0))
     panel = (max(size[0] // 2, 64), max(size[1], 64))  # each view at about the size it is shown, then cut
     views = [
         ("coronal, seen from anterior", (0.0, -1.0, 0.0), ("patient's left", "superior")),
         ("sagittal, seen from the patient's left", (1.0, 0.0, 0.0), ("posterior", "superior")),
     ]
-    panels = [render_panel(add, size=panel, towards_camera=towards, up=(0.0, 0.0, 1.0), focus=focus,
-                           extent_mm=float(np.ptp(scene, axis=0).max())) for _, towards, _ in views]
+    panels = [project_panel(scene, size=panel, towards_camera=towards, up=(0.0, 0.0, 1.0), focus=focus)
+              for _, towards, _ in views]
     handles = [
         Patch(facecolor=MESH_COLOUR, alpha=0.6, edgecolor="none", label="epicardial surface (heart model)"),
         Line2D([], [], color=AXIS_COLOURS[0], lw=3, label="heart x (anterior)"),
