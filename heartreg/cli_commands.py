@@ -332,7 +332,7 @@ def _cmd_evaluate_temporal(args) -> int:
     presets = [f"wood2018-trial{k}" for k in args.trials] if args.trials else list(GRID_PRESETS)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if not args.quiet else (lambda msg: None)
     result = evaluate(args.out_dir, presets=presets, seeds=range(1, args.seeds + 1), size=args.size,
-                      run=not args.report_only, workers=args.workers, scheduler=args.scheduler,
+                      harmonics=args.harmonics, run=not args.report_only, workers=args.workers, scheduler=args.scheduler,
                       memory_limit=args.memory_limit, progress=not args.quiet, say=say)
     for name, error in result["failed"].items():
         print(f"  {name} failed: {error}")

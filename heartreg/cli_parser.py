@@ -80,6 +80,14 @@ def _add_model_options(p) -> None:
                    help="trim vessel stubs off a --mask too (by default a given mask is meshed as it is)")
 
 
+def _add_harmonics_option(p) -> None:
+    from registration.options import DEFAULT_HARMONICS
+
+    p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
+                   help="Fourier harmonics of the motion models (default "
+                        + " ".join(str(v) for v in dataclasses.astuple(DEFAULT_HARMONICS)) + "; the paper's: 5 4 2 1)")
+
+
 def _add_registration_options(p) -> None:
     """The flags of :class:`registration.RegistrationOptions` (register and pipeline)."""
     from registration.options import ESTIMATORS, RegistrationOptions
@@ -87,9 +95,7 @@ def _add_registration_options(p) -> None:
     defaults = RegistrationOptions()
     p.add_argument("--step", type=_finite, default=None,
                    help=f"phase step of the sweeps (default {defaults.phase_step})")
-    p.add_argument("--harmonics", type=int, nargs=4, metavar=("HC", "HR", "HMC", "HMR"), default=None,
-                   help="Fourier harmonics of the motion models (default "
-                        + " ".join(str(v) for v in dataclasses.astuple(defaults.harmonics)) + ")")
+    _add_harmonics_option(p)
     p.add_argument("--estimator", default=defaults.estimator, choices=list(ESTIMATORS),
                    help="how phi_R* is chosen: chest and heart shape with a 90%% interval (default), "
                         "or the paper's eq. 10")
@@ -218,6 +224,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, nargs="+", default=None, metavar="N", choices=range(1, 7),
                    help="presets wood2018-trialN to run, N in 1..6 (default all six)")
     p.add_argument("--size", default="sample", choices=sorted(SIZES), help="phantom CT grid (default sample)")
+    _add_harmonics_option(p)
     p.add_argument("--report-only", action="store_true", help="summarize the cases already run; run nothing")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     _add_cluster_options(p, local_help="0: one by one in this process")

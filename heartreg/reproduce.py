@@ -76,6 +76,9 @@ TRIALS = (1, 2, 3, 4, 5, 6)
 #: breathing chest and the fiducial traces are evaluated by
 #: ``heartreg evaluate-temporal`` (:mod:`heartreg.temporal_eval`).
 PAPER_CONDITIONS = {"chest_wall_ap_mm": 0.0, "fiducial_trace_breaths": 0.0}
+#: ... and registered as the paper: eq. 10's phi_R*, the paper's harmonics
+#: (5, 4, 2, 1), every point at the model's phi_C* (``RegistrationOptions`` fields).
+PAPER_REGISTRATION = {"estimator": "eq10", "harmonics": (5, 4, 2, 1), "slice_phases": False}
 
 #: What a trial writes into ``OUT_DIR/trialN`` beside its phantom case, staged and
 #: moved in in this order: a trial is finished when its ``trial.json`` is there.
@@ -299,7 +302,7 @@ def _run_trial(k, trial_dir, *, size, seed, n_points, phase_step, progress, say)
     # the run and trial.json staged beside the case, moved in at the end (trial.json last)
     with staged_output(trial_dir, parts=TRIAL_PARTS, overwrite=True, what="trial folder") as stage:
         run = run_pipeline(trial_dir / "case" / "ct", trial_dir / "case" / "session", stage / "run",
-                           registration_options=RegistrationOptions(phase_step=phase_step, estimator="eq10", slice_phases=False),
+                           registration_options=RegistrationOptions(phase_step=phase_step, **PAPER_REGISTRATION),
                            progress=progress)
         t_pipeline = time.perf_counter() - t
         truth_rows = make_truth_rows(run, truth)

@@ -25,6 +25,7 @@ the 90 % interval covering the truth.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import tempfile
@@ -69,7 +70,7 @@ def _transform_error(T, T_true, vertices):
 
 
 def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", work_dir=None,
-             slice_phases: bool | None = None) -> dict:
+             slice_phases: bool | None = None, harmonics=None) -> dict:
     """One phantom case, registered by both estimators and scored against the truth.
 
     Parameters
@@ -87,6 +88,9 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         (:mod:`registration.slice_phase`; the model carries them); False: every
         point at phi_C*; None (default): what ``heartreg register`` does
         (``RegistrationOptions.slice_phases``).
+    harmonics : Harmonics or (Hc, Hr, Hmc, Hmr), optional
+        Of the motion models; None (default): what ``heartreg register`` uses
+        (``RegistrationOptions.harmonics``).
 
     Returns
     -------
@@ -114,6 +118,8 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         del volume
         session = read_session(tmp / "case" / "session")
         options = {} if slice_phases is None else {"slice_phases": bool(slice_phases)}
+        if harmonics is not None:
+            options["harmonics"] = harmonics
         result = register_session(build.model, session, cardiac_sweep=False, **options)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -151,7 +157,9 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         "vertices_mm": vertices[:: max(1, vertices.shape[0] // 2000)], "pivot_mm": sweep.pivot_mm,
         "fiducials_probe_mm": np.asarray(session.fiducials_probe_mm), "fiducials_heart_mm": model.fiducials_heart_mm,
     }
+    h = result.parameters["harmonics"]
     return {"preset": preset, "seed": int(seed), "phase_true": float(phase_r), "size": size,
+            "harmonics": [h["cardiac"], h["respiratory"], h["coupled_cardiac"], h["coupled_respiratory"]],
             "T0_mm": t0_mm, "T0_deg": t0_deg, "fre_mm": result.fre_mm,
             "phase_c": float(model.cardiac_phase), "phase_c_true": float(truth["cardiac_phase"]), "estimates": rows, "_evidence": evidence}
 
@@ -261,6 +269,7 @@ def evaluate(
     presets: Sequence[str] = GRID_PRESETS,
     seeds: Sequence[int] = (1, 2, 3, 4, 5, 6),
     size: str = "sample",
+    harmonics=None,
     run: bool = True,
     workers: int | None = 0,
     scheduler: str | None = None,
@@ -276,6 +285,10 @@ def evaluate(
     presets, seeds : sequences
         The grid; each case's true phase is :func:`true_phase` of (preset, seed).
     size : {"sample", "full"}
+    harmonics : Harmonics or (Hc, Hr, Hmc, Hmr), optional
+        Of the motion models (``--harmonics``); None: ``heartreg register``'s
+        default.  Cases already in ``out_dir/cases`` are kept as they are
+        (each records its harmonics): use a new ``out_dir`` for other harmonics.
     run : bool
         False: summarize the cases already in ``out_dir/cases`` only.
     workers : int or None
@@ -299,6 +312,10 @@ def evaluate(
         case's name to its one-line error (a failed case is left out of the
         table and runs again next time).
     """
+    if harmonics is not None:  # checked (a UsageError naming --harmonics) before any case runs
+        from registration.options import RegistrationOptions
+
+        harmonics = dataclasses.astuple(RegistrationOptions(harmonics=harmonics).harmonics)
     out = Path(out_dir)
     (out / "cases").mkdir(parents=True, exist_ok=True)
     todo = []
@@ -306,7 +323,7 @@ def evaluate(
         for seed in seeds:
             path = out / "cases" / f"{preset}_s{seed}.json"
             if not path.exists():
-                todo.append((preset, int(seed), true_phase(preset, int(seed)), size))
+                todo.append((preset, int(seed), true_phase(preset, int(seed)), size, harmonics))
     failed = {}
     if run and todo:
         if workers == 0 and scheduler is None:
@@ -369,8 +386,8 @@ def _case_task(args, out_dir: str) -> dict:
     return _run_and_save(Path(out_dir), *args)
 
 
-def _run_and_save(out: Path, preset, seed, phase_r, size) -> dict:
-    case = run_case(preset, seed, phase_r, size=size, work_dir=out)
+def _run_and_save(out: Path, preset, seed, phase_r, size, harmonics=None) -> dict:
+    case = run_case(preset, seed, phase_r, size=size, work_dir=out, harmonics=harmonics)
     evidence = case.pop("_evidence")
     # the sweep's evidence, so that an estimator can be re-scored without re-running the case
     np.savez_compressed(out / "cases" / f"{preset}_s{seed}.npz", **evidence)

@@ -31,6 +31,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hrcore.blas import gram, one_blas_thread
 from hrcore.errors import HeartregError
 
 __all__ = [
@@ -382,19 +383,22 @@ def _solve_least_squares(X, Y, *, rcond=None, max_condition=1e6):
     The regressor columns are sines and cosines of unit amplitude, nearly
     orthogonal over whole cycles (condition ~1-2), where the normal equations
     lose nothing and are much faster than an SVD; otherwise ``lstsq``.
+    The long sums (over the samples) are the same bits on any number of BLAS
+    threads (:mod:`hrcore.blas`): a batch worker writes the single command's bytes.
     Returns the coefficients and the condition number of the scaled matrix.
     """
     scale = np.linalg.norm(X, axis=0)
     scale[scale == 0] = 1.0
     Xs = X / scale
-    G = Xs.T @ Xs
+    G = gram(Xs, Xs)
     evals = np.linalg.eigvalsh(G)
     condition = float(np.sqrt(evals[-1] / evals[0])) if evals[0] > 0 else float("inf")
     if condition < max_condition:
-        coef = np.linalg.solve(G, Xs.T @ Y)
+        coef = np.linalg.solve(G, gram(Xs, Y))
     else:
-        coef = np.linalg.lstsq(Xs, Y, rcond=rcond)[0]
-        sv = np.linalg.svd(Xs, compute_uv=False)
+        with one_blas_thread():  # LAPACK's sums over the samples, too
+            coef = np.linalg.lstsq(Xs, Y, rcond=rcond)[0]
+            sv = np.linalg.svd(Xs, compute_uv=False)
         condition = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     return coef / scale[:, None], condition
 

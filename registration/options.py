@@ -18,7 +18,7 @@ from types import MappingProxyType
 from hrcore.errors import UsageError
 from registration.motion_model import Harmonics
 
-__all__ = ["DEFAULT_STEP", "MIN_BEATS", "MIN_BREATHS", "RegistrationOptions"]
+__all__ = ["DEFAULT_HARMONICS", "DEFAULT_STEP", "MIN_BEATS", "MIN_BREATHS", "RegistrationOptions"]
 
 #: fewest complete heartbeats a point's record must hold to be used.
 MIN_BEATS = 4
@@ -26,6 +26,9 @@ MIN_BEATS = 4
 MIN_BREATHS = 2
 #: step of the sweeps (cycles): 101 phases, as the paper.
 DEFAULT_STEP = 0.01
+#: harmonics (Hc, Hr, Hmc, Hmr) of the motion models by default: the paper's (5, 4, 2, 1)
+#: with more coupled terms, which hold a heartbeat whose amplitude breathes (docs/reproduction.md).
+DEFAULT_HARMONICS = Harmonics(5, 4, 5, 2)
 #: how phi_R* is chosen by default (see :mod:`registration.temporal`).
 ESTIMATORS = ("shape", "eq10")
 
@@ -37,7 +40,8 @@ class RegistrationOptions:
     Attributes
     ----------
     harmonics : Harmonics or (Hc, Hr, Hmc, Hmr)
-        Fourier harmonics of the motion models (``--harmonics``; paper: 5, 4, 2, 1).
+        Fourier harmonics of the motion models (``--harmonics``; default
+        :data:`DEFAULT_HARMONICS` (5, 4, 5, 2); the paper's: ``Harmonics()``, 5, 4, 2, 1).
     phase_step : float, cycles
         Step of both sweeps (``--step``; 0.01: 101 phases, as the paper).
     cardiac_sweep : bool
@@ -68,7 +72,7 @@ class RegistrationOptions:
         point at the model's phi_C*, as the paper.
     """
 
-    harmonics: Harmonics = Harmonics()
+    harmonics: Harmonics = DEFAULT_HARMONICS
     phase_step: float = DEFAULT_STEP
     cardiac_sweep: bool = True
     cardiac_phase_step: float | None = None

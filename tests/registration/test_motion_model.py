@@ -4,6 +4,7 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from heartreg.phantom import layout
 from registration.motion_model import (
@@ -109,3 +110,27 @@ def test_bad_inputs_raise():
         fit_motion_model(np.linspace(0, 0.9, 10), np.linspace(0, 0.9, 10), np.tile(np.eye(4), (10, 1, 1)))
     with pytest.raises(ValueError, match="fractions of a cycle"):
         fit_motion_model(np.full(30, 1.5), np.zeros(30), np.tile(np.eye(4), (30, 1, 1)))
+
+
+def _on_blas_threads(n_threads, fn):
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(n_threads, user_api="blas"):
+        return fn()
+
+
+def test_motion_model_fit_is_the_same_bits_on_one_and_two_threads():
+    # 3000 samples x 59 terms: the size at which OpenBLAS's threaded A.T @ B sums in another order
+    rng = np.random.default_rng(4)
+    n = 3000
+    phase_c, phase_r = rng.random(n), rng.random(n)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, 3] = rng.normal(size=(n, 3))
+    T[:, :3, :3] = Rotation.from_rotvec(0.05 * rng.normal(size=(n, 3))).as_matrix()
+
+    def fit():
+        m = fit_motion_model(phase_c, phase_r, T, harmonics=Harmonics(5, 4, 5, 2))
+        return m.coef_translation, m.coef_rotation, m.residual_rms_mm, m.predict(phase_c[:200], phase_r[:200])
+
+    for one, two in zip(_on_blas_threads(1, fit), _on_blas_threads(2, fit)):
+        assert np.array_equal(one, two)

@@ -110,7 +110,7 @@ def test_delta_and_point_fits_are_reported(case):
         assert fit.n_used + fit.n_nan_phase == record.n_samples
         assert fit.n_nan_phase > 0  # before the first / after the last event: never extrapolated
         assert fit.n_beats >= 20 and fit.n_breaths >= 4
-        # least squares over ~2900 samples and 27 terms leaves ~ the tracker noise
+        # least squares over ~2900 samples and 59 terms leaves ~ the tracker noise
         noise = np.linalg.norm(truth_points[fit.point_id]["position_noise_rms_mm"])
         assert fit.residual_rms_3d_mm <= 1.2 * noise
     assert result.points_probe_mm.shape == result.normals_probe.shape == (n, 3)
@@ -128,8 +128,8 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
     assert data["respiration_phase"] == result.respiration_phase
     np.testing.assert_allclose(data["T_heart_from_probe"], result.T_heart_from_probe)
     np.testing.assert_allclose(data["euler_xyz_deg"], result.euler_xyz_deg)
-    assert data["parameters"]["harmonics"] == {"cardiac": 5, "respiratory": 4, "coupled_cardiac": 2,
-                                               "coupled_respiratory": 1}
+    assert data["parameters"]["harmonics"] == {"cardiac": 5, "respiratory": 4, "coupled_cardiac": 5,
+                                               "coupled_respiratory": 2}  # RegistrationOptions' default
     assert len(data["point_fits"]) == result.n_points
     with open(out / "sweep.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -374,5 +374,7 @@ def test_the_models_slice_phases_are_used_unless_switched_off(case):
                            cardiac_sweep=False, slice_phases=False)
     assert off.parameters["slice_phases"] is False
     plain = off.respiration_sweep.distances_mm
-    assert np.allclose(register(SlicePhases(z, np.full(z.size, pc), [0.0, 0.0, 1.0])), plain, atol=1e-6)
+    # the same phases through another einsum (a sum in another order), which ICP's stopping
+    # tolerance can amplify to a few 1e-6 mm
+    assert np.allclose(register(SlicePhases(z, np.full(z.size, pc), [0.0, 0.0, 1.0])), plain, atol=1e-4)
     assert not np.allclose(register(early), plain, atol=1e-3)
