@@ -177,20 +177,3 @@ def test_the_sweep_equals_the_sweep_searching_afresh_at_every_iteration(case, he
     assert np.linalg.norm(dT[:, :3, :3] @ centre + dT[:, :3, 3] - centre, axis=1).max() < 1e-6
     assert rotation_distance_deg(fast.T_heart_from_probe, ref.T_heart_from_probe).max() < 1e-4
     np.testing.assert_allclose(fast.distances_mm, ref.distances_mm, rtol=0, atol=1e-9)
-
-
-def test_the_sweep_matches_the_stored_reference(case, heart_index):
-    # the respiration sweep of this case as computed before the closest-point search was sped up
-    # (commit ad493af; tests/registration/data/sweep_trial1_reference.npz): the same transforms within
-    # 0.01 mm anywhere on the heart (its points lie within 100 mm of the centre) and the same iterations
-    from pathlib import Path
-
-    with np.load(Path(__file__).parent / "data" / "sweep_trial1_reference.npz") as ref:
-        T_ref, iterations_ref = ref["T_heart_from_probe"], ref["iterations"]
-    sweep = case["reg"].respiration_sweep
-    np.testing.assert_array_equal(sweep.iterations, iterations_ref)
-    dT = sweep.T_heart_from_probe @ np.linalg.inv(T_ref)
-    centre = surface_centroid(heart_index)
-    shift_mm = np.linalg.norm(dT[:, :3, :3] @ centre + dT[:, :3, 3] - centre, axis=1)
-    turn_rad = np.radians(rotation_distance_deg(sweep.T_heart_from_probe, T_ref))
-    assert (shift_mm + 100.0 * turn_rad).max() < 0.01
