@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, signal
 
-from imaging.events import SignalError, phase_from_events
+from imaging.events import SignalError, phase_from_events, zero_phase_filter
 from imaging.qrs_classify import _Classifier, _search_edges
 
 __all__ = ["RPeaks", "SignalError", "detect_r_peaks", "cardiac_phase"]
@@ -163,8 +163,7 @@ def _check_signal(signal_mv, rate_hz) -> tuple[np.ndarray, float]:
 def _bandpass(x: np.ndarray, band_hz: tuple[float, float], rate: float) -> np.ndarray:
     nyquist = 0.5 * rate
     hi = min(band_hz[1], 0.8 * nyquist)
-    sos = signal.butter(2, [band_hz[0], hi], btype="bandpass", fs=rate, output="sos")
-    return signal.sosfiltfilt(sos, x)
+    return zero_phase_filter(x, (band_hz[0], hi), "bandpass", rate)
 
 
 def _parabolic(y_m: np.ndarray, y_0: np.ndarray, y_p: np.ndarray) -> np.ndarray:

@@ -3,16 +3,20 @@
 A cardiac phase is ``(t - R_k) / (R_{k+1} - R_k)`` for ``R_k <= t < R_{k+1}``
 (R-peaks); a respiration phase is the same between starts of expiration (Wood
 et al. 2018, section 2.2.4).  Outside the covered events the phase is undefined
-and returned as NaN: it is never extrapolated.
+and returned as NaN: it is never extrapolated.  The events are found in signals
+smoothed by :func:`zero_phase_filter`, whose designs are kept per rate.
 """
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
+from scipy import signal
 
 from hrcore.errors import HeartregError
 
-__all__ = ["SignalError", "phase_from_events"]
+__all__ = ["SignalError", "phase_from_events", "zero_phase_filter"]
 
 
 class SignalError(HeartregError, ValueError):
@@ -74,3 +78,31 @@ def phase_from_events(time_s, events_s, *, name: str = "events_s", what: str = "
     # Rounding can give exactly 1.0 just below the next event: keep [0, 1).
     phase[ok] = np.minimum(phase[ok], np.nextafter(1.0, 0.0))
     return phase
+
+
+@functools.lru_cache(maxsize=64)
+def _butter_sos(cutoff_hz: float | tuple[float, float], btype: str, rate_hz: float) -> np.ndarray:
+    return signal.butter(2, cutoff_hz, btype=btype, fs=rate_hz, output="sos")
+
+
+def zero_phase_filter(x: np.ndarray, cutoff_hz, btype: str, rate_hz: float) -> np.ndarray:
+    """``x`` through a 2nd-order Butterworth filter forwards and backwards (zero phase).
+
+    The filter's design depends on the cut-off and the rate only, and every
+    point of a session has the same rate: it is designed once and kept.
+
+    Parameters
+    ----------
+    x : (n,) float64
+    cutoff_hz : float or (float, float), Hz
+        Cut-off, or the band for ``btype="bandpass"``.
+    btype : {"lowpass", "bandpass"}
+    rate_hz : float, Hz
+
+    Returns
+    -------
+    (n,) float64
+    """
+    band = tuple(float(f) for f in cutoff_hz) if np.ndim(cutoff_hz) else float(cutoff_hz)
+    # a copy: the cached design stays as designed (scipy's filter wants a writeable array)
+    return signal.sosfiltfilt(_butter_sos(band, btype, float(rate_hz)).copy(), x)

@@ -27,9 +27,8 @@ before it unseen) is not reported: the phase there is unknown, not extrapolated.
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal
 
-from imaging.events import SignalError, phase_from_events
+from imaging.events import SignalError, phase_from_events, zero_phase_filter
 
 __all__ = ["SignalError", "expiration_onsets", "respiration_phase"]
 
@@ -172,8 +171,7 @@ def expiration_onsets(
             "record at least two breaths"
         )
 
-    sos = signal.butter(2, min(LOWPASS_HZ, 0.4 * rate), btype="lowpass", fs=rate, output="sos")
-    smooth = signal.sosfiltfilt(sos, q)
+    smooth = zero_phase_filter(q, min(LOWPASS_HZ, 0.4 * rate), "lowpass", rate)
     lo, hi = np.percentile(smooth, [5.0, 95.0])
     span = hi - lo
     if not span > MIN_RANGE_LPM:
