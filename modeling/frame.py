@@ -218,7 +218,7 @@ def fit_heart_frame(
         slabs = _longest_run(_fit_slabs(v, z, slab_mm, int(min_points))[0])
         if len(slabs) < 3:
             raise FrameError(
-                f"only {len(slabs)} adjacent slabs of {slab_mm} mm gave an ellipse (need 3); "
+                f"only {len(slabs)} slabs of {slab_mm} mm gave an ellipse (need 3); "
                 "reduce slab_mm or check that the mesh is a whole heart"
             )
         _, z_new = _fit_line([s["centre"] for s in slabs])
@@ -237,7 +237,7 @@ def fit_heart_frame(
     n_rejected += len(accepted) - len(slabs)
     if len(slabs) < 3:
         raise FrameError(
-            f"only {len(slabs)} adjacent slabs of {slab_mm} mm gave an ellipse about the final axis"
+            f"only {len(slabs)} slabs of {slab_mm} mm gave an ellipse about the final axis"
         )
     centres = np.array([s["centre"] for s in slabs])
     on_axis = centres.mean(axis=0)

@@ -162,14 +162,16 @@ def _fit_slabs(v: np.ndarray, z: np.ndarray, slab_mm: float, min_points: int):
     return out, rejected
 
 
-def _longest_run(slabs: list) -> list:
+def _longest_run(slabs: list, min_run: int = 3) -> list:
     """The longest run of accepted slabs with no rejected slab between them.
 
     ``slabs`` as returned by :func:`_fit_slabs` (in slab order); ties go to the
     run with more vertices. A run ends where a slab's cross-section is no
     single ellipse (the base, where atria and great vessels divide the
     section), so what lies beyond such a gap -- a vessel stub, an atrial roof
-    -- does not tilt the line through the body's centres.
+    -- does not tilt the line through the body's centres.  A mesh too coarse
+    to give a run of ``min_run`` slabs (a few vertices a slab) keeps every
+    accepted slab, as the paper's fit does.
     """
     runs = []
     for s in slabs:
@@ -179,7 +181,8 @@ def _longest_run(slabs: list) -> list:
             runs.append([s])
     if not runs:
         return []
-    return max(runs, key=lambda run: (len(run), sum(s["n"] for s in run)))
+    longest = max(runs, key=lambda run: (len(run), sum(s["n"] for s in run)))
+    return longest if len(longest) >= min_run else list(slabs)
 
 
 def _fit_ellipse(pts: np.ndarray):
