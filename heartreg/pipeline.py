@@ -153,7 +153,6 @@ def run_pipeline(
     """
     from imaging import write_phase_report
     from modeling import build_heart_model, render_model_png, write_model
-    from modeling.render import start_offscreen_probe
     from modeling.slice_phases import SlicePhases
     from registration import read_session
     from registration.pipeline import register_session
@@ -171,7 +170,6 @@ def run_pipeline(
     with staged_output(
         out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS,
     ) as staging:
-        start_offscreen_probe()  # beside the work: the registration's view needs its answer at the end
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")
         volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)

@@ -33,8 +33,8 @@ no patient identity, UTF-8, ``\\n`` line ends):
 ``fig10_phase.png``
     The shape estimator's cost terms over phi_R and the bootstrap phases.
 ``fig8_view.png``
-    The 3-D view of :mod:`registration.view` when a model is given and
-    offscreen OpenGL works.
+    The 3-D view of :mod:`registration.view` when a model is given (drawn
+    by matplotlib: no OpenGL needed).
 ``ProbeTo*.tfm``, ``points_registered.mrk.json``, ``fiducials_touched.mrk.json``
     The same registration for 3D Slicer (:mod:`registration.slicer`,
     ``docs/slicer.md``).
@@ -150,7 +150,7 @@ def write_registration(
     -------
     dict
         ``{name: Path}`` of the files written (in ``out_dir``), and
-        ``"notes"``: a list of reasons for files skipped (e.g. no offscreen OpenGL).
+        ``"notes"``: a list of reasons for files skipped (e.g. a view that failed to draw).
 
     Raises
     ------

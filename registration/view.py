@@ -5,10 +5,8 @@ points registered by the fiducial registration ``T0``, on the right by the
 final spatiotemporal registration.  Each point is the motion model's
 prediction at (phi_C*, phi_R*), drawn as a sphere with an arrow along its
 predicted surface normal (the robot's z axis).  Points are coloured by their
-distance to the surface.  Rendering is offscreen pyvista
-(:mod:`modeling.render` says what it needs); without offscreen OpenGL
-:func:`render_registration_png` raises :class:`modeling.render.RenderError`
-and the caller skips the picture.
+distance to the surface.  Drawn in parallel projection by matplotlib alone
+(:mod:`modeling.projection`, as the model picture): no OpenGL is needed.
 """
 
 from __future__ import annotations
@@ -55,14 +53,13 @@ def render_registration_png(
     Raises
     ------
     RenderError
-        No offscreen OpenGL (the message says what to install), or VTK failed.
+        The drawing failed or came out blank.
 
     Examples
     --------
     The view :func:`write_registration` writes as ``fig8_view.png``, of a
     registration read back with the model it was registered to (skipped here:
-    the repository ships no registration, and drawing needs offscreen OpenGL,
-    :func:`modeling.offscreen_available`):
+    the repository ships no registration):
 
     >>> from modeling import read_model
     >>> from registration import read_registration, render_registration_png
@@ -80,25 +77,26 @@ def render_registration_png(
             f"the model has {model.mesh.n_faces} faces but the result was registered to a "
             f"mesh of {result.n_faces}: pass the model the session was registered to"
         )
-    return render_png(lambda size: _draw(model, result, size=size), path, size=size, what="the registration")
+    return render_png(lambda size: _draw(model, result, size=size), path, size=size, what="the registration",
+                      opengl=False)
 
 
 POINT_CMAP = "viridis"
 ARROW_COLOUR = "#1f4e9c"
 SURFACE_COLOUR = "#d9a38f"
+#: radius of a registered point's ball in the view, mm.
+POINT_RADIUS_MM = 1.6
 
 
 def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
-    import pyvista as pv
     from matplotlib import colormaps
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from modeling.render import compose_figure, render_panel
+    from modeling.projection import Scene, project_panel
+    from modeling.render import compose_figure
 
     mesh = model.mesh
-    faces = np.hstack([np.full((mesh.n_faces, 1), 3), mesh.faces]).ravel()
-    surf = pv.PolyData(np.asarray(mesh.vertices), faces)
     index = SurfaceIndex(mesh.vertices, mesh.faces)
     extent = float(np.ptp(mesh.vertices, axis=0).max())
     arrow_mm = 0.12 * extent
@@ -107,33 +105,29 @@ def _draw(model: HeartModel, result: RegistrationResult, *, size) -> np.ndarray:
     mapped = [_mapped(T, result.points_probe_mm, result.normals_probe) for T in transforms]
     dists = [closest_points(index, pts).distances_mm for pts, _ in mapped]
     vmax = max(5.0, float(np.ceil(max(d.max() for d in dists))))
+    cmap = colormaps[POINT_CMAP]
     # the heart frame's x points anterior: look from the side of the points, z (base) up
     towards = mapped[1][0].mean(axis=0) - centre
     towards[2] = 0.35 * towards[2]
     towards = towards / np.linalg.norm(towards) if np.linalg.norm(towards) > 0 else np.array([1.0, 0.0, 0.0])
 
-    def actors(pts, nrm, dist):
-        def add(plotter):
-            plotter.add_mesh(surf, color=SURFACE_COLOUR, opacity=0.6, smooth_shading=True)
-            cloud = pv.PolyData(pts)
-            cloud["distance (mm)"] = dist
-            cloud["normal"] = nrm
-            arrows = cloud.glyph(orient="normal", scale=False, factor=arrow_mm,
-                                 geom=pv.Arrow(tip_length=0.3, tip_radius=0.12, shaft_radius=0.04))
-            plotter.add_mesh(arrows, color=ARROW_COLOUR)
-            plotter.add_mesh(cloud, scalars="distance (mm)", render_points_as_spheres=True, point_size=16,
-                             cmap=POINT_CMAP, clim=(0.0, vmax), show_scalar_bar=False)
-        return add
+    def scene(pts, nrm, dist):
+        # as pyvista's Arrow(tip_length=0.3, tip_radius=0.12, shaft_radius=0.04) scaled to arrow_mm
+        return Scene(
+            surfaces=[(mesh.vertices, mesh.faces, SURFACE_COLOUR, 0.6)],
+            arrows=[(p, arrow_mm * n, ARROW_COLOUR, 0.04 * arrow_mm, 0.12 * arrow_mm, 0.3 * arrow_mm)
+                    for p, n in zip(pts, nrm)],
+            balls=[(p, POINT_RADIUS_MM, cmap(min(float(d) / vmax, 1.0))) for p, d in zip(pts, dist)],
+        )
 
-    panel = (max(size[0] // 2, 64) * 2, max(size[1], 64) * 2)
-    panels = [render_panel(actors(p, n, d), size=panel, towards_camera=towards, up=(0.0, 0.0, 1.0),
-                           focus=centre, extent_mm=extent) for (p, n), d in zip(mapped, dists)]
+    panel = (max(size[0] // 2, 64), max(size[1], 64))  # each view at about the size it is shown, then cut
+    panels = [project_panel(scene(p, n, d), size=panel, towards_camera=towards, up=(0.0, 0.0, 1.0), focus=centre)
+              for (p, n), d in zip(mapped, dists)]
     rms = [float(np.sqrt(np.mean(d**2))) for d in dists]
     titles = [
         f"(A) fiducial registration $T_0$: RMS {rms[0]:.2f} mm",
         f"(B) spatiotemporal registration, $\\varphi_R^*$ = {result.respiration_phase:.2f}: RMS {rms[1]:.2f} mm",
     ]
-    cmap = colormaps[POINT_CMAP]
     handles = [
         Patch(facecolor=SURFACE_COLOUR, alpha=0.7, edgecolor="none", label="heart model surface (heart frame)"),
         Line2D([], [], color=cmap(0.5), marker="o", linestyle="none", markersize=10, markeredgecolor="#333",

@@ -168,7 +168,7 @@ def test_render_error_is_clear(model, tmp_path, monkeypatch):
     import modeling.render as render
 
     monkeypatch.setattr(render, "offscreen_available", lambda: False)
-    with pytest.raises(RenderError, match="libosmesa6"):  # a pyvista drawing (the registration's view)
+    with pytest.raises(RenderError, match="libosmesa6"):  # a VTK drawing (modeling.render.render_panel)
         render.render_png(lambda size: np.zeros((size[1], size[0], 3), np.uint8), tmp_path / "v.png",
                           size=(100, 100), what="a view")
     assert not (tmp_path / "v.png").exists()

@@ -155,8 +155,14 @@ def test_registration_json_and_sweep_csv_match_the_result(case):
         assert len(list(csv.DictReader(fh))) == 21
     for name in ("fig2_rms.png", "fig6_parameters.png", "fig7_distances.png", "fig9_delta.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # the 3-D view is drawn, or skipped with a reason (no offscreen OpenGL)
-    assert (out / "fig8_view.png").is_file() or any("fig8" in n for n in case["paths"]["notes"])
+    # the 3-D view needs no OpenGL: always drawn; both panels hold the surface and the points' colours
+    from PIL import Image
+
+    view = np.asarray(Image.open(out / "fig8_view.png").convert("RGB"), dtype=float)
+    surface = (np.abs(view - [217, 163, 143]).max(axis=2) < 60) & (view[..., 0] > view[..., 2] + 30)
+    half = view.shape[1] // 2
+    assert surface[:, :half].mean() > 0.05 and surface[:, half:].mean() > 0.05
+    assert not any("fig8" in n for n in case["paths"]["notes"])
     text = (out / "registration.json").read_text()
     # no paths (a folder name can identify a patient): neither the output's nor the session's
     assert str(case["root"]) not in text and str(case["phantom"]) not in text
