@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.memory import release_free_memory
+from modeling.coarse import mask_box
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
@@ -107,12 +108,7 @@ def _crop_mask(mask, T, margin_mm: float):
         ``T_patient_from_voxel`` of the box's voxels.
     """
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
-    box = []
-    for axis in range(3):
-        nz = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
-        grow = int(np.ceil(margin_mm / spacing_kji[axis])) + 2
-        box.append(slice(max(int(nz[0]) - grow, 0), min(int(nz[-1]) + 1 + grow, mask.shape[axis])))
-    box = tuple(box)
+    box = mask_box(mask, np.ceil(margin_mm / spacing_kji).astype(int) + 2)
     T_box = T.copy()
     T_box[:3, 3] = T[:3, :3] @ np.array([box[2].start, box[1].start, box[0].start], float) + T[:3, 3]
     return mask[box].copy(), box, T_box

@@ -10,7 +10,25 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["coarse_step", "block_mean_max"]
+__all__ = ["coarse_step", "block_mean_max", "mask_box"]
+
+
+def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
+    """The smallest box (k, j, i slices) holding ``mask``'s voxels, grown by ``pad``.
+
+    ``pad`` is voxels per axis (one number or three); the box is clipped to the
+    volume.  None when the mask is empty.  Work on the box rather than the
+    volume keeps what follows (meshing, distance transforms) to the heart.
+    """
+    pad = np.broadcast_to(np.asarray(pad, dtype=int), (3,))
+    box = []
+    for axis in range(3):
+        nz = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
+        if nz.size == 0:
+            return None
+        grow = int(pad[axis])
+        box.append(slice(max(int(nz[0]) - grow, 0), min(int(nz[-1]) + 1 + grow, mask.shape[axis])))
+    return tuple(box)
 
 
 def coarse_step(spacing_kji, target_mm: float) -> np.ndarray:

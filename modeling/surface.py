@@ -36,7 +36,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, coarse_step
+from modeling.coarse import block_mean_max, coarse_step, mask_box
 from modeling.mesh import Mesh, MeshError, _vertex_components, check_mesh
 from modeling.repair import clean_adjacency, taubin_smooth
 
@@ -135,13 +135,9 @@ def mask_to_mesh(
     steps.next("crop")
     step = np.ones(3, int) if grid_mm is None else coarse_step(np.linalg.norm(T[:3, :3], axis=0)[::-1], grid_mm)
     pad = (int(np.ceil(3 * sigma_vox)) + 2) * step  # empty blocks round the mask
-    lo, hi = [], []
-    for axis in range(3):
-        other = tuple(a for a in range(3) if a != axis)
-        nz = np.nonzero(mask.any(axis=other))[0]
-        lo.append(nz[0])
-        hi.append(nz[-1] + 1)
-    solid = np.pad(mask[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]], [(p, p) for p in pad], mode="constant")
+    box = mask_box(mask)
+    lo = [b.start for b in box]
+    solid = np.pad(mask[box], [(p, p) for p in pad], mode="constant")
     if fill_cavities:
         # the background reached from the padding is outside; the rest is solid
         background = np.empty(solid.shape, np.int32)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.coarse import mask_box
 from modeling.distance import distance_mm
 from modeling.mesh import Mesh, MeshError, check_mesh
 
@@ -166,15 +167,13 @@ def base_direction(mask, hu, T_patient_from_voxel, *, blood_hu: float = MOUTH_BL
     mask = np.asarray(mask, dtype=bool)
     T = np.asarray(T_patient_from_voxel, dtype=float)
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
-    extent = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
-    if any(e.size == 0 for e in extent):
+    box = mask_box(mask, np.ceil(reach_mm / spacing_kji).astype(int) + 1)
+    if box is None:
         return None
     # a direction needs no sub-millimetre grid: every ``step``-th voxel (at most
     # MOUTH_GRID_MM apart) keeps the distance transform small on a fine CT
     step = np.maximum(1, np.floor(MOUTH_GRID_MM / spacing_kji)).astype(int)
-    pad = [int(np.ceil(reach_mm / s)) + 1 for s in spacing_kji]
-    box = tuple(slice(max(e[0] - p, 0), min(e[-1] + 1 + p, n), int(st))
-                for e, p, n, st in zip(extent, pad, mask.shape, step))
+    box = tuple(slice(b.start, b.stop, int(st)) for b, st in zip(box, step))
     sub = mask[box]
     spacing = spacing_kji * step
     shell = (distance_mm(~sub, spacing) <= reach_mm) & ~sub
