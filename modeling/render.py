@@ -9,9 +9,10 @@ spheres.  Each view is drawn in parallel projection by matplotlib alone
 memory and time), cut to what it shows and laid out (:func:`compose_figure`)
 with titles, a legend for every colour and marker, and a scale bar per view.
 
-The registration's 3-D view (:mod:`registration.view`) draws its panels with
-pyvista (:func:`render_panel`) and needs offscreen OpenGL: VTK picks its window from ``VTK_DEFAULT_OPENGL_WINDOW``
-(``vtkOSOpenGLRenderWindow`` needs Debian's ``libosmesa6``;
+The registration's 3-D view (:mod:`registration.view`) is drawn the same way.
+:func:`render_panel` draws a panel with pyvista instead, for a caller who
+wants VTK's rendering; it needs offscreen OpenGL: VTK picks its window from
+``VTK_DEFAULT_OPENGL_WINDOW`` (``vtkOSOpenGLRenderWindow`` needs Debian's ``libosmesa6``;
 ``vtkEGLRenderWindow`` needs ``libegl1 libgl1``); without the variable and
 without an X display, VTK 9.4+ falls back to EGL. Because a missing GL stack
 can abort the process inside VTK, :func:`offscreen_available` first probes it
