@@ -48,11 +48,11 @@ from heartreg.reproduce_results import (
     ReproduceError,
     TrialResult,
     _summary,
-    _wrap,
 )
 from hrcore.output import staged_output
 from imaging.phase_io import read_phase_report
 from modeling.model import read_model
+from registration.phase_estimate import wrap_phase
 from registration.report import read_registration
 
 __all__ = [
@@ -190,7 +190,7 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
     fits = reg.point_fits
     e_fit = [float(x) for x in model.euler_xyz_deg]
     e_preset = [float(x) for x in truth["heart_euler_xyz_deg"]]
-    phi_r_err = float(_wrap(reg.respiration_phase - truth["respiration_phase"]))
+    phi_r_err = float(wrap_phase(reg.respiration_phase - truth["respiration_phase"]))
     i_rms = int(np.argmin(sweep.rms_mm))
     row = {
         "trial": trial,

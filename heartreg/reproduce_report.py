@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from heartreg.reproduce_results import COLUMNS, PAPER, TOL_PHASE_R, _wrap
+from heartreg.reproduce_results import COLUMNS, PAPER, TOL_PHASE_R
+from registration.phase_estimate import wrap_phase
 
 __all__ = ["csv_text", "markdown", "page_html"]
 
@@ -184,9 +185,9 @@ def _differences(trials, summary) -> list[str]:
     items = []
 
     rms_lo, rms_hi = s["mean_rms_range_mm"]
-    near = [r["trial"] for r in rows if abs(_wrap(r["rms_argmin_phase"] - r["phi_r_truth"])) <= TOL_PHASE_R]
+    near = [r["trial"] for r in rows if abs(wrap_phase(r["rms_argmin_phase"] - r["phi_r_truth"])) <= TOL_PHASE_R]
     mirror = [r for r in rows if r["trial"] not in near
-              and abs(_wrap(r["rms_argmin_phase"] - (1.0 - r["phi_r_truth"]))) <= TOL_PHASE_R]
+              and abs(wrap_phase(r["rms_argmin_phase"] - (1.0 - r["phi_r_truth"]))) <= TOL_PHASE_R]
     text = (
         f"<b>RMS error is far below the paper's ~{p['rms_mm']:g} mm.</b> The mean curve runs from "
         f"{rms_lo:.2f} to {rms_hi:.2f} mm over phi_R. The map is segmented from a CT whose heart shape is "

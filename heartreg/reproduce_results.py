@@ -13,6 +13,7 @@ from typing import Sequence
 import numpy as np
 
 from hrcore.errors import HeartregError
+from registration.phase_estimate import wrap_phase
 
 #: |phi_R* - truth| within this counts as "near the image phase" (cycles).
 TOL_PHASE_R = 0.05
@@ -32,11 +33,6 @@ PAPER = {
 
 class ReproduceError(HeartregError, ValueError):
     """The reproduction cannot run as asked (bad trial list, a foreign case in the way)."""
-
-
-def _wrap(d):
-    """Phase difference wrapped into [-0.5, 0.5) cycles."""
-    return (np.asarray(d, dtype=float) + 0.5) % 1.0 - 0.5
 
 
 @dataclass(frozen=True, eq=False)

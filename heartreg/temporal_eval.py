@@ -37,6 +37,7 @@ import numpy as np
 
 from hrcore.geometry import apply_to_points
 from imaging.files import write_text_atomic
+from registration.phase_estimate import wrap_phase
 
 __all__ = ["GRID_PRESETS", "CRITERIA", "true_phase", "run_case", "summarize", "evaluate"]
 
@@ -47,17 +48,13 @@ CRITERIA = {"phase": 0.05, "transform_mm": 2.0, "transform_deg": 2.0}
 AWAY_FROM = (0.3, 0.1)
 
 
-def _wrap(d):
-    return (np.asarray(d, dtype=float) + 0.5) % 1.0 - 0.5
-
-
 def true_phase(preset: str, seed: int) -> float:
     """The case's CT breath-hold phase: uniform on [0, 1), at least 0.1 from 0.3, rounded to 0.01."""
     key = sum(ord(c) for c in preset)
     rng = np.random.default_rng([int(seed), key, 0x7E57])
     while True:
         phase = round(float(rng.uniform(0.0, 1.0)), 2) % 1.0
-        if abs(_wrap(phase - AWAY_FROM[0])) >= AWAY_FROM[1]:
+        if abs(wrap_phase(phase - AWAY_FROM[0])) >= AWAY_FROM[1]:
             return phase
 
 
@@ -130,7 +127,7 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     rows = []
     for est in result.phase_estimates:
         t_mm, t_deg = _transform_error(sweep.T_heart_from_probe[est.index], T_true, vertices)
-        err = float(_wrap(est.respiration_phase - phase_r))
+        err = float(wrap_phase(est.respiration_phase - phase_r))
         rows.append({
             "estimator": est.method,
             "phase": est.respiration_phase,
@@ -232,8 +229,8 @@ def _figure(cases, path: Path) -> None:
             continue
         x = np.array([t for t, _ in rows]) + dx
         y = np.array([t + r["phase_error"] for t, r in rows])
-        lo = np.array([-_wrap(r["interval_low"] - r["phase"]) for _, r in rows])
-        hi = np.array([_wrap(r["interval_high"] - r["phase"]) for _, r in rows])
+        lo = np.array([-wrap_phase(r["interval_low"] - r["phase"]) for _, r in rows])
+        hi = np.array([wrap_phase(r["interval_high"] - r["phase"]) for _, r in rows])
         lo, hi = np.abs(lo), np.abs(hi)
         ax.errorbar(x, y, yerr=[lo, hi], fmt="o", ms=3, lw=0.8, color=colors[method], alpha=0.8,
                     label=f"{method} (90 % interval)")

@@ -14,7 +14,7 @@ import numpy as np
 from hrcore.errors import HeartregError
 from hrcore.jsonarrays import float_array, json_floats
 
-__all__ = ["TemporalError", "TemporalEstimate"]
+__all__ = ["TemporalError", "TemporalEstimate", "wrap_phase"]
 
 #: an interval wider than this (cycles) means the data cannot decide phi_R*.
 UNDECIDED_WIDTH = 0.3
@@ -24,7 +24,25 @@ class TemporalError(HeartregError, ValueError):
     """Evidence that cannot give a respiration phase (a trace that misses phases, ...)."""
 
 
-def _wrap(d):
+def wrap_phase(d) -> np.ndarray:
+    """Phase differences wrapped into [-0.5, 0.5) cycles.
+
+    Parameters
+    ----------
+    d : float or array of float, cycles
+        Differences of phases (any real values).
+
+    Returns
+    -------
+    float64 ndarray of the same shape, cycles
+        ``d`` plus the whole number of cycles that brings it into [-0.5, 0.5).
+
+    Examples
+    --------
+    >>> from registration.phase_estimate import wrap_phase
+    >>> wrap_phase([0.9, 0.5, -0.75]).round(2).tolist()
+    [-0.1, -0.5, 0.25]
+    """
     return (np.asarray(d, dtype=float) + 0.5) % 1.0 - 0.5
 
 
@@ -85,7 +103,7 @@ class TemporalEstimate:
 
     def contains(self, phase: float) -> bool:
         """True when ``phase`` lies in the interval (circularly)."""
-        d = float(_wrap(phase - self.respiration_phase))
+        d = float(wrap_phase(phase - self.respiration_phase))
         return bool(self.interval_offsets[0] - 1e-9 <= d <= self.interval_offsets[1] + 1e-9)
 
     def summary(self) -> str:

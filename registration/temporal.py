@@ -64,7 +64,7 @@ import numpy as np
 from hrcore.errors import UsageError
 from hrcore.geometry import kabsch
 from registration.fiducial_curve import FiducialCurve, fiducial_curve
-from registration.phase_estimate import UNDECIDED_WIDTH, TemporalError, TemporalEstimate, _wrap
+from registration.phase_estimate import UNDECIDED_WIDTH, TemporalError, TemporalEstimate, wrap_phase
 
 __all__ = [
     "TemporalEstimator",
@@ -113,7 +113,7 @@ def spatial_blocks(points_mm, n_blocks: int) -> np.ndarray:
 
 
 def _interval(phases, best, boot, confidence, step):
-    offsets = _wrap(boot - phases[best])
+    offsets = wrap_phase(boot - phases[best])
     tail = 100 * (1 - confidence) / 2
     lo, hi = np.percentile(offsets, [tail, 100 - tail])
     lo, hi = min(lo, 0.0) - step / 2, max(hi, 0.0) + step / 2
@@ -136,7 +136,7 @@ def _sandwich_interval(phases, J, units, best, confidence, step):
     from scipy.stats import chi2
 
     m = phases.size
-    x = _wrap(phases - phases[best])
+    x = wrap_phase(phases - phases[best])
     win = np.abs(x) <= max(WINDOW, 2.01 * step)
     X = np.stack([np.ones(int(win.sum())), x[win], x[win] ** 2], axis=1)
     coef = np.linalg.lstsq(X, np.column_stack([J[win], units[win]]), rcond=None)[0]
@@ -150,8 +150,8 @@ def _sandwich_interval(phases, J, units, best, confidence, step):
         lo -= 1
     while hi < m // 2 and inside[(best + hi + 1) % m]:
         hi += 1
-    lo_off = float(_wrap(phases[(best + lo) % m] - phases[best])) - step / 2 if lo else -step / 2
-    hi_off = float(_wrap(phases[(best + hi) % m] - phases[best])) + step / 2 if hi else step / 2
+    lo_off = float(wrap_phase(phases[(best + lo) % m] - phases[best])) - step / 2 if lo else -step / 2
+    hi_off = float(wrap_phase(phases[(best + hi) % m] - phases[best])) + step / 2 if hi else step / 2
     if hi - lo + 1 >= m or hi_off - lo_off >= 1.0:
         return np.array([-0.5, 0.5])
     return np.array([min(lo_off, 0.0), max(hi_off, 0.0)])
@@ -233,7 +233,7 @@ def estimate_phase(
     if not breath_hold_sd > 0:
         raise ValueError(f"breath_hold_sd must be positive, got {breath_hold_sd}")
     # the sweep's ends are the same phase: keep one
-    same = np.isclose(_wrap(phases[-1] - phases[0]), 0.0) and m > 1
+    same = np.isclose(wrap_phase(phases[-1] - phases[0]), 0.0) and m > 1
     usable = np.arange(m - 1 if same else m)
     step = float(np.median(np.diff(phases))) if m > 1 else 0.0
     evidence = ["heart"]
@@ -248,7 +248,7 @@ def estimate_phase(
     if breath_hold_phase is not None:
         if not 0.0 <= breath_hold_phase <= 1.0:
             raise UsageError(f"breath_hold_phase (--breath-hold-phase) must be a phase in [0, 1], got {breath_hold_phase}")
-        prior = (_wrap(phases[usable] - breath_hold_phase) / breath_hold_sd) ** 2
+        prior = (wrap_phase(phases[usable] - breath_hold_phase) / breath_hold_sd) ** 2
         evidence.append("breath_hold")
     J_h, J_f = e_h.sum(axis=1), e_f.sum(axis=1)
     J = J_h + J_f + prior

@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hrcore", "imaging", "modeling", "registration")
 #: Modules whose docstrings carry further examples (module level, helpers).
 EXTRA_MODULES = ("hrcore.errors", "hrcore.geometry", "hrcore.output", "modeling.options", "registration.localise",
+                 "registration.phase_estimate",
                  "registration.online", "registration.options")
 
 
