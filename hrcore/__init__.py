@@ -4,7 +4,8 @@
 ``heartreg``; they all import from it. It holds the error family
 (:class:`HeartregError`, :mod:`hrcore.errors`), the output contract
 (:func:`staged_output`, :mod:`hrcore.output`: stage, one rename, nothing left
-behind, never into an input) and the 4x4 geometry (:mod:`hrcore.geometry`).
+behind, never into an input), the 4x4 geometry (:mod:`hrcore.geometry`) and the
+base of the option records (:mod:`hrcore.options`).
 """
 
 from hrcore.errors import HeartregError

@@ -13,11 +13,11 @@ False
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from types import MappingProxyType
 
 from hrcore.errors import UsageError
+from hrcore.options import OptionsRecord
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelOptions"]
 
@@ -28,7 +28,7 @@ MIN_HEART_ML = 100.0
 
 
 @dataclass(frozen=True)
-class ModelOptions:
+class ModelOptions(OptionsRecord):
     """How a heart model is built (:func:`modeling.build_heart_model`).
 
     Attributes
@@ -73,13 +73,4 @@ class ModelOptions:
             raise UsageError(f"fiducial_rows must be a positive integer, got {self.fiducial_rows!r}")
         if not self.min_heart_ml > 0:
             raise UsageError(f"min_heart_ml must be positive, got {self.min_heart_ml!r}")
-        if self.segmentation is not None:
-            object.__setattr__(self, "segmentation", MappingProxyType(dict(self.segmentation)))
-
-    @classmethod
-    def of(cls, options: ModelOptions | None = None, **overrides) -> ModelOptions:
-        """``options`` (default: the defaults) with some fields replaced."""
-        base = cls() if options is None else options
-        if not isinstance(base, cls):
-            raise TypeError(f"options must be a {cls.__name__}, got {type(base).__name__}")
-        return dataclasses.replace(base, **overrides) if overrides else base
+        self._freeze_mapping("segmentation")

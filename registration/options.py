@@ -11,11 +11,11 @@ Examples
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from types import MappingProxyType
 
 from hrcore.errors import UsageError
+from hrcore.options import OptionsRecord
 from registration.motion_model import Harmonics
 
 __all__ = ["DEFAULT_HARMONICS", "DEFAULT_STEP", "MIN_BEATS", "MIN_BREATHS", "RegistrationOptions"]
@@ -34,7 +34,7 @@ ESTIMATORS = ("shape", "eq10")
 
 
 @dataclass(frozen=True)
-class RegistrationOptions:
+class RegistrationOptions(OptionsRecord):
     """How a session is registered (:func:`registration.register_session`).
 
     Attributes
@@ -116,13 +116,4 @@ class RegistrationOptions:
             )
         if not self.breath_hold_sd > 0:
             raise UsageError(f"breath_hold_sd must be positive, got {self.breath_hold_sd!r}")
-        if self.icp_options is not None:
-            object.__setattr__(self, "icp_options", MappingProxyType(dict(self.icp_options)))
-
-    @classmethod
-    def of(cls, options: RegistrationOptions | None = None, **overrides) -> RegistrationOptions:
-        """``options`` (default: the defaults) with some fields replaced."""
-        base = cls() if options is None else options
-        if not isinstance(base, cls):
-            raise TypeError(f"options must be a {cls.__name__}, got {type(base).__name__}")
-        return dataclasses.replace(base, **overrides) if overrides else base
+        self._freeze_mapping("icp_options")

@@ -18,9 +18,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hrcore", "imaging", "modeling", "registration")
 #: Modules whose docstrings carry further examples (module level, helpers).
-EXTRA_MODULES = ("hrcore.errors", "hrcore.geometry", "hrcore.output", "modeling.options", "registration.localise",
-                 "registration.phase_estimate",
-                 "registration.online", "registration.options")
+EXTRA_MODULES = ("hrcore.errors", "hrcore.geometry", "hrcore.options", "hrcore.output", "modeling.options",
+                 "registration.localise", "registration.online", "registration.options", "registration.phase_estimate")
 
 
 def _public_functions(package: str):
