@@ -116,7 +116,6 @@ def _funnels(pool, lobes, lumen, distance, radius, spacing, ratio):
     step = float(np.min(spacing))
     radii = np.arange(step, top + step, step)
     thin = pool & ~lumen & (_local_thickness(pool, distance, spacing, radii) < limit)
-    thin &= distance_mm(~lumen, spacing) <= limit  # a mouth, not the chamber's far corners
     labels, n = ndimage.label(thin)
     if n == 0:
         return np.zeros(pool.shape, bool)
