@@ -18,12 +18,7 @@ between the vessel's sinus and the chamber.  So:
    no valve between) and the neighbour is at most ``widen_ratio`` times as wide
    as the vessel's narrowest lobe so far (a sinus, not a chamber; measured
    from the narrowest lobe, a chain of small steps cannot creep into a
-   chamber);
-4. a vein widening into a chamber as a funnel (the pulmonary veins' antrum,
-   the venae cavae) has no peak of its own: the watershed gives it to the
-   chamber's lobe.  Blood of a chamber's lobe (wider than any vessel) that
-   holds no ball of ``funnel_ratio`` times the chamber's radius and is reached
-   from a vessel's lumen is that vessel's mouth (local thickness, by openings).
+   chamber).
 
 The chambers are never reached: a valve or junction narrows the ridge, or the
 chamber is much wider than the vessel feeding it.  Lobes of a chamber cut by
@@ -91,38 +86,6 @@ def _saddles(lobes, distance, n):
     return {divmod(int(k), n + 1): float(w) for k, w in zip(unique, widest)}
 
 
-def _local_thickness(pool, distance, spacing, radii_mm):
-    """Radius (mm) of the largest ball of ``radii_mm`` inside ``pool`` that covers each voxel (0: none)."""
-    thickness = np.zeros(pool.shape, np.float32)
-    for r in sorted(radii_mm):
-        centres = distance > r
-        if not centres.any():
-            break
-        thickness[distance_mm(~centres, spacing) <= r] = r
-    return thickness
-
-
-def _funnels(pool, lobes, lumen, distance, radius, spacing, ratio):
-    """Blood of a chamber's lobe thinner than ``ratio`` times its radius, reached from the vessels' lumen.
-
-    A vein widens into its chamber as a funnel (the pulmonary veins' antrum above
-    the left atrium, the venae cavae into the right atrium) with no peak of its
-    own in the distance map: the watershed gives it to the chamber.  The
-    chamber's body holds balls of about its radius out to its walls; the funnel
-    only thinner ones.
-    """
-    limit = ratio * radius[lobes]
-    top = float(limit[pool & ~lumen].max()) if (pool & ~lumen).any() else 0.0
-    step = float(np.min(spacing))
-    radii = np.arange(step, top + step, step)
-    thin = pool & ~lumen & (_local_thickness(pool, distance, spacing, radii) < limit)
-    labels, n = ndimage.label(thin)
-    if n == 0:
-        return np.zeros(pool.shape, bool)
-    touching = np.unique(labels[ndimage.binary_dilation(lumen) & thin])
-    return np.isin(labels, touching[touching > 0])
-
-
 def trace_great_vessels(
     pool,
     spacing_kji,
@@ -133,7 +96,6 @@ def trace_great_vessels(
     saddle_ratio: float = 0.8,
     widen_ratio: float = 1.1,
     wall_mm: float = 3.0,
-    funnel_ratio: float = 0.5,
 ) -> GreatVessels:
     """Find the great vessels' lumen in a contrast blood pool.
 
@@ -159,10 +121,6 @@ def trace_great_vessels(
         ... into a neighbour at most this many times as wide as the vessel's
         narrowest lobe on the way (an aortic sinus is about as wide as the
         aorta, a chamber much wider).
-    funnel_ratio : float
-        Blood of a lobe wider than ``max_vessel_radius_mm`` (a chamber) lying in no
-        ball of this fraction of its radius, connected to the vessels' lumen, is a
-        vessel's mouth (0: off).  On the real CT 0.4-0.6 give the same cut.
     wall_mm : float
         Tissue closer to the lumen than to the chambers' blood, up to this far
         from the lumen, is the vessels' wall.
@@ -224,9 +182,6 @@ def trace_great_vessels(
         return GreatVessels(empty, empty, (), "great vessels: no blood leaves the field of view")
     lumen = np.zeros(full_shape, bool)
     lumen[box] = vessel[lobes]
-    if funnel_ratio > 0:
-        wide = radius > max_vessel_radius_mm
-        lumen[box] |= _funnels(pool & wide[lobes], lobes, lumen[box], distance, radius, spacing, funnel_ratio)
     to_lumen = distance_mm(~lumen[box], spacing)
     to_chambers = distance_mm(~(pool & ~lumen[box]), spacing)
     territory = np.zeros(full_shape, bool)
