@@ -120,11 +120,12 @@ def synthesize_ecg(
     n = int(round(duration_s * rate_hz))
     t = start_s + np.arange(n) / rate_hz
     ecg = np.zeros(n)
+    r_peaks_s = np.asarray(r_peaks_s, dtype=float)
     rr = np.diff(r_peaks_s, append=r_peaks_s[-1] + np.median(np.diff(r_peaks_s)))
-    for r, interval in zip(r_peaks_s, rr):
-        lo, hi = np.searchsorted(t, [r - 0.4, r + 0.8])
-        if hi <= lo:
-            continue
+    # each beat's window [r - 0.4, r + 0.8) s; the session's beats outside the samples add nothing
+    lo_all, hi_all = np.searchsorted(t, r_peaks_s - 0.4), np.searchsorted(t, r_peaks_s + 0.8)
+    for k in np.flatnonzero(hi_all > lo_all):
+        r, interval, lo, hi = r_peaks_s[k], rr[k], lo_all[k], hi_all[k]
         dt = t[lo:hi] - r
         for offset, amp, sigma in _WAVES:
             ecg[lo:hi] += amp * np.exp(-0.5 * ((dt - offset) / sigma) ** 2)
