@@ -15,7 +15,7 @@ import weakref
 
 import numpy as np
 
-__all__ = ["coarse_step", "block_mean_max", "mask_box"]
+__all__ = ["coarse_step", "block_mean_max", "label_maximum", "mask_box"]
 
 
 def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
@@ -34,6 +34,26 @@ def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
         grow = int(pad[axis])
         box.append(slice(max(int(nz[0]) - grow, 0), min(int(nz[-1]) + 1 + grow, mask.shape[axis])))
     return tuple(box)
+
+
+def label_maximum(values, labels, n: int) -> np.ndarray:
+    """The largest of ``values`` in each label ``1..n`` (0 for an empty label).
+
+    As ``scipy.ndimage.maximum(values, labels, np.arange(1, n + 1))``, in
+    ``values``' dtype, without its sort of every labelled voxel (0.2 s on a
+    heart region's branches).
+
+    Examples
+    --------
+    >>> label_maximum(np.array([-5.0, -3.0, 2.0]), np.array([1, 1, 3]), 3).tolist()
+    [-3.0, 0.0, 2.0]
+    """
+    values, labels = np.asarray(values), np.asarray(labels)
+    inside = labels > 0
+    top = np.full(n + 1, -np.inf, values.dtype if values.dtype.kind == "f" else np.float64)
+    np.maximum.at(top, labels[inside], values[inside])
+    top[np.isneginf(top)] = 0
+    return top[1:]
 
 
 def coarse_step(spacing_kji, target_mm: float) -> np.ndarray:
