@@ -85,7 +85,7 @@ def _label_ml(label_map, label) -> float:
 
 def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, notes: list, source_ml=None):
     """Refuse a mask far smaller than a heart; note a label map partly outside the CT."""
-    ml = float(mask.sum()) * abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
+    ml = float(np.count_nonzero(mask)) * abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
     if ml < min_ml:
         error = LabelMapError if external else SegmentationError
         hint = "check --label or the label map" if external else "give a heart mask with --mask"
