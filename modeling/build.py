@@ -85,7 +85,7 @@ def _label_ml(label_map, label) -> float:
 
 def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, notes: list, source_ml=None):
     """Refuse a mask far smaller than a heart; note a label map partly outside the CT."""
-    ml = float(mask.sum()) * abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
+    ml = float(np.count_nonzero(mask)) * abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
     if ml < min_ml:
         error = LabelMapError if external else SegmentationError
         hint = "check --label or the label map" if external else "give a heart mask with --mask"
@@ -229,9 +229,13 @@ def build_heart_model(
     done("mask")
 
     stage("mesh")
+    # the automatic segmentation has filled its cavities already (segment._fill_holes before its largest
+    # component): labelling the box's background again (~0.1 s, an int32 box) would change nothing
+    fill_cavities = mask_path is not None
     if trim_vessels:
         # trim the dense surface, then decimate: the patches get fine faces too
-        dense = mask_to_mesh(mask, T_box, target_faces=max(int(target_faces), 400_000), grid_mm=MESH_GRID_MM)
+        dense = mask_to_mesh(mask, T_box, target_faces=max(int(target_faces), 400_000), grid_mm=MESH_GRID_MM,
+                             fill_cavities=fill_cavities)
         release_free_memory()
         try:
             trim = trim_vessel_stubs(dense, volume.hu, T)
@@ -247,7 +251,7 @@ def build_heart_model(
                     f"contrast lumen removed, mouths closed with {trim.n_patch_faces} faces"
                 )
     else:
-        mesh = mask_to_mesh(mask, T_box, target_faces=target_faces, grid_mm=MESH_GRID_MM)
+        mesh = mask_to_mesh(mask, T_box, target_faces=target_faces, grid_mm=MESH_GRID_MM, fill_cavities=fill_cavities)
     done("mesh")
 
     stage("fiducials")

@@ -3,14 +3,19 @@
 A full-size cardiac CT holds ~75 M voxels; finding the blood pool, the body
 outline or the skin markers does not need that resolution.  Block statistics
 over ``step`` voxels give a grid of ~1-2 mm on which those searches run, and the
-answer is refined at full resolution only where it matters.
+answer is refined at full resolution only where it matters.  The segmentation
+and the fiducial search both start from the volume's ~2 mm blocks: for a CT
+that cannot change (a read-only array owning its voxels, as
+:func:`imaging.load_study` returns) the last blocks are kept and given again.
 """
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
-__all__ = ["coarse_step", "block_mean_max", "mask_box"]
+__all__ = ["coarse_step", "block_mean_max", "label_maximum", "mask_box"]
 
 
 def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
@@ -29,6 +34,26 @@ def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
         grow = int(pad[axis])
         box.append(slice(max(int(nz[0]) - grow, 0), min(int(nz[-1]) + 1 + grow, mask.shape[axis])))
     return tuple(box)
+
+
+def label_maximum(values, labels, n: int) -> np.ndarray:
+    """The largest of ``values`` in each label ``1..n`` (0 for an empty label).
+
+    As ``scipy.ndimage.maximum(values, labels, np.arange(1, n + 1))``, in
+    ``values``' dtype, without its sort of every labelled voxel (0.2 s on a
+    heart region's branches).
+
+    Examples
+    --------
+    >>> label_maximum(np.array([-5.0, -3.0, 2.0]), np.array([1, 1, 3]), 3).tolist()
+    [-3.0, 0.0, 2.0]
+    """
+    values, labels = np.asarray(values), np.asarray(labels)
+    inside = labels > 0
+    top = np.full(n + 1, -np.inf, values.dtype if values.dtype.kind == "f" else np.float64)
+    np.maximum.at(top, labels[inside], values[inside])
+    top[np.isneginf(top)] = 0
+    return top[1:]
 
 
 def coarse_step(spacing_kji, target_mm: float) -> np.ndarray:
@@ -54,12 +79,23 @@ def _reduce_blocks(a, axis: int, step: int, ufunc, dtype=None):
     return out
 
 
+#: The last read-only volume's blocks: {"key": (id, step), "blocks": (mean, max)}, cleared with the volume.
+_LAST: dict = {}
+
+
+def _frozen(hu) -> bool:
+    """Whether ``hu``'s voxels cannot change: read-only and owning them (not a view of a writeable array)."""
+    return not hu.flags.writeable and hu.base is None
+
+
 def block_mean_max(hu, step) -> tuple[np.ndarray, np.ndarray]:
     """Mean and maximum over blocks of ``step`` voxels (k, j, i); edge blocks are partial.
 
     Each axis is reduced in turn over a slab of a few coarse planes at a time,
     so the volume is read once and the temporaries stay small. Integer HU are
-    summed exactly, others in float64.
+    summed exactly, others in float64.  For a read-only volume owning its voxels
+    the result (read-only) is kept until the volume is freed: the segmentation
+    and the fiducial search ask for the same blocks.
 
     Returns
     -------
@@ -67,6 +103,20 @@ def block_mean_max(hu, step) -> tuple[np.ndarray, np.ndarray]:
     """
     hu = np.asarray(hu)
     step = [int(s) for s in step]
+    if not _frozen(hu):
+        return _block_mean_max(hu, step)
+    key = (id(hu), tuple(step))
+    if _LAST.get("key") != key:
+        _LAST.clear()
+        blocks = _block_mean_max(hu, step)
+        for b in blocks:
+            b.flags.writeable = False
+        _LAST.update(key=key, blocks=blocks)
+        weakref.finalize(hu, _LAST.clear)  # a new array may get the same id
+    return _LAST["blocks"]
+
+
+def _block_mean_max(hu, step):
     shape = tuple(-(-n // s) for n, s in zip(hu.shape, step))
     if np.issubdtype(hu.dtype, np.integer):  # exact sums, as wide as the blocks need
         acc = np.int32 if hu.dtype.itemsize <= 2 and np.prod(step) < 2**15 else np.int64

@@ -6,7 +6,8 @@ the model.  :func:`distance_mm` computes them with the ``edt`` package
 (Zlateski & Seung's linear-time anisotropic algorithm, float32), about five
 times faster than ``scipy.ndimage.distance_transform_edt`` and without its
 integer feature arrays (three int32 volumes), the same distances to float32
-precision (``tests/modeling/test_distance.py``).
+precision (``tests/modeling/test_distance.py``).  The mask goes in as
+``uint8`` 0/1 (a single label): edt's bool path is about twice as slow.
 """
 
 from __future__ import annotations
@@ -51,4 +52,6 @@ def distance_mm(mask, spacing_kji) -> np.ndarray:
         raise ValueError(f"spacing_kji must be three positive lengths (mm), got {spacing}")
     if mask.all():
         return np.full(mask.shape, np.inf, np.float32)
-    return edt.edt(mask, anisotropy=spacing, black_border=False, parallel=1)
+    # as uint8 (0/1: one label, so the same distances): edt 3.1 takes a bool array
+    # through a path twice as slow (1.4 s of the full-size model's 21 transforms)
+    return edt.edt(mask.view(np.uint8), anisotropy=spacing, black_border=False, parallel=1)

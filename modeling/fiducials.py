@@ -143,8 +143,12 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji) -> str:
     lo, hi = kji.min(axis=0) + [g.start for g in big], kji.max(axis=0) + [g.start for g in big]
     if lo[1] == 0 or lo[2] == 0 or hi[1] == hu.shape[1] - 1 or hi[2] == hu.shape[2] - 1:
         return "cut by the edge of the field of view"
-    sub = np.asarray(hu[big])
-    body = (sub > BODY_HU) & ~dense
+    # the part's own box, grown past the contact distance: nothing outside it is near
+    grow = np.ceil(SKIN_CONTACT_MM / np.asarray(spacing_kji, float)).astype(int) + 1
+    around = tuple(slice(max(a - g, 0), min(b + 1 + g, n))
+                   for a, b, g, n in zip(kji.min(axis=0), kji.max(axis=0), grow, part.shape))
+    part = part[around]
+    body = (np.asarray(hu[big])[around] > BODY_HU) & ~dense[around]
     near = (distance_mm(~part, spacing_kji) <= SKIN_CONTACT_MM) | ndimage.binary_dilation(
         part, structure=np.ones((3, 3, 3), bool)
     )  # the neighbouring voxels at least, however coarse the grid

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.coarse import label_maximum
 from modeling.distance import distance_mm
 
 __all__ = ["GreatVessels", "trace_great_vessels"]
@@ -158,7 +159,7 @@ def trace_great_vessels(
     lobes = watershed(-distance, markers, mask=pool)
     n = len(peaks)
     radius = np.zeros(n + 1)
-    radius[1:] = ndimage.maximum(distance, lobes, np.arange(1, n + 1))
+    radius[1:] = label_maximum(distance, lobes, n)
     neighbours: list[list[tuple[int, float]]] = [[] for _ in range(n + 1)]
     for (a, b), width in _saddles(lobes, distance, n).items():
         neighbours[a].append((b, width))

@@ -1,6 +1,6 @@
 """Parallel-projection views of a scene drawn by matplotlib alone (no OpenGL).
 
-The model picture (:func:`modeling.render.render_model_png`) shows a 20k-face
+The model picture (:func:`modeling.render.render_model_png`) shows an 8k-face
 semi-opaque surface, a few lines, arrows and balls.  Offscreen VTK draws that
 through Mesa's llvmpipe: about 300 MB of JIT compiler and buffers and seconds of
 shader compilation for one picture, more than the whole model stage on a

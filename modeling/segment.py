@@ -42,7 +42,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, coarse_step
+from modeling.coarse import block_mean_max, coarse_step, label_maximum
 from modeling.distance import distance_mm
 from modeling.greatvessels import trace_great_vessels
 
@@ -228,7 +228,7 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
     labels, n = ndimage.label(rest)
     if n == 0:
         return body, "vessel cut: no branch leaves the heart body"
-    reach = ndimage.maximum(distance, labels, index=np.arange(1, n + 1))
+    reach = label_maximum(distance, labels, n)
     vessels = np.flatnonzero(np.asarray(reach) > vessel_length_mm) + 1
     if vessels.size == 0:
         return body, f"vessel cut: no branch reaches farther than {vessel_length_mm:.0f} mm from the heart body"

@@ -7,21 +7,27 @@ names below are what a caller needs: read a session, register it
 (:func:`register_session` with :class:`RegistrationOptions`) and write the
 result, or run one stage of it; file formats, ICP internals and the 4x4
 helpers (:mod:`hrcore.geometry`) stay importable from their modules.
+The names are imported on first use (:mod:`hrcore.lazy`): reading
+:mod:`registration.options` (the command line's defaults) imports nothing else.
 """
 
-from registration.fiducial import FiducialRegistration, register_fiducials
-from registration.localise import Localiser
-from registration.motion_model import Harmonics, MotionModel, fit_motion_model
-from registration.online import CausalPhases
-from registration.options import RegistrationOptions
-from registration.pipeline import RegistrationError, register_session
-from registration.plus import PlusSequence, read_plus_sequence
-from registration.report import RegistrationFileError, read_registration, write_registration
-from registration.result import RegistrationResult
-from registration.session import Session, SessionError, read_session
-from registration.spatiotemporal import SpatiotemporalRegistration, register_spatiotemporal
-from registration.transforms import rotation_distance_deg, translation_distance_mm
-from registration.view import render_registration_png
+from hrcore.lazy import lazy_exports
+
+__getattr__, __dir__ = lazy_exports(__name__, {
+    "registration.fiducial": ("FiducialRegistration", "register_fiducials"),
+    "registration.localise": ("Localiser",),
+    "registration.motion_model": ("Harmonics", "MotionModel", "fit_motion_model"),
+    "registration.online": ("CausalPhases",),
+    "registration.options": ("RegistrationOptions",),
+    "registration.pipeline": ("RegistrationError", "register_session"),
+    "registration.plus": ("PlusSequence", "read_plus_sequence"),
+    "registration.report": ("RegistrationFileError", "read_registration", "write_registration"),
+    "registration.result": ("RegistrationResult",),
+    "registration.session": ("Session", "SessionError", "read_session"),
+    "registration.spatiotemporal": ("SpatiotemporalRegistration", "register_spatiotemporal"),
+    "registration.transforms": ("rotation_distance_deg", "translation_distance_mm"),
+    "registration.view": ("render_registration_png",),
+})
 
 __all__ = [
     # a registration

@@ -1,0 +1,40 @@
+"""modeling.coarse: block statistics kept for a read-only CT, per-label maxima without a sort."""
+
+import gc
+
+import numpy as np
+from scipy import ndimage
+
+from modeling import coarse
+from modeling.coarse import block_mean_max, label_maximum
+
+
+def test_label_maximum_is_ndimage_maximum():
+    rng = np.random.default_rng(3)
+    labels, n = ndimage.label(rng.random((20, 21, 22)) > 0.6)
+    values = (rng.random(labels.shape) * 50 - 10).astype(np.float32)
+    expected = ndimage.maximum(values, labels, np.arange(1, n + 1))
+    got = label_maximum(values, labels, n)
+    assert got.dtype == np.float32
+    assert np.array_equal(got, expected)
+    # a label with no voxel gives 0, as ndimage's
+    assert label_maximum(np.array([-5.0, -3.0, 2.0]), np.array([1, 1, 3]), 3).tolist() == [-3.0, 0.0, 2.0]
+
+
+def test_block_means_of_a_read_only_volume_are_kept_until_it_is_freed():
+    rng = np.random.default_rng(4)
+    hu = rng.integers(-1000, 1500, (12, 16, 16)).astype(np.int16)
+    fresh = block_mean_max(hu, (3, 4, 4))
+    assert block_mean_max(hu, (3, 4, 4))[0] is not fresh[0]  # writeable: computed each time
+    hu.flags.writeable = False
+    first = block_mean_max(hu, (3, 4, 4))
+    again = block_mean_max(hu, (3, 4, 4))
+    assert again[0] is first[0] and again[1] is first[1]
+    assert not first[0].flags.writeable  # nobody changes what the next caller gets
+    assert np.array_equal(first[0], fresh[0]) and np.array_equal(first[1], fresh[1])
+    assert block_mean_max(hu, (2, 2, 2))[0].shape == (6, 8, 8)  # another step: its own blocks
+    view = hu[:, :8]
+    assert block_mean_max(view, (3, 4, 4))[0].shape == (4, 2, 4)  # a view is never taken for its base
+    del hu, view, first, again
+    gc.collect()
+    assert not coarse._LAST  # freed with the volume
