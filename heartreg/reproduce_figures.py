@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from heartreg.reproduce_results import TrialResult, _mean_curve
+from hrcore.figlayout import fixed_margins
 
 __all__ = ["figure_data", "plot_figures"]
 
@@ -152,8 +153,9 @@ def plot_figures(figs: dict, out: Path) -> dict:
 
     # Fig. 2
     panels = figs["fig2"]["panels"]
-    fig = Figure(figsize=(11, 4.4), dpi=_DPI, layout="constrained")
+    fig = Figure(figsize=(11, 4.4), dpi=_DPI)
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55, top_in=0.6, wspace_in=0.8)
     for ax, panel in zip(axes, panels):
         _draw_curves(ax, panel, colours)
         ax.set_ylim(bottom=0, top=1.25 * max(max(s["y"]) for s in panel["series"]))
@@ -163,22 +165,24 @@ def plot_figures(figs: dict, out: Path) -> dict:
 
     # Fig. 6: 2 x 3
     panels = figs["fig6"]["panels"]
-    fig = Figure(figsize=(13, 7.2), dpi=_DPI, layout="constrained")
+    fig = Figure(figsize=(13, 7.2), dpi=_DPI)
     axes = fig.subplots(2, 3)
+    fixed_margins(fig, left_in=0.6, right_in=0.15, bottom_in=0.85, top_in=0.62, wspace_in=0.75, hspace_in=0.72)
     for ax, panel in zip(axes.ravel(), panels):
         _draw_curves(ax, panel, colours)
         ax.axhline(0.0, color="grey", linewidth=0.6)
     axes[0, 0].set_title("(A) " + axes[0, 0].get_title(), fontsize=10)
     axes[1, 0].set_title("(B) " + axes[1, 0].get_title(), fontsize=10)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=9)
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9)
     fig.suptitle(figs["fig6"]["title"].replace("T inv(T0)", "$T\\,T_0^{-1}$"), fontsize=11)
     paths["fig6"] = _save(fig, out / "fig6_parameters.png")
 
     # Fig. 7
     panels = figs["fig7"]["panels"]
-    fig = Figure(figsize=(11, 4.6), dpi=_DPI, layout="constrained")
+    fig = Figure(figsize=(11, 4.6), dpi=_DPI)
     axes = fig.subplots(1, 2)
+    fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55, top_in=0.6, wspace_in=0.8)
     for ax, panel in zip(axes, panels):
         _draw_curves(ax, panel, colours)
         markers = [s for s in panel["series"] if s["kind"] == "marker"]
@@ -194,8 +198,9 @@ def plot_figures(figs: dict, out: Path) -> dict:
 
     # Fig. 9
     (panel,) = figs["fig9"]["panels"]
-    fig = Figure(figsize=(7.5, 4.6), dpi=_DPI, layout="constrained")
+    fig = Figure(figsize=(7.5, 4.6), dpi=_DPI)
     ax = fig.subplots()
+    fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.45, top_in=0.35)
     trial_series = [s for s in panel["series"] if s["kind"] == "trial"]
     for k, s in enumerate(trial_series):
         n = len(s["y"])
@@ -220,8 +225,9 @@ def plot_figures(figs: dict, out: Path) -> dict:
     panels = figs["fig4"]["panels"]
     ncols = min(3, len(panels))
     nrows = -(-len(panels) // ncols)
-    fig = Figure(figsize=(4.2 * ncols, 3.4 * nrows + 0.6), dpi=_DPI, layout="constrained")
+    fig = Figure(figsize=(4.2 * ncols, 3.4 * nrows + 0.6), dpi=_DPI)
     axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
+    fixed_margins(fig, left_in=0.6, right_in=0.15, bottom_in=0.5, top_in=0.6, wspace_in=0.7, hspace_in=0.75)
     for k, (ax, panel) in enumerate(zip(axes, panels)):
         data, mean, window = panel["series"]
         ax.axhspan(window["y"][0], window["y"][1], color="#2ecc71", alpha=0.15, label=window["label"])

@@ -35,6 +35,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from hrcore.figlayout import fixed_margins
 from hrcore.geometry import apply_to_points
 from imaging.files import write_text_atomic
 from registration.phase_estimate import wrap_phase
@@ -255,7 +256,7 @@ def _figure(cases, path: Path) -> None:
     ax.set_ylabel("final T: rotation (deg)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
+    fixed_margins(fig, left_in=0.7, right_in=0.15, bottom_in=0.55, top_in=0.15, wspace_in=0.85)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

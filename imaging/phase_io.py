@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.figlayout import fixed_margins
 from hrcore.output import staged_output
 from imaging.files import atomic_path, write_text_atomic
 from imaging.phase import MOTION_FREE_WINDOW, PhaseReport, SlicePhase
@@ -61,7 +62,7 @@ def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per sl
     ax.set_xlim(-1, max(len(phases), 2))
     ax.set_title(f"{title}\nsource: {report.source}", fontsize=9)
     ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
+    fixed_margins(fig, left_in=0.65, right_in=0.15, bottom_in=0.5, top_in=0.5)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
 

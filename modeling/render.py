@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.figlayout import fixed_margins
 from imaging.files import atomic_path
 from modeling.mesh import MeshError
 from modeling.model import HeartModel
@@ -318,8 +319,17 @@ def compose_figure(panels, *, size, titles, handles, suptitle, orientation=None,
     width, height = size
     dpi = 100
     pt = min(1.0, width / 1250.0)  # text shrinks with a small picture, never grows
-    fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi, layout="constrained")
+    # as many columns as the longest label allows (about 7 px per character at 12 pt)
+    longest = max(len(h.get_label()) for h in handles)
+    ncol = max(1, min(len(handles), 3, int(width / (7.2 * pt * longest + 70))))
+    fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    # fixed room (inches, text at the scale pt plus matplotlib's unscaled pads): the
+    # suptitle (at 98 % of the height) and titles above; the legend's rows and the
+    # orientation labels below; a colorbar takes its own share of the panels' room
+    rows = -(-len(handles) // ncol)
+    fixed_margins(fig, left_in=0.35 * pt, right_in=0.1 * pt, bottom_in=(0.35 + 0.27 * rows) * pt + 0.05,
+                  top_in=0.45 * pt + 0.02 * height / dpi + 0.09, wspace_in=0.45 * pt)
     for k, (ax, (img, px_per_mm), title) in enumerate(zip(axes, panels, titles)):
         img = _crop(img)
         band = np.full((max(int(0.1 * img.shape[0]), 24), img.shape[1], 3), 255, dtype=img.dtype)
@@ -344,13 +354,11 @@ def compose_figure(panels, *, size, titles, handles, suptitle, orientation=None,
         from matplotlib.colors import Normalize
 
         cmap, vmin, vmax, label = colorbar
-        bar = fig.colorbar(ScalarMappable(Normalize(vmin, vmax), cmap), ax=list(axes), shrink=0.75, pad=0.01)
+        bar = fig.colorbar(ScalarMappable(Normalize(vmin, vmax), cmap), ax=list(axes), shrink=0.75, pad=0.01,
+                           fraction=0.08)  # the bar and its labels, not more
         bar.set_label(label, fontsize=12 * pt)
         bar.ax.tick_params(labelsize=11 * pt)
-    # as many columns as the longest label allows (about 7 px per character at 12 pt)
-    longest = max(len(h.get_label()) for h in handles)
-    ncol = max(1, min(len(handles), 3, int(width / (7.2 * pt * longest + 70))))
-    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=12 * pt, frameon=False)
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=12 * pt, frameon=False)
     fig.suptitle(suptitle, fontsize=14 * pt)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
