@@ -122,7 +122,7 @@ def _interval(phases, best, boot, confidence, step):
     return np.array([lo, hi])
 
 
-def _sandwich_interval(phases, J, units, best, confidence, step):
+def _sandwich_interval(phases, J, units, best, confidence, step, inflation=1.0):
     """Offsets (lo, hi) of the adjusted likelihood-ratio interval of argmin J (module docstring).
 
     ``J`` (m,) the cost over the circular grid ``phases``, ``units`` (m, u)
@@ -143,7 +143,7 @@ def _sandwich_interval(phases, J, units, best, confidence, step):
     curvature, slopes = coef[2, 0], coef[1, 1:] / 2
     u = slopes.size
     meat = float(np.sum((slopes - slopes.mean()) ** 2) * u / (u - 1)) if u > 1 else 0.0
-    scale = max(1.0, meat / curvature) if curvature > 0 else np.inf
+    scale = max(1.0, meat / curvature) * max(1.0, inflation) if curvature > 0 else np.inf
     inside = (J - J[best]) <= chi2.ppf(confidence, 1) * scale
     lo = hi = 0
     while lo > -(m // 2) and inside[(best + lo - 1) % m]:
@@ -155,6 +155,15 @@ def _sandwich_interval(phases, J, units, best, confidence, step):
     if hi - lo + 1 >= m or hi_off - lo_off >= 1.0:
         return np.array([-0.5, 0.5])
     return np.array([min(lo_off, 0.0), max(hi_off, 0.0)])
+
+
+def _birge(J, terms):
+    if len(terms) < 2:
+        return 1.0
+    return float(J.min() - sum(t.min() for t in terms)) / (len(terms) - 1)
+
+
+_INFL = _birge
 
 
 def _transform_spread(Ts, best, boot_idx, vertices_mm):
@@ -266,7 +275,9 @@ def estimate_phase(
         W_f = rng.multinomial(k, np.full(k, 1.0 / k), size=n_bootstrap).astype(float)
         J_b = J_b + W_f @ e_f.T
     boot_idx = usable[np.argmin(J_b, axis=1)]
-    lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step)
+    terms = [J_h] + ([J_f] if e_f.shape[1] else []) + ([prior] if breath_hold_phase is not None else [])
+    inflation = _INFL(J, terms)
+    lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step, inflation)
     boot = _interval(phases, usable[best], phases[boot_idx], confidence, step)
     offsets = np.array([min(lr[0], boot[0]), max(lr[1], boot[1])])
     t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), usable[best], boot_idx, vertices_mm)
