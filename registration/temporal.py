@@ -157,28 +157,49 @@ def _sandwich_interval(phases, J, units, best, confidence, step, inflation=1.0):
     return np.array([min(lo_off, 0.0), max(hi_off, 0.0)])
 
 
-def _birge(J, terms):
+def disagreement(J, terms) -> float:
+    """Birge ratio of the terms of ``J``: how far they disagree, per degree of freedom.
+
+    Each term alone has its own minimum; where all measure the same phase with
+    the noise their scales say, ``min J - sum(min term)`` is chi-square with
+    (number of terms - 1) degrees of freedom, mean 1.  More means an error
+    that none of the terms' own scatter shows (a shared model error, a
+    biased term); the interval's threshold is multiplied by it (the Particle
+    Data Group's scale factor for inconsistent measurements).  1.0 for one term.
+
+    Parameters
+    ----------
+    J : (m,) float
+        The total cost over the sweep (chi-square units).
+    terms : sequence of (m,) float
+        Its terms, ``J = sum(terms)``.
+
+    Returns
+    -------
+    float
+    """
     if len(terms) < 2:
         return 1.0
-    return float(J.min() - sum(t.min() for t in terms)) / (len(terms) - 1)
+    return float(np.min(J) - sum(np.min(t) for t in terms)) / (len(terms) - 1)
 
 
-_INFL = _birge
+def _transform_spread(Ts, phases, best, offsets, vertices_mm):
+    """Largest mean vertex displacement (mm) and rotation (deg) between ``T(phi)`` and
+    ``T(phi_R*)`` over the sweep's phases inside the interval (``offsets`` about ``phases[best]``).
 
-
-def _transform_spread(Ts, best, boot_idx, vertices_mm):
-    """90th percentiles of mean vertex displacement (mm) and rotation (deg)."""
+    With 90 % confidence phi_R* lies in the interval, so the final transform's
+    error from the phase is within these with at least that confidence.
+    """
     v = np.asarray(vertices_mm, dtype=float)
     if v.shape[0] > 2000:
         v = v[:: int(np.ceil(v.shape[0] / 2000))]
-    idx, counts = np.unique(boot_idx, return_counts=True)
+    x = _wrap(np.asarray(phases, dtype=float) - phases[best])
+    idx = np.flatnonzero((x >= offsets[0] - 1e-9) & (x <= offsets[1] + 1e-9))
     dT = Ts[idx] @ np.linalg.inv(Ts[best])
     moved = np.einsum("aij,vj->avi", dT[:, :3, :3], v) + dT[:, None, :3, 3]
     disp = np.linalg.norm(moved - v, axis=2).mean(axis=1)
     cos = np.clip((np.trace(dT[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
-    angle = np.degrees(np.arccos(cos))
-    return (float(np.percentile(np.repeat(disp, counts), 90)),
-            float(np.percentile(np.repeat(angle, counts), 90)))
+    return float(disp.max()), float(np.degrees(np.arccos(cos)).max())
 
 
 def estimate_phase(
@@ -276,11 +297,11 @@ def estimate_phase(
         J_b = J_b + W_f @ e_f.T
     boot_idx = usable[np.argmin(J_b, axis=1)]
     terms = [J_h] + ([J_f] if e_f.shape[1] else []) + ([prior] if breath_hold_phase is not None else [])
-    inflation = _INFL(J, terms)
+    inflation = disagreement(J, terms)
     lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step, inflation)
     boot = _interval(phases, usable[best], phases[boot_idx], confidence, step)
     offsets = np.array([min(lr[0], boot[0]), max(lr[1], boot[1])])
-    t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), usable[best], boot_idx, vertices_mm)
+    t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), phases, usable[best], offsets, vertices_mm)
 
     def full(x):
         out = np.zeros(m)
@@ -372,7 +393,7 @@ def paper_phase(
     idx = rng.integers(0, k, size=(n_bootstrap, k))
     boot_idx = np.argmin(distances(kabsch(src[idx], dst[idx])), axis=1)
     offsets = _interval(phases, best, phases[boot_idx], confidence, step)
-    t_mm, t_deg = _transform_spread(Ts, best, boot_idx, vertices_mm)
+    t_mm, t_deg = _transform_spread(Ts, phases, best, offsets, vertices_mm)
     phase = float(phases[best] % 1.0)
     zeros = np.zeros(m)
     return TemporalEstimate(
