@@ -58,8 +58,8 @@ class TemporalEstimate:
     cost_heart, cost_fiducial, cost_prior : (m,) float64
         Its terms (zeros where a term is not used), each minus its own minimum.
     transform_mm, transform_deg : float
-        90th percentile over the resamples of the mean map-vertex displacement
-        (mm) and of the rotation (deg) between ``T(phi_b)`` and ``T(phi_R*)``.
+        Largest mean map-vertex displacement (mm) and rotation (deg) between
+        ``T(phi)`` and ``T(phi_R*)`` over the sweep's phases in the interval.
     """
 
     method: str

@@ -37,10 +37,17 @@ The points are grouped into spatial blocks of about five neighbours
 block's cost is fitted by a quadratic in the phase.  ``H``, the curvature of
 ``J``, is the information the cost assumes; ``V``, the spread of the blocks'
 slopes, the information the data show (the sandwich, or Godambe, estimate
-of composite likelihood).  The interval is the run of phases about phi_R*
-with ``J - min J <= chi2_1(0.90) * max(1, V / H)``, widened by half a sweep
-step (the grid's resolution); where ``J`` is flat it is wide, whatever the
-curvature at the minimum says.  A bootstrap over the same blocks and staples
+of composite likelihood).  Neither sees an error shared by all of a term's
+evidence (the heart term can prefer a phase a tenth of a cycle off with
+twenty chi-square units to spare where breathing barely changes the heart's
+shape); what shows it is that the heart and the chest, two independent
+measurements of one phase, then disagree.  Each term's own minimum against
+the minimum of their sum gives the Birge ratio ``R`` (:func:`disagreement`,
+chi-square with one degree of freedom per extra term when they agree within
+their noise).  The interval is the run of phases about phi_R* with
+``J - min J <= chi2_1(0.90) * max(1, V / H) * max(1, R)``, widened by half a
+sweep step (the grid's resolution); where ``J`` is flat it is wide, whatever
+the curvature at the minimum says.  A bootstrap over the same blocks and staples
 (B = 500, the per-phase ICP solutions held fixed) resamples the evidence and
 takes the argmin again; the interval reported spans both (the bootstrap's
 5th-95th percentiles cover a cost too rough for the quadratic, as when no
@@ -49,10 +56,12 @@ phase carries more evidence than another).  When it spans more than
 estimate says so.
 
 The final transform's uncertainty is that of phi_R* carried through the
-sweep: the mean displacement of the map's vertices between ``T(phi_b)`` and
-``T(phi_R*)`` over the bootstrap's resamples (90th percentile), and the
-rotation between them; the ICP's own noise at a fixed phase is far smaller (see ``icp``'s
-Hessian report).
+sweep: the largest mean displacement of the map's vertices between ``T(phi)``
+and ``T(phi_R*)`` over the phases inside the interval, and the largest
+rotation (phi_R* lies in the interval with 90 % confidence, so the final
+transform's error from the phase is within these with at least that much);
+the ICP's own noise at a fixed phase is far smaller (see ``icp``'s Hessian
+report).
 """
 
 from __future__ import annotations
@@ -74,6 +83,7 @@ __all__ = [
     "fiducial_curve",
     "estimate_phase",
     "paper_phase",
+    "disagreement",
 ]
 
 #: resamples of the bootstrap, and the interval's confidence.
