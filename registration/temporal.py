@@ -337,6 +337,7 @@ def estimate_phase(
         cost_prior=full(prior) if breath_hold_phase is not None else np.zeros(m),
         transform_mm=t_mm,
         transform_deg=t_deg,
+        disagreement=inflation,
     )
 
 

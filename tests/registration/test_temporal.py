@@ -4,6 +4,8 @@ and the paper's eq. 10 with its fiducial bootstrap."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -205,3 +207,10 @@ def test_terms_that_disagree_widen_the_interval_to_hold_both():
     assert agree.contains(0.30) and agree.width < 0.06
     assert apart.contains(0.30) and apart.contains(0.42) and apart.width > 2 * agree.width
     assert disagreement(agree.cost, [agree.cost]) == 1.0  # one term cannot disagree with itself
+    # the estimate carries its ratio (registration.json) and says what would decide it
+    assert apart.disagreement == pytest.approx(ratio[1]) and agree.disagreement == pytest.approx(ratio[0])
+    assert type(apart).from_dict(apart.to_dict()).disagreement == apart.disagreement
+    legacy = {k: v for k, v in apart.to_dict().items() if k != "disagreement"}  # written before the ratio
+    assert type(apart).from_dict(legacy).disagreement == 1.0
+    assert "the heart and the chest disagree" in dataclasses.replace(apart, decided=False).summary()
+    assert "trace the staples" in dataclasses.replace(agree, decided=False).summary()
