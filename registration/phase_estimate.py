@@ -18,6 +18,8 @@ __all__ = ["TemporalError", "TemporalEstimate", "wrap_phase"]
 
 #: an interval wider than this (cycles) means the data cannot decide phi_R*.
 UNDECIDED_WIDTH = 0.3
+#: a Birge ratio above this (chi-square, 1 degree of freedom, 90 %) means the terms disagree.
+DISAGREE_RATIO = 2.706
 
 
 class TemporalError(HeartregError, ValueError):
@@ -76,8 +78,13 @@ class TemporalEstimate:
     cost_heart, cost_fiducial, cost_prior : (m,) float64
         Its terms (zeros where a term is not used), each minus its own minimum.
     transform_mm, transform_deg : float
-        90th percentile over the resamples of the mean map-vertex displacement
-        (mm) and of the rotation (deg) between ``T(phi_b)`` and ``T(phi_R*)``.
+        Largest mean map-vertex displacement (mm) and rotation (deg) between
+        ``T(phi)`` and ``T(phi_R*)`` over the sweep's phases in the interval.
+    disagreement : float
+        Birge ratio of the evidence's terms
+        (:func:`registration.temporal.disagreement`): about 1 when they agree
+        within their noise, 1.0 with a single term; the interval's threshold
+        was multiplied by it where it exceeds 1.
     """
 
     method: str
@@ -95,6 +102,7 @@ class TemporalEstimate:
     cost_prior: np.ndarray
     transform_mm: float
     transform_deg: float
+    disagreement: float = 1.0
 
     @property
     def width(self) -> float:
@@ -112,9 +120,15 @@ class TemporalEstimate:
         text = (f"phi_R* {self.respiration_phase:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
                 f"[{lo:.2f}, {hi:.2f}]; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
         if not self.decided:
-            text += (f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle "
-                     "wide): trace the staples over a breath or state the breath-hold phase")
+            text += f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle wide): {self.advice()}"
         return text
+
+    def advice(self) -> str:
+        """What would decide an undecided phi_R* (the summary's and the trust report's hint)."""
+        if self.disagreement > DISAGREE_RATIO:
+            return (f"the heart and the chest disagree ({self.disagreement:.1f} times their noise); "
+                    "state the breath-hold phase")
+        return "trace the staples over a breath or state the breath-hold phase"
 
     def to_dict(self) -> dict:
         """JSON-ready, keys equal to the attribute names; non-finite numbers as ``None``."""
@@ -134,6 +148,7 @@ class TemporalEstimate:
             "cost_prior": json_floats(self.cost_prior),
             "transform_mm": self.transform_mm,
             "transform_deg": self.transform_deg,
+            "disagreement": self.disagreement,
         }
 
     @classmethod
@@ -150,4 +165,5 @@ class TemporalEstimate:
             decided=bool(data["decided"]),
             transform_mm=float(data["transform_mm"]),
             transform_deg=float(data["transform_deg"]),
+            disagreement=float(data.get("disagreement", 1.0)),  # absent before it was written
         )

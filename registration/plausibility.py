@@ -307,8 +307,7 @@ def assess_trust(
     if not phase_estimate.decided:
         reasons.append(TrustReason("phase_undecided", caution, (
             f"the data cannot decide phi_R* ({phase_estimate.method}): its {phase_estimate.confidence:.0%} "
-            f"interval is {phase_estimate.width:.2f} of a cycle wide; trace the staples over a breath or "
-            "state the breath-hold phase")))
+            f"interval is {phase_estimate.width:.2f} of a cycle wide; {phase_estimate.advice()}")))
     if sweep_unconverged:
         reasons.append(TrustReason("sweep_not_converged", caution, (
             f"the ICP did not converge at {sweep_unconverged} phase(s) of the respiration sweep; raise the "

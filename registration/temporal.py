@@ -37,10 +37,17 @@ The points are grouped into spatial blocks of about five neighbours
 block's cost is fitted by a quadratic in the phase.  ``H``, the curvature of
 ``J``, is the information the cost assumes; ``V``, the spread of the blocks'
 slopes, the information the data show (the sandwich, or Godambe, estimate
-of composite likelihood).  The interval is the run of phases about phi_R*
-with ``J - min J <= chi2_1(0.90) * max(1, V / H)``, widened by half a sweep
-step (the grid's resolution); where ``J`` is flat it is wide, whatever the
-curvature at the minimum says.  A bootstrap over the same blocks and staples
+of composite likelihood).  Neither sees an error shared by all of a term's
+evidence (the heart term can prefer a phase a tenth of a cycle off with
+twenty chi-square units to spare where breathing barely changes the heart's
+shape); what shows it is that the heart and the chest, two independent
+measurements of one phase, then disagree.  Each term's own minimum against
+the minimum of their sum gives the Birge ratio ``R`` (:func:`disagreement`,
+chi-square with one degree of freedom per extra term when they agree within
+their noise).  The interval is the run of phases about phi_R* with
+``J - min J <= chi2_1(0.90) * max(1, V / H) * max(1, R)``, widened by half a
+sweep step (the grid's resolution); where ``J`` is flat it is wide, whatever
+the curvature at the minimum says.  A bootstrap over the same blocks and staples
 (B = 500, the per-phase ICP solutions held fixed) resamples the evidence and
 takes the argmin again; the interval reported spans both (the bootstrap's
 5th-95th percentiles cover a cost too rough for the quadratic, as when no
@@ -49,10 +56,12 @@ phase carries more evidence than another).  When it spans more than
 estimate says so.
 
 The final transform's uncertainty is that of phi_R* carried through the
-sweep: the mean displacement of the map's vertices between ``T(phi_b)`` and
-``T(phi_R*)`` over the bootstrap's resamples (90th percentile), and the
-rotation between them; the ICP's own noise at a fixed phase is far smaller (see ``icp``'s
-Hessian report).
+sweep: the largest mean displacement of the map's vertices between ``T(phi)``
+and ``T(phi_R*)`` over the phases inside the interval, and the largest
+rotation (phi_R* lies in the interval with 90 % confidence, so the final
+transform's error from the phase is within these with at least that much);
+the ICP's own noise at a fixed phase is far smaller (see ``icp``'s Hessian
+report).
 """
 
 from __future__ import annotations
@@ -74,6 +83,7 @@ __all__ = [
     "fiducial_curve",
     "estimate_phase",
     "paper_phase",
+    "disagreement",
 ]
 
 #: resamples of the bootstrap, and the interval's confidence.
@@ -122,7 +132,7 @@ def _interval(phases, best, boot, confidence, step):
     return np.array([lo, hi])
 
 
-def _sandwich_interval(phases, J, units, best, confidence, step):
+def _sandwich_interval(phases, J, units, best, confidence, step, inflation=1.0):
     """Offsets (lo, hi) of the adjusted likelihood-ratio interval of argmin J (module docstring).
 
     ``J`` (m,) the cost over the circular grid ``phases``, ``units`` (m, u)
@@ -143,7 +153,7 @@ def _sandwich_interval(phases, J, units, best, confidence, step):
     curvature, slopes = coef[2, 0], coef[1, 1:] / 2
     u = slopes.size
     meat = float(np.sum((slopes - slopes.mean()) ** 2) * u / (u - 1)) if u > 1 else 0.0
-    scale = max(1.0, meat / curvature) if curvature > 0 else np.inf
+    scale = max(1.0, meat / curvature) * max(1.0, inflation) if curvature > 0 else np.inf
     inside = (J - J[best]) <= chi2.ppf(confidence, 1) * scale
     lo = hi = 0
     while lo > -(m // 2) and inside[(best + lo - 1) % m]:
@@ -157,19 +167,49 @@ def _sandwich_interval(phases, J, units, best, confidence, step):
     return np.array([min(lo_off, 0.0), max(hi_off, 0.0)])
 
 
-def _transform_spread(Ts, best, boot_idx, vertices_mm):
-    """90th percentiles of mean vertex displacement (mm) and rotation (deg)."""
+def disagreement(J, terms) -> float:
+    """Birge ratio of the terms of ``J``: how far they disagree, per degree of freedom.
+
+    Each term alone has its own minimum; where all measure the same phase with
+    the noise their scales say, ``min J - sum(min term)`` is chi-square with
+    (number of terms - 1) degrees of freedom, mean 1.  More means an error
+    that none of the terms' own scatter shows (a shared model error, a
+    biased term); the interval's threshold is multiplied by it (the Particle
+    Data Group's scale factor for inconsistent measurements).  1.0 for one term.
+
+    Parameters
+    ----------
+    J : (m,) float
+        The total cost over the sweep (chi-square units).
+    terms : sequence of (m,) float
+        Its terms, ``J = sum(terms)``.
+
+    Returns
+    -------
+    float
+    """
+    if len(terms) < 2:
+        return 1.0
+    return float(np.min(J) - sum(np.min(t) for t in terms)) / (len(terms) - 1)
+
+
+def _transform_spread(Ts, phases, best, offsets, vertices_mm):
+    """Largest mean vertex displacement (mm) and rotation (deg) between ``T(phi)`` and
+    ``T(phi_R*)`` over the sweep's phases inside the interval (``offsets`` about ``phases[best]``).
+
+    With 90 % confidence phi_R* lies in the interval, so the final transform's
+    error from the phase is within these with at least that confidence.
+    """
     v = np.asarray(vertices_mm, dtype=float)
     if v.shape[0] > 2000:
         v = v[:: int(np.ceil(v.shape[0] / 2000))]
-    idx, counts = np.unique(boot_idx, return_counts=True)
+    x = _wrap(np.asarray(phases, dtype=float) - phases[best])
+    idx = np.flatnonzero((x >= offsets[0] - 1e-9) & (x <= offsets[1] + 1e-9))
     dT = Ts[idx] @ np.linalg.inv(Ts[best])
     moved = np.einsum("aij,vj->avi", dT[:, :3, :3], v) + dT[:, None, :3, 3]
     disp = np.linalg.norm(moved - v, axis=2).mean(axis=1)
     cos = np.clip((np.trace(dT[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
-    angle = np.degrees(np.arccos(cos))
-    return (float(np.percentile(np.repeat(disp, counts), 90)),
-            float(np.percentile(np.repeat(angle, counts), 90)))
+    return float(disp.max()), float(np.degrees(np.arccos(cos)).max())
 
 
 def estimate_phase(
@@ -266,10 +306,12 @@ def estimate_phase(
         W_f = rng.multinomial(k, np.full(k, 1.0 / k), size=n_bootstrap).astype(float)
         J_b = J_b + W_f @ e_f.T
     boot_idx = usable[np.argmin(J_b, axis=1)]
-    lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step)
+    terms = [J_h] + ([J_f] if e_f.shape[1] else []) + ([prior] if breath_hold_phase is not None else [])
+    inflation = disagreement(J, terms)
+    lr = _sandwich_interval(phases[usable], J, np.concatenate([e_blocks, e_f], axis=1), best, confidence, step, inflation)
     boot = _interval(phases, usable[best], phases[boot_idx], confidence, step)
     offsets = np.array([min(lr[0], boot[0]), max(lr[1], boot[1])])
-    t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), usable[best], boot_idx, vertices_mm)
+    t_mm, t_deg = _transform_spread(np.asarray(T_heart_from_probe), phases, usable[best], offsets, vertices_mm)
 
     def full(x):
         out = np.zeros(m)
@@ -295,6 +337,7 @@ def estimate_phase(
         cost_prior=full(prior) if breath_hold_phase is not None else np.zeros(m),
         transform_mm=t_mm,
         transform_deg=t_deg,
+        disagreement=inflation,
     )
 
 
@@ -361,7 +404,7 @@ def paper_phase(
     idx = rng.integers(0, k, size=(n_bootstrap, k))
     boot_idx = np.argmin(distances(kabsch(src[idx], dst[idx])), axis=1)
     offsets = _interval(phases, best, phases[boot_idx], confidence, step)
-    t_mm, t_deg = _transform_spread(Ts, best, boot_idx, vertices_mm)
+    t_mm, t_deg = _transform_spread(Ts, phases, best, offsets, vertices_mm)
     phase = float(phases[best] % 1.0)
     zeros = np.zeros(m)
     return TemporalEstimate(

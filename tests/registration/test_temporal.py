@@ -4,6 +4,8 @@ and the paper's eq. 10 with its fiducial bootstrap."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -68,9 +70,12 @@ def test_transform_uncertainty_is_the_spread_of_T_over_the_interval():
     Ts[:, 2, 3] = 10.0 * np.sin(2 * np.pi * PHASES)  # the registration moves 10 mm over the breath
     vertices = rng.normal(0, 40, (300, 3))
     est = estimate_phase(PHASES, _distances(rng, 0.3, signal_mm=0.6), Ts, vertices)
-    z = Ts[np.round(est.bootstrap_phases * 100).astype(int), 2, 3] - Ts[est.index, 2, 3]
-    # a pure translation moves every vertex by the same amount
-    assert est.transform_mm == pytest.approx(np.percentile(np.abs(z), 90), abs=1e-9)
+    inside = (_wrap(PHASES - est.respiration_phase) >= est.interval_offsets[0] - 1e-9) & (
+        _wrap(PHASES - est.respiration_phase) <= est.interval_offsets[1] + 1e-9)
+    z = Ts[inside, 2, 3] - Ts[est.index, 2, 3]
+    # a pure translation moves every vertex by the same amount: the largest over the interval
+    assert inside.sum() >= 2 and est.transform_mm == pytest.approx(np.abs(z).max(), abs=1e-9)
+    assert est.transform_deg == 0.0
 
 
 def _staples():
@@ -172,3 +177,40 @@ def test_errors_shared_by_neighbouring_points_widen_the_interval():
         covered["independent"] += plain.contains(0.5)
         covered["blocks"] += blocks.contains(0.5)
     assert covered["blocks"] >= 7 and covered["independent"] <= 4
+
+
+def _fiducial_residuals(rng, phase_true, *, noise_mm=0.5, signal_mm=3.0):
+    """A traced-staple term (FiducialCurve) whose residuals grow away from phase_true."""
+    from registration.fiducial_curve import FiducialCurve
+
+    eps = rng.standard_normal((1, 9))
+    a = rng.uniform(0.5 * signal_mm, signal_mm, (1, 9))
+    r = np.sqrt((noise_mm * eps) ** 2 + (a * np.sin(np.pi * _wrap(PHASES - phase_true))[:, None]) ** 2)
+    m = PHASES.size
+    return FiducialCurve(phases=PHASES, positions_probe_mm=np.zeros((m, 9, 3)), T0_heart_from_probe=_identity_sweep(m),
+                         residuals_mm=r, sse_mm2=(r**2).sum(axis=1), trace_rms_mm=np.full(9, 0.3),
+                         n_samples=np.full(9, 100))
+
+
+def test_terms_that_disagree_widen_the_interval_to_hold_both():
+    from registration.temporal import disagreement
+
+    rng = np.random.default_rng(5)
+    vertices = rng.normal(0, 40, (200, 3))
+    agree = estimate_phase(PHASES, _distances(rng, 0.30, signal_mm=1.0), _identity_sweep(101), vertices,
+                           fiducials=_fiducial_residuals(rng, 0.30))
+    # the chest says 0.42, the heart 0.30: each term alone is sure, so one of them is biased
+    apart = estimate_phase(PHASES, _distances(rng, 0.30, signal_mm=1.0), _identity_sweep(101), vertices,
+                           fiducials=_fiducial_residuals(rng, 0.42))
+    ratio = [disagreement(e.cost_heart + e.cost_fiducial, [e.cost_heart, e.cost_fiducial]) for e in (agree, apart)]
+    assert ratio[0] < 3.0 < 20.0 < ratio[1]  # consistent: about chi-square 1; apart: far beyond
+    assert agree.contains(0.30) and agree.width < 0.06
+    assert apart.contains(0.30) and apart.contains(0.42) and apart.width > 2 * agree.width
+    assert disagreement(agree.cost, [agree.cost]) == 1.0  # one term cannot disagree with itself
+    # the estimate carries its ratio (registration.json) and says what would decide it
+    assert apart.disagreement == pytest.approx(ratio[1]) and agree.disagreement == pytest.approx(ratio[0])
+    assert type(apart).from_dict(apart.to_dict()).disagreement == apart.disagreement
+    legacy = {k: v for k, v in apart.to_dict().items() if k != "disagreement"}  # written before the ratio
+    assert type(apart).from_dict(legacy).disagreement == 1.0
+    assert "the heart and the chest disagree" in dataclasses.replace(apart, decided=False).summary()
+    assert "trace the staples" in dataclasses.replace(agree, decided=False).summary()
