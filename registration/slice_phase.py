@@ -43,6 +43,7 @@ import numpy as np
 
 from hrcore.geometry import apply_to_points
 from modeling.slice_phases import SlicePhases
+from registration.phase_estimate import wrap_phase
 
 __all__ = ["SlicePhases", "point_cardiac_phases", "predict_at_point_phases"]
 
@@ -68,7 +69,7 @@ def point_cardiac_phases(points_map_mm, T_map_from_patient, slices: SlicePhases)
     p = apply_to_points(np.linalg.inv(np.asarray(T_map_from_patient, dtype=float)),
                         np.asarray(points_map_mm, dtype=float).reshape(-1, 3))
     s = p @ slices.normal_patient
-    unwrapped = slices.phases[0] + np.concatenate([[0.0], np.cumsum((np.diff(slices.phases) + 0.5) % 1.0 - 0.5)])
+    unwrapped = slices.phases[0] + np.concatenate([[0.0], np.cumsum(wrap_phase(np.diff(slices.phases)))])
     return np.mod(np.interp(s, slices.positions_mm, unwrapped), 1.0)
 
 
