@@ -203,7 +203,7 @@ def _transform_spread(Ts, phases, best, offsets, vertices_mm):
     v = np.asarray(vertices_mm, dtype=float)
     if v.shape[0] > 2000:
         v = v[:: int(np.ceil(v.shape[0] / 2000))]
-    x = _wrap(np.asarray(phases, dtype=float) - phases[best])
+    x = wrap_phase(np.asarray(phases, dtype=float) - phases[best])
     idx = np.flatnonzero((x >= offsets[0] - 1e-9) & (x <= offsets[1] + 1e-9))
     dT = Ts[idx] @ np.linalg.inv(Ts[best])
     moved = np.einsum("aij,vj->avi", dT[:, :3, :3], v) + dT[:, None, :3, 3]
