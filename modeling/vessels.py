@@ -14,8 +14,9 @@ contrast-filled lumen.  So:
    on a 0.5 mm CT 2.2 mm.  A fixed 1.5 mm found the lumen under a 2 mm aortic
    wall on a coarse CT through its partial volume only, and missed it on a
    fine one: the full-size phantom kept its aortic root's wall as heart);
-2. vertices over contrast blood (> ``blood_hu``), grown by ``grow_rings`` rings
-   of neighbours, are the stubs: their faces are removed;
+2. vertices over contrast blood (> ``blood_hu``), or over less enhanced
+   venous blood (> ``vein_hu``) already at half that depth, grown by
+   ``grow_rings`` rings of neighbours, are the stubs: their faces are removed;
 3. the holes left at the vessels' mouths are closed with new faces spanning
    each mouth's rim (the epicardium across a mouth is nearly flat: the base);
    decimating afterwards (as :func:`modeling.build.build_heart_model` does)
@@ -61,6 +62,7 @@ def trim_vessel_stubs(
     *,
     wall_mm: float = 2.5,
     blood_hu: float = 225.0,
+    vein_hu: float = 140.0,
     grow_rings: int = 2,
 ) -> VesselTrim:
     """Remove the parts of ``mesh`` that cover contrast-filled vessel lumen.
@@ -79,6 +81,10 @@ def trim_vessel_stubs(
         a stub is found at any resolution and a chamber at none.
     blood_hu : float
         HU above which the sample is contrast blood.
+    vein_hu : float
+        Less enhanced blood (a vena cava's inflow, 140-200 HU; enhanced
+        myocardium ~100-130 HU) counts when the HU at half the depth reads it
+        too: only a vein's wall (~1 mm) is that thin over it, never myocardium.
     grow_rings : int
         Rings of neighbouring vertices removed with each stub vertex.
 
@@ -102,8 +108,8 @@ def trim_vessel_stubs(
     axes = T[:3, :3] / spacing  # unit voxel axes in the patient frame
     half_voxel = 0.5 * np.linalg.norm((normals @ axes) * spacing, axis=1)  # half the voxel's extent along the normal
     depth_mm = np.maximum(wall_mm - half_voxel, 0.5 * wall_mm)
-    inside = v - depth_mm[:, None] * normals
-    kji = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)[::-1]  # (3, n)
+    inside = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals])
+    kji = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)[::-1]  # (3, 2n)
     # sample a crop around the surface only (the whole volume as float would
     # double the memory of the model stage)
     hu = np.asarray(hu)
@@ -111,7 +117,9 @@ def trim_vessel_stubs(
     hi = np.clip(np.ceil(kji.max(axis=1)).astype(int) + 2, 1, np.array(hu.shape))
     crop = hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
     samples = ndimage.map_coordinates(crop, kji - lo[:, None], order=1, mode="nearest")
-    flagged = samples > blood_hu
+    deep, shallow = samples[: len(v)], samples[len(v) :]
+    flagged = deep > blood_hu
+    flagged |= (deep > vein_hu) & (shallow > vein_hu)  # venous blood under a vein's ~1 mm wall
     if not flagged.any():
         return VesselTrim(mesh, 0, 0)
     for _ in range(grow_rings):
