@@ -6,9 +6,17 @@ epicardium is everywhere a *myocardium* boundary: just inside it the CT shows
 muscle (~100 HU).  Just inside a stub's surface it shows the vessel's
 contrast-filled lumen.  So:
 
-1. sample the HU ``depth_mm`` inside every vertex along its inward normal;
-2. vertices over contrast blood (> ``blood_hu``), grown by ``grow_rings`` rings
-   of neighbours, are the stubs: their faces are removed;
+1. sample the HU inside every vertex along its inward normal, deeper than a
+   great vessel's wall (1-2 mm) but reading no tissue deeper than the
+   thinnest myocardium (the atria, ``wall_mm`` = 2.5 mm): the probe sits
+   ``wall_mm`` less half a voxel along the normal deep, since a voxel's value
+   mixes in what lies half a voxel beyond its centre (on a 2 mm CT 1.3-1.5 mm,
+   on a 0.5 mm CT 2.2 mm.  A fixed 1.5 mm found the lumen under a 2 mm aortic
+   wall on a coarse CT through its partial volume only, and missed it on a
+   fine one: the full-size phantom kept its aortic root's wall as heart);
+2. vertices over contrast blood (> ``blood_hu``), or over less enhanced
+   venous blood (> ``vein_hu``) already at half that depth, grown by
+   ``grow_rings`` rings of neighbours, are the stubs: their faces are removed;
 3. the holes left at the vessels' mouths are closed with new faces spanning
    each mouth's rim (the epicardium across a mouth is nearly flat: the base);
    decimating afterwards (as :func:`modeling.build.build_heart_model` does)
@@ -52,8 +60,9 @@ def trim_vessel_stubs(
     hu,
     T_patient_from_voxel,
     *,
-    depth_mm: float = 1.5,
+    wall_mm: float = 2.5,
     blood_hu: float = 225.0,
+    vein_hu: float = 140.0,
     grow_rings: int = 2,
 ) -> VesselTrim:
     """Remove the parts of ``mesh`` that cover contrast-filled vessel lumen.
@@ -65,11 +74,17 @@ def trim_vessel_stubs(
     hu : (n_slices, n_rows, n_cols) array
         The CT volume, indexed ``[k, j, i]``.
     T_patient_from_voxel : (4, 4) float64
-    depth_mm : float
-        How far inside each vertex the HU is sampled (less than the myocardium's
-        thickness).
+    wall_mm : float
+        The thinnest myocardium (atria, 2.5-3 mm; a great vessel's wall is 1-2
+        mm): the HU is sampled this far inside each vertex less half a voxel
+        along its normal (the voxel's partial volume reaches that far), so that
+        a stub is found at any resolution and a chamber at none.
     blood_hu : float
         HU above which the sample is contrast blood.
+    vein_hu : float
+        Less enhanced blood (a vena cava's inflow, 140-200 HU; enhanced
+        myocardium ~100-130 HU) counts when the HU at half the depth reads it
+        too: only a vein's wall (~1 mm) is that thin over it, never myocardium.
     grow_rings : int
         Rings of neighbouring vertices removed with each stub vertex.
 
@@ -88,9 +103,13 @@ def trim_vessel_stubs(
     v = np.asarray(mesh.vertices, dtype=float)
     f = np.asarray(mesh.faces)
     normals = _vertex_normals(v, f)
-    inside = v - depth_mm * normals
     T = np.asarray(T_patient_from_voxel, dtype=float)
-    kji = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)[::-1]  # (3, n)
+    spacing = np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
+    axes = T[:3, :3] / spacing  # unit voxel axes in the patient frame
+    half_voxel = 0.5 * np.linalg.norm((normals @ axes) * spacing, axis=1)  # half the voxel's extent along the normal
+    depth_mm = np.maximum(wall_mm - half_voxel, 0.5 * wall_mm)
+    inside = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals])
+    kji = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)[::-1]  # (3, 2n)
     # sample a crop around the surface only (the whole volume as float would
     # double the memory of the model stage)
     hu = np.asarray(hu)
@@ -98,7 +117,9 @@ def trim_vessel_stubs(
     hi = np.clip(np.ceil(kji.max(axis=1)).astype(int) + 2, 1, np.array(hu.shape))
     crop = hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
     samples = ndimage.map_coordinates(crop, kji - lo[:, None], order=1, mode="nearest")
-    flagged = samples > blood_hu
+    deep, shallow = samples[: len(v)], samples[len(v) :]
+    flagged = deep > blood_hu
+    flagged |= (deep > vein_hu) & (shallow > vein_hu)  # venous blood under a vein's ~1 mm wall
     if not flagged.any():
         return VesselTrim(mesh, 0, 0)
     for _ in range(grow_rings):
