@@ -212,6 +212,18 @@ def _transform_spread(Ts, phases, best, offsets, vertices_mm):
     return float(disp.max()), float(np.degrees(np.arccos(cos)).max())
 
 
+def _without_map_offsets(signed_mm, curvature_per_mm) -> np.ndarray:
+    """Signed distances (m, n) minus, at each phase, their least-squares fit by ``a + k H``."""
+    H = np.broadcast_to(np.asarray(curvature_per_mm, dtype=float), signed_mm.shape)
+    if not np.all(np.isfinite(H)):
+        raise ValueError("curvature_per_mm must be finite")
+    X = np.stack([np.ones_like(H), H - H.mean(axis=1, keepdims=True)], axis=2)  # (m, n, 2)
+    # normal equations in numpy's own loops (no BLAS: the same sums on any thread count)
+    gram = np.einsum("mni,mnj->mij", X, X) + 1e-12 * np.eye(2)
+    coef = np.linalg.solve(gram, np.einsum("mni,mn->mi", X, signed_mm)[..., None])[..., 0]
+    return signed_mm - np.einsum("mni,mi->mn", X, coef)
+
+
 def estimate_phase(
     phases,
     distances_mm,
@@ -222,6 +234,7 @@ def estimate_phase(
     breath_hold_phase: float | None = None,
     breath_hold_sd: float = 0.05,
     points_mm=None,
+    curvature_per_mm=None,
     block_points: int = BLOCK_POINTS,
     n_bootstrap: int = N_BOOTSTRAP,
     confidence: float = CONFIDENCE,
@@ -234,7 +247,8 @@ def estimate_phase(
     phases : (m,) float, cycles
         The respiration sweep.
     distances_mm : (m, n) float, mm
-        Per-point distance to the map after ICP at each phase.
+        Per-point distance to the map after ICP at each phase; signed (> 0
+        outside) when ``curvature_per_mm`` is given.
     T_heart_from_probe : (m, 4, 4) float
         ICP registration at each phase.
     vertices_mm : (V, 3) float, mm
@@ -248,6 +262,12 @@ def estimate_phase(
         Where the points lie on the map (any phase's registration will do):
         the bootstrap resamples spatial blocks of about ``block_points``
         neighbouring points; without it, single points.
+    curvature_per_mm : (m, n) or (n,) float, 1/mm, optional
+        The map's mean curvature at each point's closest location
+        (:mod:`registration.mesh_bias`): the heart term then removes, at each
+        phase, the least-squares fit of the signed distances by ``a + k H``,
+        the map's own offsets (a threshold's, the CT blur's ``sigma^2 H``),
+        which are the same at every phase; n - 8 degrees of freedom.
     block_points : int
     n_bootstrap : int
     confidence : float
@@ -261,6 +281,9 @@ def estimate_phase(
     phases = np.asarray(phases, dtype=float)
     d2 = np.asarray(distances_mm, dtype=float) ** 2
     m, n = d2.shape
+    dof_h = n - 6
+    if curvature_per_mm is not None:
+        d2, dof_h = _without_map_offsets(np.asarray(distances_mm, dtype=float), curvature_per_mm) ** 2, n - 8
     if phases.shape != (m,):
         raise ValueError(f"phases must have shape ({m},), got {phases.shape}")
     if n < 7:
@@ -277,7 +300,7 @@ def estimate_phase(
     usable = np.arange(m - 1 if same else m)
     step = float(np.median(np.diff(phases))) if m > 1 else 0.0
     evidence = ["heart"]
-    e_h = d2[usable] / (d2[usable].sum(axis=1).min() / (n - 6))  # (m', n)
+    e_h = d2[usable] / (d2[usable].sum(axis=1).min() / dof_h)  # (m', n)
     e_f = np.zeros((usable.size, 0))
     if fiducials is not None:
         r2 = fiducials.residuals_mm[usable] ** 2
