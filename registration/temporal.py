@@ -19,10 +19,16 @@ eq. 10 leaves out, each term a sum of squares scaled by its own noise:
 - **the heart's shape**: respiration deforms the heart too (the diaphragm
   stretches it), so the predicted points fit the map best at the map's phase;
   the per-point squared distances after ICP at each phase, ``S_H(phi_R)``.
+  The map's own error is the same at every phase and carries no phase
+  information: given the map's curvature at the points
+  (:mod:`registration.mesh_bias`, what ``register`` passes), the signed
+  distances first lose, at each phase, their least-squares fit by
+  ``a + k H`` (a threshold's uniform offset, the CT blur's ``sigma^2 H``).
 - **a stated breath-hold phase** (optional): ``((phi_R - phi_u) / sd)^2``.
 
 ``J(phi_R) = S_H / s_H^2 + S_F / s_F^2 (+ prior)``, with ``s^2`` each term's
-minimum over phase divided by its degrees of freedom (n - 6 and 3 * 9 - 6): a
+minimum over phase divided by its degrees of freedom (n - 6, or n - 8 without
+the map's offsets, and 3 * 9 - 6): a
 profile likelihood under Gaussian residuals; ``phi_R* = argmin J``.
 
 Interval
@@ -267,7 +273,8 @@ def estimate_phase(
         (:mod:`registration.mesh_bias`): the heart term then removes, at each
         phase, the least-squares fit of the signed distances by ``a + k H``,
         the map's own offsets (a threshold's, the CT blur's ``sigma^2 H``),
-        which are the same at every phase; n - 8 degrees of freedom.
+        which are the same at every phase; n - 8 degrees of freedom (with
+        at least 9 points; fewer keep the plain distances).
     block_points : int
     n_bootstrap : int
     confidence : float
@@ -282,7 +289,7 @@ def estimate_phase(
     d2 = np.asarray(distances_mm, dtype=float) ** 2
     m, n = d2.shape
     dof_h = n - 6
-    if curvature_per_mm is not None:
+    if curvature_per_mm is not None and n >= 9:
         d2, dof_h = _without_map_offsets(np.asarray(distances_mm, dtype=float), curvature_per_mm) ** 2, n - 8
     if phases.shape != (m,):
         raise ValueError(f"phases must have shape ({m},), got {phases.shape}")
