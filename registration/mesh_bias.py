@@ -13,7 +13,10 @@ predictions 0.06 mm), the points' signed distances follow the curvature
 (correlation 0.6), and where breathing barely changes the heart's shape a
 dozen such points pick a phase 0.1 cycle off.  The heart term therefore fits,
 at each phase, the signed distances by ``a + k H`` (least squares, the size
-``k`` unknown and left to the data) and keeps the rest.
+``k`` unknown and left to the data) and keeps the rest, when given the
+curvature (``estimate_phase(..., curvature_per_mm=...)``; ``register`` does
+not pass it yet, see docs/reproduction.md; ``heartreg evaluate-temporal``
+saves it with each case's evidence for re-scoring).
 """
 
 from __future__ import annotations

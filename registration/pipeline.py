@@ -29,7 +29,6 @@ from registration.options import MIN_BEATS, MIN_BREATHS, RegistrationOptions
 from registration.icp import SurfaceIndex, icp
 from registration.plausibility import assess_coverage, assess_trust
 from registration.result import IcpReport, RegistrationResult
-from registration.mesh_bias import curvature_at_points, vertex_mean_curvature
 from registration.point_models import fit_point_models
 from registration.session import Session
 from registration.slice_phase import point_cardiac_phases, predict_at_point_phases
@@ -254,15 +253,11 @@ def register_session(
     t = time.perf_counter()
     # each point at its slices' cardiac phase when the CT's are given (registration/slice_phase.py)
     point_pc = None if slice_phases is None else point_cardiac_phases(means_map, model.T_heart_from_patient, slice_phases)
-    swept = _points_at(models, model.cardiac_phase, phases) if point_pc is None else predict_at_point_phases(
-        models, point_pc, phases)
     resp = sweep_phase(
-        None, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
-        phases=phases, pivot_mm=pivot, icp_options=options, points=swept,
+        None if point_pc is not None else models, surface, T0, fixed_phase=model.cardiac_phase, kind="respiration",
+        phases=phases, pivot_mm=pivot, icp_options=options,
+        points=None if point_pc is None else predict_at_point_phases(models, point_pc, phases),
     )
-    # the map's own offsets at the points (registration/mesh_bias.py), removed from the heart term
-    curvature = curvature_at_points(swept, resp.T_heart_from_probe, model.mesh.vertices,
-                                    vertex_mean_curvature(model.mesh.vertices, model.mesh.faces))
     timings["respiration_sweep"] = time.perf_counter() - t
 
     # ---- phi_R*: both estimators, the chosen one decides
@@ -275,9 +270,8 @@ def register_session(
             notes.append(f"the fiducial trace was not used: {exc}")
     vertices = model.mesh.vertices
     shape = estimate_phase(
-        phases, resp.signed_distances_mm, resp.T_heart_from_probe, vertices, fiducials=curve,
+        phases, resp.distances_mm, resp.T_heart_from_probe, vertices, fiducials=curve,
         breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd, points_mm=means_map,
-        curvature_per_mm=curvature,
     )
     paper = paper_phase(phases, resp.T_heart_from_probe, fid_probe, fid_model, pivot, vertices, order=fid.order)
     chosen, other = (shape, paper) if estimator is TemporalEstimator.SHAPE else (paper, shape)

@@ -21,9 +21,12 @@ eq. 10 leaves out, each term a sum of squares scaled by its own noise:
   the per-point squared distances after ICP at each phase, ``S_H(phi_R)``.
   The map's own error is the same at every phase and carries no phase
   information: given the map's curvature at the points
-  (:mod:`registration.mesh_bias`, what ``register`` passes), the signed
+  (``curvature_per_mm``, :mod:`registration.mesh_bias`), the signed
   distances first lose, at each phase, their least-squares fit by
   ``a + k H`` (a threshold's uniform offset, the CT blur's ``sigma^2 H``).
+  Optional: ``register`` does not pass it yet (on the phantom's grid it
+  helped phi_R* and hurt the final transform and the interval's coverage,
+  docs/reproduction.md).
 - **a stated breath-hold phase** (optional): ``((phi_R - phi_u) / sd)^2``.
 
 ``J(phi_R) = S_H / s_H^2 + S_F / s_F^2 (+ prior)``, with ``s^2`` each term's
