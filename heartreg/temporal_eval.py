@@ -99,6 +99,7 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
     """
     from modeling import build_heart_model
     from registration import read_session
+    from registration.mesh_bias import curvature_at_points, vertex_mean_curvature
     from registration.pipeline import register_session
     from modeling.slice_phases import SlicePhases
 
@@ -151,6 +152,10 @@ def run_case(preset: str, seed: int, phase_r: float, *, size: str = "sample", wo
         "phases": sweep.phases,
         "points_map_mm": np.asarray(result.points_probe_mm) @ np.asarray(result.T_heart_from_probe)[:3, :3].T
         + np.asarray(result.T_heart_from_probe)[:3, 3], "distances_mm": sweep.distances_mm, "signed_distances_mm": sweep.signed_distances_mm, "T_heart_from_probe": sweep.T_heart_from_probe,
+        # the map's curvature at the registered points (registration/mesh_bias.py), for re-scoring
+        "curvature_per_mm": curvature_at_points(
+            np.asarray(result.points_probe_mm)[None], np.asarray(result.T_heart_from_probe)[None], vertices,
+            vertex_mean_curvature(vertices, model.mesh.faces))[0],
         "cost_fiducial": shape.cost_fiducial, "cost_heart": shape.cost_heart, "T_true": T_true,
         "vertices_mm": vertices[:: max(1, vertices.shape[0] // 2000)], "pivot_mm": sweep.pivot_mm,
         "fiducials_probe_mm": np.asarray(session.fiducials_probe_mm), "fiducials_heart_mm": model.fiducials_heart_mm,

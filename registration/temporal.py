@@ -19,10 +19,19 @@ eq. 10 leaves out, each term a sum of squares scaled by its own noise:
 - **the heart's shape**: respiration deforms the heart too (the diaphragm
   stretches it), so the predicted points fit the map best at the map's phase;
   the per-point squared distances after ICP at each phase, ``S_H(phi_R)``.
+  The map's own error is the same at every phase and carries no phase
+  information: given the map's curvature at the points
+  (``curvature_per_mm``, :mod:`registration.mesh_bias`), the signed
+  distances first lose, at each phase, their least-squares fit by
+  ``a + k H`` (a threshold's uniform offset, the CT blur's ``sigma^2 H``).
+  Optional: ``register`` does not pass it yet (on the phantom's grid it
+  helped phi_R* and hurt the final transform and the interval's coverage,
+  docs/reproduction.md).
 - **a stated breath-hold phase** (optional): ``((phi_R - phi_u) / sd)^2``.
 
 ``J(phi_R) = S_H / s_H^2 + S_F / s_F^2 (+ prior)``, with ``s^2`` each term's
-minimum over phase divided by its degrees of freedom (n - 6 and 3 * 9 - 6): a
+minimum over phase divided by its degrees of freedom (n - 6, or n - 8 without
+the map's offsets, and 3 * 9 - 6): a
 profile likelihood under Gaussian residuals; ``phi_R* = argmin J``.
 
 Interval
@@ -212,6 +221,18 @@ def _transform_spread(Ts, phases, best, offsets, vertices_mm):
     return float(disp.max()), float(np.degrees(np.arccos(cos)).max())
 
 
+def _without_map_offsets(signed_mm, curvature_per_mm) -> np.ndarray:
+    """Signed distances (m, n) minus, at each phase, their least-squares fit by ``a + k H``."""
+    H = np.broadcast_to(np.asarray(curvature_per_mm, dtype=float), signed_mm.shape)
+    if not np.all(np.isfinite(H)):
+        raise ValueError("curvature_per_mm must be finite")
+    X = np.stack([np.ones_like(H), H - H.mean(axis=1, keepdims=True)], axis=2)  # (m, n, 2)
+    # normal equations in numpy's own loops (no BLAS: the same sums on any thread count)
+    gram = np.einsum("mni,mnj->mij", X, X) + 1e-12 * np.eye(2)
+    coef = np.linalg.solve(gram, np.einsum("mni,mn->mi", X, signed_mm)[..., None])[..., 0]
+    return signed_mm - np.einsum("mni,mi->mn", X, coef)
+
+
 def estimate_phase(
     phases,
     distances_mm,
@@ -222,6 +243,7 @@ def estimate_phase(
     breath_hold_phase: float | None = None,
     breath_hold_sd: float = 0.05,
     points_mm=None,
+    curvature_per_mm=None,
     block_points: int = BLOCK_POINTS,
     n_bootstrap: int = N_BOOTSTRAP,
     confidence: float = CONFIDENCE,
@@ -234,7 +256,8 @@ def estimate_phase(
     phases : (m,) float, cycles
         The respiration sweep.
     distances_mm : (m, n) float, mm
-        Per-point distance to the map after ICP at each phase.
+        Per-point distance to the map after ICP at each phase; signed (> 0
+        outside) when ``curvature_per_mm`` is given.
     T_heart_from_probe : (m, 4, 4) float
         ICP registration at each phase.
     vertices_mm : (V, 3) float, mm
@@ -248,6 +271,13 @@ def estimate_phase(
         Where the points lie on the map (any phase's registration will do):
         the bootstrap resamples spatial blocks of about ``block_points``
         neighbouring points; without it, single points.
+    curvature_per_mm : (m, n) or (n,) float, 1/mm, optional
+        The map's mean curvature at each point's closest location
+        (:mod:`registration.mesh_bias`): the heart term then removes, at each
+        phase, the least-squares fit of the signed distances by ``a + k H``,
+        the map's own offsets (a threshold's, the CT blur's ``sigma^2 H``),
+        which are the same at every phase; n - 8 degrees of freedom (with
+        at least 9 points; fewer keep the plain distances).
     block_points : int
     n_bootstrap : int
     confidence : float
@@ -261,6 +291,9 @@ def estimate_phase(
     phases = np.asarray(phases, dtype=float)
     d2 = np.asarray(distances_mm, dtype=float) ** 2
     m, n = d2.shape
+    dof_h = n - 6
+    if curvature_per_mm is not None and n >= 9:
+        d2, dof_h = _without_map_offsets(np.asarray(distances_mm, dtype=float), curvature_per_mm) ** 2, n - 8
     if phases.shape != (m,):
         raise ValueError(f"phases must have shape ({m},), got {phases.shape}")
     if n < 7:
@@ -277,7 +310,7 @@ def estimate_phase(
     usable = np.arange(m - 1 if same else m)
     step = float(np.median(np.diff(phases))) if m > 1 else 0.0
     evidence = ["heart"]
-    e_h = d2[usable] / (d2[usable].sum(axis=1).min() / (n - 6))  # (m', n)
+    e_h = d2[usable] / (d2[usable].sum(axis=1).min() / dof_h)  # (m', n)
     e_f = np.zeros((usable.size, 0))
     if fiducials is not None:
         r2 = fiducials.residuals_mm[usable] ** 2
