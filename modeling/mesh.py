@@ -18,7 +18,7 @@ from scipy.sparse import csgraph
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
 
-__all__ = ["Mesh", "MeshCheck", "MeshError", "check_mesh", "transform_mesh"]
+__all__ = ["Mesh", "MeshCheck", "MeshError", "check_mesh", "transform_mesh", "vertex_normals"]
 
 
 class MeshError(HeartregError, ValueError):
@@ -195,3 +195,17 @@ def _vertex_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     )
     _, labels = csgraph.connected_components(graph, directed=False)
     return labels
+
+
+def vertex_normals(vertices, faces) -> np.ndarray:
+    """(n, 3) unit vertex normals: the sum of the faces' area-weighted normals (0 where none).
+
+    Outward for a mesh wound counter-clockwise seen from outside.
+    """
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    normals = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(normals, f[:, c], fn)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)

@@ -32,7 +32,7 @@ from scipy import ndimage
 
 from modeling.coarse import mask_box
 from modeling.distance import distance_mm
-from modeling.mesh import Mesh, MeshError, check_mesh
+from modeling.mesh import Mesh, MeshError, check_mesh, vertex_normals
 
 __all__ = ["APEX_LAI_LPS", "VesselTrim", "base_direction", "trim_vessel_stubs"]
 
@@ -44,15 +44,6 @@ class VesselTrim:
     mesh: Mesh
     n_removed_faces: int
     n_patch_faces: int
-
-
-def _vertex_normals(vertices, faces) -> np.ndarray:
-    v = vertices
-    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    normals = np.zeros_like(v)
-    for c in range(3):
-        np.add.at(normals, faces[:, c], fn)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
 
 def trim_vessel_stubs(
@@ -102,7 +93,7 @@ def trim_vessel_stubs(
 
     v = np.asarray(mesh.vertices, dtype=float)
     f = np.asarray(mesh.faces)
-    normals = _vertex_normals(v, f)
+    normals = vertex_normals(v, f)
     T = np.asarray(T_patient_from_voxel, dtype=float)
     spacing = np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
     axes = T[:3, :3] / spacing  # unit voxel axes in the patient frame

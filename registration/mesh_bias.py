@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hrcore.geometry import apply_to_points
+from modeling.mesh import vertex_normals
 
 __all__ = ["vertex_mean_curvature", "curvature_at_points"]
 
@@ -49,12 +50,7 @@ def vertex_mean_curvature(vertices_mm, faces) -> np.ndarray:
     """
     v = np.asarray(vertices_mm, dtype=float)
     f = np.asarray(faces, dtype=np.int64)
-    face_n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    normals = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(normals, f[:, k], face_n)
-    norm = np.linalg.norm(normals, axis=1, keepdims=True)
-    normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 0)
+    normals = vertex_normals(v, f)
     edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
     length = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
     total, count, length_sum = np.zeros_like(v), np.zeros(v.shape[0]), np.zeros(v.shape[0])
