@@ -253,7 +253,6 @@ def detect_r_peaks(
     energy[energy.size - edge :] /= coverage[coverage.size - edge :]
     refractory = int(round(float(refractory_s) * rate))
     pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
-
     peaks, _ = signal.find_peaks(np.concatenate([np.zeros(pad), energy, np.zeros(pad)]), distance=pad)
     peaks = peaks - pad
     if peaks.size == 0:

@@ -14,7 +14,7 @@ import functools
 import numpy as np
 # scipy.signal is imported with the module, not inside the filters: imported first inside a
 # Dask worker's task, it left the worker's heap corrupt at exit (glibc: "malloc_consolidate():
-# unaligned fastbin chunk detected" in each of 6 evaluate-temporal runs of 4 cases; not with this import)
+# unaligned fastbin chunk detected" in each of 7 evaluate-temporal runs of 4 cases; in neither of 2 with this import)
 from scipy import signal
 
 from hrcore.errors import HeartregError
@@ -85,7 +85,6 @@ def phase_from_events(time_s, events_s, *, name: str = "events_s", what: str = "
 
 @functools.lru_cache(maxsize=64)
 def _butter_sos(cutoff_hz: float | tuple[float, float], btype: str, rate_hz: float) -> np.ndarray:
-
     return signal.butter(2, cutoff_hz, btype=btype, fs=rate_hz, output="sos")
 
 
@@ -109,5 +108,4 @@ def zero_phase_filter(x: np.ndarray, cutoff_hz, btype: str, rate_hz: float) -> n
     """
     band = tuple(float(f) for f in cutoff_hz) if np.ndim(cutoff_hz) else float(cutoff_hz)
     # a copy: the cached design stays as designed (scipy's filter wants a writeable array)
-
     return signal.sosfiltfilt(_butter_sos(band, btype, float(rate_hz)).copy(), x)
