@@ -17,9 +17,9 @@ within ``d + r_max`` (a ball query).
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -105,10 +105,16 @@ class SurfaceIndex:
             owners.append(np.repeat(ids, bary.shape[0]))
         self.site_radius_mm = float(max(site_radius, (radii / m).max()))
         self._site_face = np.concatenate(owners)
-        # each site's own radius: every point of its (sub-)triangle lies within it, in its face's plane
-        self._site_radius = (radii / m)[self._site_face]
-        self._site_normal = self.normals[self._site_face]
         self.tree = cKDTree(np.concatenate(sites))
+        # each face's sites, for the tie rule of the search: (F + 1,) offsets into (S, 3) sites
+        by_face = np.argsort(self._site_face, kind="stable")
+        self._face_sites = np.ascontiguousarray(self.tree.data[by_face])
+        self._face_site_ptr = np.r_[0, np.cumsum(np.bincount(self._site_face, minlength=self.n_faces))]
+        # the bounding-volume hierarchy of the search, the faces' constants in its leaf order
+        self._node_lo, self._node_hi, self._leaf_ptr, self._leaf_faces = \
+            _build_bvh(tri.min(axis=1), tri.max(axis=1), self.centroids)
+        self._leaf_a, self._leaf_ab, self._leaf_ac, self._leaf_dots = \
+            (np.ascontiguousarray(x[self._leaf_faces]) for x in (self._a, self._ab, self._ac, self._dots))
 
     @property
     def n_faces(self) -> int:
@@ -236,127 +242,6 @@ class ClosestPoints:
     normals: np.ndarray
 
 
-def _face_d2(surface, q, rows, faces, offsets=False):
-    """Squared distance of q[rows] to faces (pairs), (p,) float64; NaN (a degenerate face) as inf.
-
-    With ``offsets`` also the (p, 3) offsets of the points from their closest points.
-    """
-    a, ab, ac = surface._a[faces], surface._ab[faces], surface._ac[faces]
-    qr = q[rows]
-    v, w = _closest_barycentric(qr, a, ab, ac, surface._dots[faces])
-    diff = qr - a - v[:, None] * ab - w[:, None] * ac
-    d2 = np.einsum("ij,ij->i", diff, diff)
-    d2 = np.where(np.isnan(d2), np.inf, d2)
-    return (d2, diff) if offsets else d2
-
-
-def _lower_best(best, rows, faces, d2, key):
-    """Lower the best (d2, face, key) of each row in place with the pairs (rows sorted).
-
-    Of equal distances (a point nearest to an edge or a vertex shared by
-    faces) the face with the nearest search site (``key``, mm) wins, as in a
-    scan of the sites nearest first.
-    """
-    if rows.size == 0:
-        return
-    best_d2, best_face, best_key = best
-    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-    low = np.minimum.reduceat(d2, starts)
-    seg = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, rows.size]))
-    hit = np.flatnonzero(d2 == low[seg])
-    hit = hit[np.lexsort((key[hit], seg[hit]))]
-    hit = hit[np.r_[True, seg[hit][1:] != seg[hit][:-1]]]  # the nearest site of each row's minima
-    r = rows[hit]
-    better = (d2[hit] < best_d2[r]) | ((d2[hit] == best_d2[r]) & (key[hit] < best_key[r]))
-    r, hit = r[better], hit[better]
-    best_d2[r], best_face[r], best_key[r] = d2[hit], faces[hit], key[hit]
-
-
-#: Slack (mm) on the bounds' comparisons: a face tied with the nearest within
-#: rounding is evaluated, never skipped.
-_SLACK_MM = 1e-9
-
-
-def _site_bounds(surface, q, sites):
-    """Lower bounds on the distance of q (n, 3) from the sub-triangles of ``sites`` (n, s).
-
-    A site's (sub-)triangle lies in its face's plane within the site's radius
-    of the site: in a disk.  The distance from that disk bounds the
-    triangle's from below; far from the surface, where the sites' balls all
-    reach about as near, the disks of the faces beside the foot stay away.
-
-    Returns
-    -------
-    lower : (n, s) float64, mm
-    offsets : (n, s, 3) float64, mm
-        q less its closest point on each disk (``offsets / lower`` is the
-        bound's gradient, a unit vector).
-    """
-    v = q[:, None] - surface.tree.data[sites]
-    normal = surface._site_normal[sites]
-    h = np.einsum("nsi,nsi->ns", v, normal)
-    along = v - h[..., None] * normal  # in the plane, from the site
-    rho = np.linalg.norm(along, axis=2)
-    out = np.maximum(rho - surface._site_radius[sites], 0.0)
-    offsets = h[..., None] * normal + along * np.divide(out, rho, out=np.zeros_like(rho), where=rho > 0)[..., None]
-    return np.sqrt(h**2 + out**2), offsets
-
-
-def _ball_search(best, surface, q, rows):
-    """Settle ``rows`` by every site within their best distance plus the largest site radius (in place)."""
-    best_d2 = best[0]
-    radius = np.sqrt(best_d2[rows]) + surface.site_radius_mm
-    lists = surface.tree.query_ball_point(q[rows], np.where(np.isfinite(radius), radius, np.inf),
-                                          workers=-1, return_sorted=False)
-    lengths = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-    sites = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(lengths.sum()))
-    rr = np.repeat(rows, lengths)
-    # a face can hold a point nearer than the best only if the disk of one of its sites
-    # (:func:`_site_bounds`) lies within the best distance; the others are skipped unevaluated
-    dist = np.linalg.norm(surface.tree.data[sites] - q[rr], axis=1)
-    keep = _site_bounds(surface, q[rr], sites[:, None])[0][:, 0] <= np.sqrt(best_d2[rr]) + _SLACK_MM
-    rr, faces, dist = rr[keep], surface._site_face[sites[keep]], dist[keep]
-    _lower_best(best, rr, faces, _face_d2(surface, q, rr, faces), dist)
-
-
-def _search(surface, q, k):
-    """Exact nearest face of the points q from their ``k`` nearest sites (module docstring).
-
-    Returns ``best`` (d2, face, key: the site distance) per point and what the
-    search proved, for :mod:`registration.tracking`: the listed ``sites``
-    (n, kc), the ``lower`` bounds on their faces' distances (exact where
-    ``evaluated``, else the distance from the site's disk, :func:`_site_bounds`)
-    with the ``offsets`` (n, kc, 3) of q from the points where they are
-    attained, and ``excluded``: every face with no listed site is at least that
-    far (-inf where the listed sites did not settle the point).
-    """
-    n = q.shape[0]
-    n_sites = surface._site_face.shape[0]
-    kc = int(min(k, n_sites))
-    dist_s, idx = surface.tree.query(q, k=kc, workers=-1)
-    dist_s, idx = dist_s.reshape(n, kc), idx.reshape(n, kc)
-    faces = surface._site_face[idx]
-    lower, offsets = _site_bounds(surface, q, idx)
-    evaluated = np.zeros((n, kc), dtype=bool)
-    # the nearest site's face bounds the distance
-    d2, offsets[:, 0] = _face_d2(surface, q, np.arange(n), faces[:, 0], offsets=True)
-    best = (d2, faces[:, 0].copy(), dist_s[:, 0].copy())
-    lower[:, 0] = np.sqrt(d2)
-    r, c = np.nonzero(lower[:, 1:] <= lower[:, :1] + _SLACK_MM)
-    c += 1
-    d2, offsets[r, c] = _face_d2(surface, q, r, faces[r, c], offsets=True)
-    lower[r, c] = np.sqrt(d2)
-    evaluated[:, 0], evaluated[r, c] = True, True
-    _lower_best(best, r, faces[r, c], d2, dist_s[r, c])
-    # faces without a site among the kc nearest are at least (kc-th site distance - r) away
-    excluded = dist_s[:, -1] - surface.site_radius_mm if kc < n_sites else np.full(n, np.inf)
-    unproven = np.flatnonzero(np.sqrt(best[0]) > excluded)
-    if unproven.size:
-        _ball_search(best, surface, q, unproven)
-        excluded[unproven] = -np.inf
-    return best, dict(sites=idx, lower=lower, evaluated=evaluated, offsets=offsets, excluded=excluded)
-
-
 def _finish(surface, q, best_face) -> ClosestPoints:
     """The closest points on the found faces."""
     a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
@@ -365,22 +250,203 @@ def _finish(surface, q, best_face) -> ClosestPoints:
     return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
 
 
-def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
+
+
+# ---------------------------------------------------------------- the search (compiled)
+
+#: Faces per leaf of the bounding-volume hierarchy.
+_LEAF_SIZE = 4
+
+#: Slack (mm) on the pruning bound: a box as near as the best face within
+#: rounding is opened, so a face tied with the best is always evaluated.
+_SLACK_MM = 1e-9
+
+
+def _build_bvh(lo, hi, centres, leaf_size=_LEAF_SIZE):
+    """A bounding-volume hierarchy of the face boxes ``lo``..``hi`` (F, 3) with centres (F, 3).
+
+    A complete binary tree of depth ``D`` (the least with at most
+    ``leaf_size`` faces per leaf), stored as a heap: node ``i`` has children
+    ``2 i + 1`` and ``2 i + 2``, the last ``2**D`` nodes are the leaves.  Each
+    node splits its faces at the median centre along the longest extent of
+    their centres (all nodes of a level in one sort).
+
+    Returns
+    -------
+    node_lo, node_hi : (2**(D+1) - 1, 3) float64
+        The nodes' boxes.
+    leaf_ptr : (2**D + 1,) int64
+        Leaf ``j`` holds the faces ``order[leaf_ptr[j]:leaf_ptr[j + 1]]`` (2 to ``leaf_size`` of them).
+    order : (F,) int64
+        The faces in leaf order.
+    """
+    f = lo.shape[0]
+    depth = int(np.ceil(np.log2(f / leaf_size))) if f > leaf_size else 0
+    order = np.arange(f)
+    bounds = np.array([0, f])
+    for _ in range(depth):
+        s, e = bounds[:-1], bounds[1:]
+        seg = np.repeat(np.arange(s.size), e - s)
+        c = centres[order]
+        extent = np.maximum.reduceat(c, s) - np.minimum.reduceat(c, s)
+        order = order[np.lexsort((c[np.arange(f), np.argmax(extent, axis=1)[seg]], seg))]
+        bounds = np.r_[np.stack([s, (s + e) // 2], axis=1).ravel(), f]
+    n_leaves = bounds.size - 1
+    node_lo, node_hi = np.empty((2 * n_leaves - 1, 3)), np.empty((2 * n_leaves - 1, 3))
+    node_lo[n_leaves - 1:] = np.minimum.reduceat(lo[order], bounds[:-1])
+    node_hi[n_leaves - 1:] = np.maximum.reduceat(hi[order], bounds[:-1])
+    for level in range(depth - 1, -1, -1):  # parents from their children, bottom up
+        i = np.arange(2**level - 1, 2 ** (level + 1) - 1)
+        node_lo[i] = np.minimum(node_lo[2 * i + 1], node_lo[2 * i + 2])
+        node_hi[i] = np.maximum(node_hi[2 * i + 1], node_hi[2 * i + 2])
+    return node_lo, node_hi, bounds.astype(np.int64), order
+
+
+@numba.njit(cache=True, inline="always")
+def _box_d2(lo, hi, node, x, y, z):
+    """Squared distance of (x, y, z) from the node's box."""
+    dx = max(lo[node, 0] - x, 0.0, x - hi[node, 0])
+    dy = max(lo[node, 1] - y, 0.0, y - hi[node, 1])
+    dz = max(lo[node, 2] - z, 0.0, z - hi[node, 2])
+    return dx * dx + dy * dy + dz * dz
+
+
+@numba.njit(cache=True, inline="always")
+def _face_d2(a, ab, ac, dots, f, x, y, z):
+    """Squared distance of (x, y, z) from face f (inf for a degenerate face).
+
+    Ericson's regions in the same operations as :func:`_closest_barycentric`
+    and :func:`_finish`, so that the distances (and their ties) are those of
+    the vectorised code bit for bit.
+    """
+    p0, p1, p2 = x - a[f, 0], y - a[f, 1], z - a[f, 2]
+    d1 = (ab[f, 0] * p0 + ab[f, 2] * p2) + ab[f, 1] * p1  # numpy's einsum sums three products in this order
+    d2 = (ac[f, 0] * p0 + ac[f, 2] * p2) + ac[f, 1] * p1
+    ab_ab, ab_ac, ac_ac = dots[f, 0], dots[f, 1], dots[f, 2]
+    d3, d4, d5, d6 = d1 - ab_ab, d2 - ab_ac, d1 - ab_ac, d2 - ac_ac
+    if d1 <= 0 and d2 <= 0:
+        v, w = 0.0, 0.0
+    elif d3 >= 0 and d4 <= d3:
+        v, w = 1.0, 0.0
+    else:
+        va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+        if vc <= 0 and d1 >= 0 and d3 <= 0:
+            e = d1 - d3
+            v, w = d1 / (e if e != 0 else 1.0), 0.0
+        elif d6 >= 0 and d5 <= d6:
+            v, w = 0.0, 1.0
+        elif vb <= 0 and d2 >= 0 and d6 <= 0:
+            e = d2 - d6
+            v, w = 0.0, d2 / (e if e != 0 else 1.0)
+        elif va <= 0 and d4 >= d3 and d5 >= d6:
+            e = (d4 - d3) + (d5 - d6)
+            w = (d4 - d3) / (e if e != 0 else 1.0)
+            v = 1.0 - w
+        else:
+            denom = va + vb + vc
+            denom = denom if denom != 0 else 1.0
+            v, w = vb / denom, vc / denom
+    r0 = p0 - v * ab[f, 0] - w * ac[f, 0]
+    r1 = p1 - v * ab[f, 1] - w * ac[f, 1]
+    r2 = p2 - v * ab[f, 2] - w * ac[f, 2]
+    out = (r0 * r0 + r2 * r2) + r1 * r1
+    return out if out == out else np.inf
+
+
+@numba.njit(cache=True, inline="always")
+def _site_key(site_ptr, sites, f, x, y, z):
+    """Distance of (x, y, z) from face f's nearest search site (the tie rule)."""
+    key = np.inf
+    for s in range(site_ptr[f], site_ptr[f + 1]):
+        dx, dy, dz = x - sites[s, 0], y - sites[s, 1], z - sites[s, 2]
+        key = min(key, np.sqrt(dx * dx + dy * dy + dz * dz))
+    return key
+
+
+@numba.njit(cache=True)
+def _nearest_faces(q, node_lo, node_hi, leaf_ptr, order, a, ab, ac, dots, site_ptr, sites):
+    """The nearest face of each point q (n, 3): a depth-first search of the hierarchy, nearer child first.
+
+    A box is opened only when it lies within the best distance so far (plus
+    ``_SLACK_MM``).  Of faces equally near (a point nearest to a shared edge
+    or vertex) the one with the nearest search site wins, whatever the order
+    of the search.  ``a``, ``ab``, ``ac``, ``dots`` are in leaf order.
+    """
+    n = q.shape[0]
+    n_inner = leaf_ptr.shape[0] - 2
+    out = np.empty(n, dtype=np.int64)
+    stack = np.empty(128, dtype=np.int64)  # at most one pending sibling per level
+    stack_d2 = np.empty(128)
+    for i in range(n):
+        x, y, z = q[i, 0], q[i, 1], q[i, 2]
+        best, best_face, best_key = np.inf, -1, -1.0  # best_key < 0: not computed yet
+        limit = np.inf
+        stack[0], stack_d2[0] = 0, 0.0
+        top = 1
+        while top:
+            top -= 1
+            node = stack[top]
+            if stack_d2[top] > limit:
+                continue
+            if node >= n_inner:
+                leaf = node - n_inner
+                for j in range(leaf_ptr[leaf], leaf_ptr[leaf + 1]):
+                    d2 = _face_d2(a, ab, ac, dots, j, x, y, z)
+                    if d2 > best:
+                        continue
+                    f = order[j]
+                    if d2 == best and best_face >= 0:
+                        if best_key < 0:
+                            best_key = _site_key(site_ptr, sites, best_face, x, y, z)
+                        key = _site_key(site_ptr, sites, f, x, y, z)
+                        if not key < best_key:
+                            continue
+                        best_key = key
+                    else:
+                        best_key = -1.0
+                    best, best_face = d2, f
+                    limit = (np.sqrt(best) + _SLACK_MM) ** 2
+                continue
+            near, far = 2 * node + 1, 2 * node + 2
+            d_near = _box_d2(node_lo, node_hi, near, x, y, z)
+            d_far = _box_d2(node_lo, node_hi, far, x, y, z)
+            if d_far < d_near:
+                near, far, d_near, d_far = far, near, d_far, d_near
+            if d_far <= limit:
+                stack[top], stack_d2[top] = far, d_far
+                top += 1
+            if d_near <= limit:
+                stack[top], stack_d2[top] = near, d_near
+                top += 1
+        out[i] = best_face
+    return out
+
+
+def _nearest(surface: SurfaceIndex, q) -> np.ndarray:
+    """The exact nearest face (F,) int64 of each point q (n, 3) (:func:`_nearest_faces`)."""
+    s = surface
+    return _nearest_faces(np.ascontiguousarray(q, dtype=float), s._node_lo, s._node_hi, s._leaf_ptr,
+                          s._leaf_faces, s._leaf_a, s._leaf_ab, s._leaf_ac, s._leaf_dots, s._face_site_ptr,
+                          s._face_sites)
+
+
+def closest_points(surface, points, *, k: int | None = None) -> ClosestPoints:
     """Exact closest points on a triangle mesh.
 
-    The ``k`` nearest search sites give candidate faces; the nearest site's
-    face bounds the distance, and only the faces whose sites lie within that
-    bound plus their own radius are evaluated.  Where the ``k``-th site is not
-    far enough to exclude the faces beyond it (module docstring), every site
-    within the found distance plus the largest site radius is searched.
+    A depth-first search of a bounding-volume hierarchy of the faces (built
+    once per :class:`SurfaceIndex`), compiled: the nearer child first, a box
+    opened only when it lies within the best distance so far.  Of faces
+    equally near (a point nearest to a shared edge or vertex) the face with
+    the nearest search site wins.
 
     Parameters
     ----------
     surface : SurfaceIndex or (vertices, faces)
         Build a :class:`SurfaceIndex` once when querying repeatedly.
     points : (n, 3) float, mm
-    k : int
-        Nearest search sites tried first.
+    k : int, optional
+        Unused (it was the number of search sites tried first); kept so
+        that existing calls keep working.
 
     Returns
     -------
@@ -388,7 +454,4 @@ def closest_points(surface, points, *, k: int = 24) -> ClosestPoints:
     """
     surface = _as_index(surface)
     q = _as_points(points)
-    if k < 1:
-        raise ValueError(f"k must be >= 1, got {k}")
-    best, _ = _search(surface, q, k)
-    return _finish(surface, q, best[1])
+    return _finish(surface, q, _nearest(surface, q))

@@ -34,7 +34,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.geometry import kabsch
-from registration.tracking import PointSetTracker
 from registration.closest import (
     ClosestPoints,
     SurfaceIndex,
@@ -423,11 +422,10 @@ def _icp_batch(src, surface, seeds, *, method, max_iterations, tol_mm, tol_deg, 
     small = np.zeros(m, dtype=bool)  # the step to T was below tol_mm and tol_deg
     halved = np.zeros(m, dtype=bool)  # T is a halved step back towards the best
     active = np.arange(m)
-    tracker = PointSetTracker(surface, m, n, k=k)
     while active.size:
         a = active
         q = np.einsum("aij,anj->ani", T[a, :3, :3], src[a]) + T[a, None, :3, 3]
-        cp = tracker.query(a, q)
+        cp = closest_points(surface, q.reshape(-1, 3))
         d = cp.distances_mm.reshape(len(a), n)
         w = _weights_batch(d, n_keep, huber_mm)
         loss = _loss(d, w, huber_mm)
