@@ -3,10 +3,9 @@
 Closest points
 --------------
 :func:`closest_points` (:mod:`registration.closest`) returns the exact closest
-point on the mesh, not on a sampled cloud.  The iteration asks through a
-:class:`registration.tracking.PointSetTracker`, which gives the same answer
-while reusing what earlier queries proved (each point moves a little per
-step, and the sets of neighbouring phases lie close together).
+point on the mesh, not on a sampled cloud: a compiled search of a
+bounding-volume hierarchy of the faces, one call per iteration for all the
+points of all the active sets.
 
 ICP
 ---
@@ -152,7 +151,7 @@ def icp(
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
     degeneracy_ratio: float = 1e-3,
-    k: int = 128,
+    k: int | None = None,
 ) -> IcpResult:
     """Rigidly register points to a triangle mesh.
 
@@ -195,9 +194,9 @@ def icp(
         Huber weights ``min(1, huber_mm / d)`` on the kept points.
     degeneracy_ratio : float
         See :attr:`IcpResult.degenerate`.
-    k : int
-        Nearest search sites of a fresh closest-point search
-        (:class:`registration.tracking.PointSetTracker`).
+    k : int, optional
+        Unused (it was the number of search sites a closest-point search
+        tried first); kept so that existing calls keep working.
 
     Returns
     -------
@@ -210,7 +209,7 @@ def icp(
     n = src.shape[0]
     fit = _icp_batch(src[None], surface, T[None], method=method, max_iterations=max_iterations, tol_mm=tol_mm,
                      tol_deg=tol_deg, tol_loss=tol_loss, n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))),
-                     huber_mm=huber_mm, k=k)
+                     huber_mm=huber_mm)
     T = fit.T[0]
     d, w = fit.distances_mm[0], fit.weights[0]
     sel = w > 0
@@ -299,8 +298,8 @@ def icp_sweep_distances(
         outward normal).
     **options
         The other keyword arguments of :func:`icp` (``method``,
-        ``max_iterations``, the tolerances, ``trim_fraction``, ``huber_mm``,
-        ``k``), with its defaults.
+        ``max_iterations``, the tolerances, ``trim_fraction``, ``huber_mm``),
+        with its defaults.
 
     Returns
     -------
@@ -329,7 +328,7 @@ def icp_sweep_distances(
     if int(warm_stride) != warm_stride or warm_stride < 1:
         raise ValueError(f"warm_stride must be a positive integer, got {warm_stride}")
     options = dict(method=IcpMethod(kw["method"]), max_iterations=max_iterations, tol_mm=kw["tol_mm"],
-                   tol_deg=kw["tol_deg"], tol_loss=kw["tol_loss"], huber_mm=huber_mm, k=kw["k"],
+                   tol_deg=kw["tol_deg"], tol_loss=kw["tol_loss"], huber_mm=huber_mm,
                    n_keep=max(3, int(np.ceil((1.0 - trim_fraction) * n))))
     def distances(fit, points):
         if not signed:
@@ -407,7 +406,7 @@ def _loss(d, w, huber_mm):
     return np.where(w > 0, rho, 0.0).sum(axis=1)
 
 
-def _icp_batch(src, surface, seeds, *, method, max_iterations, tol_mm, tol_deg, tol_loss, n_keep, huber_mm, k):
+def _icp_batch(src, surface, seeds, *, method, max_iterations, tol_mm, tol_deg, tol_loss, n_keep, huber_mm):
     """The ICP iteration of :func:`icp` on m sets at once, one seed per set (criteria in ``icp``)."""
     m, n, _ = src.shape
     centre_src = src.mean(axis=1)  # (m, 3)

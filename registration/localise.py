@@ -226,7 +226,7 @@ class Localiser:
             out["position_mm"][idx] = Tm[0][:, :3, 3]
             out["nearest_point_mm"][idx] = Tm[1]
             q = Tm[0][:, :3, 3]
-            cp = closest_points(self.surface, q, k=8)
+            cp = closest_points(self.surface, q)
             out["surface_mm"][idx] = cp.points
             out["distance_mm"][idx] = np.einsum("ij,ij->i", q - cp.points, cp.normals)
         return MapPositions(static_mm=static, **out)

@@ -149,31 +149,3 @@ def test_point_to_point_sweeps_in_one_batch_too(case, heart_index):
         single = icp(points[i], heart_index, T_init=case["T0"], method="point_to_point", max_iterations=200)
         np.testing.assert_allclose(single.T_heart_from_probe, sweep.T_heart_from_probe[i], atol=1e-9)
         assert single.converged == sweep.converged[i]
-
-
-def test_the_sweep_equals_the_sweep_searching_afresh_at_every_iteration(case, heart_index, monkeypatch):
-    # the reference: every ICP iteration's closest points by closest_points on all points (no reuse);
-    # the tracked sweep gives the same transforms (the same faces: equal to rounding)
-    import sys
-
-    from registration.closest import closest_points
-
-    icp_module = sys.modules["registration.icp"]  # the package's ``icp`` is the function
-
-    class Afresh:
-        def __init__(self, surface, m, n, **_):
-            self.surface = surface
-
-        def query(self, sets, q):
-            return closest_points(self.surface, q.reshape(-1, 3))
-
-    phases = PHASES_R[::3]
-    fast = sweep_phase(case["models"], heart_index, case["T0"], fixed_phase=PHASE_C, phases=phases)
-    monkeypatch.setattr(icp_module, "PointSetTracker", Afresh)
-    ref = sweep_phase(case["models"], heart_index, case["T0"], fixed_phase=PHASE_C, phases=phases)
-    np.testing.assert_array_equal(fast.iterations, ref.iterations)
-    dT = fast.T_heart_from_probe @ np.linalg.inv(ref.T_heart_from_probe)
-    centre = surface_centroid(heart_index)  # where the heart is: the correction's shift there, mm
-    assert np.linalg.norm(dT[:, :3, :3] @ centre + dT[:, :3, 3] - centre, axis=1).max() < 1e-6
-    assert rotation_distance_deg(fast.T_heart_from_probe, ref.T_heart_from_probe).max() < 1e-4
-    np.testing.assert_allclose(fast.distances_mm, ref.distances_mm, rtol=0, atol=1e-9)
