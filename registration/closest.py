@@ -250,14 +250,6 @@ class ClosestPoints:
     normals: np.ndarray
 
 
-def _finish(surface, q, best_face) -> ClosestPoints:
-    """The closest points on the found faces."""
-    a, ab, ac = surface._a[best_face], surface._ab[best_face], surface._ac[best_face]
-    v, w = _closest_barycentric(q, a, ab, ac, surface._dots[best_face])
-    cp = a + v[:, None] * ab + w[:, None] * ac
-    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), best_face, surface.normals[best_face])
-
-
 
 
 # ---------------------------------------------------------------- the search (compiled)
@@ -321,11 +313,11 @@ def _box_d2(lo, hi, node, x, y, z):
 
 @numba.njit(cache=True, inline="always")
 def _face_d2(a, ab, ac, dots, f, x, y, z):
-    """Squared distance of (x, y, z) from face f (inf for a degenerate face).
+    """Squared distance of (x, y, z) from face f (inf for a degenerate face), and the closest point's (v, w).
 
-    Ericson's regions in the same operations as :func:`_closest_barycentric`
-    and :func:`_finish`, so that the distances (and their ties) are those of
-    the vectorised code bit for bit.
+    Ericson's regions in the same operations as :func:`_closest_barycentric`,
+    so that the distances (and their ties) are those of the vectorised code
+    bit for bit.  The closest point is ``a + v ab + w ac``.
     """
     p0, p1, p2 = x - a[f, 0], y - a[f, 1], z - a[f, 2]
     d1 = (ab[f, 0] * p0 + ab[f, 2] * p2) + ab[f, 1] * p1  # numpy's einsum sums three products in this order
@@ -358,7 +350,7 @@ def _face_d2(a, ab, ac, dots, f, x, y, z):
     r1 = p1 - v * ab[f, 1] - w * ac[f, 1]
     r2 = p2 - v * ab[f, 2] - w * ac[f, 2]
     out = (r0 * r0 + r2 * r2) + r1 * r1
-    return out if out == out else np.inf
+    return (out if out == out else np.inf), v, w
 
 
 @numba.njit(cache=True, inline="always")
@@ -378,16 +370,20 @@ def _nearest_faces(q, node_lo, node_hi, leaf_ptr, order, a, ab, ac, dots, site_p
     A box is opened only when it lies within the best distance so far (plus
     ``_SLACK_MM``).  Of faces equally near (a point nearest to a shared edge
     or vertex) the one with the nearest search site wins, then the lowest
-    index: the answer does not depend on the order of the search.  ``a``, ``ab``, ``ac``, ``dots`` are in leaf order.
+    index: the answer does not depend on the order of the search.  ``a``,
+    ``ab``, ``ac``, ``dots`` are in leaf order.  Returns the faces (n,) and
+    the (v, w) (n, 2) of their closest points (:func:`_face_d2`).
     """
     n = q.shape[0]
     n_inner = leaf_ptr.shape[0] - 2
     out = np.empty(n, dtype=np.int64)
+    out_vw = np.empty((n, 2))
     stack = np.empty(128, dtype=np.int64)  # at most one pending sibling per level
     stack_d2 = np.empty(128)
     for i in range(n):
         x, y, z = q[i, 0], q[i, 1], q[i, 2]
         best, best_face, best_key = np.inf, -1, -1.0  # best_key < 0: not computed yet
+        best_v = best_w = 0.0
         limit = np.inf
         stack[0], stack_d2[0] = 0, 0.0
         top = 1
@@ -399,7 +395,7 @@ def _nearest_faces(q, node_lo, node_hi, leaf_ptr, order, a, ab, ac, dots, site_p
             if node >= n_inner:
                 leaf = node - n_inner
                 for j in range(leaf_ptr[leaf], leaf_ptr[leaf + 1]):
-                    d2 = _face_d2(a, ab, ac, dots, j, x, y, z)
+                    d2, v, w = _face_d2(a, ab, ac, dots, j, x, y, z)
                     if d2 > best:
                         continue
                     f = order[j]
@@ -412,7 +408,7 @@ def _nearest_faces(q, node_lo, node_hi, leaf_ptr, order, a, ab, ac, dots, site_p
                         best_key = key
                     else:
                         best_key = -1.0
-                    best, best_face = d2, f
+                    best, best_face, best_v, best_w = d2, f, v, w
                     limit = (np.sqrt(best) + _SLACK_MM) ** 2
                 continue
             near, far = 2 * node + 1, 2 * node + 2
@@ -426,12 +422,12 @@ def _nearest_faces(q, node_lo, node_hi, leaf_ptr, order, a, ab, ac, dots, site_p
             if d_near <= limit:
                 stack[top], stack_d2[top] = near, d_near
                 top += 1
-        out[i] = best_face
-    return out
+        out[i], out_vw[i, 0], out_vw[i, 1] = best_face, best_v, best_w
+    return out, out_vw
 
 
-def _nearest(surface: SurfaceIndex, q) -> np.ndarray:
-    """The exact nearest face (F,) int64 of each point q (n, 3) (:func:`_nearest_faces`)."""
+def _nearest(surface: SurfaceIndex, q):
+    """The exact nearest face (n,) int64 of each point q (n, 3), and (n, 2) the (v, w) of its closest point."""
     s = surface
     return _nearest_faces(np.ascontiguousarray(q, dtype=float), s._node_lo, s._node_hi, s._leaf_ptr,
                           s._leaf_faces, s._leaf_a, s._leaf_ab, s._leaf_ac, s._leaf_dots, s._face_site_ptr,
@@ -462,4 +458,7 @@ def closest_points(surface, points, *, k: int | None = None) -> ClosestPoints:
     """
     surface = _as_index(surface)
     q = _as_points(points)
-    return _finish(surface, q, _nearest(surface, q))
+    face, vw = _nearest(surface, q)
+    a, ab, ac = surface._a[face], surface._ab[face], surface._ac[face]
+    cp = a + vw[:, :1] * ab + vw[:, 1:] * ac
+    return ClosestPoints(cp, np.linalg.norm(q - cp, axis=1), face, surface.normals[face])
