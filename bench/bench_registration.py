@@ -18,8 +18,9 @@ Steps, each in a fresh child process (see ``common.py``):
 - sweep: ``registration.spatiotemporal.sweep_phase`` (point-to-plane ICP seeded
   by T0 at each of the 101 phases, all phases batched, exact closest points on
   the triangles, max 50 iterations) with a prebuilt ``SurfaceIndex`` (its build,
-  and the process's first closest-point query, which loads the compiled search
-  from numba's cache, are timed apart and reported in the notes); the warm start (``icp_options={"warm_start":
+  and the process's first closest-point query, which imports numba and loads
+  the compiled search from its cache, are timed apart and reported in the
+  notes); the warm start (``icp_options={"warm_start":
   True}``) runs beside it and the notes give its time and agreement.  Target
   (issue 12): <= 0.3 s on 2 cores, the same answer within 0.01 mm.
 - reference: Open3D ``registration_icp`` with ``TransformationEstimationPointToPlane``,
@@ -127,7 +128,7 @@ def sweep_ours(inputs: str, warm: bool = False) -> dict:
     t0 = time.perf_counter()
     index = SurfaceIndex(d["vertices"], d["faces"])
     index_s = time.perf_counter() - t0
-    # the process's first search loads the compiled search from numba's cache (numba's start-up):
+    # the process's first search imports numba and loads the compiled search from its cache:
     # once per process, like an import; timed apart from the sweep
     t0 = time.perf_counter()
     closest_points(index, d["points"][0, :1])
@@ -291,8 +292,8 @@ def _sweep_row(rows, me, inputs, imports, n):
     notes = (f"{verdict} target <= {TARGET_SWEEP_S:g} s; sweep_phase point-to-plane, batched over phases, exact "
              f"closest points (compiled search of a bounding-volume hierarchy); iterations mean {info['iterations_mean']:.1f} / max {info['iterations_max']} "
              f"(cap {MAX_ITERATIONS}), {info['converged']}/{m} converged, median RMS {info['rms_median_mm']:.3f} mm; "
-             f"SurfaceIndex build {info['index_s']:.3f} s and the process's first query (numba loads the "
-             f"compiled search from its cache) {info['first_query_s']:.3f} s, both untimed; same predicted points for both; "
+             f"SurfaceIndex build {info['index_s']:.3f} s and the process's first query (imports numba, loads "
+             f"the compiled search from its cache) {info['first_query_s']:.3f} s, both untimed; same predicted points for both; "
              f"baseline after imports {info['baseline_mb']:.0f} MB")
     dt_warm, dr_warm = _agreement(info["T"], warm.info["T"], inputs)
     notes += (f"; warm start (every 10th phase from T0, the others from their registered neighbour): "
