@@ -252,8 +252,6 @@ class ClosestPoints:
     normals: np.ndarray
 
 
-
-
 # ---------------------------------------------------------------- the search
 
 #: Faces per leaf of the bounding-volume hierarchy.
