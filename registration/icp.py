@@ -278,8 +278,8 @@ def icp_sweep_distances(
     those, each seeded by its already registered neighbour.  Each set iterates
     to the same tolerances, but where the loss is flat along a direction (the
     sets off the surface) the answer depends on the seed: the faceted loss
-    has nearby local minima there (on the bench sweep at most 0.008 mm apart
-    at the heart's centre but 0.16 deg in rotation, 0.09 deg even when both
+    has nearby local minima there (on the bench sweep at most 0.009 mm apart
+    at the heart's centre but 0.13 deg in rotation, 0.09 deg even when both
     iterate to 1e-5 mm; :data:`registration.spatiotemporal.WARM_START`).
 
     Parameters

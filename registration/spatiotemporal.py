@@ -62,8 +62,8 @@ __all__ = [
 #: phase takes about 4 steps, from its neighbour 2 to 3, and where the points lie
 #: off the surface (phases far from the map's) the faceted loss is flat enough
 #: along the heart's weakest direction that the seed moves the answer: on the
-#: bench sweep (101 phases x 100 points, 20 000 faces) by at most 0.008 mm at
-#: the mesh's centre but up to 0.16 deg in rotation (~0.1 mm at the points);
+#: bench sweep (101 phases x 100 points, 20 000 faces) by at most 0.009 mm at
+#: the mesh's centre but up to 0.13 deg in rotation (~0.1 mm at the points);
 #: iterated to 1e-5 mm / 1e-5 deg (tol_loss 1e-9) both seeds still end 0.007 mm
 #: / 0.09 deg apart: different local minima of the faceted loss, not a stopping
 #: effect.  Nor is it faster there: the waves are many small batches.
