@@ -131,34 +131,44 @@ def _outer(q):
 
 @dataclass(frozen=True)
 class ArterialRoot:
-    """An artery's lumen beyond its valve, in the local frame.
+    """An artery's lumen beyond its valve, carried by the heartbeat.
 
-    Where the chambers' envelope wraps the root, their myocardium is its wall
-    (the other chambers' blood keeps its own wall thickness away from it).
+    The lumen is placed in the patient frame at ``phase_c`` (as the vessel is);
+    the heart's local points are carried there by the heartbeat to measure it,
+    so at ``phase_c`` the root is exactly the painted lumen, and at other phases
+    it moves with the heart.  Where the chambers' envelope wraps the root, their
+    myocardium is its wall (the other chambers' blood keeps its own wall
+    thickness away from it).
 
     Attributes
     ----------
     name : str
     chamber : str
         The ventricle it leaves (``lv``, ``rv``): the only pool it opens into.
-    points_local : (m, 3) float64, mm, local end-diastolic frame
+    points_mm : (m, 3) float64, mm, patient frame
         The centreline from the valve until it is clear of the chambers.
     lumen_radius_mm : float
-    valve_local, normal_local : (3,) float64
-        The valve plane's centre and unit normal (into the artery).
+    valve_mm, normal : (3,) float64
+        The valve plane's centre and unit normal (into the artery), patient frame.
+    phase_c : float
+        The cardiac phase it is placed at (the gating's target).
+    box_local : (2, 3) float64
+        Local end-diastolic box around it (beyond: no lumen).
     """
 
     name: str
     chamber: str
-    points_local: np.ndarray
+    points_mm: np.ndarray
     lumen_radius_mm: float
-    valve_local: np.ndarray
-    normal_local: np.ndarray
+    valve_mm: np.ndarray
+    normal: np.ndarray
+    phase_c: float
+    box_local: np.ndarray
 
-    def distance(self, q) -> np.ndarray:
-        """(...,) mm, negative inside the lumen beyond the valve plane, of local points q (..., 3)."""
-        below = (self.valve_local - q) @ self.normal_local
-        return np.maximum(_polyline_distance(q, self.points_local, self.lumen_radius_mm), below)
+    def distance(self, points_patient) -> np.ndarray:
+        """(...,) mm, negative inside the lumen beyond the valve plane, of patient points at ``phase_c``."""
+        below = (self.valve_mm - points_patient) @ self.normal
+        return np.maximum(_polyline_distance(points_patient, self.points_mm, self.lumen_radius_mm), below)
 
 
 # ---------------------------------------------------------------------- heart
@@ -225,7 +235,8 @@ class ChamberHeart(AnalyticHeart):
             included in the ventricles' pools).
         """
         lv, rv, la, ra = _outer(q)
-        epi = self._without_roots(q, _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM))
+        roots = self.root_distances(q)
+        epi = self._without_roots(q, _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM), roots)
         fat = _smin(_smin(_smin(lv, rv, FAT_BLEND_MM), la, FAT_BLEND_MM), ra, FAT_BLEND_MM) - FAT_MIN_MM
         w = WALL_THICKNESS_MM
         lv_blood = _smin(lv + w["left_ventricle"], _capsule(q, *MITRAL), 3.0)
@@ -236,7 +247,7 @@ class ChamberHeart(AnalyticHeart):
         pools = {"lv": lv_blood, "rv": rv_blood, "la": la_blood, "ra": ra_blood}
         walls = {"lv": w["left_ventricle"], "rv": w["right_ventricle"], "la": w["atria"], "ra": w["atria"]}
         for root in self.roots:  # the other chambers' blood stays a wall away from an artery's root
-            d = root.distance(q)
+            d = roots[root.name]
             for name in pools:
                 if name != root.chamber:
                     pools[name] = np.maximum(pools[name], walls[name] - d)
@@ -263,10 +274,24 @@ class ChamberHeart(AnalyticHeart):
         lv, rv, la, ra = _outer(q)
         return self._without_roots(q, _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM))
 
-    def _without_roots(self, q, epi):
-        """The envelope ``epi`` less the arterial roots beyond their valves."""
+    def root_distances(self, q) -> dict:
+        """Signed distance (mm, negative inside) of local end-diastolic points q (..., 3)
+        to each artery's lumen beyond its valve (``inf`` far from it), by name."""
+        out = {}
         for root in self.roots:
-            epi = np.maximum(epi, -root.distance(q))
+            d = np.full(q.shape[:-1], np.inf)
+            near = np.all((q >= root.box_local[0]) & (q <= root.box_local[1]), axis=-1)
+            if near.any():
+                p = self.move(self.local_to_heart(q[near]), root.phase_c, self.image_resp_phase)
+                d[near] = root.distance(p)
+            out[root.name] = d
+        return out
+
+    def _without_roots(self, q, epi, distances=None):
+        """The envelope ``epi`` less the arterial roots beyond their valves."""
+        distances = self.root_distances(q) if distances is None else distances
+        for d in distances.values():
+            epi = np.maximum(epi, -d)
         return epi
 
     def implicit_reference(self, points_heart, *, scale: float = 1.0):
@@ -379,6 +404,9 @@ class ChamberHeart(AnalyticHeart):
         edges = np.unique(np.sort(edges, axis=1), axis=0)
         pts = np.concatenate([verts, 0.5 * (verts[edges[:, 0]] + verts[edges[:, 1]])])
         pts = self.project_reference(pts, iterations=4)
+        # Newton's steps zigzag on the creases where an artery's lumen cuts the chambers (F is a max there):
+        # the few points they leave off F = 0 are dropped
+        pts = pts[np.abs(self.epicardium_reference(pts)) < 1e-9]
         g = self._gradient(pts)
         return pts, g / np.linalg.norm(g, axis=1, keepdims=True)
 

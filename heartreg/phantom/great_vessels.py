@@ -34,12 +34,12 @@ __all__ = ["Stent", "Vessel", "arterial_roots", "descending_stent", "great_vesse
 #: to the right, clear of the pulmonary trunk on its left and the SVC behind)
 LV_OUTFLOW = ((-4.0, 2.0, 0.0), (0.0, -6.0, 12.0))
 AORTIC_ROOT = (6.0, -12.0, 22.0)
-ASCENDING_DIRECTION = (-0.3, 0.0, 1.0)
+ASCENDING_DIRECTION = (-0.25, -0.1, 1.0)
 #: pulmonary trunk direction and the right pulmonary artery's path (patient, mm
 #: from the bifurcation: behind the ascending aorta and the SVC)
 TRUNK_DIRECTION = (0.35, 0.55, 0.8)
-RPA_BEND = (-18.0, 38.0, 0.0)
-RPA_END = (-60.0, 36.0, 2.0)
+RPA_BEND = (-12.0, 44.0, -26.0)
+RPA_END = (-56.0, 52.0, -14.0)
 
 
 @dataclass(frozen=True)
@@ -196,11 +196,10 @@ def great_vessels(heart: ChamberHeart, *, phase_c: float) -> tuple[Vessel, ...]:
     # as far as the RVOT's rounded end would reach, then up and back to the bifurcation
     rvot_a, rvot_b = np.asarray(RVOT_A, dtype=float), np.asarray(RVOT_B, dtype=float)
     axis = (rvot_b - rvot_a) / np.linalg.norm(rvot_b - rvot_a)
-    pv_valve = at(rvot_b)
-    trunk_end = pv_valve + 32.0 * _unit(TRUNK_DIRECTION)
+    pv_valve, straight = at(rvot_b), at(rvot_b + RVOT_B_R * axis)
+    trunk_end = straight + 32.0 * _unit(TRUNK_DIRECTION)
     trunk = Vessel(
-        "pulmonary_trunk",
-        np.stack([at(0.5 * (rvot_a + rvot_b)), pv_valve, at(rvot_b + RVOT_B_R * axis), trunk_end]),
+        "pulmonary_trunk", np.stack([at(0.5 * (rvot_a + rvot_b)), pv_valve, straight, trunk_end]),
         RVOT_B_R, 1.5, hu["blood_right"], "rv", pv_valve, _unit(at(rvot_b + axis) - pv_valve),
     )
     lpa = Vessel("left_pulmonary_artery",
@@ -235,22 +234,17 @@ def great_vessels(heart: ChamberHeart, *, phase_c: float) -> tuple[Vessel, ...]:
 
 
 def arterial_roots(heart: ChamberHeart, vessels, phase_c: float) -> tuple[ArterialRoot, ...]:
-    """The arteries' lumens beyond their valves in ``heart``'s local end-diastolic frame.
+    """The arteries' lumens beyond their valves, for ``heart``'s epicardium.
 
     Each valved vessel's centreline from its valve until the first vertex clear
-    of the chambers' envelope (``F`` > its outer radius), mapped back from the
-    patient frame at ``phase_c`` (where :func:`great_vessels` placed it; the
-    local points it was built from come back exactly).
+    of the chambers' envelope (``F`` > its outer radius), at ``phase_c`` (where
+    :func:`great_vessels` placed it), with a local end-diastolic box around it.
 
     Returns
     -------
     tuple of :class:`~heartreg.phantom.anatomy.ArterialRoot`
     """
     bare = dataclasses.replace(heart, roots=())
-
-    def local(p):
-        return bare.to_reference(np.asarray(p, dtype=float), phase_c) @ bare.local_axes.T
-
     roots = []
     for vessel in vessels:
         if vessel.valve_mm is None:
@@ -262,9 +256,12 @@ def arterial_roots(heart: ChamberHeart, vessels, phase_c: float) -> tuple[Arteri
             path.append(p)
             if bare.epicardium_at(p[None], phase_c)[0] > vessel.outer_radius_mm:
                 break
-        q = local(np.stack(path))
-        n = local(vessel.valve_mm + vessel.valve_normal) - q[0]
-        roots.append(ArterialRoot(vessel.name, vessel.chamber, q, vessel.lumen_radius_mm, q[0], n / np.linalg.norm(n)))
+        path = np.stack(path)
+        local = bare.to_reference(path, phase_c) @ bare.local_axes.T
+        pad = vessel.lumen_radius_mm + 5.0  # the beat bends the box's edges a few per cent
+        box = np.stack([local.min(axis=0) - pad, local.max(axis=0) + pad])
+        roots.append(ArterialRoot(vessel.name, vessel.chamber, path, vessel.lumen_radius_mm, vessel.valve_mm,
+                                  vessel.valve_normal, phase_c, box))
     return tuple(roots)
 
 
