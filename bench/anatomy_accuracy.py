@@ -29,6 +29,14 @@ targets are missed (1 only when the model cannot be built at all).
 
     .venv/bin/python bench/anatomy_accuracy.py --size sample
     .venv/bin/python bench/anatomy_accuracy.py --size full [--fov-mm 200] [--stent] [--no-markers]
+
+Measured (seed 0, valve-capped truth): full size mesh -> truth 0.15 / 0.81 mm
+(mean / p95), truth -> mesh 0.95 / 6.62 mm, mouths: aorta 14.3 mm (the stub
+trim lids the aortic root's 35 mm well 34 mm above the valve the mask reaches),
+pulmonary trunk 10.5 (cut inside the RVOT), SVC 5.3, IVC 1.4, pulmonary veins
+2.4-3.6; sample size 0.21 / 0.50 mm, aorta 23.8, trunk 14.5, SVC 4.8, IVC 3.0,
+veins 2.4-4.1.  With the truth capped at the RVOT's outer surface (before the
+valve planes) full size gave 0.05 / 0.12 mm and 19 mm at both arteries.
 """
 
 from __future__ import annotations
