@@ -10,8 +10,9 @@ blood pool, the pulmonary valve at the end of the RV outflow tract; their lumen
 beyond it is taken out of the epicardium (:func:`arterial_roots`),
 so their origin *is* the valve plane.  The pulmonary valve lies anterior-left
 of the aortic root and the ascending aorta runs up and to the right, so the
-two arteries' lumens stay apart (walls touching at most), as in a normal
-heart.  A stent in the descending aorta is the metal artefact of the hard preset.
+aorta's lumen stays apart from the pulmonary trunk's, the right pulmonary
+artery's (under the arch) and the SVC's (1.9-2.9 mm: their walls merge where
+they touch), as in a normal heart.  A stent in the descending aorta is the metal artefact of the hard preset.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ LV_OUTFLOW = ((-4.0, 2.0, 0.0), (0.0, -6.0, 12.0))
 AORTIC_ROOT = (6.0, -12.0, 22.0)
 ASCENDING_DIRECTION = (-0.25, -0.1, 1.0)
 #: pulmonary trunk direction and the right pulmonary artery's path (patient, mm
-#: from the bifurcation: behind the ascending aorta and the SVC)
+#: from the bifurcation: down under the arch, behind the ascending aorta and the SVC)
 TRUNK_DIRECTION = (0.35, 0.55, 0.8)
 RPA_BEND = (-12.0, 44.0, -26.0)
 RPA_END = (-56.0, 52.0, -14.0)
