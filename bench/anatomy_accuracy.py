@@ -118,7 +118,8 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
     off_vessels = np.ones(len(verts), bool)
     centrelines = {v["name"]: np.asarray(v["centreline_patient_mm"]) for v in truth["anatomy"]["vessels"]}
     for v in truth["anatomy"]["vessels"]:
-        off_vessels &= _to_line(verts, centrelines[v["name"]]) > v["lumen_radius_mm"] + v["wall_mm"] + MOUTH_CLEARANCE_MM
+        outer = v["lumen_radius_mm"] + v["wall_mm"]
+        off_vessels &= _to_line(verts, centrelines[v["name"]]) > outer + MOUTH_CLEARANCE_MM
 
     pts, _ = heart.sample_surface(phase_c, phase_r)
     tm = trimesh.Trimesh(verts, model.mesh.faces, process=False)
@@ -149,7 +150,8 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
         vessels.append({
             "name": o["name"],
             "lumen_diameter_mm": 2 * o["lumen_radius_mm"],
-            "mesh_past_origin_mm": extent(samples) - extent(pts),  # the surface: a lid across a mouth has no vertex inside
+            # the surface, not the vertices: a lid across a mouth has no vertex inside
+            "mesh_past_origin_mm": extent(samples) - extent(pts),
             "gap_over_mouth_mm": float(back[mouth].max()) if mouth.any() else float("nan"),
         })
     absd = np.abs(d)
