@@ -13,19 +13,30 @@ exact epicardium (without the great vessels) at the volume's phase phi_C*:
 - truth -> mesh: distance of dense true-surface samples (~0.5 mm apart) to the
   mesh (nearest of 400k area-uniform mesh samples, so within ~0.1 mm);
 - per great vessel: how far past its origin the mesh still runs up the vessel
-  (the largest distance beyond the mouth plane of a mesh vertex inside the
-  vessel's cylinder, minus the same for the true surface, which bulges a
-  little over the mouth), and the largest truth -> mesh gap over the mouth
-  (> 0 when the cut went below the origin into the heart; each true point
-  counts for the nearest origin only, so neighbouring caps stay apart).
+  (the largest distance beyond the mouth plane of a mesh surface sample inside
+  the vessel's lumen less 1 mm, minus the same for the true surface, which bulges
+  a little over a vein's mouth), and the largest truth -> mesh gap over the
+  mouth (> 0 when the cut went below the origin into the heart; each true
+  point counts for the nearest origin only, so neighbouring caps stay apart).
 
-Issue 9's targets (full size): mean <= 0.3 mm, p95 <= 0.8 mm, every vessel cut
-within 5 mm of its origin.  This is a measurement, not a test: it prints a table,
+The aorta's and the pulmonary trunk's origin is their valve plane (the
+phantom's true epicardium is capped there: :mod:`heartreg.phantom.anatomy`),
+the veins' where they leave the chambers' outer surface.  Issue 9's targets
+(full size): mean <= 0.3 mm, p95 <= 0.8 mm, every vessel cut within 5 mm of
+its origin.  This is a measurement, not a test: it prints a table,
 writes ``anatomy_accuracy.json`` beside the case and exits 0 even when the
 targets are missed (1 only when the model cannot be built at all).
 
     .venv/bin/python bench/anatomy_accuracy.py --size sample
     .venv/bin/python bench/anatomy_accuracy.py --size full [--fov-mm 200] [--stent] [--no-markers]
+
+Measured (seed 0, valve-capped truth): full size mesh -> truth 0.15 / 0.81 mm
+(mean / p95), truth -> mesh 0.95 / 6.62 mm, mouths: aorta 14.3 mm (the stub
+trim lids the aortic root's 35 mm well 34 mm above the valve the mask reaches),
+pulmonary trunk 10.5 (cut inside the RVOT), SVC 5.3, IVC 1.4, pulmonary veins
+2.4-3.6; sample size 0.21 / 0.50 mm, aorta 23.8, trunk 14.5, SVC 4.8, IVC 3.0,
+veins 2.4-4.1.  With the truth capped at the RVOT's outer surface (before the
+valve planes) full size gave 0.05 / 0.12 mm and 19 mm at both arteries.
 """
 
 from __future__ import annotations
@@ -64,6 +75,16 @@ def _case(out: Path, size: str, seed: int, fov_mm, stent: bool, markers: bool, r
     return truth
 
 
+def _to_line(p, line) -> np.ndarray:
+    """Distance (mm) of points ``p`` (n, 3) to a polyline ``line`` (m, 3)."""
+    dist = np.full(len(p), np.inf)
+    for a, b in zip(line[:-1], line[1:]):
+        ab = b - a
+        t = np.clip((p - a) @ ab / (ab @ ab), 0.0, 1.0)
+        dist = np.minimum(dist, np.linalg.norm(p - (a + t[:, None] * ab), axis=1))
+    return dist
+
+
 def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
     """Build the model of ``case_dir/ct`` and measure it against ``truth``."""
     import trimesh
@@ -95,14 +116,10 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
 
     # vertices off every vessel: farther than its outer wall + 3 mm from its centreline
     off_vessels = np.ones(len(verts), bool)
+    centrelines = {v["name"]: np.asarray(v["centreline_patient_mm"]) for v in truth["anatomy"]["vessels"]}
     for v in truth["anatomy"]["vessels"]:
-        line = np.asarray(v["centreline_patient_mm"])
-        dist = np.full(len(verts), np.inf)
-        for a, b in zip(line[:-1], line[1:]):
-            ab = b - a
-            t = np.clip((verts - a) @ ab / (ab @ ab), 0.0, 1.0)
-            dist = np.minimum(dist, np.linalg.norm(verts - (a + t[:, None] * ab), axis=1))
-        off_vessels &= dist > v["lumen_radius_mm"] + v["wall_mm"] + MOUTH_CLEARANCE_MM
+        outer = v["lumen_radius_mm"] + v["wall_mm"]
+        off_vessels &= _to_line(verts, centrelines[v["name"]]) > outer + MOUTH_CLEARANCE_MM
 
     pts, _ = heart.sample_surface(phase_c, phase_r)
     tm = trimesh.Trimesh(verts, model.mesh.faces, process=False)
@@ -117,14 +134,15 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
     for index, o in enumerate(origins):
         c = np.asarray(o["centre_patient_mm"])
         u = np.asarray(o["direction_patient"])
-        radius = o["outer_radius_mm"]
+        radius = o["lumen_radius_mm"] - 1.0  # the lumen: an artery's true surface beyond its valve is its lumen's wall
+        line = centrelines[o["name"]]
 
-        def extent(p, c=c, u=u, radius=radius):
-            """How far past the mouth plane points of ``p`` run inside the vessel's cylinder."""
+        def extent(p, c=c, u=u, radius=radius, line=line):
+            """How far past the mouth plane points of ``p`` run inside the vessel's lumen (along a bent one too)."""
             s = (p - c) @ u
-            r = np.linalg.norm((p - c) - s[:, None] * u, axis=1)
-            inside = (s > 0) & (r <= radius)
-            return float(s[inside].max()) if inside.any() else 0.0
+            near = s > 0
+            near[near] = _to_line(p[near], line) <= radius
+            return float(s[near].max()) if near.any() else 0.0
 
         s_t = (pts - c) @ u
         r_t = np.linalg.norm((pts - c) - s_t[:, None] * u, axis=1)
@@ -132,7 +150,8 @@ def measure(case_dir: Path, truth: dict, *, faces: int = 20000) -> dict:
         vessels.append({
             "name": o["name"],
             "lumen_diameter_mm": 2 * o["lumen_radius_mm"],
-            "mesh_past_origin_mm": extent(verts) - extent(pts),
+            # the surface, not the vertices: a lid across a mouth has no vertex inside
+            "mesh_past_origin_mm": extent(samples) - extent(pts),
             "gap_over_mouth_mm": float(back[mouth].max()) if mouth.any() else float("nan"),
         })
     absd = np.abs(d)

@@ -21,12 +21,16 @@ part                shape (end-diastole, mm)
 left ventricle      round cone from the apex to the base, cut flat at the
                     mitral level; wall 10 mm (cavity = the shape offset inwards)
 right ventricle     round cone anterior-right of the LV plus the outflow tract
-                    (RVOT) rising to the pulmonary valve; wall 4 mm, its cavity
-                    wraps the LV (the septum is LV wall)
+                    (RVOT) rising anterior-left of the aortic root to the
+                    pulmonary valve; wall 4 mm, its cavity wraps the LV (the
+                    septum is LV wall)
 atria               spheres behind (left) and right of the base; wall 2.5 mm
-valves              mitral and tricuspid openings join atria and ventricles
-epicardium          smooth union (blend ``BLEND_MM``) of the four chambers: the
-                    truth, *without* the great vessels
+valves              mitral and tricuspid openings join atria and ventricles; the
+                    aortic and pulmonary valves are planes across the arteries'
+                    lumens where they leave the LV's pool and the RVOT's end
+epicardium          smooth union (blend ``BLEND_MM``) of the four chambers less
+                    the arteries' lumens beyond their valves (:class:`ArterialRoot`):
+                    the truth, *without* the great vessels
 epicardial fat      a wider smooth union (fills the grooves) 1.5 mm out, then a
                     1.2 mm pericardium
 great vessels       ascending aorta (29 mm lumen, 33 mm root), descending aorta,
@@ -39,6 +43,17 @@ great vessels       ascending aorta (29 mm lumen, 33 mm root), descending aorta,
 The great vessels (:mod:`heartreg.phantom.great_vessels`) do not beat: they are placed once, at the gating's target
 phase and the breath-hold, in the patient frame (like the spheroid's vessels),
 and their origins are reported at the volume's phase phi_C*.
+
+An epicardial model "without the great vessels" ends at the semilunar valves:
+the aortic and pulmonary roots above them (the sinuses) are artery, not
+ventricle, even where the chambers' envelope wraps them (the aortic root sits
+between the RVOT, the atria and the LV's top).  So each artery's lumen is taken
+out of the envelope from its valve plane on (:class:`ArterialRoot`, built by
+:func:`heartreg.phantom.great_vessels.arterial_roots`): the true cap over an
+artery's mouth is its valve.  Inside the envelope the chambers' myocardium is
+the root's wall (the other chambers' blood keeps its own wall thickness away
+from the lumen), so the CT shows the lumen against muscle down to the valve,
+where it opens into the ventricle's pool.
 """
 
 from __future__ import annotations
@@ -50,10 +65,11 @@ import numpy as np
 
 from heartreg.phantom.geometry import apply
 from heartreg.phantom.heart import AnalyticHeart
-from heartreg.phantom.sdf import _capsule, _round_cone, _smax, _smin, _sphere
+from heartreg.phantom.sdf import _capsule, _polyline_distance, _round_cone, _smax, _smin, _sphere
 
 __all__ = [
     "ANATOMY_HU",
+    "ArterialRoot",
     "WALL_THICKNESS_MM",
     "ChamberHeart",
 ]
@@ -90,7 +106,9 @@ RV_APEX, RV_APEX_R = (14.0, -14.0, -40.0), 12.0
 RV_BASE, RV_BASE_R = (14.0, -20.0, 4.0), 27.0
 RV_TOP_Z, RV_TOP_BLEND = 18.0, 8.0
 RVOT_A, RVOT_A_R = (17.0, -10.0, 6.0), 18.0
-RVOT_B, RVOT_B_R = (20.0, 4.0, 32.0), 14.0
+#: the RVOT ends at the pulmonary valve, anterior-left of the aortic root, as wide as the trunk's lumen (so the
+#: trunk's lumen beyond the valve takes the whole end of the RVOT out of the epicardium)
+RVOT_B, RVOT_B_R = (30.0, 20.0, 28.0), 12.5
 LA_CENTRE, LA_R = (-24.0, 8.0, 32.0), 23.0
 RA_CENTRE, RA_R = (0.0, -36.0, 28.0), 24.0
 MITRAL = ((-8.0, 8.0, 4.0), (-20.0, 8.0, 26.0), 8.0)
@@ -111,6 +129,48 @@ def _outer(q):
     return lv, rv, _sphere(q, LA_CENTRE, LA_R), _sphere(q, RA_CENTRE, RA_R)
 
 
+@dataclass(frozen=True)
+class ArterialRoot:
+    """An artery's lumen beyond its valve, carried by the heartbeat.
+
+    The lumen is placed in the patient frame at ``phase_c`` (as the vessel is);
+    the heart's local points are carried there by the heartbeat to measure it,
+    so at ``phase_c`` the root is exactly the painted lumen, and at other phases
+    it moves with the heart.  Where the chambers' envelope wraps the root, their
+    myocardium is its wall (the other chambers' blood keeps its own wall
+    thickness away from it).
+
+    Attributes
+    ----------
+    name : str
+    chamber : str
+        The ventricle it leaves (``lv``, ``rv``): the only pool it opens into.
+    points_mm : (m, 3) float64, mm, patient frame
+        The centreline from the valve until it is clear of the chambers.
+    lumen_radius_mm : float
+    valve_mm, normal : (3,) float64
+        The valve plane's centre and unit normal (into the artery), patient frame.
+    phase_c : float
+        The cardiac phase it is placed at (the gating's target).
+    box_local : (2, 3) float64
+        Local end-diastolic box around it (beyond: no lumen).
+    """
+
+    name: str
+    chamber: str
+    points_mm: np.ndarray
+    lumen_radius_mm: float
+    valve_mm: np.ndarray
+    normal: np.ndarray
+    phase_c: float
+    box_local: np.ndarray
+
+    def distance(self, points_patient) -> np.ndarray:
+        """(...,) mm, negative inside the lumen beyond the valve plane, of patient points at ``phase_c``."""
+        below = (self.valve_mm - points_patient) @ self.normal
+        return np.maximum(_polyline_distance(points_patient, self.points_mm, self.lumen_radius_mm), below)
+
+
 # ---------------------------------------------------------------------- heart
 @dataclass(frozen=True)
 class ChamberHeart(AnalyticHeart):
@@ -121,8 +181,12 @@ class ChamberHeart(AnalyticHeart):
     ``surface_frames``, ``signed_distance``, ``surface_distance``), with the
     epicardium of the chambers instead of the spheroid.  ``shape`` is kept
     only for the motion's reference lengths; the chambers' sizes are this
-    module's constants.
+    module's constants.  ``roots`` are the arteries beyond their valves, taken
+    out of the epicardium (empty: the chambers' envelope alone, as
+    :func:`heartreg.phantom.great_vessels.great_vessels` places the vessels on).
     """
+
+    roots: tuple = ()
 
     # ------------------------------------------------------------ local frame
     @cached_property
@@ -171,7 +235,8 @@ class ChamberHeart(AnalyticHeart):
             included in the ventricles' pools).
         """
         lv, rv, la, ra = _outer(q)
-        epi = _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM)
+        roots = self.root_distances(q)
+        epi = self._without_roots(q, _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM), roots)
         fat = _smin(_smin(_smin(lv, rv, FAT_BLEND_MM), la, FAT_BLEND_MM), ra, FAT_BLEND_MM) - FAT_MIN_MM
         w = WALL_THICKNESS_MM
         lv_blood = _smin(lv + w["left_ventricle"], _capsule(q, *MITRAL), 3.0)
@@ -179,6 +244,14 @@ class ChamberHeart(AnalyticHeart):
         rv_blood = _smin(rv_blood, _capsule(q, *TRICUSPID), 3.0)
         la_blood = np.maximum(la + w["atria"], -lv - w["left_ventricle"] + 2.5)
         ra_blood = np.maximum(ra + w["atria"], -rv - 1.0)
+        pools = {"lv": lv_blood, "rv": rv_blood, "la": la_blood, "ra": ra_blood}
+        walls = {"lv": w["left_ventricle"], "rv": w["right_ventricle"], "la": w["atria"], "ra": w["atria"]}
+        for root in self.roots:  # the other chambers' blood stays a wall away from an artery's root
+            d = roots[root.name]
+            for name in pools:
+                if name != root.chamber:
+                    pools[name] = np.maximum(pools[name], walls[name] - d)
+        lv_blood, rv_blood, la_blood, ra_blood = (pools[k] for k in ("lv", "rv", "la", "ra"))
         return {
             "lv": lv, "rv": rv, "la": la, "ra": ra, "epicardium": epi,
             "fat": fat, "pericardium": fat - PERICARDIUM_MM,
@@ -199,7 +272,27 @@ class ChamberHeart(AnalyticHeart):
         """
         q = np.asarray(points_heart, dtype=float) @ self.local_axes.T
         lv, rv, la, ra = _outer(q)
-        return _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM)
+        return self._without_roots(q, _smin(_smin(_smin(lv, rv, BLEND_MM), la, BLEND_MM), ra, BLEND_MM))
+
+    def root_distances(self, q) -> dict:
+        """Signed distance (mm, negative inside) of local end-diastolic points q (..., 3)
+        to each artery's lumen beyond its valve (``inf`` far from it), by name."""
+        out = {}
+        for root in self.roots:
+            d = np.full(q.shape[:-1], np.inf)
+            near = np.all((q >= root.box_local[0]) & (q <= root.box_local[1]), axis=-1)
+            if near.any():
+                p = self.move(self.local_to_heart(q[near]), root.phase_c, self.image_resp_phase)
+                d[near] = root.distance(p)
+            out[root.name] = d
+        return out
+
+    def _without_roots(self, q, epi, distances=None):
+        """The envelope ``epi`` less the arterial roots beyond their valves."""
+        distances = self.root_distances(q) if distances is None else distances
+        for d in distances.values():
+            epi = np.maximum(epi, -d)
+        return epi
 
     def implicit_reference(self, points_heart, *, scale: float = 1.0):
         """The epicardium's implicit function (``scale`` must be 1: the chambers'
@@ -311,6 +404,9 @@ class ChamberHeart(AnalyticHeart):
         edges = np.unique(np.sort(edges, axis=1), axis=0)
         pts = np.concatenate([verts, 0.5 * (verts[edges[:, 0]] + verts[edges[:, 1]])])
         pts = self.project_reference(pts, iterations=4)
+        # Newton's steps zigzag on the creases where an artery's lumen cuts the chambers (F is a max there):
+        # the few points they leave off F = 0 are dropped
+        pts = pts[np.abs(self.epicardium_reference(pts)) < 1e-9]
         g = self._gradient(pts)
         return pts, g / np.linalg.norm(g, axis=1, keepdims=True)
 

@@ -4,30 +4,43 @@ The vessels do not beat: they are placed once, at the gating's target phase and
 the breath-hold, in the patient frame, each starting inside its chamber's blood
 pool of a :class:`~heartreg.phantom.anatomy.ChamberHeart` and leaving through the
 epicardium at its *origin* (:func:`vessel_origins`, reported in ``truth.json``
-at the volume's phase phi_C*). A stent in the descending aorta is the metal
-artefact of the hard preset.
+at the volume's phase phi_C*). The two arteries start at their valve instead
+(``Vessel.valve_mm``): the aortic valve where the centreline leaves the LV's
+blood pool, the pulmonary valve at the end of the RV outflow tract; their lumen
+beyond it is taken out of the epicardium (:func:`arterial_roots`),
+so their origin *is* the valve plane.  The pulmonary valve lies anterior-left
+of the aortic root and the ascending aorta runs up and to the right, so the
+aorta's lumen stays apart from the pulmonary trunk's, the right pulmonary
+artery's (under the arch) and the SVC's (1.9-2.9 mm: their walls merge where
+they touch), as in a normal heart.  A stent in the descending aorta is the metal artefact of the hard preset.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
 
-from heartreg.phantom.anatomy import ANATOMY_HU, LA_CENTRE, RA_CENTRE, RVOT_B, ChamberHeart
+from heartreg.phantom.anatomy import (
+    ANATOMY_HU, LA_CENTRE, RA_CENTRE, RVOT_A, RVOT_B, RVOT_B_R, ArterialRoot, ChamberHeart,
+)
 from heartreg.phantom.sdf import _polyline_distance
 
-__all__ = ["Stent", "Vessel", "descending_stent", "great_vessels", "vessel_origins"]
+__all__ = ["Stent", "Vessel", "arterial_roots", "descending_stent", "great_vessels", "vessel_origins"]
 
-#: aortic root (local) and the ascending aorta's direction (patient LPS)
+#: the LV outflow (local: in the LV's pool, then out through its top), the
+#: aortic root (local) and the ascending aorta's direction (patient LPS: up and
+#: to the right, clear of the pulmonary trunk on its left and the SVC behind)
+LV_OUTFLOW = ((-4.0, 2.0, 0.0), (0.0, -6.0, 12.0))
 AORTIC_ROOT = (6.0, -12.0, 22.0)
-ASCENDING_DIRECTION = (-0.10, -0.18, 1.0)
+ASCENDING_DIRECTION = (-0.25, -0.1, 1.0)
 #: pulmonary trunk direction and the right pulmonary artery's path (patient, mm
-#: from the bifurcation: behind the ascending aorta and the SVC)
+#: from the bifurcation: down under the arch, behind the ascending aorta and the SVC)
 TRUNK_DIRECTION = (0.35, 0.55, 0.8)
-RPA_BEND = (-20.0, 30.0, 0.0)
-RPA_END = (-60.0, 36.0, 2.0)
+RPA_BEND = (-12.0, 44.0, -26.0)
+RPA_END = (-56.0, 52.0, -14.0)
 
 
 @dataclass(frozen=True)
@@ -45,6 +58,10 @@ class Vessel:
     chamber : str or None
         The chamber it joins (``lv, rv, la, ra``), None for vessels that do not
         touch the heart (descending aorta, branch arteries).
+    valve_mm, valve_normal : (3,) float64 or None
+        An artery's valve plane (centre on the centreline, unit normal into the
+        artery), patient frame: its lumen starts there (below it is the
+        ventricle's own blood).  None for veins and branches.
     """
 
     name: str
@@ -53,14 +70,19 @@ class Vessel:
     wall_mm: float
     hu: float
     chamber: str | None = None
+    valve_mm: np.ndarray | None = None
+    valve_normal: np.ndarray | None = None
 
     @property
     def outer_radius_mm(self) -> float:
         return self.lumen_radius_mm + self.wall_mm
 
     def lumen_distance(self, points) -> np.ndarray:
-        """(...,) mm, negative inside the lumen, of (..., 3) patient points."""
-        return _polyline_distance(points, self.points_mm, self.lumen_radius_mm)
+        """(...,) mm, negative inside the lumen (beyond the valve, if any), of (..., 3) patient points."""
+        d = _polyline_distance(points, self.points_mm, self.lumen_radius_mm)
+        if self.valve_mm is None:
+            return d
+        return np.maximum(d, (self.valve_mm - points) @ self.valve_normal)
 
     def bbox(self, margin_mm: float):
         pad = self.outer_radius_mm + margin_mm
@@ -145,27 +167,41 @@ def great_vessels(heart: ChamberHeart, *, phase_c: float) -> tuple[Vessel, ...]:
 
     up = np.array([0.0, 0.0, 1.0])
     hu = ANATOMY_HU
-    # aorta: from the LV outflow through the root (sinus) up, then the arch
+    # aorta: from the LV outflow through its valve (where the centreline leaves the LV's pool: the annulus)
+    # and the root (sinus) up, then the arch
+    a, b = (np.asarray(p, dtype=float) for p in LV_OUTFLOW)
+    lo, hi = 0.0, 1.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if heart.chambers_local((a + mid * (b - a))[None])["lv_blood"][0] < 0:
+            lo = mid
+        else:
+            hi = mid
+    aortic_valve = at(a + lo * (b - a))
     root = at(AORTIC_ROOT)
-    asc = [at((-4.0, 2.0, 0.0)), at((0.0, -6.0, 12.0)), root]
+    asc = [at(a), at(b), root]
     for k in (15.0, 30.0, 45.0, 60.0):
         asc.append(root + k * _unit(ASCENDING_DIRECTION))
     top = asc[-1]
     arch = [top + (8.0, 10.0, 14.0), top + (24.0, 32.0, 18.0)]
     desc_x, desc_y = 30.0, 48.0
     arch_end = np.array([desc_x, desc_y, top[2] + 6.0])
-    aorta = Vessel("aorta", np.stack(asc + arch + [arch_end]), 14.5, 2.0, hu["blood_left"], "lv")
+    aorta = Vessel("aorta", np.stack(asc + arch + [arch_end]), 14.5, 2.0, hu["blood_left"], "lv",
+                   aortic_valve, _unit(at(b) - at(a)))
     descending = Vessel(
         "descending_aorta",
         np.stack([arch_end, np.array([desc_x, desc_y, -260.0])]),
         11.5, 1.5, hu["blood_left"],
     )
-    # pulmonary trunk from the RVOT, up and back to the bifurcation
-    pv_valve = at(RVOT_B)
-    trunk_end = pv_valve + 32.0 * _unit(TRUNK_DIRECTION)
+    # pulmonary trunk from its valve at the end of the RVOT, first along the RVOT's axis (the valve's normal)
+    # as far as the RVOT's rounded end would reach, then up and back to the bifurcation
+    rvot_a, rvot_b = np.asarray(RVOT_A, dtype=float), np.asarray(RVOT_B, dtype=float)
+    axis = (rvot_b - rvot_a) / np.linalg.norm(rvot_b - rvot_a)
+    pv_valve, straight = at(rvot_b), at(rvot_b + RVOT_B_R * axis)
+    trunk_end = straight + 32.0 * _unit(TRUNK_DIRECTION)
     trunk = Vessel(
-        "pulmonary_trunk", np.stack([at((15.0, -8.0, 8.0)), at((17.0, 1.0, 22.0)), pv_valve, trunk_end]),
-        12.5, 1.5, hu["blood_right"], "rv",
+        "pulmonary_trunk", np.stack([at(0.5 * (rvot_a + rvot_b)), pv_valve, straight, trunk_end]),
+        RVOT_B_R, 1.5, hu["blood_right"], "rv", pv_valve, _unit(at(rvot_b + axis) - pv_valve),
     )
     lpa = Vessel("left_pulmonary_artery",
                  np.stack([trunk_end, trunk_end + (25.0, 10.0, 2.0), trunk_end + (45.0, 14.0, -6.0)]),
@@ -196,6 +232,38 @@ def great_vessels(heart: ChamberHeart, *, phase_c: float) -> tuple[Vessel, ...]:
         veins.append(Vessel(f"{name}_pulmonary_vein", np.stack([start, mid, end]), 7.0, 1.0,
                             hu["blood_left"], "la"))
     return (aorta, descending, trunk, lpa, rpa, svc, ivc, *veins)
+
+
+def arterial_roots(heart: ChamberHeart, vessels, phase_c: float) -> tuple[ArterialRoot, ...]:
+    """The arteries' lumens beyond their valves, for ``heart``'s epicardium.
+
+    Each valved vessel's centreline from its valve until the first vertex clear
+    of the chambers' envelope (``F`` > its outer radius), at ``phase_c`` (where
+    :func:`great_vessels` placed it), with a local end-diastolic box around it.
+
+    Returns
+    -------
+    tuple of :class:`~heartreg.phantom.anatomy.ArterialRoot`
+    """
+    bare = dataclasses.replace(heart, roots=())
+    roots = []
+    for vessel in vessels:
+        if vessel.valve_mm is None:
+            continue
+        pts = vessel.points_mm
+        beyond = (pts - vessel.valve_mm) @ vessel.valve_normal > 0
+        path = [vessel.valve_mm]
+        for p in pts[beyond]:
+            path.append(p)
+            if bare.epicardium_at(p[None], phase_c)[0] > vessel.outer_radius_mm:
+                break
+        path = np.stack(path)
+        local = bare.to_reference(path, phase_c) @ bare.local_axes.T
+        pad = vessel.lumen_radius_mm + 5.0  # the beat bends the box's edges a few per cent
+        box = np.stack([local.min(axis=0) - pad, local.max(axis=0) + pad])
+        roots.append(ArterialRoot(vessel.name, vessel.chamber, path, vessel.lumen_radius_mm, vessel.valve_mm,
+                                  vessel.valve_normal, phase_c, box))
+    return tuple(roots)
 
 
 def vessel_origins(heart: ChamberHeart, vessels, phase_c: float, phase_r=None, *, step_mm: float = 0.02):

@@ -7,6 +7,8 @@ body, fiducials and reference probe.  LPS: +x patient left, +y posterior,
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -98,9 +100,16 @@ def make_heart(config: PhantomConfig) -> AnalyticHeart:
     from heartreg.phantom.anatomy import ChamberHeart
 
     cls = ChamberHeart if config.anatomy.heart == "chambers" else AnalyticHeart
-    return cls(
+    heart = cls(
         shape=config.heart,
         motion=config.motion,
         T_patient_from_heart=T_from_euler_xyz_deg(config.euler_xyz_deg, config.heart_origin_mm),
         image_resp_phase=config.image_resp_phase,
     )
+    if cls is ChamberHeart:
+        # the epicardium without the great vessels ends at the arteries' valves (anatomy's module docstring)
+        from heartreg.phantom.great_vessels import arterial_roots, great_vessels
+
+        phase_c = config.gating_target_phase
+        heart = replace(heart, roots=arterial_roots(heart, great_vessels(heart, phase_c=phase_c), phase_c))
+    return heart
