@@ -309,7 +309,7 @@ def _nearest(surface: SurfaceIndex, q):
                           s._face_sites)
 
 
-def closest_points(surface, points, *, k: int | None = None) -> ClosestPoints:
+def closest_points(surface, points) -> ClosestPoints:
     """Exact closest points on a triangle mesh.
 
     A depth-first search of a bounding-volume hierarchy of the faces (built
@@ -323,9 +323,6 @@ def closest_points(surface, points, *, k: int | None = None) -> ClosestPoints:
     surface : SurfaceIndex or (vertices, faces)
         Build a :class:`SurfaceIndex` once when querying repeatedly.
     points : (n, 3) float, mm
-    k : int, optional
-        Unused (it was the number of search sites tried first); kept so
-        that existing calls keep working.
 
     Returns
     -------

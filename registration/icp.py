@@ -151,7 +151,6 @@ def icp(
     trim_fraction: float = 0.0,
     huber_mm: float | None = None,
     degeneracy_ratio: float = 1e-3,
-    k: int | None = None,
 ) -> IcpResult:
     """Rigidly register points to a triangle mesh.
 
@@ -194,9 +193,6 @@ def icp(
         Huber weights ``min(1, huber_mm / d)`` on the kept points.
     degeneracy_ratio : float
         See :attr:`IcpResult.degenerate`.
-    k : int, optional
-        Unused (it was the number of search sites a closest-point search
-        tried first); kept so that existing calls keep working.
 
     Returns
     -------
