@@ -65,7 +65,7 @@ import numpy as np
 
 from heartreg.phantom.geometry import apply
 from heartreg.phantom.heart import AnalyticHeart
-from heartreg.phantom.sdf import _capsule, _polyline_distance, _round_cone, _smax, _smin, _sphere
+from heartreg.phantom.sdf import _capsule, _lumen_beyond_valve, _round_cone, _smax, _smin, _sphere
 
 __all__ = [
     "ANATOMY_HU",
@@ -167,8 +167,7 @@ class ArterialRoot:
 
     def distance(self, points_patient) -> np.ndarray:
         """(...,) mm, negative inside the lumen beyond the valve plane, of patient points at ``phase_c``."""
-        below = (self.valve_mm - points_patient) @ self.normal
-        return np.maximum(_polyline_distance(points_patient, self.points_mm, self.lumen_radius_mm), below)
+        return _lumen_beyond_valve(points_patient, self.points_mm, self.lumen_radius_mm, self.valve_mm, self.normal)
 
 
 # ---------------------------------------------------------------------- heart

@@ -26,7 +26,7 @@ import numpy as np
 from heartreg.phantom.anatomy import (
     ANATOMY_HU, LA_CENTRE, RA_CENTRE, RVOT_A, RVOT_B, RVOT_B_R, ArterialRoot, ChamberHeart,
 )
-from heartreg.phantom.sdf import _polyline_distance
+from heartreg.phantom.sdf import _lumen_beyond_valve, _polyline_distance
 
 __all__ = ["Stent", "Vessel", "arterial_roots", "descending_stent", "great_vessels", "vessel_origins"]
 
@@ -79,10 +79,9 @@ class Vessel:
 
     def lumen_distance(self, points) -> np.ndarray:
         """(...,) mm, negative inside the lumen (beyond the valve, if any), of (..., 3) patient points."""
-        d = _polyline_distance(points, self.points_mm, self.lumen_radius_mm)
         if self.valve_mm is None:
-            return d
-        return np.maximum(d, (self.valve_mm - points) @ self.valve_normal)
+            return _polyline_distance(points, self.points_mm, self.lumen_radius_mm)
+        return _lumen_beyond_valve(points, self.points_mm, self.lumen_radius_mm, self.valve_mm, self.valve_normal)
 
     def bbox(self, margin_mm: float):
         pad = self.outer_radius_mm + margin_mm

@@ -62,3 +62,13 @@ def _polyline_distance(p, points, radius):
         t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
         d = np.minimum(d, np.linalg.norm(p - (a + t[..., None] * ab), axis=-1))
     return d - radius
+
+
+def _lumen_beyond_valve(p, points, radius, valve, normal):
+    """Distance (mm, negative inside) to an artery's lumen from its valve plane on.
+
+    The tube of :func:`_polyline_distance` cut by the plane through ``valve``
+    with unit ``normal`` (into the artery): the painted lumen and the truth's
+    cut over its mouth are the same set.
+    """
+    return np.maximum(_polyline_distance(p, points, radius), (valve - p) @ normal)
