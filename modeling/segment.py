@@ -7,7 +7,8 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    ``hu_high`` (below metal);
 2. *seed*: the contrast blood pool, the largest connected component of
    ``blood_hu`` voxels — vertebrae are cut apart by their discs, the liver and
-   muscle stay below it — or the component at a seed point the user gives in
+   muscle stay below it; in a venous phase, whose blood is dimmer, the lower
+   bound steps down to ``blood_floor_hu`` until a chamber is found — or the component at a seed point the user gives in
    patient mm.  Without contrast (that component holds no ball of
    ``min_pool_radius_mm``: it is then the skeleton) the seed is the thickest
    soft tissue inside the convex hull of the lungs, slice by slice, and the
@@ -50,6 +51,12 @@ __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
 #: Thickness (mm) of the distance shells in which a great-vessel branch's radius is followed out from the heart body.
 ROOT_SHELL_MM = 5.0
+
+#: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
+POOL_STEP_HU = 25.0
+
+#: Inscribed radius (mm) a pool found below ``blood_hu[0]`` must hold (see ``_blood_pool``).
+WEAK_POOL_RADIUS_MM = 18.0
 
 
 class SegmentationError(HeartregError, ValueError):
@@ -126,19 +133,33 @@ def _opening_mm(mask, spacing_kji, radius_mm):
     return outside <= radius_mm
 
 
-def _blood_pool(coarse, cspacing, blood_hu, min_radius_mm):
-    """The largest contrast-blood component, or None if it is no chamber (no contrast)."""
-    blood = (coarse > blood_hu[0]) & (coarse < blood_hu[1])
-    labels, n = ndimage.label(blood)
-    if n == 0:
-        return None
-    sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
-    pool = labels == int(np.argmax(sizes)) + 1
-    box = ndimage.find_objects(pool.astype(np.uint8))[0]
-    padded = np.pad(pool[box], 1)
-    if distance_mm(padded, cspacing).max() < min_radius_mm:
-        return None
-    return pool
+def _blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
+    """The contrast blood pool and the lower HU that found it, or (None, None) without contrast.
+
+    The pool is the largest component of ``blood_hu`` voxels if it holds a
+    ball of ``min_radius_mm`` (a cardiac chamber's lumen).  Contrast timing
+    sets how bright blood is: 300-600 HU in an arterial phase, 150-250 HU in a
+    venous one, where no chamber reaches ``blood_hu[0]``.  The lower bound is
+    then lowered by :data:`POOL_STEP_HU` down to ``floor_hu`` (above
+    myocardium and liver, 60-130 HU) until a chamber is found, a larger one
+    (:data:`WEAK_POOL_RADIUS_MM`): below 200 HU the skeleton's marrow joins
+    into components of a size with a chamber (CTChest4 of slicerio, without
+    contrast: 476 ml holding a 15.5 mm ball at 175 HU), while a venous phase
+    fills all four chambers (the real CT's pool at 150 HU, dimmed to a venous
+    phase: 20 mm).
+    """
+    for low in np.arange(blood_hu[0], min(floor_hu, blood_hu[0]) - 1e-9, -POOL_STEP_HU):
+        radius_mm = min_radius_mm if low >= blood_hu[0] else max(min_radius_mm, WEAK_POOL_RADIUS_MM)
+        blood = (coarse > low) & (coarse < blood_hu[1])
+        labels, n = ndimage.label(blood)
+        if n == 0:
+            continue
+        sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
+        pool = labels == int(np.argmax(sizes)) + 1
+        box = ndimage.find_objects(pool.astype(np.uint8))[0]
+        if distance_mm(np.pad(pool[box], 1), cspacing).max() >= radius_mm:
+            return pool, float(low)
+    return None, None
 
 
 def _mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
@@ -262,6 +283,7 @@ def segment_heart(
     hu_low: float = 0.0,
     hu_high: float = 1500.0,
     blood_hu: tuple[float, float] = (200.0, 650.0),
+    blood_floor_hu: float = 150.0,
     seed_patient_mm=None,
     vessel_radius_mm: float = 14.0,
     heart_radius_mm: float = 20.0,
@@ -290,6 +312,9 @@ def segment_heart(
         and myocardium (~100 HU).
     blood_hu : (float, float)
         Range of contrast-enhanced blood, for the automatic seed.
+    blood_floor_hu : float
+        Lowest lower bound tried for the blood pool when no chamber reaches
+        ``blood_hu[0]`` (a venous-phase CT: blood 150-250 HU).
     seed_patient_mm : (3,) float, optional
         A point inside the heart (patient mm) instead of the automatic seed.
     vessel_radius_mm : float
@@ -371,12 +396,13 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
-    pool = _blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm)
+    pool, pool_hu = _blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu)
     if seed_patient_mm is None:
         if pool is not None:
             seed_mask = pool
             kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
-            notes.append(f"seed: largest blood-pool component ({seed_mask.sum() * voxel_ml * step.prod():.0f} ml)")
+            notes.append(f"seed: largest blood-pool component ({seed_mask.sum() * voxel_ml * step.prod():.0f} ml"
+                         + (f", blood above {pool_hu:.0f} HU: weak contrast" if pool_hu < blood_hu[0] else "") + ")")
         else:
             seed_mask, between = _mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
             contrast = False
@@ -384,7 +410,7 @@ def segment_heart(
             kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
             notes.append(
                 f"no contrast blood pool (none holds a ball of {min_pool_radius_mm:.0f} mm radius at "
-                f"{blood_hu[0]:.0f}-{blood_hu[1]:.0f} HU): seeded in the thickest soft tissue between the lungs, "
+                f"{min(blood_floor_hu, blood_hu[0]):.0f}-{blood_hu[1]:.0f} HU): seeded in the thickest soft tissue between the lungs, "
                 f"tissue up to {soft_hu[1]:.0f} HU"
             )
         seed_mm = apply_to_points(T, kji[::-1])
@@ -460,7 +486,8 @@ def segment_heart(
             "check the HU range or give a seed point"
         )
     parameters = dict(
-        hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), vessel_radius_mm=vessel_radius_mm,
+        hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), blood_floor_hu=blood_floor_hu,
+        pool_hu=pool_hu, vessel_radius_mm=vessel_radius_mm,
         heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm, vessel_root_mm=vessel_root_mm,
         chamber_radius_mm=chamber_radius_mm, margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
         min_pool_radius_mm=min_pool_radius_mm, lung_hu=lung_hu, soft_hu=list(soft_hu), contrast=contrast,
