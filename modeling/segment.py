@@ -13,7 +13,10 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    ``min_pool_radius_mm``: it is then the skeleton) the seed is the thickest
    soft tissue inside the convex hull of the lungs, slice by slice, and the
    tissue is limited to that hull and to ``soft_hu`` (bone is not heart);
-3. *heart region*: the tissue component touching the seed;
+3. *heart region*: the tissue component touching the seed; with contrast,
+   less the solid organs it touches (tissue too thick and too far from blood
+   to be a heart wall: the liver through a thick slice's blurred diaphragm),
+   parted at the dimmest layer between them by a watershed;
 4. *cut the bridges*: a morphological opening with a ball of radius
    ``vessel_radius_mm`` (computed with distance transforms on a ~2 mm grid)
    removes thin bridges to the liver or chest wall and thin vessels;
@@ -54,6 +57,11 @@ ROOT_SHELL_MM = 5.0
 
 #: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
 POOL_STEP_HU = 25.0
+
+#: Solid tissue holding a ball of this radius (mm), farther than SOLID_FAR_MM from blood, is no heart wall
+#: (``_split_solid_organs``): the left ventricle's wall is 8-12 mm thick, the apex lies within ~15 mm of blood.
+SOLID_RADIUS_MM = 12.0
+SOLID_FAR_MM = 30.0
 
 #: Inscribed radius (mm) a pool found below ``blood_hu[0]`` must hold (see ``_blood_pool``).
 WEAK_POOL_RADIUS_MM = 18.0
@@ -160,6 +168,44 @@ def _blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
         if distance_mm(np.pad(pool[box], 1), cspacing).max() >= radius_mm:
             return pool, float(low)
     return None, None
+
+
+def _split_solid_organs(region, pool, coarse, cspacing, blood_hu):
+    """Part the heart from solid organs its tissue touches (the liver under the diaphragm).
+
+    On a thick-slice CT (3 mm and more) the diaphragm and the fat over it
+    blur into the tissue range, and the liver joins the heart over a broad
+    front that no opening can cut.  With contrast, the heart's tissue is a
+    wall around its blood: nowhere is it both thicker than
+    2 x :data:`SOLID_RADIUS_MM` (a ball of that radius fits in no myocardium)
+    and farther than :data:`SOLID_FAR_MM` from blood (above ``blood_hu``: every
+    enhanced chamber).  Such tissue is another organ: it and the blood seed a
+    watershed of the HU (brightest first), which floods each organ up to the
+    dimmest layer between them, the diaphragm's.  The heart's seed is the
+    blood ``pool`` only: blood in the other organ (a liver's vessels) would
+    flood it from within.  Returns the heart's part of ``region`` and a note
+    (empty when nothing is split).
+    """
+    from skimage.segmentation import watershed
+
+    box = ndimage.find_objects(region.astype(np.uint8))[0]
+    inside, hu = region[box], coarse[box]
+    blood = hu > blood_hu
+    solid = _opening_mm(inside & ~blood, cspacing, SOLID_RADIUS_MM)
+    solid &= distance_mm(~blood, cspacing) > SOLID_FAR_MM
+    if not solid.any():
+        return region, ""
+    markers = np.zeros(hu.shape, np.int32)
+    markers[solid] = 2
+    markers[pool[box] & inside] = 1
+    heart = watershed(-hu, markers, mask=inside) == 1
+    out = np.zeros_like(region)
+    out[box] = heart
+    removed_ml = float((inside & ~heart).sum() * np.prod(cspacing) / 1000.0)
+    return out, (
+        f"{removed_ml:.0f} ml of solid tissue parted from the heart at its dimmest layer (thicker than "
+        f"{2 * SOLID_RADIUS_MM:.0f} mm and farther than {SOLID_FAR_MM:.0f} mm from blood: liver, chest wall)"
+    )
 
 
 def _mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
@@ -437,6 +483,10 @@ def segment_heart(
         raise SegmentationError("the blood-pool seed does not touch any tissue in range")
     region = np.isin(labels, touched)
     del labels
+    if contrast and pool is not None:
+        region, split_note = _split_solid_organs(region, pool, coarse, cspacing, pool_hu)
+        if split_note:
+            notes.append(split_note)
 
     # ---- open (cut vessels and bridges) on the coarse grid, cropped to the region
     box = ndimage.find_objects(region.astype(np.uint8))[0]

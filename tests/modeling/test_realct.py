@@ -402,3 +402,26 @@ def test_venous_phase(realct):
     assert m["dice"] >= 0.86 and m["msd_mm"] <= 3.7, m
     # the arterial CT keeps its pool at 200 HU
     assert segment_heart(volume.hu, volume.T_patient_from_voxel).parameters["pool_hu"] == 200.0
+
+
+def test_thick_voxels(realct):
+    """A coarser reconstruction: the real CT averaged to 3 mm voxels, as routine chest CTs are read.
+
+    At 3 mm the diaphragm and the fat over it blur into the tissue range and the liver joins the heart over a
+    broad front (before: 1145 ml, Dice 0.699, p95 51 mm).  The liver is tissue thicker than any heart wall and
+    far from blood: parted at the diaphragm (measured 791 ml, Dice 0.868, MSD 3.3 mm, p95 11.3 mm; the 1.5 mm
+    CT: 0.879 / 3.2 / 10.1).
+    """
+    volume, _, reference = realct
+    n = np.array(volume.shape) // 2 * 2
+    hu = volume.hu[: n[0], : n[1], : n[2]].astype(np.float32)
+    hu = hu.reshape(n[0] // 2, 2, n[1] // 2, 2, n[2] // 2, 2).mean(axis=(1, 3, 5))
+    T = volume.T_patient_from_voxel.copy()
+    T[:3, 3] += T[:3, :3] @ [0.5, 0.5, 0.5]
+    T[:3, :3] *= 2
+    seg = segment_heart(hu, T)
+    assert "parted from the heart" in " ".join(seg.notes)
+    mask = np.zeros(volume.shape, bool)
+    mask[: n[0], : n[1], : n[2]] = seg.mask.repeat(2, 0).repeat(2, 1).repeat(2, 2)
+    m = overlap(mask, reference, SPACING)
+    assert 650 <= seg.volume_ml <= 850 and m["dice"] >= 0.85 and m["p95_mm"] <= 12.5, m
