@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["distance_mm"]
+__all__ = ["distance_mm", "opening_mm"]
 
 
 def distance_mm(mask, spacing_kji) -> np.ndarray:
@@ -55,3 +55,13 @@ def distance_mm(mask, spacing_kji) -> np.ndarray:
     # as uint8 (0/1: one label, so the same distances): edt 3.1 takes a bool array
     # through a path twice as slow (1.4 s of the full-size model's 21 transforms)
     return edt.edt(mask.view(np.uint8), anisotropy=spacing, black_border=False, parallel=1)
+
+
+def opening_mm(mask, spacing_kji, radius_mm):
+    """Binary opening by a ball of ``radius_mm`` using Euclidean distance transforms."""
+    inside = distance_mm(mask, spacing_kji)
+    core = inside > radius_mm
+    if not core.any():
+        return core
+    outside = distance_mm(~core, spacing_kji)
+    return outside <= radius_mm

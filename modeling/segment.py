@@ -47,24 +47,15 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step, label_maximum
-from modeling.distance import distance_mm
+from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
+from modeling.seed import blood_pool, mediastinal_seed, split_solid_organs
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
 #: Thickness (mm) of the distance shells in which a great-vessel branch's radius is followed out from the heart body.
 ROOT_SHELL_MM = 5.0
 
-#: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
-POOL_STEP_HU = 25.0
-
-#: Solid tissue holding a ball of this radius (mm), farther than SOLID_FAR_MM from blood, is no heart wall
-#: (``_split_solid_organs``): the left ventricle's wall is 8-12 mm thick, the apex lies within ~15 mm of blood.
-SOLID_RADIUS_MM = 12.0
-SOLID_FAR_MM = 30.0
-
-#: Inscribed radius (mm) a pool found below ``blood_hu[0]`` must hold (see ``_blood_pool``).
-WEAK_POOL_RADIUS_MM = 18.0
 
 
 class SegmentationError(HeartregError, ValueError):
@@ -131,130 +122,6 @@ def _largest_component(mask) -> np.ndarray:
     return labels == int(np.argmax(sizes))
 
 
-def _opening_mm(mask, spacing_kji, radius_mm):
-    """Binary opening by a ball of ``radius_mm`` using Euclidean distance transforms."""
-    inside = distance_mm(mask, spacing_kji)
-    core = inside > radius_mm
-    if not core.any():
-        return core
-    outside = distance_mm(~core, spacing_kji)
-    return outside <= radius_mm
-
-
-def _blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
-    """The contrast blood pool and the lower HU that found it, or (None, None) without contrast.
-
-    The pool is the largest component of ``blood_hu`` voxels if it holds a
-    ball of ``min_radius_mm`` (a cardiac chamber's lumen).  Contrast timing
-    sets how bright blood is: 300-600 HU in an arterial phase, 150-250 HU in a
-    venous one, where no chamber reaches ``blood_hu[0]``.  The lower bound is
-    then lowered by :data:`POOL_STEP_HU` down to ``floor_hu`` (above
-    myocardium and liver, 60-130 HU) until a chamber is found, a larger one
-    (:data:`WEAK_POOL_RADIUS_MM`): below 200 HU the skeleton's marrow joins
-    into components of a size with a chamber (CTChest4 of slicerio, without
-    contrast: 476 ml holding a 15.5 mm ball at 175 HU), while a venous phase
-    fills all four chambers (the real CT's pool at 150 HU, dimmed to a venous
-    phase: 20 mm).
-    """
-    for low in np.arange(blood_hu[0], min(floor_hu, blood_hu[0]) - 1e-9, -POOL_STEP_HU):
-        radius_mm = min_radius_mm if low >= blood_hu[0] else max(min_radius_mm, WEAK_POOL_RADIUS_MM)
-        blood = (coarse > low) & (coarse < blood_hu[1])
-        labels, n = ndimage.label(blood)
-        if n == 0:
-            continue
-        sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
-        pool = labels == int(np.argmax(sizes)) + 1
-        box = ndimage.find_objects(pool.astype(np.uint8))[0]
-        if distance_mm(np.pad(pool[box], 1), cspacing).max() >= radius_mm:
-            return pool, float(low)
-    return None, None
-
-
-def _split_solid_organs(region, pool, coarse, cspacing, blood_hu):
-    """Part the heart from solid organs its tissue touches (the liver under the diaphragm).
-
-    On a thick-slice CT (3 mm and more) the diaphragm and the fat over it
-    blur into the tissue range, and the liver joins the heart over a broad
-    front that no opening can cut.  With contrast, the heart's tissue is a
-    wall around its blood: nowhere is it both thicker than
-    2 x :data:`SOLID_RADIUS_MM` (a ball of that radius fits in no myocardium)
-    and farther than :data:`SOLID_FAR_MM` from blood (above ``blood_hu``: every
-    enhanced chamber).  Such tissue is another organ: it and the blood seed a
-    watershed of the HU (brightest first), which floods each organ up to the
-    dimmest layer between them, the diaphragm's.  The heart's seed is the
-    blood ``pool`` only: blood in the other organ (a liver's vessels) would
-    flood it from within.  Returns the heart's part of ``region`` and a note
-    (empty when nothing is split).
-    """
-    from skimage.segmentation import watershed
-
-    box = ndimage.find_objects(region.astype(np.uint8))[0]
-    inside, hu = region[box], coarse[box]
-    blood = hu > blood_hu
-    solid = _opening_mm(inside & ~blood, cspacing, SOLID_RADIUS_MM)
-    solid &= distance_mm(~blood, cspacing) > SOLID_FAR_MM
-    if not solid.any():
-        return region, ""
-    markers = np.zeros(hu.shape, np.int32)
-    markers[solid] = 2
-    markers[pool[box] & inside] = 1
-    heart = watershed(-hu, markers, mask=inside) == 1
-    out = np.zeros_like(region)
-    out[box] = heart
-    removed_ml = float((inside & ~heart).sum() * np.prod(cspacing) / 1000.0)
-    return out, (
-        f"{removed_ml:.0f} ml of solid tissue parted from the heart at its dimmest layer (thicker than "
-        f"{2 * SOLID_RADIUS_MM:.0f} mm and farther than {SOLID_FAR_MM:.0f} mm from blood: liver, chest wall)"
-    )
-
-
-def _mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
-    """Seed of a CT without contrast: the thickest soft tissue lying between the lungs.
-
-    Lungs are the air components enclosed in the body (not touching the
-    volume's sides in-plane) larger than 100 ml.  A voxel lies *between the
-    lungs* when it is inside the convex hull of the lungs in its slice (the
-    mediastinum, and the heart in it).  The soft-tissue voxel of that
-    region farthest from anything else is the heart's centre (the great
-    vessels, oesophagus and chest wall are thinner; the liver lies below the
-    lungs).
-
-    Returns
-    -------
-    seed : bool array like ``coarse`` (one voxel)
-    between : bool array like ``coarse``
-
-    Raises
-    ------
-    SegmentationError
-        If no lungs or no soft tissue between them are found.
-    """
-    from skimage.morphology import convex_hull_image
-
-    air = coarse < lung_hu
-    labels, n = ndimage.label(air)
-    sides = np.unique(np.concatenate([labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
-    sizes = ndimage.sum_labels(air, labels, index=np.arange(1, n + 1)) * np.prod(cspacing) / 1000.0
-    is_lung = np.zeros(n + 1, bool)
-    is_lung[1:] = sizes > 100.0
-    is_lung[sides] = False
-    lung = is_lung[labels]
-    between = np.zeros_like(lung)
-    for k in np.flatnonzero(lung.any(axis=(1, 2))):
-        between[k] = convex_hull_image(lung[k])
-    between &= ~lung
-    candidate = between & (coarse > soft_hu[0]) & (coarse < soft_hu[1])
-    if not candidate.any():
-        raise SegmentationError(
-            "no contrast blood pool and no soft tissue between two lungs in the volume; "
-            "give a heart mask with --mask (or segment_heart a seed point)"
-        )
-    depth = distance_mm(candidate, cspacing)
-    seed = np.zeros(coarse.shape, bool)
-    seed[np.unravel_index(int(np.argmax(depth)), depth.shape)] = True
-    return seed, between
-
-
 def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm, chamber_radius_mm):
     """Cut the tubes leaving the heart body at their root, whatever their calibre.
 
@@ -280,7 +147,7 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
     note : str
         What was cut, or why nothing could be (the body is returned unchanged).
     """
-    heart = _opening_mm(body, spacing_kji, heart_radius_mm)
+    heart = opening_mm(body, spacing_kji, heart_radius_mm)
     labels, n = ndimage.label(heart)
     if n == 0:
         return body, (
@@ -442,7 +309,7 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
-    pool, pool_hu = _blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu)
+    pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu)
     if seed_patient_mm is None:
         if pool is not None:
             seed_mask = pool
@@ -450,7 +317,13 @@ def segment_heart(
             notes.append(f"seed: largest blood-pool component ({seed_mask.sum() * voxel_ml * step.prod():.0f} ml"
                          + (f", blood above {pool_hu:.0f} HU: weak contrast" if pool_hu < blood_hu[0] else "") + ")")
         else:
-            seed_mask, between = _mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
+            found = mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
+            if found is None:
+                raise SegmentationError(
+                    "no contrast blood pool and no soft tissue between two lungs in the volume; "
+                    "give a heart mask with --mask (or segment_heart a seed point)"
+                )
+            seed_mask, between = found
             contrast = False
             tissue &= (coarse < soft_hu[1]) & ndimage.binary_dilation(between, iterations=1)
             kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
@@ -484,7 +357,7 @@ def segment_heart(
     region = np.isin(labels, touched)
     del labels
     if contrast and pool is not None:
-        region, split_note = _split_solid_organs(region, pool, coarse, cspacing, pool_hu)
+        region, split_note = split_solid_organs(region, pool, coarse, cspacing, pool_hu)
         if split_note:
             notes.append(split_note)
 
@@ -492,7 +365,7 @@ def segment_heart(
     box = ndimage.find_objects(region.astype(np.uint8))[0]
     pad = [int(np.ceil((vessel_radius_mm + margin_mm) / s)) + 2 for s in cspacing]
     box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, coarse.shape))
-    core = _opening_mm(region[box], cspacing, vessel_radius_mm)
+    core = opening_mm(region[box], cspacing, vessel_radius_mm)
     labels, n = ndimage.label(core)
     if n == 0:
         raise SegmentationError(

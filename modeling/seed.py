@@ -1,0 +1,145 @@
+"""Where the heart starts in a CT, and what its tissue touches that is no heart.
+
+- :func:`blood_pool`: the contrast blood pool, the segmentation's seed, at the
+  contrast level the CT has (arterial or venous phase);
+- :func:`mediastinal_seed`: without contrast, the thickest soft tissue between
+  the lungs;
+- :func:`split_solid_organs`: with contrast, the solid organs joined to the
+  heart's tissue (the liver through a thick slice's blurred diaphragm),
+  parted from it.
+
+All work on the segmentation's coarse grid (:mod:`modeling.segment`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from modeling.distance import distance_mm, opening_mm
+
+__all__ = ["blood_pool", "mediastinal_seed", "split_solid_organs"]
+
+#: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
+POOL_STEP_HU = 25.0
+
+#: Solid tissue holding a ball of this radius (mm), farther than SOLID_FAR_MM from blood, is no heart wall
+#: (``split_solid_organs``): the left ventricle's wall is 8-12 mm thick, the apex lies within ~15 mm of blood.
+SOLID_RADIUS_MM = 12.0
+SOLID_FAR_MM = 30.0
+#: Farthest the heart's tissue reaches beyond the box of its blood pool (mm; a washed-out right ventricle's wall ~50).
+HEART_REACH_MM = 60.0
+
+#: Inscribed radius (mm) a pool found below ``blood_hu[0]`` must hold (see ``blood_pool``).
+WEAK_POOL_RADIUS_MM = 18.0
+
+
+def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
+    """The contrast blood pool and the lower HU that found it, or (None, None) without contrast.
+
+    The pool is the largest component of ``blood_hu`` voxels if it holds a
+    ball of ``min_radius_mm`` (a cardiac chamber's lumen).  Contrast timing
+    sets how bright blood is: 300-600 HU in an arterial phase, 150-250 HU in a
+    venous one, where no chamber reaches ``blood_hu[0]``.  The lower bound is
+    then lowered by :data:`POOL_STEP_HU` down to ``floor_hu`` (above
+    myocardium and liver, 60-130 HU) until a chamber is found, a larger one
+    (:data:`WEAK_POOL_RADIUS_MM`): below 200 HU the skeleton's marrow joins
+    into components of a size with a chamber (CTChest4 of slicerio, without
+    contrast: 476 ml holding a 15.5 mm ball at 175 HU), while a venous phase
+    fills all four chambers (the real CT's pool at 150 HU, dimmed to a venous
+    phase: 20 mm).
+    """
+    for low in np.arange(blood_hu[0], min(floor_hu, blood_hu[0]) - 1e-9, -POOL_STEP_HU):
+        radius_mm = min_radius_mm if low >= blood_hu[0] else max(min_radius_mm, WEAK_POOL_RADIUS_MM)
+        blood = (coarse > low) & (coarse < blood_hu[1])
+        labels, n = ndimage.label(blood)
+        if n == 0:
+            continue
+        sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
+        pool = labels == int(np.argmax(sizes)) + 1
+        box = ndimage.find_objects(pool.astype(np.uint8))[0]
+        if distance_mm(np.pad(pool[box], 1), cspacing).max() >= radius_mm:
+            return pool, float(low)
+    return None, None
+
+
+def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
+    """Part the heart from solid organs its tissue touches (the liver under the diaphragm).
+
+    On a thick-slice CT (3 mm and more) the diaphragm and the fat over it
+    blur into the tissue range, and the liver joins the heart over a broad
+    front that no opening can cut.  With contrast, the heart's tissue is a
+    wall around its blood: nowhere is it both thicker than
+    2 x :data:`SOLID_RADIUS_MM` (a ball of that radius fits in no myocardium)
+    and farther than :data:`SOLID_FAR_MM` from blood (above ``blood_hu``: every
+    enhanced chamber).  Such tissue is another organ: it and the blood seed a
+    watershed of the HU (brightest first), which floods each organ up to the
+    dimmest layer between them, the diaphragm's.  The heart's seed is the
+    blood ``pool`` only: blood in the other organ (a liver's vessels) would
+    flood it from within.  Returns the heart's part of ``region`` and a note
+    (empty when nothing is split).
+    """
+    from skimage.segmentation import watershed
+
+    # the heart lies within HEART_REACH_MM of its pool's box: the rest of the region (chest wall, abdomen) is
+    # no heart, and leaving it out keeps the distance maps and the watershed small
+    pad = np.ceil(HEART_REACH_MM / cspacing).astype(int)
+    box = tuple(slice(max(p.start - d, r.start), min(p.stop + d, r.stop)) for p, r, d in zip(
+        ndimage.find_objects(pool.astype(np.uint8))[0], ndimage.find_objects(region.astype(np.uint8))[0], pad))
+    inside, hu = region[box], coarse[box]
+    blood = hu > blood_hu
+    solid = opening_mm(inside & ~blood, cspacing, SOLID_RADIUS_MM)
+    solid &= distance_mm(~blood, cspacing) > SOLID_FAR_MM
+    if not solid.any() and inside.sum() == region.sum():
+        return region, ""
+    markers = np.zeros(hu.shape, np.int32)
+    markers[solid] = 2
+    markers[pool[box] & inside] = 1
+    heart = watershed(-hu, markers, mask=inside) == 1
+    out = np.zeros_like(region)
+    out[box] = heart
+    removed_ml = float((region.sum() - heart.sum()) * np.prod(cspacing) / 1000.0)
+    return out, (
+        f"{removed_ml:.0f} ml of tissue parted from the heart: solid organs at their dimmest layer (thicker than "
+        f"{2 * SOLID_RADIUS_MM:.0f} mm and farther than {SOLID_FAR_MM:.0f} mm from blood: liver, chest wall), "
+        f"all beyond {HEART_REACH_MM:.0f} mm of the blood pool"
+    )
+
+
+def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
+    """Seed of a CT without contrast: the thickest soft tissue lying between the lungs.
+
+    Lungs are the air components enclosed in the body (not touching the
+    volume's sides in-plane) larger than 100 ml.  A voxel lies *between the
+    lungs* when it is inside the convex hull of the lungs in its slice (the
+    mediastinum, and the heart in it).  The soft-tissue voxel of that
+    region farthest from anything else is the heart's centre (the great
+    vessels, oesophagus and chest wall are thinner; the liver lies below the
+    lungs).
+
+    Returns
+    -------
+    (seed, between) : bool arrays like ``coarse`` (the seed: one voxel), or
+        None if no lungs or no soft tissue between them are found.
+    """
+    from skimage.morphology import convex_hull_image
+
+    air = coarse < lung_hu
+    labels, n = ndimage.label(air)
+    sides = np.unique(np.concatenate([labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
+    sizes = ndimage.sum_labels(air, labels, index=np.arange(1, n + 1)) * np.prod(cspacing) / 1000.0
+    is_lung = np.zeros(n + 1, bool)
+    is_lung[1:] = sizes > 100.0
+    is_lung[sides] = False
+    lung = is_lung[labels]
+    between = np.zeros_like(lung)
+    for k in np.flatnonzero(lung.any(axis=(1, 2))):
+        between[k] = convex_hull_image(lung[k])
+    between &= ~lung
+    candidate = between & (coarse > soft_hu[0]) & (coarse < soft_hu[1])
+    if not candidate.any():
+        return None
+    depth = distance_mm(candidate, cspacing)
+    seed = np.zeros(coarse.shape, bool)
+    seed[np.unravel_index(int(np.argmax(depth)), depth.shape)] = True
+    return seed, between
