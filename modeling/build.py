@@ -223,6 +223,14 @@ def build_heart_model(
                        source_ml=_label_ml(label_map, label) if mask_path is not None else None)
     if trim_vessels is None:
         trim_vessels = mask_path is None
+        pool_hu, arterial_hu = seg_params.get("pool_hu"), seg_params.get("blood_hu", [None])[0]
+        if trim_vessels and pool_hu is not None and pool_hu < arterial_hu:
+            trim_vessels = False
+            fallback(
+                f"vessel stub trim skipped: the blood is dim (pool above {pool_hu:.0f} HU, a venous phase), and "
+                f"the trim tells a vessel's lumen from a chamber's blood by an arterial phase's HU; the traced "
+                f"vessel lumens are out of the mask already (--trim-vessels to trim anyway)"
+            )
     # from here on the mask's box only: a full-size mask holds ~50 MB of huge pages where the heart is
     mask, box, T_box = _crop_mask(mask, T, MOUTH_REACH_MM)
     seg = None

@@ -93,7 +93,7 @@ def trace_great_vessels(
     *,
     min_radius_mm: float = 4.0,
     peak_spacing_mm: float = 7.5,
-    max_vessel_radius_mm: float = 20.0,
+    max_vessel_radius_mm: float = 17.0,
     saddle_ratio: float = 0.8,
     widen_ratio: float = 1.1,
     wall_mm: float = 3.0,
@@ -114,7 +114,9 @@ def trace_great_vessels(
     max_vessel_radius_mm : float
         Lobes at the field of view's edge wider than this are chambers cut by
         the edge, not vessels (the aorta's lumen is 11-17 mm in radius, a
-        chamber's 18-30 mm).
+        chamber's 18-30 mm).  At 20 mm the real CT dimmed to a venous phase
+        (``tests/modeling/test_realct.py::test_venous_phase``) lost its left
+        atrium, cut by the field of view's edge, as a vessel.
     saddle_ratio : float
         A vessel continues into a neighbouring lobe across a saddle at least this
         fraction of the narrower lobe's radius (a valve or a junction narrows it more).
