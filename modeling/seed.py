@@ -30,6 +30,10 @@ SOLID_FAR_MM = 30.0
 #: Farthest the heart's tissue reaches beyond the box of its blood pool (mm; a washed-out right ventricle's wall ~50).
 HEART_REACH_MM = 60.0
 
+#: Room air reads -1000 HU, lung -900 to -700 (it holds tissue and blood): CTChest4's outside air -994 HU
+#: (median), its lungs -864; the real CT's lungs, cut by its tight field of view, -798.
+ROOM_AIR_HU = -950.0
+
 #: Inscribed radius (mm) a pool found below ``blood_hu[0]`` must hold (see ``blood_pool``).
 WEAK_POOL_RADIUS_MM = 18.0
 
@@ -109,8 +113,9 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
 def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
     """Seed of a CT without contrast: the thickest soft tissue lying between the lungs.
 
-    Lungs are the air components enclosed in the body (not touching the
-    volume's sides in-plane) larger than 100 ml.  A voxel lies *between the
+    Lungs are the air components larger than 100 ml enclosed in the body
+    (not touching the volume's sides in-plane) or, where a tight field of view
+    cuts them, denser than room air (median above :data:`ROOM_AIR_HU`).  A voxel lies *between the
     lungs* when it is inside the convex hull of the lungs in its slice (the
     mediastinum, and the heart in it).  The soft-tissue voxel of that
     region farthest from anything else is the heart's centre (the great
@@ -130,7 +135,12 @@ def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
     sizes = ndimage.sum_labels(air, labels, index=np.arange(1, n + 1)) * np.prod(cspacing) / 1000.0
     is_lung = np.zeros(n + 1, bool)
     is_lung[1:] = sizes > 100.0
-    is_lung[sides] = False
+    # air at the volume's sides is the room's, unless it is lung cut by a tight field of view (a cardiac
+    # reconstruction): lung holds tissue and blood
+    outside = np.zeros(n + 1, bool)
+    outside[sides] = True
+    outside[1:] &= ndimage.median(coarse, labels, index=np.arange(1, n + 1)) < ROOM_AIR_HU
+    is_lung &= ~outside
     lung = is_lung[labels]
     between = np.zeros_like(lung)
     for k in np.flatnonzero(lung.any(axis=(1, 2))):
