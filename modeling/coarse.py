@@ -15,7 +15,7 @@ import weakref
 
 import numpy as np
 
-__all__ = ["coarse_step", "block_mean_max", "label_maximum", "mask_box"]
+__all__ = ["coarse_step", "block_mean_max", "centroid", "label_maximum", "mask_box"]
 
 
 def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
@@ -34,6 +34,19 @@ def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:
         grow = int(pad[axis])
         box.append(slice(max(int(nz[0]) - grow, 0), min(int(nz[-1]) + 1 + grow, mask.shape[axis])))
     return tuple(box)
+
+
+def centroid(mask) -> np.ndarray:
+    """Mean ``(k, j, i)`` index of a mask's voxels, as ``ndimage.center_of_mass``.
+
+    From the mask's projections on its axes: ``center_of_mass`` multiplies the
+    whole box by a float64 index grid per axis, tens of MB at full size.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    axes = range(mask.ndim)
+    counts = [np.count_nonzero(mask, axis=tuple(b for b in axes if b != a)) for a in axes]
+    total = counts[0].sum()
+    return np.array([np.arange(len(c)) @ c / total for c in counts], dtype=float)
 
 
 def label_maximum(values, labels, n: int) -> np.ndarray:

@@ -32,7 +32,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, coarse_step
+from modeling.coarse import block_mean_max, centroid, coarse_step
 from modeling.distance import distance_mm
 
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
@@ -230,7 +230,7 @@ def find_fiducials(
             "no air around the body in the volume (the field of view cuts the skin?); "
             "skin fiducials cannot be told from bone: pass --fiducials 0 and give them otherwise"
         )
-    body_kji = np.array(ndimage.center_of_mass(~outside)) * step  # full-resolution voxel indices
+    body_kji = centroid(~outside) * step  # full-resolution voxel indices
     body_centre_y = apply_to_points(T, body_kji[::-1])[1]
     reach = skin_reach_mm + 0.5 * float(np.max(cspacing))
     shell = distance_mm(~outside, cspacing) <= reach

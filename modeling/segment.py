@@ -117,7 +117,10 @@ def _largest_component(mask) -> np.ndarray:
     labels, n = _label(mask)
     if n <= 1:
         return mask
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    # slice by slice: bincount casts its input to int64, four times the 16-bit labels of a full-size box
+    sizes = np.zeros(n + 1, np.int64)
+    for plane in labels:
+        sizes += np.bincount(plane.ravel(), minlength=n + 1)
     sizes[0] = 0
     return labels == int(np.argmax(sizes))
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from modeling.coarse import mask_box
+from modeling.coarse import centroid, mask_box
 from modeling.distance import distance_mm
 from modeling.mesh import Mesh, MeshError, check_mesh, vertex_normals
 
@@ -108,6 +108,7 @@ def trim_vessel_stubs(
     hi = np.clip(np.ceil(kji.max(axis=1)).astype(int) + 2, 1, np.array(hu.shape))
     crop = hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
     samples = ndimage.map_coordinates(crop, kji - lo[:, None], order=1, mode="nearest")
+    del crop, kji, inside  # the crop is the heart's box as float32 (~90 MB at full size): not kept through the repair
     deep, shallow = samples[: len(v)], samples[len(v) :]
     flagged = deep > blood_hu
     flagged |= (deep > vein_hu) & (shallow > vein_hu)  # venous blood under a vein's ~1 mm wall
@@ -193,7 +194,7 @@ def base_direction(mask, hu, T_patient_from_voxel, *, blood_hu: float = MOUTH_BL
     voxel_ml = abs(np.linalg.det(T[:3, :3])) * float(np.prod(step)) / 1000.0
     if mouths.sum() * voxel_ml < min_ml:
         return None
-    kji_delta = (np.array(ndimage.center_of_mass(mouths)) - np.array(ndimage.center_of_mass(sub))) * step
+    kji_delta = (centroid(mouths) - centroid(sub)) * step
     d = T[:3, :3] @ kji_delta[::-1]
     n = np.linalg.norm(d)
     return None if n < 1e-6 else d / n

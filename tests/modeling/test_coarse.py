@@ -38,3 +38,14 @@ def test_block_means_of_a_read_only_volume_are_kept_until_it_is_freed():
     del hu, view, first, again
     gc.collect()
     assert not coarse._LAST  # freed with the volume
+
+
+def test_centroid_is_ndimage_center_of_mass():
+    from modeling.coarse import centroid
+
+    rng = np.random.default_rng(5)
+    mask = rng.random((13, 17, 19)) > 0.8
+    np.testing.assert_allclose(centroid(mask), ndimage.center_of_mass(mask), rtol=0, atol=1e-12)
+    one = np.zeros((4, 5, 6), bool)
+    one[3, 0, 5] = True
+    assert centroid(one).tolist() == [3.0, 0.0, 5.0]
