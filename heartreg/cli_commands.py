@@ -152,20 +152,21 @@ def _registration_options(args):
 
 
 def _open_model_input(args):
-    """The model command's CT (a DICOM study folder or a NIfTI file) and its phase.
+    """The model command's CT (a DICOM study folder, a NIfTI or an NRRD file) and its phase.
 
     Returns ``(volume, phase, source, slice_phases)``; ``phase`` and
     ``slice_phases`` are None when the CT has no ECG gating (a model needs
     none: its phase is then recorded as unknown).
     """
-    from imaging.nifti import is_nifti_path, read_nifti_volume
+    from imaging.volume_file import is_nifti_path, is_volume_file, read_volume_file
 
     from heartreg.pipeline import open_study
 
-    if is_nifti_path(args.study_dir):
+    if is_volume_file(args.study_dir):
+        kind = "NIfTI" if is_nifti_path(args.study_dir) else "NRRD"
         if args.qrs is not None or args.series is not None:
-            raise UsageError(f"--qrs and --series apply to DICOM studies, not to the NIfTI file {args.study_dir}")
-        return read_nifti_volume(args.study_dir), None, "a NIfTI volume has no slice clock", None
+            raise UsageError(f"--qrs and --series apply to DICOM studies, not to the {kind} file {args.study_dir}")
+        return read_volume_file(args.study_dir), None, f"a{'n' * (kind == 'NRRD')} {kind} volume has no slice clock", None
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
         warn=lambda msg: print(msg, file=sys.stderr), phase_required=False,

@@ -111,8 +111,8 @@ def _add_registration_options(p) -> None:
     p.add_argument("--no-view", action="store_true", help="skip the 3-D view (fig8_view.png)")
 
 
-def _add_study_options(p) -> None:
-    p.add_argument("study_dir", type=Path, help="folder holding the DICOM study (searched recursively)")
+def _add_study_options(p, study_help: str = "folder holding the DICOM study (searched recursively)") -> None:
+    p.add_argument("study_dir", type=Path, help=study_help)
     p.add_argument("--qrs", type=Path, default=None,
                    help="R-peak times, CSV with column time_s (seconds after midnight, AcquisitionTime clock)")
     p.add_argument("--series", type=_series_arg, default=None,
@@ -162,8 +162,10 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_phases)
 
-    p = sub.add_parser("model", help="CT study (DICOM folder or NIfTI file) -> heart model in the heart-centric frame")
-    _add_study_options(p)
+    p = sub.add_parser("model", help="CT study (DICOM folder, NIfTI or NRRD file) -> heart model in the heart-centric "
+                                     "frame")
+    _add_study_options(p, "folder holding the DICOM study (searched recursively), or a NIfTI (.nii, .nii.gz) or "
+                          "NRRD (.nrrd) CT volume")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="model folder to write")
     _add_model_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")

@@ -9,7 +9,7 @@ decoding, grouping rules, warnings) stays importable from its module.
 
 from imaging.ecg import RPeaks, cardiac_phase, detect_r_peaks
 from imaging.grouping import SeriesSummary, StudyError
-from imaging.nifti import read_nifti_volume
+from imaging.volume_file import read_nifti_volume, read_nrrd_volume, read_volume_file
 from imaging.phase import GatingError, PhaseReport, compute_phase_report, read_qrs_file
 from imaging.phase_io import plot_phases, read_phase_report, write_phase_report
 from imaging.respiration import expiration_onsets, respiration_phase
@@ -24,6 +24,8 @@ __all__ = [
     "list_series",
     "load_study",
     "read_nifti_volume",
+    "read_nrrd_volume",
+    "read_volume_file",
     # its cardiac phases
     "PhaseReport",
     "compute_phase_report",

@@ -3,13 +3,11 @@
 A label map is read with its own affine and resampled onto the CT volume's grid
 through both affines (nearest label), so it may come on any grid, in any
 orientation.  Formats: NIfTI (``.nii``, ``.nii.gz``, through nibabel; RAS on
-disk), NRRD (``.nrrd``, ``.nhdr`` is not supported; raw or gzip encoding, any
-``space``) and DICOM SEG (through :mod:`imaging.seg`).
+disk), NRRD (``.nrrd`` through :mod:`imaging.nrrd`) and DICOM SEG (through :mod:`imaging.seg`).
 """
 
 from __future__ import annotations
 
-import gzip
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +16,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
+from imaging.nrrd import NrrdError, read_nrrd
 
 __all__ = ["LabelMapError", "LabelMap", "read_label_map", "mask_on_grid"]
 
@@ -91,61 +90,12 @@ def _caret_label_names(img) -> dict:
 TOTALSEG_HEART = "heart.nii.gz"
 
 
-_NRRD_TYPES = {
-    "uchar": "u1", "unsigned char": "u1", "uint8": "u1", "uint8_t": "u1",
-    "signed char": "i1", "int8": "i1", "int8_t": "i1", "char": "i1",
-    "short": "i2", "int16": "i2", "int16_t": "i2", "signed short": "i2",
-    "ushort": "u2", "unsigned short": "u2", "uint16": "u2", "uint16_t": "u2",
-    "int": "i4", "int32": "i4", "int32_t": "i4", "signed int": "i4",
-    "uint": "u4", "unsigned int": "u4", "uint32": "u4", "uint32_t": "u4",
-    "float": "f4", "double": "f8",
-}
-_NRRD_SPACES = {
-    "left-posterior-superior": np.eye(4), "lps": np.eye(4),
-    "right-anterior-superior": _LPS_FROM_RAS, "ras": _LPS_FROM_RAS,
-}
-
-
 def _read_nrrd(path: Path) -> LabelMap:
-    raw = path.read_bytes()
-    end = raw.find(b"\n\n")
-    if not raw.startswith(b"NRRD") or end < 0:
-        raise LabelMapError(f"{path} is not an NRRD file with an attached header")
-    fields = {}
-    for line in raw[:end].decode("ascii", "replace").splitlines()[1:]:
-        if line.startswith("#") or ":" not in line:
-            continue
-        key, _, value = line.partition(":")
-        fields[key.strip().lower()] = value.lstrip("=").strip()
     try:
-        sizes = [int(v) for v in fields["sizes"].split()]
-        dtype = np.dtype(_NRRD_TYPES[fields["type"].lower()])
-        space = _NRRD_SPACES[fields.get("space", "left-posterior-superior").lower()]
-        directions = [
-            [float(x) for x in d.strip("()").split(",")]
-            for d in fields["space directions"].replace(") (", ")|(").split("|")
-        ]
-        origin = [float(x) for x in fields.get("space origin", "(0,0,0)").strip("()").split(",")]
-    except (KeyError, ValueError) as exc:
-        raise LabelMapError(f"NRRD label map {path}: missing or bad header field ({exc})") from None
-    if len(sizes) != 3:
-        raise LabelMapError(f"NRRD label map {path} must be 3-D, got sizes {sizes}")
-    encoding = fields.get("encoding", "raw").lower()
-    body = raw[end + 2 :]
-    if encoding in ("gzip", "gz"):
-        body = gzip.decompress(body)
-    elif encoding != "raw":
-        raise LabelMapError(f"NRRD label map {path}: encoding {encoding!r} not supported (use raw or gzip)")
-    if dtype.itemsize > 1:
-        dtype = dtype.newbyteorder("<" if fields.get("endian", "little") == "little" else ">")
-    n = int(np.prod(sizes))
-    if len(body) < n * dtype.itemsize:
-        raise LabelMapError(f"NRRD label map {path} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
-    data = np.frombuffer(body[: n * dtype.itemsize], dtype=dtype).reshape(sizes[::-1])  # [k, j, i]
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(directions, dtype=float).T
-    T[:3, 3] = origin
-    return LabelMap(np.round(data).astype(np.int32), space @ T, str(path), {})
+        data, T = read_nrrd(path)
+    except NrrdError as exc:
+        raise LabelMapError(f"label map: {exc}") from None
+    return LabelMap(np.round(data).astype(np.int32), T, str(path), {})
 
 
 def read_label_map(path) -> LabelMap:

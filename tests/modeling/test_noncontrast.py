@@ -4,7 +4,7 @@
 Without contrast there is no blood pool to start from (the largest 200-650 HU
 component is the skeleton); the segmentation must say so and start from the
 soft tissue between the lungs.  The CT is converted to NIfTI (LPS -> RAS) and
-read through :func:`imaging.nifti.read_nifti_volume`, as a user's file would be.
+read through :func:`imaging.volume_file.read_nifti_volume`, as a user's file would be.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-from imaging.nifti import read_nifti_volume
+from imaging.volume_file import read_nifti_volume
 from modeling.build import ModelingWarning, build_heart_model
 from modeling.segment import segment_heart
 from modeling.vessels import APEX_LAI_LPS
@@ -79,3 +79,24 @@ def test_heart_volume_and_apex(chest4):
     assert "cut 10, 25 mm from it" in " ".join(seg.notes)
     apex = -build.model.frame.axes_patient[:, 2]
     assert apex @ APEX_LAI_LPS > 0.7
+
+
+def test_the_nrrd_file_as_it_is(chest4, tmp_path, capsys):
+    """3D Slicer's own format: ``heartreg model CTChest4.nrrd`` reads it directly, as the NIfTI copy."""
+    import json
+
+    from heartreg.cli import main
+    from imaging.volume_file import read_volume_file
+
+    volume = chest4[0]
+    direct = read_volume_file(CTCHEST4)
+    assert np.array_equal(direct.hu, volume.hu)
+    np.testing.assert_allclose(direct.T_patient_from_voxel, volume.T_patient_from_voxel, atol=1e-4)
+    out = tmp_path / "model"
+    assert main(["model", str(CTCHEST4), "-o", str(out), "-q", "--faces", "4000"]) == 0
+    payload = json.loads((out / "model.json").read_text())
+    assert payload["cardiac_phase"] is None and payload["cardiac_phase_source"] == "an NRRD volume has no slice clock"
+    assert str(CTCHEST4.parent) not in json.dumps(payload)  # no folder path in the model
+    assert main(["model", str(CTCHEST4), "-o", str(tmp_path / "m2"), "-q", "--qrs", "r.csv"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--qrs and --series apply to DICOM studies, not to the NRRD file" in err[0]

@@ -158,7 +158,7 @@ import pytest
 
 from heartreg.cli import main
 from imaging import load_study
-from imaging.nifti import read_nifti_volume
+from imaging.volume_file import read_nifti_volume
 from modeling import read_model
 from modeling.build import ModelingWarning, build_heart_model
 from modeling.fiducials import FiducialError, find_fiducials

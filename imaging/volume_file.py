@@ -1,12 +1,13 @@
-"""A CT volume from a NIfTI file (research data sets come as NIfTI).
+"""A CT volume from one file: NIfTI (research data sets) or NRRD (3D Slicer).
 
-NIfTI stores its affine in RAS (+x right, +y anterior, +z superior); heartreg
-works in DICOM LPS, so the affine is converted with ``diag(-1, -1, 1)`` and the
-volume's notes say so.  The voxel axes are kept as on disk (array ``[i, j, k]``
-becomes ``hu[k, j, i]``), except that the k axis is reversed when needed to make
-``T_patient_from_voxel`` right-handed, as for a DICOM stack.
+NIfTI stores its affine in RAS (+x right, +y anterior, +z superior), NRRD names
+its space (Slicer writes LPS); heartreg works in DICOM LPS, so the affine is
+converted and the volume's notes say so.  The voxel axes are kept as on disk
+(array ``[i, j, k]`` becomes ``hu[k, j, i]``), except that the k axis is
+reversed when needed to make ``T_patient_from_voxel`` right-handed, as for a
+DICOM stack.
 
-A NIfTI file has no slice clock and no ECG: the returned volume's slices have
+Such a file has no slice clock and no ECG: the returned volume's slices have
 no acquisition times, so its cardiac phase is unknown (see
 :func:`imaging.compute_phase_report`, which refuses it with a ``GatingError``).
 """
@@ -19,20 +20,44 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.geometry import apply_to_points
+from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 from imaging.volume import SeriesError, SeriesInfo, SliceInfo, Volume
 
-__all__ = ["is_nifti_path", "read_nifti_volume"]
+__all__ = ["is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
+           "read_volume_file"]
 
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 #: Largest |cosine| between two voxel axes accepted as orthogonal.
 ORTHOGONAL_TOL = 1e-3
-#: NIfTI data are sampled to this many bytes for the volume's identity.
+#: A file's data are sampled to this many bytes for the volume's identity.
 _HASH_BYTES = 1 << 20
 
 
 def is_nifti_path(path) -> bool:
     """True when ``path`` names a NIfTI file (``.nii`` or ``.nii.gz``)."""
     return str(path).lower().endswith((".nii", ".nii.gz"))
+
+
+def is_volume_file(path) -> bool:
+    """True when ``path`` names a CT volume file heartreg reads (NIfTI or NRRD)."""
+    return is_nifti_path(path) or is_nrrd_path(path)
+
+
+def read_volume_file(path) -> Volume:
+    """Read a NIfTI or NRRD CT volume (by its name's ending) as an LPS :class:`imaging.Volume`.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> import nibabel as nib
+    >>> import numpy as np
+    >>> from imaging import read_volume_file
+    >>> path = tempfile.mkdtemp() + "/ct.nii.gz"
+    >>> nib.save(nib.Nifti1Image(np.full((4, 5, 6), -1000, np.int16), np.eye(4)), path)
+    >>> read_volume_file(path).notes[0]
+    'NIfTI input: affine taken as RAS (NIfTI convention) and converted to LPS; no slice clock'
+    """
+    return read_nrrd_volume(path) if is_nrrd_path(path) else read_nifti_volume(path)
 
 
 def _uid(digest: str, what: str) -> str:
@@ -89,25 +114,70 @@ def read_nifti_volume(path) -> Volume:
         data = data[..., 0]
     if data.ndim != 3:
         raise SeriesError(f"NIfTI file {path} must hold a 3-D volume, got shape {data.shape}")
-    T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64)
+    return _volume(data, _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), path, "NIfTI",
+                   "affine taken as RAS (NIfTI convention) and converted to LPS")
+
+
+def read_nrrd_volume(path) -> Volume:
+    """Read a 3-D NRRD CT volume (3D Slicer's format) as an :class:`imaging.Volume` in LPS.
+
+    Parameters
+    ----------
+    path : path
+        ``.nrrd`` file with an attached header holding HU values.
+
+    Returns
+    -------
+    Volume
+        As :func:`read_nifti_volume`.
+
+    Raises
+    ------
+    SeriesError
+        Missing or unreadable file, not 3-D, or an affine with sheared or
+        degenerate axes.
+
+    Examples
+    --------
+    3D Slicer's sample chest CT, shipped with the ``slicerio`` package:
+
+    >>> from pathlib import Path
+    >>> import slicerio
+    >>> from imaging import read_nrrd_volume
+    >>> volume = read_nrrd_volume(Path(slicerio.__file__).parent / "data" / "CTChest4.nrrd")
+    >>> volume.hu.shape, [round(float(s), 2) for s in volume.spacing_mm]
+    ((34, 128, 128), [3.05, 3.05, 10.0])
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SeriesError(f"NRRD file {path} does not exist")
+    try:
+        data_kji, T = read_nrrd(path)
+    except NrrdError as exc:
+        raise SeriesError(str(exc)) from None
+    return _volume(np.transpose(data_kji, (2, 1, 0)), T, path, "NRRD", "affine converted to LPS from the file's space")
+
+
+def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:
+    """The :class:`Volume` of a file's voxels ``data[i, j, k]`` and LPS affine ``T``."""
     spacing = np.linalg.norm(T[:3, :3], axis=0)
     if np.any(spacing < 1e-6) or not np.all(np.isfinite(T)):
-        raise SeriesError(f"NIfTI file {path}: degenerate affine (voxel sizes {spacing.tolist()} mm)")
+        raise SeriesError(f"{kind} file {path}: degenerate affine (voxel sizes {spacing.tolist()} mm)")
     axes = T[:3, :3] / spacing
     cosines = np.abs(axes.T @ axes - np.eye(3))
     if cosines.max() > ORTHOGONAL_TOL:
         raise SeriesError(
-            f"NIfTI file {path}: the voxel axes are not orthogonal (sheared affine); "
+            f"{kind} file {path}: the voxel axes are not orthogonal (sheared affine); "
             "resample it to an orthogonal grid first"
         )
-    notes = ["NIfTI input: affine taken as RAS (NIfTI convention) and converted to LPS; no slice clock"]
+    notes = [f"{kind} input: {affine_note}; no slice clock"]
     hu = np.ascontiguousarray(np.transpose(data, (2, 1, 0)))  # [k, j, i]
     if np.linalg.det(T[:3, :3]) < 0:  # left-handed on disk: reverse k
         hu = np.ascontiguousarray(hu[::-1])
         flip = np.eye(4)
         flip[2, 2], flip[2, 3] = -1.0, hu.shape[0] - 1
         T = T @ flip
-        notes.append("NIfTI input: slice order reversed to make the voxel frame right-handed")
+        notes.append(f"{kind} input: slice order reversed to make the voxel frame right-handed")
     fits_int16 = (np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16) or (
         np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767
     )

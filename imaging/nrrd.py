@@ -1,0 +1,107 @@
+"""NRRD files, 3D Slicer's own format: the voxels and their affine in LPS.
+
+One reader for CT volumes (:func:`imaging.volume_file.read_nrrd_volume`) and
+label maps (:mod:`modeling.labelmap`).  Attached headers only (``.nrrd``;
+a detached ``.nhdr`` is refused), 3-D, raw, gzip or bzip2 encoding; the
+``space`` may be LPS, RAS or LAS (Slicer writes LPS), and ``space directions``
+and ``space origin`` give the affine of voxel index ``(i, j, k)`` (the file's
+fastest axis first), converted to LPS.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+from pathlib import Path
+
+import numpy as np
+
+from hrcore.errors import HeartregError
+
+__all__ = ["NrrdError", "is_nrrd_path", "read_nrrd"]
+
+_TYPES = {
+    "uchar": "u1", "unsigned char": "u1", "uint8": "u1", "uint8_t": "u1",
+    "signed char": "i1", "int8": "i1", "int8_t": "i1", "char": "i1",
+    "short": "i2", "int16": "i2", "int16_t": "i2", "signed short": "i2", "short int": "i2",
+    "ushort": "u2", "unsigned short": "u2", "uint16": "u2", "uint16_t": "u2",
+    "int": "i4", "int32": "i4", "int32_t": "i4", "signed int": "i4",
+    "uint": "u4", "unsigned int": "u4", "uint32": "u4", "uint32_t": "u4",
+    "float": "f4", "double": "f8",
+}
+#: LPS from each anatomical space NRRD names.
+_SPACES = {
+    "left-posterior-superior": np.eye(4), "lps": np.eye(4),
+    "right-anterior-superior": np.diag([-1.0, -1.0, 1.0, 1.0]), "ras": np.diag([-1.0, -1.0, 1.0, 1.0]),
+    "left-anterior-superior": np.diag([1.0, -1.0, 1.0, 1.0]), "las": np.diag([1.0, -1.0, 1.0, 1.0]),
+}
+
+
+class NrrdError(HeartregError, ValueError):
+    """A file that is not a readable 3-D NRRD volume (the message names it)."""
+
+
+def is_nrrd_path(path) -> bool:
+    """True when ``path`` names an NRRD file (``.nrrd``)."""
+    return str(path).lower().endswith(".nrrd")
+
+
+def _vector(text: str) -> list[float]:
+    return [float(x) for x in text.strip().strip("()").split(",")]
+
+
+def read_nrrd(path) -> tuple[np.ndarray, np.ndarray]:
+    """The voxels ``[k, j, i]`` (the file's type) and ``T_patient_from_voxel`` (LPS) of a 3-D NRRD file.
+
+    Raises
+    ------
+    NrrdError
+        Not an NRRD file with an attached header, a missing or bad field, not
+        3-D, an unsupported encoding or a truncated body.
+    """
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"\n\n")
+    if not raw.startswith(b"NRRD") or end < 0:
+        raise NrrdError(f"{path} is not an NRRD file with an attached header")
+    fields = {}
+    for line in raw[:end].decode("ascii", "replace").splitlines()[1:]:
+        if line.startswith("#") or ":" not in line:
+            continue
+        key, _, value = line.partition(":")
+        fields[key.strip().lower()] = value.lstrip("=").strip()
+    if "data file" in fields or "datafile" in fields:
+        raise NrrdError(f"NRRD file {path} has a detached data file; save it as a single .nrrd")
+    try:
+        sizes = [int(v) for v in fields["sizes"].split()]
+        dtype = np.dtype(_TYPES[fields["type"].lower()])
+        space = _SPACES[fields.get("space", "left-posterior-superior").lower()]
+        directions = [_vector(d) for d in fields["space directions"].replace(") (", ")|(").split("|")]
+        origin = _vector(fields.get("space origin", "(0,0,0)"))
+    except (KeyError, ValueError) as exc:
+        raise NrrdError(f"NRRD file {path}: missing or bad header field ({exc})") from None
+    if len(sizes) != 3 or len(directions) != 3 or any(len(d) != 3 for d in directions) or len(origin) != 3:
+        raise NrrdError(f"NRRD file {path} must hold a 3-D volume in 3-D space, got sizes {sizes}")
+    encoding = fields.get("encoding", "raw").lower()
+    body = raw[end + 2 :]
+    try:
+        if encoding in ("gzip", "gz"):
+            body = gzip.decompress(body)
+        elif encoding in ("bzip2", "bz2"):
+            body = bz2.decompress(body)
+        elif encoding != "raw":
+            raise NrrdError(f"NRRD file {path}: encoding {encoding!r} not supported (use raw, gzip or bzip2)")
+    except (OSError, EOFError, ValueError) as exc:
+        if isinstance(exc, NrrdError):
+            raise
+        raise NrrdError(f"NRRD file {path}: its {encoding} data cannot be decompressed ({exc})") from None
+    if dtype.itemsize > 1:
+        dtype = dtype.newbyteorder("<" if fields.get("endian", "little") == "little" else ">")
+    n = int(np.prod(sizes))
+    if len(body) < n * dtype.itemsize:
+        raise NrrdError(f"NRRD file {path} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
+    data = np.frombuffer(body[: n * dtype.itemsize], dtype=dtype).reshape(sizes[::-1])  # [k, j, i]
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(directions, dtype=float).T
+    T[:3, 3] = origin
+    return data, space @ T

@@ -1,0 +1,124 @@
+"""imaging.volume_file: a NIfTI or NRRD CT volume as a Volume in LPS, without a slice clock."""
+
+from __future__ import annotations
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from imaging import SeriesError
+from imaging.volume_file import is_nifti_path, read_nifti_volume
+
+
+def _save(path, data, affine):
+    nib.save(nib.Nifti1Image(data, affine), str(path))
+    return path
+
+
+@pytest.mark.parametrize("ras_diag", [(-1.5, -1.5, 1.5), (1.0, 2.0, 3.0), (-0.8, 0.8, 2.5)])
+def test_voxels_land_where_nibabel_puts_them(tmp_path, ras_diag):
+    """Every voxel's LPS position is its RAS position (nibabel) with x and y negated."""
+    rng = np.random.default_rng(0)
+    data = rng.integers(-1000, 2000, size=(7, 6, 5)).astype(np.int16)  # [i, j, k]
+    affine = np.diag([*ras_diag, 1.0])
+    affine[:3, 3] = [10.0, -20.0, 30.0]
+    volume = read_nifti_volume(_save(tmp_path / "ct.nii.gz", data, affine))
+    T = volume.T_patient_from_voxel
+    assert np.linalg.det(T[:3, :3]) > 0  # right-handed, as a DICOM stack
+    assert volume.hu.dtype == np.int16 and volume.hu.shape == (5, 6, 7)
+    for i, j, k in [(0, 0, 0), (6, 5, 4), (3, 1, 2)]:
+        ras = affine[:3, :3] @ [i, j, k] + affine[:3, 3]
+        lps = ras * [-1, -1, 1]
+        kk, jj, ii = np.round(np.linalg.solve(T[:3, :3], lps - T[:3, 3])[::-1]).astype(int)
+        assert volume.hu[kk, jj, ii] == data[i, j, k]
+    assert "converted to LPS" in volume.notes[0]
+    assert all(s.acquisition_time_s is None for s in volume.slices)
+    # the same file, the same identity
+    assert read_nifti_volume(tmp_path / "ct.nii.gz").series == volume.series
+
+
+def test_bad_files(tmp_path):
+    assert is_nifti_path("a/b.NII.GZ") and not is_nifti_path("a/b.nrrd")
+    with pytest.raises(SeriesError, match="does not exist"):
+        read_nifti_volume(tmp_path / "none.nii.gz")
+    with pytest.raises(SeriesError, match="3-D volume"):
+        read_nifti_volume(_save(tmp_path / "4d.nii.gz", np.zeros((3, 3, 3, 2), np.int16), np.eye(4)))
+    sheared = np.eye(4)
+    sheared[0, 1] = 0.5
+    with pytest.raises(SeriesError, match="not orthogonal"):
+        read_nifti_volume(_save(tmp_path / "shear.nii.gz", np.zeros((3, 3, 3), np.int16), sheared))
+    (tmp_path / "junk.nii").write_bytes(b"not a nifti")
+    with pytest.raises(SeriesError, match="cannot read NIfTI"):
+        read_nifti_volume(tmp_path / "junk.nii")
+
+
+def _save_nrrd(path, data_ijk, directions, origin, *, space="left-posterior-superior", encoding="gzip"):
+    """A 3D Slicer style NRRD: attached header, the i axis fastest."""
+    import gzip
+
+    body = np.ascontiguousarray(np.transpose(data_ijk, (2, 1, 0))).astype("<i2").tobytes()
+    if encoding == "gzip":
+        body = gzip.compress(body)
+    dirs = " ".join("(" + ",".join(repr(float(x)) for x in d) + ")" for d in directions)
+    header = (
+        f"NRRD0004\n# written by the test\ntype: short\ndimension: 3\nspace: {space}\n"
+        f"sizes: {' '.join(map(str, data_ijk.shape))}\nspace directions: {dirs}\nkinds: domain domain domain\n"
+        f"endian: little\nencoding: {encoding}\nspace origin: ({','.join(repr(float(x)) for x in origin)})\n\n"
+    )
+    path.write_bytes(header.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("space, encoding", [("left-posterior-superior", "gzip"), ("right-anterior-superior", "raw")])
+def test_nrrd_voxels_land_where_the_header_puts_them(tmp_path, space, encoding):
+    """Slicer's CTChest4.nrrd layout: x and y directions negative in LPS; each voxel at origin + D @ (i, j, k)."""
+    from imaging.volume_file import is_volume_file, read_nrrd_volume, read_volume_file
+
+    rng = np.random.default_rng(1)
+    data = rng.integers(-1000, 2000, size=(7, 6, 5)).astype(np.int16)  # [i, j, k]
+    directions = [(-0.8, 0.0, 0.0), (0.0, -0.8, 0.0), (0.0, 0.0, 2.5)]
+    origin = (193.1, 216.4, -340.25)
+    path = _save_nrrd(tmp_path / "ct.nrrd", data, directions, origin, space=space, encoding=encoding)
+    assert is_volume_file(path) and is_volume_file(tmp_path / "x.nii") and not is_volume_file(tmp_path)
+    volume = read_volume_file(path)
+    T = volume.T_patient_from_voxel
+    assert np.linalg.det(T[:3, :3]) > 0 and volume.hu.dtype == np.int16 and volume.hu.shape == (5, 6, 7)
+    to_lps = np.array([1.0, 1.0, 1.0]) if space.startswith("left") else np.array([-1.0, -1.0, 1.0])
+    for i, j, k in [(0, 0, 0), (6, 5, 4), (3, 1, 2)]:
+        lps = (np.asarray(directions).T @ [i, j, k] + origin) * to_lps
+        kk, jj, ii = np.round(np.linalg.solve(T[:3, :3], lps - T[:3, 3])[::-1]).astype(int)
+        assert volume.hu[kk, jj, ii] == data[i, j, k]
+    assert volume.notes[0].startswith("NRRD input") and all(s.acquisition_time_s is None for s in volume.slices)
+    assert read_nrrd_volume(path).series == volume.series
+    # the same voxels and affine as a NIfTI file give the same volume
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0])
+    A = np.eye(4)
+    A[:3, :3], A[:3, 3] = np.asarray(directions).T, origin
+    A = (ras @ (np.diag([*to_lps, 1.0]) @ A))
+    nifti = read_nifti_volume(_save(tmp_path / "ct.nii.gz", data, A))
+    assert np.array_equal(nifti.hu, volume.hu)
+    np.testing.assert_allclose(nifti.T_patient_from_voxel, T, atol=1e-6)
+
+
+def test_bad_nrrd_files(tmp_path):
+    from imaging.volume_file import read_nrrd_volume
+
+    with pytest.raises(SeriesError, match="NRRD file .* does not exist"):
+        read_nrrd_volume(tmp_path / "none.nrrd")
+    (tmp_path / "junk.nrrd").write_bytes(b"not an nrrd")
+    with pytest.raises(SeriesError, match="is not an NRRD file with an attached header"):
+        read_nrrd_volume(tmp_path / "junk.nrrd")
+    good = _save_nrrd(tmp_path / "ct.nrrd", np.zeros((4, 4, 4), np.int16), np.eye(3), (0, 0, 0), encoding="raw")
+    (tmp_path / "short.nrrd").write_bytes(good.read_bytes()[:-10])
+    with pytest.raises(SeriesError, match="truncated"):
+        read_nrrd_volume(tmp_path / "short.nrrd")
+    (tmp_path / "bad.nrrd").write_bytes(good.read_bytes().replace(b"encoding: raw", b"encoding: gzip"))
+    with pytest.raises(SeriesError, match="cannot be decompressed"):
+        read_nrrd_volume(tmp_path / "bad.nrrd")
+    (tmp_path / "hex.nrrd").write_bytes(good.read_bytes().replace(b"encoding: raw", b"encoding: hex"))
+    with pytest.raises(SeriesError, match="encoding 'hex' not supported"):
+        read_nrrd_volume(tmp_path / "hex.nrrd")
+    sheared = _save_nrrd(tmp_path / "shear.nrrd", np.zeros((4, 4, 4), np.int16), [(1, 0.5, 0), (0, 1, 0), (0, 0, 1)],
+                         (0, 0, 0))
+    with pytest.raises(SeriesError, match="NRRD file .* not orthogonal"):
+        read_nrrd_volume(sheared)
