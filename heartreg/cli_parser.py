@@ -66,9 +66,9 @@ def _add_model_options(p) -> None:
     from modeling.options import ModelOptions
 
     p.add_argument("--mask", type=Path, default=None,
-                   help="external label map (NIfTI, NRRD, DICOM SEG or a TotalSegmentator folder) instead of the "
-                        "automatic segmentation")
-    p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart)")
+                   help="external label map (NIfTI, NRRD or a 3D Slicer .seg.nrrd, DICOM SEG, or a TotalSegmentator "
+                        "folder) instead of the automatic segmentation")
+    p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart; a Slicer segment's name)")
     p.add_argument("--faces", type=int, default=None,
                    help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
     p.add_argument("--fiducials", type=int, default=None,

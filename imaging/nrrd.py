@@ -2,16 +2,18 @@
 
 One reader for CT volumes (:func:`imaging.volume_file.read_nrrd_volume`) and
 label maps (:mod:`modeling.labelmap`).  Attached headers only (``.nrrd``;
-a detached ``.nhdr`` is refused), 3-D, raw, gzip or bzip2 encoding; the
-``space`` may be LPS, RAS or LAS (Slicer writes LPS), and ``space directions``
-and ``space origin`` give the affine of voxel index ``(i, j, k)`` (the file's
-fastest axis first), converted to LPS.
+a detached ``.nhdr`` is refused), raw, gzip or bzip2 encoding; 3-D, or 4-D with
+a leading ``list`` axis (a 3D Slicer segmentation whose segments overlap keeps
+one label layer per entry); the ``space`` may be LPS, RAS or LAS (Slicer writes
+LPS), and ``space directions`` and ``space origin`` give the affine of voxel
+index ``(i, j, k)`` (the file's fastest spatial axis first), converted to LPS.
 """
 
 from __future__ import annotations
 
 import bz2
 import gzip
+import re
 from pathlib import Path
 
 import numpy as np
@@ -50,14 +52,23 @@ def _vector(text: str) -> list[float]:
     return [float(x) for x in text.strip().strip("()").split(",")]
 
 
-def read_nrrd(path) -> tuple[np.ndarray, np.ndarray]:
-    """The voxels ``[k, j, i]`` (the file's type) and ``T_patient_from_voxel`` (LPS) of a 3-D NRRD file.
+def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The voxels, ``T_patient_from_voxel`` (LPS) and header fields of an NRRD file.
+
+    Returns
+    -------
+    data : array, the file's type
+        ``[k, j, i]``; ``[layer, k, j, i]`` for a 4-D file with a leading list axis.
+    T : (4, 4) float64
+    fields : dict
+        Every header field (key lower-cased), e.g. a Slicer segmentation's
+        ``segment0_name``.
 
     Raises
     ------
     NrrdError
         Not an NRRD file with an attached header, a missing or bad field, not
-        3-D, an unsupported encoding or a truncated body.
+        3-D (or 4-D with a list axis), an unsupported encoding or a truncated body.
     """
     path = Path(path)
     raw = path.read_bytes()
@@ -76,11 +87,12 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray]:
         sizes = [int(v) for v in fields["sizes"].split()]
         dtype = np.dtype(_TYPES[fields["type"].lower()])
         space = _SPACES[fields.get("space", "left-posterior-superior").lower()]
-        directions = [_vector(d) for d in fields["space directions"].replace(") (", ")|(").split("|")]
+        directions = [_vector(d) for d in re.findall(r"\([^)]*\)", fields["space directions"])]
         origin = _vector(fields.get("space origin", "(0,0,0)"))
     except (KeyError, ValueError) as exc:
         raise NrrdError(f"NRRD file {path}: missing or bad header field ({exc})") from None
-    if len(sizes) != 3 or len(directions) != 3 or any(len(d) != 3 for d in directions) or len(origin) != 3:
+    layered = len(sizes) == 4 and fields.get("kinds", "").lower().split()[:1] == ["list"]
+    if len(sizes) - layered != 3 or len(directions) != 3 or any(len(d) != 3 for d in directions) or len(origin) != 3:
         raise NrrdError(f"NRRD file {path} must hold a 3-D volume in 3-D space, got sizes {sizes}")
     encoding = fields.get("encoding", "raw").lower()
     body = raw[end + 2 :]
@@ -100,8 +112,10 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray]:
     n = int(np.prod(sizes))
     if len(body) < n * dtype.itemsize:
         raise NrrdError(f"NRRD file {path} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
-    data = np.frombuffer(body[: n * dtype.itemsize], dtype=dtype).reshape(sizes[::-1])  # [k, j, i]
+    data = np.frombuffer(body[: n * dtype.itemsize], dtype=dtype).reshape(sizes[::-1])  # [k, j, i(, layer)]
+    if layered:
+        data = np.moveaxis(data, -1, 0)
     T = np.eye(4)
     T[:3, :3] = np.asarray(directions, dtype=float).T
     T[:3, 3] = origin
-    return data, space @ T
+    return data, space @ T, fields

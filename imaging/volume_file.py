@@ -152,9 +152,11 @@ def read_nrrd_volume(path) -> Volume:
     if not path.is_file():
         raise SeriesError(f"NRRD file {path} does not exist")
     try:
-        data_kji, T = read_nrrd(path)
+        data_kji, T, _ = read_nrrd(path)
     except NrrdError as exc:
         raise SeriesError(str(exc)) from None
+    if data_kji.ndim != 3:
+        raise SeriesError(f"NRRD file {path} holds {data_kji.shape[0]} layers (a segmentation?), not a CT volume")
     return _volume(np.transpose(data_kji, (2, 1, 0)), T, path, "NRRD", "affine converted to LPS from the file's space")
 
 

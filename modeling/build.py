@@ -78,9 +78,8 @@ OUTSIDE_NOTE_FRACTION = 0.05
 
 
 def _label_ml(label_map, label) -> float:
-    values = label_map.labels
-    chosen = values == label if label is not None else values != 0
-    return float(chosen.sum()) * abs(float(np.linalg.det(label_map.T_patient_from_voxel[:3, :3]))) / 1000.0
+    chosen, _ = label_map.select(label)
+    return float(np.count_nonzero(chosen)) * abs(float(np.linalg.det(label_map.T_patient_from_voxel[:3, :3]))) / 1000.0
 
 
 def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, notes: list, source_ml=None):

@@ -8,7 +8,7 @@ disk), NRRD (``.nrrd`` through :mod:`imaging.nrrd`) and DICOM SEG (through :mod:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,18 +34,71 @@ class LabelMap:
     Attributes
     ----------
     labels : (n_k, n_j, n_i) int array
-        Indexed ``[k, j, i]`` like :class:`imaging.Volume`.
+        Indexed ``[k, j, i]`` like :class:`imaging.Volume`; ``(n_layers, n_k,
+        n_j, n_i)`` for a 3D Slicer segmentation whose segments overlap (one
+        label layer each), whose segments are then chosen by name.
     T_patient_from_voxel : (4, 4) float64
         ``(i, j, k, 1)`` to patient LPS mm.
     source : str
     names : dict
-        Label value to name, where the file says.
+        Label value to name, where the file says (one layer).
+    segments : dict
+        A Slicer segmentation's segments: name to ``(layer, label value)``.
     """
 
     labels: np.ndarray
     T_patient_from_voxel: np.ndarray
     source: str
     names: dict
+    segments: dict = field(default_factory=dict)
+
+    def select(self, label=None) -> tuple[np.ndarray, str]:
+        """The voxels of one label, ``[k, j, i]`` bool, and how it is called in messages.
+
+        ``label``: a value or a name (case-insensitive); None for the only
+        label there is.
+
+        Raises
+        ------
+        LabelMapError
+            Empty, unknown label, several labels and no choice.
+        """
+        if self.labels.ndim == 4:
+            by_name = {name.lower(): where for name, where in self.segments.items()}
+            known = ", ".join(list(self.segments)[:20]) or "none"
+            if label is None and len(self.segments) == 1:
+                label = next(iter(self.segments))
+            if not isinstance(label, str) or label.lower() not in by_name:
+                raise LabelMapError(
+                    f"{self.source} is a segmentation of {self.labels.shape[0]} overlapping layers: choose a "
+                    f"segment by name with --label NAME (segments: {known})"
+                )
+            layer, value = by_name[label.lower()]
+            return self.labels[layer] == value, f"segment {label!r}"
+        values = np.unique(self.labels)
+        values = values[values != 0]
+        if values.size == 0:
+            raise LabelMapError(f"label map {self.source} is empty (all zero)")
+        if isinstance(label, str):
+            by_name = {name.lower(): value for value, name in self.names.items()}
+            if label.lower() not in by_name:
+                known = ", ".join(sorted(self.names.values())[:20]) or "none"
+                raise LabelMapError(
+                    f"label {label!r} is not named in {self.source} (names: {known}); give --label N or a name it has"
+                )
+            label = int(by_name[label.lower()])
+        if label is None:
+            if values.size > 1:
+                named = ", ".join(f"{v}{' (' + self.names[v] + ')' if v in self.names else ''}" for v in values[:20])
+                raise LabelMapError(
+                    f"label map {self.source} holds several labels ({named}); choose one with --label N"
+                )
+            label = int(values[0])
+        elif label not in values:
+            raise LabelMapError(
+                f"label {label} is not in {self.source}; it holds {', '.join(str(v) for v in values[:20])}"
+            )
+        return self.labels == label, f"label {label}"
 
 
 def _read_nifti(path: Path) -> LabelMap:
@@ -91,11 +144,23 @@ TOTALSEG_HEART = "heart.nii.gz"
 
 
 def _read_nrrd(path: Path) -> LabelMap:
+    """An NRRD label map; a 3D Slicer segmentation (``.seg.nrrd``) with its segments' names and layers."""
     try:
-        data, T = read_nrrd(path)
+        data, T, fields = read_nrrd(path)
     except NrrdError as exc:
         raise LabelMapError(f"label map: {exc}") from None
-    return LabelMap(np.round(data).astype(np.int32), T, str(path), {})
+    segments = {}
+    for n in range(10_000):
+        name = fields.get(f"segment{n}_name")
+        if name is None:
+            break
+        try:
+            where = (int(fields.get(f"segment{n}_layer", 0)), int(fields.get(f"segment{n}_labelvalue", n + 1)))
+        except ValueError:
+            raise LabelMapError(f"{path}: segment {n} ({name!r}) has a bad layer or label value") from None
+        segments[name] = where
+    names = {value: name for name, (layer, value) in segments.items() if layer == 0} if data.ndim == 3 else {}
+    return LabelMap(np.round(data).astype(np.int32), T, str(path), names, segments)
 
 
 def read_label_map(path) -> LabelMap:
@@ -158,30 +223,8 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
         Empty label map, unknown label, several labels without a choice, or no
         overlap with the volume.
     """
-    values = np.unique(label_map.labels)
-    values = values[values != 0]
-    if values.size == 0:
-        raise LabelMapError(f"label map {label_map.source} is empty (all zero)")
-    if isinstance(label, str):
-        by_name = {name.lower(): value for value, name in label_map.names.items()}
-        if label.lower() not in by_name:
-            known = ", ".join(sorted(label_map.names.values())[:20]) or "none"
-            raise LabelMapError(
-                f"label {label!r} is not named in {label_map.source} (names: {known}); give --label N or a name it has"
-            )
-        label = int(by_name[label.lower()])
-    if label is None:
-        if values.size > 1:
-            named = ", ".join(f"{v}{' (' + label_map.names[v] + ')' if v in label_map.names else ''}" for v in values[:20])
-            raise LabelMapError(
-                f"label map {label_map.source} holds several labels ({named}); choose one with --label N"
-            )
-        label = int(values[0])
-    elif label not in values:
-        raise LabelMapError(
-            f"label {label} is not in {label_map.source}; it holds {', '.join(str(v) for v in values[:20])}"
-        )
-    src = label_map.labels == label
+    src, label = label_map.select(label)
+
     T_vol = np.asarray(T_patient_from_voxel, dtype=float)
     # bounding box of the label in the volume's voxel coordinates
     kji = np.argwhere(src)
@@ -194,7 +237,7 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     mask = np.zeros(shape, bool)
     if np.any(box_hi <= box_lo):
         raise LabelMapError(
-            f"label {label} of {label_map.source} does not overlap the CT volume; "
+            f"{label} of {label_map.source} does not overlap the CT volume; "
             "was it made on another study?"
         )
     ii, jj, kk = np.meshgrid(*(np.arange(a, b) for a, b in zip(box_lo, box_hi)), indexing="ij")
@@ -206,7 +249,7 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     mask[box_lo[2] : box_hi[2], box_lo[1] : box_hi[1], box_lo[0] : box_hi[0]] = sub
     if not mask.any():
         raise LabelMapError(
-            f"label {label} of {label_map.source} does not overlap the CT volume; "
+            f"{label} of {label_map.source} does not overlap the CT volume; "
             "was it made on another study?"
         )
     return mask

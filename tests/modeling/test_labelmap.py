@@ -144,3 +144,32 @@ def test_unknown_file_and_label(tmp_path):
     with pytest.raises(LabelMapError, match="label 5 is not in"):
         mask_on_grid(lm, (10, 10, 10), np.eye(4), label=5)
     assert pydicom.__version__  # pydicom wrote and read the SEG above
+
+
+def test_slicer_segmentations_by_segment_name():
+    """3D Slicer's ``.seg.nrrd`` (slicerio's samples on CTChest4): segments chosen by name, overlapping layers too."""
+    from pathlib import Path
+
+    slicerio = pytest.importorskip("slicerio")
+    from imaging.volume_file import read_nrrd_volume
+
+    data = Path(slicerio.__file__).parent / "data"
+    ct = read_nrrd_volume(data / "CTChest4.nrrd")
+    shape, T = ct.shape, ct.T_patient_from_voxel
+    flat = read_label_map(data / "Segmentation.seg.nrrd")
+    assert flat.labels.ndim == 3 and flat.names[6] == "left lung" and flat.segments["left lung"] == (0, 6)
+    lung = mask_on_grid(flat, shape, T, label="Left Lung")
+    assert np.array_equal(lung, flat.labels == 6)  # the same grid as the CT
+    assert np.array_equal(mask_on_grid(flat, shape, T, label=6), lung)
+    layered = read_label_map(data / "SegmentationOverlapping.seg.nrrd")
+    assert layered.labels.shape == (2, *shape) and layered.segments["overlapping sphere"] == (1, 1)
+    assert np.array_equal(mask_on_grid(layered, shape, T, label="left lung"), lung)
+    sphere = mask_on_grid(layered, shape, T, label="overlapping sphere")
+    ribs = mask_on_grid(layered, shape, T, label="ribs")
+    assert sphere.any() and (sphere & ribs).any()  # they overlap: no single label map could hold both
+    with pytest.raises(LabelMapError, match="overlapping layers: choose a segment by name with --label NAME"):
+        mask_on_grid(layered, shape, T, label=1)
+    with pytest.raises(LabelMapError, match="segments: ribs, cervical vertebral column"):
+        mask_on_grid(layered, shape, T)
+    with pytest.raises(LabelMapError, match="'heart' is not named"):
+        mask_on_grid(flat, shape, T, label="heart")
