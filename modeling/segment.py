@@ -371,9 +371,12 @@ def segment_heart(
     core = opening_mm(region[box], cspacing, vessel_radius_mm)
     labels, n = ndimage.label(core)
     if n == 0:
+        start = "the blood pool" if contrast else (
+            "the soft tissue between the lungs (no blood pool was found: with contrast too weak or chambers too "
+            "small, the heart's blood counts as bone and the heart is hollow)")
         raise SegmentationError(
-            f"no heart-sized region: nothing thicker than {2 * vessel_radius_mm:.0f} mm is "
-            "connected to the blood pool; lower vessel_radius_mm or give a seed point"
+            f"no heart-sized region: nothing thicker than {2 * vessel_radius_mm:.0f} mm is connected to "
+            f"{start}; give a heart mask with --mask"
         )
     counts = ndimage.sum_labels(seed_mask[box], labels, index=np.arange(1, n + 1))
     sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
@@ -409,7 +412,7 @@ def segment_heart(
     if volume_ml < min_volume_ml:
         raise SegmentationError(
             f"segmented region is {volume_ml:.0f} ml, smaller than a heart ({min_volume_ml:.0f} ml); "
-            "check the HU range or give a seed point"
+            "give a heart mask with --mask"
         )
     parameters = dict(
         hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), blood_floor_hu=blood_floor_hu,

@@ -166,6 +166,17 @@ def test_bad_inputs(sample_case, tmp_path):
     # no heart-like region: water everywhere (no contrast pool, no lungs to seed between)
     with pytest.raises(SegmentationError, match="no contrast blood pool and no soft tissue between two lungs"):
         segment_heart(np.zeros((20, 30, 30), np.int16), T)
+    # a hollow heart between two lungs: its contrast blood (10 mm in radius, too small for a chamber pool) counts
+    # as bone without contrast, and its 4 mm wall is thinner than any heart body (the phantom timed as a
+    # pulmonary CTA, left blood 150-220 HU, right 400 HU, failed so)
+    k, j, i = np.mgrid[:40, :60, :80] * 2.0
+    chest = np.full((40, 60, 80), -100, np.int16)  # fat
+    chest[(np.abs(i - 80) > 25) & (np.abs(i - 80) < 70) & (np.abs(j - 60) < 45)] = -800  # two lungs
+    r = np.sqrt((i - 80) ** 2 + (j - 60) ** 2 + (k - 40) ** 2)
+    chest[r < 14] = 60  # wall
+    chest[r < 10] = 400  # blood
+    with pytest.raises(SegmentationError, match="connected to the soft tissue between the lungs.*--mask$"):
+        segment_heart(chest, np.diag([2.0, 2.0, 2.0, 1.0]))
     # the wrong fiducial count
     with pytest.raises(FiducialError, match="found 9 metal marker.*expected 8"):
         find_fiducials(volume.hu, T, expected=8)
