@@ -126,16 +126,8 @@ def read_nrrd_volume(path) -> Volume:
     path : path
         ``.nrrd`` file with an attached header holding HU values.
 
-    Returns
-    -------
-    Volume
-        As :func:`read_nifti_volume`.
-
-    Raises
-    ------
-    SeriesError
-        Missing or unreadable file, not 3-D, or an affine with sheared or
-        degenerate axes.
+    Returns and raises as :func:`read_nifti_volume` (a layered segmentation
+    file is no CT volume: ``SeriesError``).
 
     Examples
     --------
