@@ -181,6 +181,7 @@ def _open_model_input(args):
 
 def _cmd_model(args) -> int:
     from modeling import build_heart_model, render_model_png, write_model
+    from modeling.ct_overlay import ct_panels, render_ct_png
 
     if args.list_series:
         return _print_series(args.study_dir)
@@ -215,14 +216,17 @@ def _cmd_model(args) -> int:
     stage("write")
     model = build.model
     series_uid = volume.series.series_instance_uid
-    del volume  # the CT is done with: the picture's memory comes on top of what is left
+    mesh = model.mesh_patient()
+    panels = ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces)  # small 2-D planes
+    del volume, mesh  # the CT is done with: the pictures' memory comes on top of what is left
     release_free_memory()
     out = Path(args.out_dir)
-    # the picture is drawn inside the staging folder: the model appears complete or not at all
+    # the pictures are drawn inside the staging folder: the model appears complete or not at all
     with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite) as staging:
         write_model(model, staging, overwrite=True)
         render_model_png(model, staging / "model.png")  # matplotlib only: no OpenGL needed
-    picture = str(out / "model.png")
+        render_ct_png(panels, staging / "model_ct.png")
+    picture = f"{out / 'model.png'}, over the CT {out / 'model_ct.png'}"
     bar.update(1)
     bar.close()
     e = model.frame.euler_xyz_deg

@@ -3,7 +3,7 @@
 ``run_pipeline(study_dir, session_dir, out_dir)`` writes::
 
     OUT_DIR/phases/         phases.csv, phases.json, phases.png    (imaging)
-    OUT_DIR/model/          heart.ply, heart.stl, model.json, model.png  (modeling)
+    OUT_DIR/model/          heart.ply, heart.stl, model.json, model.png, model_ct.png  (modeling)
                             + heart_lps.stl, HeartToPatient.tfm, fiducials_ct.mrk.json (3D Slicer)
     OUT_DIR/registration/   registration.json, sweep.csv, figures   (registration)
                             + ProbeTo*.tfm, *.mrk.json (3D Slicer)
@@ -153,6 +153,7 @@ def run_pipeline(
     """
     from imaging import write_phase_report
     from modeling import build_heart_model, render_model_png, write_model
+    from modeling.ct_overlay import ct_panels, render_ct_png
     from modeling.slice_phases import SlicePhases
     from registration import read_session
     from registration.pipeline import register_session
@@ -192,6 +193,9 @@ def run_pipeline(
         model_dir = write_model(build.model, staging / "model")
         paths["model"] = model_dir
         paths["model_png"] = render_model_png(build.model, model_dir / "model.png")  # no OpenGL needed
+        mesh = build.model.mesh_patient()
+        paths["model_ct_png"] = render_ct_png(
+            ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces), model_dir / "model_ct.png")
         timings["model"] = time.perf_counter() - t
 
         t = time.perf_counter()

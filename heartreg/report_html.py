@@ -156,6 +156,8 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
         ("stage times (s)", ", ".join(f"{k} {v:.2f}" for k, v in build.timings_s.items())),
     ]))
     parts.append(_image(out / "model" / "model.png", "mesh, fitted ellipses and heart frame axes"))
+    parts.append(_image(out / "model" / "model_ct.png", "the surface's outline over the CT: four axial planes through "
+                        "the heart, a coronal and a sagittal one through its centre"))
 
     parts.append("<h2>3. Spatiotemporal registration (paper Figs. 2, 6-9)</h2>")
     t = reg.T_heart_from_probe[:3, 3]

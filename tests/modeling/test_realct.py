@@ -470,3 +470,43 @@ def test_no_contrast_in_a_tight_field_of_view(realct):
     m = overlap(mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T), reference, SPACING)
     assert m["dice"] >= 0.85 and m["msd_mm"] <= 4.0, m
     assert -build.model.frame.axes_patient[:, 2] @ APEX_LAI_LPS > 0.7
+
+
+def test_model_over_its_ct(realct, auto_model):
+    """``model_ct.png``: the surface's outline on planes of the CT, where a user checks a real model first.
+
+    The outline runs on the epicardium: the CT under it is the fat/myocardium edge the segmentation put it on
+    (``hu_low`` 0 HU; measured median 45 HU over the six planes' outline points, the CT sampled bilinearly at
+    the segments' midpoints), and it follows the reference mask's boundary (measured median 2.1 mm from it: the
+    reference's edge lies a voxel inside the myocardium and leaves out the thin walls; module docstring).
+    """
+    from PIL import Image
+    from scipy import ndimage
+
+    from modeling.ct_overlay import AXIAL_LEVELS, ct_panels
+
+    volume, _, reference = realct
+    model = read_model(auto_model[2])
+    mesh = model.mesh_patient()
+    panels = ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces)
+    assert [p.title.split(",")[0].split(" ")[0] for p in panels] == ["axial"] * len(AXIAL_LEVELS) + ["coronal",
+                                                                                                     "sagittal"]
+    T_inv = np.linalg.inv(volume.T_patient_from_voxel)
+    to_ref = ndimage.distance_transform_edt(~(reference & ~ndimage.binary_erosion(reference)), sampling=SPACING)
+    hu_at, ref_at = [], []
+    for p in panels:
+        assert len(p.outline) > 40 and max(p.image.shape) <= 361 and p.image.dtype == np.float32
+        # the outline's midpoints on the panel's image (bilinear) and in the CT's voxels
+        mid = p.outline.mean(axis=1)
+        a0, a1, b0, b1 = p.extent
+        rows = (mid[:, 1] - b0) / (b1 - b0) * p.image.shape[0] - 0.5
+        cols = (mid[:, 0] - a0) / (a1 - a0) * p.image.shape[1] - 0.5
+        hu_at.append(ndimage.map_coordinates(p.image, [rows, cols], order=1))
+        kji = (p.to_patient(mid) @ T_inv[:3, :3].T + T_inv[:3, 3])[:, ::-1]
+        ref_at.append(ndimage.map_coordinates(to_ref, kji.T, order=1))
+    hu_at, ref_at = np.concatenate(hu_at), np.concatenate(ref_at)
+    assert -60 <= np.median(hu_at) <= 120, np.median(hu_at)
+    assert np.median(ref_at) <= 3.0, np.median(ref_at)
+    image = np.asarray(Image.open(auto_model[2] / "model_ct.png").convert("L"), dtype=float)
+    assert image.shape[0] > 500 and image.shape[1] > 900 and image.std() > 20  # the CLI drew it
+
