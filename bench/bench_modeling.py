@@ -270,7 +270,8 @@ def main(argv=None) -> int:
                f"{'faster' if faster else 'SLOWER'} than dicom2stl at its default (half) resolution; peak memory "
                f"{ours.peak_max_mb:.0f} MiB vs the budget 3 x volume = {budget_mb:.0f} MiB "
                f"({vol_mib:.0f} MiB {info['volume_dtype']}): {'meets' if m_ok else 'MISSES'}; "
-               f"whole CLI process incl. start-up, imports, model.png ({info['picture'] and 'rendered' or 'skipped'}); "
+               f"whole CLI process incl. start-up, imports, model.png ({info['picture'] and 'rendered' or 'skipped'}) "
+               f"and model_ct.png; "
                f"our mesh: heart only, {info['n_faces']} faces; dicom2stl: whole body surface at 0 HU, "
                f"{ref_faces} faces (no heart segmentation); runs interleaved, warm page cache"),
         command="heartreg model bench/out/data/full_ct/ct -o OUT -q",
