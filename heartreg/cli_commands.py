@@ -128,6 +128,19 @@ def _model_options(args):
         raise UsageError("--keep-vessels and --trim-vessels contradict each other; give one")
     if args.keep_vessels or args.trim_vessels:
         kw["trim_vessels"] = bool(args.trim_vessels)
+    if args.seed is not None:
+        if args.mask is not None:
+            raise UsageError("--seed starts the automatic segmentation; --mask replaces it: give one")
+        if isinstance(args.seed, Path):
+            from modeling.slicer import read_markups
+
+            points = read_markups(args.seed).points_lps_mm
+            if len(points) == 0:
+                raise UsageError(f"--seed: the markups file {args.seed} holds no point")
+            seed = [float(x) for x in points[0]]
+        else:
+            seed = list(args.seed)
+        kw["segmentation"] = {"seed_patient_mm": seed}
     return ModelOptions(**kw)
 
 

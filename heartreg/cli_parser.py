@@ -44,6 +44,16 @@ def _label_arg(value: str):
     return int(value) if value.lstrip("-").isdigit() else value
 
 
+def _seed_arg(value: str):
+    """``--seed``: ``X,Y,Z`` in patient LPS mm, or a 3D Slicer markups file (``.mrk.json``) whose first point is read."""
+    if value.lower().endswith(".json"):
+        return Path(value)
+    parts = value.replace(",", " ").split()
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"{value!r} is neither X,Y,Z (patient LPS mm) nor a .mrk.json markups file")
+    return tuple(_finite(x) for x in parts)
+
+
 def _series_arg(value: str):
     """``--series``: an index from ``--list-series`` or a SeriesInstanceUID."""
     return int(value) if value.isdigit() else value
@@ -69,6 +79,10 @@ def _add_model_options(p) -> None:
                    help="external label map (NIfTI, NRRD or a 3D Slicer .seg.nrrd, DICOM SEG, or a TotalSegmentator "
                         "folder) instead of the automatic segmentation")
     p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart; a Slicer segment's name)")
+    p.add_argument("--seed", type=_seed_arg, default=None, metavar="X,Y,Z|POINT.mrk.json",
+                   help="a point inside the heart to start the automatic segmentation from, when its own start "
+                        "fails: patient LPS mm (--seed=-12.5,40,-100 when it starts with a minus), or a 3D Slicer "
+                        "markups file (its first point, LPS or RAS as it says)")
     p.add_argument("--faces", type=int, default=None,
                    help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
     p.add_argument("--fiducials", type=int, default=None,

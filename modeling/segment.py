@@ -324,7 +324,7 @@ def segment_heart(
             if found is None:
                 raise SegmentationError(
                     "no contrast blood pool and no soft tissue between two lungs in the volume; "
-                    "give a heart mask with --mask (or segment_heart a seed point)"
+                    "give a point inside the heart with --seed=X,Y,Z or a heart mask with --mask"
                 )
             seed_mask, between = found
             contrast = False
@@ -376,7 +376,7 @@ def segment_heart(
             "small, the heart's blood counts as bone and the heart is hollow)")
         raise SegmentationError(
             f"no heart-sized region: nothing thicker than {2 * vessel_radius_mm:.0f} mm is connected to "
-            f"{start}; give a heart mask with --mask"
+            f"{start}; give a point inside the heart with --seed=X,Y,Z or a heart mask with --mask"
         )
     counts = ndimage.sum_labels(seed_mask[box], labels, index=np.arange(1, n + 1))
     sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
@@ -412,7 +412,7 @@ def segment_heart(
     if volume_ml < min_volume_ml:
         raise SegmentationError(
             f"segmented region is {volume_ml:.0f} ml, smaller than a heart ({min_volume_ml:.0f} ml); "
-            "give a heart mask with --mask"
+            "give a point inside the heart with --seed=X,Y,Z or a heart mask with --mask"
         )
     parameters = dict(
         hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), blood_floor_hu=blood_floor_hu,

@@ -202,3 +202,45 @@ def test_cli_model(sample_case, tmp_path, capsys):
     # refuses to overwrite another model folder without --overwrite
     assert main(["model", str(case / "ct"), "-o", str(out), "-q", "--faces", "6000"]) == 1
     assert "overwrite" in capsys.readouterr().err
+
+
+def test_cli_seed_point(tmp_path, capsys):
+    """``--seed``: where the automatic start fails (no blood pool, no lungs), a point inside the heart starts it.
+
+    A heart whose blood (120 HU) is below any contrast level, in fat, with no lungs in the field of view: the
+    command stops with one line naming ``--seed`` and ``--mask``.  With the point given in LPS mm, or as the
+    first point of a 3D Slicer markups file in RAS, the model is made, the same both ways.
+    """
+    k, j, i = (np.mgrid[:50, :50, :50] + 0.5) * 2.0  # voxel centres, mm from the volume's corner
+    ellipsoid = ((i - 50) / 32) ** 2 + ((j - 50) / 26) ** 2 + ((k - 50) / 40) ** 2
+    ct = np.where(ellipsoid < 1, 60, -100).astype(np.int16)  # myocardium in fat
+    ct[ellipsoid < 0.55] = 120  # blood without contrast enough for a pool
+    affine = np.diag([-2.0, -2.0, 2.0, 1.0])  # NIfTI's RAS: i, j towards patient left, posterior (LPS +x, +y)
+    affine[:3, 3] = [10.0, 20.0, -30.0]
+    path = tmp_path / "ct.nii.gz"
+    nib.save(nib.Nifti1Image(np.ascontiguousarray(ct.transpose(2, 1, 0)), affine), str(path))
+    assert main(["model", str(path), "-o", str(tmp_path / "auto"), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--seed=X,Y,Z" in err[0] and "--mask" in err[0]
+    centre_ras = affine[:3, :3] @ [24.5, 24.5, 24.5] + affine[:3, 3]  # the volume's centre
+    centre_lps = [-centre_ras[0], -centre_ras[1], centre_ras[2]]
+    # '--seed=...': a value starting with '-' would read as a flag
+    assert main(["model", str(path), "-o", str(tmp_path / "lps"), "-q",
+                 "--seed=" + ",".join(f"{x:g}" for x in centre_lps)]) == 0
+    markups = tmp_path / "seed.mrk.json"
+    markups.write_text(json.dumps({"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": [
+        {"label": "F-1", "position": [-centre_lps[0], -centre_lps[1], centre_lps[2]]}]}]}))
+    assert main(["model", str(path), "-o", str(tmp_path / "mrk"), "-q", "--seed", str(markups)]) == 0
+    a, b = json.loads((tmp_path / "lps" / "model.json").read_text()), json.loads(
+        (tmp_path / "mrk" / "model.json").read_text())
+    assert a["parameters"]["segmentation"]["seed_patient_mm"] == pytest.approx(centre_lps)
+    assert b["parameters"]["segmentation"]["seed_patient_mm"] == pytest.approx(centre_lps)
+    mesh = read_model(tmp_path / "lps").mesh_patient()
+    volume_ml = abs(trimesh.Trimesh(mesh.vertices, mesh.faces).volume) / 1000.0
+    assert 0.9 * (4 / 3 * np.pi * 32 * 26 * 40 / 1000) < volume_ml < 1.1 * (4 / 3 * np.pi * 32 * 26 * 40 / 1000)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        main(["model", str(path), "-o", str(tmp_path / "x"), "-q", "--seed", "1,2"])
+    assert exit_.value.code == 2 and "neither X,Y,Z" in capsys.readouterr().err
+    assert main(["model", str(path), "-o", str(tmp_path / "x"), "-q", "--seed", "1,1,1", "--mask", str(path)]) == 1
+    assert "--seed starts the automatic segmentation; --mask replaces it" in capsys.readouterr().err
