@@ -38,7 +38,7 @@ ROOM_AIR_HU = -950.0
 WEAK_POOL_RADIUS_MM = 18.0
 
 
-def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
+def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=None):
     """The contrast blood pool and the lower HU that found it, or (None, None) without contrast.
 
     The pool is the largest component of ``blood_hu`` voxels if it holds a
@@ -51,7 +51,9 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
     into components of a size with a chamber (CTChest4 of slicerio, without
     contrast: 476 ml holding a 15.5 mm ball at 175 HU), while a venous phase
     fills all four chambers (the real CT's pool at 150 HU, dimmed to a venous
-    phase: 20 mm).
+    phase: 20 mm).  Such a pool must also lie between the lungs where there
+    are lungs: ``mediastinum()`` gives that region (None without lungs), so
+    that the marrow of a pelvis on a whole-body CT is no pool.
     """
     for low in np.arange(blood_hu[0], min(floor_hu, blood_hu[0]) - 1e-9, -POOL_STEP_HU):
         radius_mm = min_radius_mm if low >= blood_hu[0] else max(min_radius_mm, WEAK_POOL_RADIUS_MM)
@@ -62,8 +64,13 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu):
         sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
         pool = labels == int(np.argmax(sizes)) + 1
         box = ndimage.find_objects(pool.astype(np.uint8))[0]
-        if distance_mm(np.pad(pool[box], 1), cspacing).max() >= radius_mm:
-            return pool, float(low)
+        if distance_mm(np.pad(pool[box], 1), cspacing).max() < radius_mm:
+            continue
+        if low < blood_hu[0] and mediastinum is not None:
+            between = mediastinum()
+            if between is not None and not (pool & between).any():
+                continue
+        return pool, float(low)
     return None, None
 
 

@@ -312,7 +312,11 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
-    pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu)
+    def mediastinum():
+        found = mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
+        return None if found is None else found[1]
+
+    pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
     if seed_patient_mm is None:
         if pool is not None:
             seed_mask = pool
