@@ -98,6 +98,9 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
     box = tuple(slice(max(p.start - d, r.start), min(p.stop + d, r.stop)) for p, r, d in zip(
         ndimage.find_objects(pool.astype(np.uint8))[0], ndimage.find_objects(region.astype(np.uint8))[0], pad))
     inside, hu = region[box], coarse[box]
+    seeds = pool[box] & inside
+    if not seeds.any():  # a region grown from a given point away from the pool: nothing to part it from
+        return region, ""
     blood = hu > blood_hu
     solid = opening_mm(inside & ~blood, cspacing, SOLID_RADIUS_MM)
     solid &= distance_mm(~blood, cspacing) > SOLID_FAR_MM
@@ -105,7 +108,7 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
         return region, ""
     markers = np.zeros(hu.shape, np.int32)
     markers[solid] = 2
-    markers[pool[box] & inside] = 1
+    markers[seeds] = 1
     heart = watershed(-hu, markers, mask=inside) == 1
     out = np.zeros_like(region)
     out[box] = heart

@@ -39,6 +39,7 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -312,6 +313,7 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
+    @functools.cache
     def mediastinum():
         found = mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
         return None if found is None else found[1]
