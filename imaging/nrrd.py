@@ -72,11 +72,11 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     """
     path = Path(path)
     raw = path.read_bytes()
-    end = raw.find(b"\n\n")
-    if not raw.startswith(b"NRRD") or end < 0:
+    blank = re.search(rb"\r?\n\r?\n", raw[:1 << 20])  # the header ends at its first empty line
+    if not raw.startswith(b"NRRD") or blank is None:
         raise NrrdError(f"{path} is not an NRRD file with an attached header")
     fields = {}
-    for line in raw[:end].decode("ascii", "replace").splitlines()[1:]:
+    for line in raw[: blank.start()].decode("utf-8", "replace").splitlines()[1:]:
         if line.startswith("#") or ":" not in line:
             continue
         key, _, value = line.partition(":")
@@ -91,11 +91,16 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
         origin = _vector(fields.get("space origin", "(0,0,0)"))
     except (KeyError, ValueError) as exc:
         raise NrrdError(f"NRRD file {path}: missing or bad header field ({exc})") from None
+    if any(size < 1 for size in sizes):
+        raise NrrdError(f"NRRD file {path}: sizes {sizes} must all be positive")
+    for skip in ("byte skip", "byteskip", "line skip", "lineskip"):
+        if fields.get(skip, "0").strip() not in ("0", ""):
+            raise NrrdError(f"NRRD file {path}: '{skip}: {fields[skip]}' is not supported; save it again from Slicer")
     layered = len(sizes) == 4 and fields.get("kinds", "").lower().split()[:1] == ["list"]
     if len(sizes) - layered != 3 or len(directions) != 3 or any(len(d) != 3 for d in directions) or len(origin) != 3:
         raise NrrdError(f"NRRD file {path} must hold a 3-D volume in 3-D space, got sizes {sizes}")
     encoding = fields.get("encoding", "raw").lower()
-    body = raw[end + 2 :]
+    body = memoryview(raw)[blank.end():]  # no copy of the raw data
     try:
         if encoding in ("gzip", "gz"):
             body = gzip.decompress(body)
@@ -112,6 +117,9 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     n = int(np.prod(sizes))
     if len(body) < n * dtype.itemsize:
         raise NrrdError(f"NRRD file {path} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
+    if len(body) > n * dtype.itemsize:
+        raise NrrdError(f"NRRD file {path} holds {len(body) - n * dtype.itemsize} bytes more than its sizes and "
+                        f"type say: the header and the data disagree")
     data = np.frombuffer(body[: n * dtype.itemsize], dtype=dtype).reshape(sizes[::-1])  # [k, j, i(, layer)]
     if layered:
         data = np.moveaxis(data, -1, 0)

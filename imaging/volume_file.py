@@ -175,10 +175,7 @@ def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:
     fits_int16 = (np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16) or (
         np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767
     )
-    if fits_int16:
-        hu = hu.astype(np.int16)
-    else:
-        hu = hu.astype(np.float32)
+    hu = hu.astype(np.int16 if fits_int16 else np.float32, copy=False)
     hu.setflags(write=False)
     T.setflags(write=False)
     spacing = np.linalg.norm(T[:3, :3], axis=0)

@@ -68,13 +68,25 @@ class LabelMap:
             known = ", ".join(list(self.segments)[:20]) or "none"
             if label is None and len(self.segments) == 1:
                 label = next(iter(self.segments))
+            if not self.segments:
+                raise LabelMapError(
+                    f"{self.source} holds {self.labels.shape[0]} overlapping layers and no segment names; export "
+                    "the heart alone (or as a label map) from 3D Slicer"
+                )
             if not isinstance(label, str) or label.lower() not in by_name:
                 raise LabelMapError(
                     f"{self.source} is a segmentation of {self.labels.shape[0]} overlapping layers: choose a "
                     f"segment by name with --label NAME (segments: {known})"
                 )
             layer, value = by_name[label.lower()]
-            return self.labels[layer] == value, f"segment {label!r}"
+            if not 0 <= layer < self.labels.shape[0]:
+                raise LabelMapError(f"{self.source}: segment {label!r} is in layer {layer}, but the file holds "
+                                    f"{self.labels.shape[0]} layers")
+            chosen = self.labels[layer] == value
+            if not chosen.any():
+                raise LabelMapError(f"segment {label!r} of {self.source} is empty (no voxel of label {value} in "
+                                    f"layer {layer})")
+            return chosen, f"segment {label!r}"
         values = np.unique(self.labels)
         values = values[values != 0]
         if values.size == 0:
@@ -150,12 +162,15 @@ def _read_nrrd(path: Path) -> LabelMap:
     except NrrdError as exc:
         raise LabelMapError(f"label map: {exc}") from None
     segments = {}
+    layered = data.ndim == 4
     for n in range(10_000):
-        name = fields.get(f"segment{n}_name")
-        if name is None:
+        if f"segment{n}_name" not in fields and f"segment{n}_id" not in fields:
             break
+        name = fields.get(f"segment{n}_name") or fields.get(f"segment{n}_id")
+        # without Layer and LabelValue fields (Slicer before 4.11): one layer per segment, each of label 1
         try:
-            where = (int(fields.get(f"segment{n}_layer", 0)), int(fields.get(f"segment{n}_labelvalue", n + 1)))
+            where = (int(fields.get(f"segment{n}_layer", n if layered else 0)),
+                     int(fields.get(f"segment{n}_labelvalue", 1 if layered else n + 1)))
         except ValueError:
             raise LabelMapError(f"{path}: segment {n} ({name!r}) has a bad layer or label value") from None
         segments[name] = where

@@ -113,11 +113,10 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
     out = np.zeros_like(region)
     out[box] = heart
     removed_ml = float((region.sum() - heart.sum()) * np.prod(cspacing) / 1000.0)
-    return out, (
-        f"{removed_ml:.0f} ml of tissue parted from the heart: solid organs at their dimmest layer (thicker than "
-        f"{2 * SOLID_RADIUS_MM:.0f} mm and farther than {SOLID_FAR_MM:.0f} mm from blood: liver, chest wall), "
-        f"all beyond {HEART_REACH_MM:.0f} mm of the blood pool"
-    )
+    solid_note = (f"solid organs at their dimmest layer (thicker than {2 * SOLID_RADIUS_MM:.0f} mm and farther than "
+                  f"{SOLID_FAR_MM:.0f} mm from blood: liver, chest wall), " if solid.any() else "")
+    return out, (f"{removed_ml:.0f} ml of tissue parted from the heart: {solid_note}all beyond "
+                 f"{HEART_REACH_MM:.0f} mm of the blood pool")
 
 
 def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):

@@ -313,9 +313,10 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
-    @functools.cache
+    seed_between = functools.cache(lambda: mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu))
+
     def mediastinum():
-        found = mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
+        found = seed_between()
         return None if found is None else found[1]
 
     pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
@@ -326,7 +327,7 @@ def segment_heart(
             notes.append(f"seed: largest blood-pool component ({seed_mask.sum() * voxel_ml * step.prod():.0f} ml"
                          + (f", blood above {pool_hu:.0f} HU: weak contrast" if pool_hu < blood_hu[0] else "") + ")")
         else:
-            found = mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu)
+            found = seed_between()
             if found is None:
                 raise SegmentationError(
                     "no contrast blood pool and no soft tissue between two lungs in the volume; "

@@ -122,3 +122,34 @@ def test_bad_nrrd_files(tmp_path):
                          (0, 0, 0))
     with pytest.raises(SeriesError, match="NRRD file .* not orthogonal"):
         read_nrrd_volume(sheared)
+
+
+def test_nrrd_variants_and_refusals(tmp_path):
+    """Big-endian, bzip2 and CRLF headers are read as they should; what the reader cannot honour is refused."""
+    import bz2
+
+    from imaging.volume_file import read_nrrd_volume
+
+    data = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6) - 100  # [i, j, k]
+    good = _save_nrrd(tmp_path / "ct.nrrd", data, np.eye(3), (0, 0, 0), encoding="raw")
+    header, body = good.read_bytes().split(b"\n\n", 1)
+    expected = read_nrrd_volume(good).hu
+    big = header.replace(b"endian: little", b"endian: big") + b"\n\n" + np.frombuffer(body, "<i2").astype(">i2").tobytes()
+    (tmp_path / "big.nrrd").write_bytes(big)
+    packed = header.replace(b"encoding: raw", b"encoding: bzip2") + b"\n\n" + bz2.compress(body)
+    (tmp_path / "bz.nrrd").write_bytes(packed)
+    (tmp_path / "crlf.nrrd").write_bytes(header.replace(b"\n", b"\r\n") + b"\r\n\r\n" + body)
+    for name in ("big", "bz", "crlf"):
+        assert np.array_equal(read_nrrd_volume(tmp_path / f"{name}.nrrd").hu, expected), name
+    refusals = {
+        "skip": (header + b"\nbyte skip: 4\n\n" + b"junk" + body, "'byte skip: 4' is not supported"),
+        "extra": (header + b"\n\n" + body + b"xx", "2 bytes more than its sizes and type say"),
+        "zero": (header.replace(b"sizes: 4 5 6", b"sizes: 4 0 6") + b"\n\n", r"sizes \[4, 0, 6\] must all be positive"),
+        "layers": (header.replace(b"dimension: 3", b"dimension: 4").replace(b"sizes: 4 5 6", b"sizes: 2 4 5 6")
+                   .replace(b"kinds: domain", b"kinds: list domain") + b"\n\n" + body + body,
+                   "holds 2 layers .a segmentation.., not a CT volume"),
+    }
+    for name, (content, message) in refusals.items():
+        (tmp_path / f"{name}.nrrd").write_bytes(content)
+        with pytest.raises(SeriesError, match=message):
+            read_nrrd_volume(tmp_path / f"{name}.nrrd")

@@ -173,3 +173,37 @@ def test_slicer_segmentations_by_segment_name():
         mask_on_grid(layered, shape, T)
     with pytest.raises(LabelMapError, match="'heart' is not named"):
         mask_on_grid(flat, shape, T, label="heart")
+
+
+def _seg_nrrd(path, layers, segments):
+    """A 3D Slicer style layered segmentation: ``layers`` (n_layers, k, j, i) uint8, header fields per segment."""
+    n, nk, nj, ni = layers.shape
+    fields = "".join(f"Segment{s}_{key}:={value}\n" for s, seg in enumerate(segments) for key, value in seg.items())
+    header = (
+        f"NRRD0004\ntype: unsigned char\ndimension: 4\nspace: left-posterior-superior\nsizes: {n} {ni} {nj} {nk}\n"
+        f"space directions: none (2,0,0) (0,2,0) (0,0,2)\nkinds: list domain domain domain\nencoding: raw\n"
+        f"space origin: (0,0,0)\n{fields}\n"
+    )
+    path.write_bytes(header.encode() + np.ascontiguousarray(np.moveaxis(layers, 0, -1)).tobytes())
+    return path
+
+
+def test_slicer_segmentation_edge_cases(tmp_path):
+    """An empty segment, a layer the file lacks, no names, and Slicer's older files (a layer per segment, label 1)."""
+    layers = np.zeros((2, 6, 7, 8), np.uint8)
+    layers[0, 1:4, 1:4, 1:4] = 1
+    layers[1, 2:5, 2:5, 2:5] = 1
+    shape, T = (6, 7, 8), np.diag([2.0, 2.0, 2.0, 1.0])
+    old = read_label_map(_seg_nrrd(tmp_path / "old.seg.nrrd", layers, [{"Name": "heart"}, {"Name": "liver"}]))
+    assert old.segments == {"heart": (0, 1), "liver": (1, 1)}
+    assert np.array_equal(mask_on_grid(old, shape, T, label="liver"), layers[1].astype(bool))
+    empty = read_label_map(_seg_nrrd(tmp_path / "empty.seg.nrrd", layers, [
+        {"Name": "heart", "Layer": 0, "LabelValue": 1}, {"Name": "aorta", "Layer": 1, "LabelValue": 2}]))
+    with pytest.raises(LabelMapError, match="segment 'aorta' of .* is empty"):
+        mask_on_grid(empty, shape, T, label="aorta")
+    beyond = read_label_map(_seg_nrrd(tmp_path / "beyond.seg.nrrd", layers, [{"Name": "heart", "Layer": 7}]))
+    with pytest.raises(LabelMapError, match="segment 'heart' is in layer 7, but the file holds 2 layers"):
+        mask_on_grid(beyond, shape, T, label="heart")
+    unnamed = read_label_map(_seg_nrrd(tmp_path / "unnamed.seg.nrrd", layers, []))
+    with pytest.raises(LabelMapError, match="2 overlapping layers and no segment names"):
+        mask_on_grid(unnamed, shape, T, label=1)
