@@ -44,8 +44,8 @@ class NrrdError(HeartregError, ValueError):
 
 
 def is_nrrd_path(path) -> bool:
-    """True when ``path`` names an NRRD file (``.nrrd``)."""
-    return str(path).lower().endswith(".nrrd")
+    """True when ``path`` names an NRRD file (``.nrrd``; a detached ``.nhdr`` header too, to be refused by name)."""
+    return str(path).lower().endswith((".nrrd", ".nhdr"))
 
 
 def _vector(text: str) -> list[float]:
@@ -73,16 +73,18 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     path = Path(path)
     raw = path.read_bytes()
     blank = re.search(rb"\r?\n\r?\n", raw[:1 << 20])  # the header ends at its first empty line
-    if not raw.startswith(b"NRRD") or blank is None:
-        raise NrrdError(f"{path} is not an NRRD file with an attached header")
+    if not raw.startswith(b"NRRD"):
+        raise NrrdError(f"{path} is not an NRRD file")
     fields = {}
-    for line in raw[: blank.start()].decode("utf-8", "replace").splitlines()[1:]:
+    for line in raw[: len(raw) if blank is None else blank.start()].decode("utf-8", "replace").splitlines()[1:]:
         if line.startswith("#") or ":" not in line:
             continue
         key, _, value = line.partition(":")
         fields[key.strip().lower()] = value.lstrip("=").strip()
     if "data file" in fields or "datafile" in fields:
         raise NrrdError(f"NRRD file {path} has a detached data file; save it as a single .nrrd")
+    if blank is None:
+        raise NrrdError(f"{path} is not an NRRD file with an attached header (no empty line ends its header)")
     try:
         sizes = [int(v) for v in fields["sizes"].split()]
         dtype = np.dtype(_TYPES[fields["type"].lower()])

@@ -144,12 +144,14 @@ def read_nrrd_volume(path) -> Volume:
     if not path.is_file():
         raise SeriesError(f"NRRD file {path} does not exist")
     try:
-        data_kji, T, _ = read_nrrd(path)
+        data_kji, T, fields = read_nrrd(path)
     except NrrdError as exc:
         raise SeriesError(str(exc)) from None
     if data_kji.ndim != 3:
         raise SeriesError(f"NRRD file {path} holds {data_kji.shape[0]} layers (a segmentation?), not a CT volume")
-    return _volume(np.transpose(data_kji, (2, 1, 0)), T, path, "NRRD", "affine converted to LPS from the file's space")
+    space = ("affine converted to LPS from the file's space" if "space" in fields
+             else "no 'space' field: the axes taken as LPS, as 3D Slicer writes them")
+    return _volume(np.transpose(data_kji, (2, 1, 0)), T, path, "NRRD", space)
 
 
 def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:

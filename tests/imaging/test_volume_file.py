@@ -101,13 +101,16 @@ def test_nrrd_voxels_land_where_the_header_puts_them(tmp_path, space, encoding):
 
 
 def test_bad_nrrd_files(tmp_path):
-    from imaging.volume_file import read_nrrd_volume
+    from imaging.volume_file import read_nrrd_volume, read_volume_file
 
     with pytest.raises(SeriesError, match="NRRD file .* does not exist"):
         read_nrrd_volume(tmp_path / "none.nrrd")
     (tmp_path / "junk.nrrd").write_bytes(b"not an nrrd")
-    with pytest.raises(SeriesError, match="is not an NRRD file with an attached header"):
+    with pytest.raises(SeriesError, match="is not an NRRD file"):
         read_nrrd_volume(tmp_path / "junk.nrrd")
+    (tmp_path / "ct.nhdr").write_bytes(b"NRRD0004\ntype: short\nsizes: 2 2 2\ndata file: ct.raw\n")
+    with pytest.raises(SeriesError, match="has a detached data file; save it as a single .nrrd"):
+        read_volume_file(tmp_path / "ct.nhdr")
     good = _save_nrrd(tmp_path / "ct.nrrd", np.zeros((4, 4, 4), np.int16), np.eye(3), (0, 0, 0), encoding="raw")
     (tmp_path / "short.nrrd").write_bytes(good.read_bytes()[:-10])
     with pytest.raises(SeriesError, match="truncated"):
