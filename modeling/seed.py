@@ -36,6 +36,8 @@ ROOM_AIR_HU = -950.0
 
 #: Inscribed radius (mm) a pool found below ``blood_hu[0]`` must hold (see ``blood_pool``).
 WEAK_POOL_RADIUS_MM = 18.0
+#: Components tried, largest first, at each level below ``blood_hu[0]``.
+WEAK_POOL_CANDIDATES = 3
 
 
 def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=None):
@@ -56,21 +58,25 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=
     that the marrow of a pelvis on a whole-body CT is no pool.
     """
     for low in np.arange(blood_hu[0], min(floor_hu, blood_hu[0]) - 1e-9, -POOL_STEP_HU):
-        radius_mm = min_radius_mm if low >= blood_hu[0] else max(min_radius_mm, WEAK_POOL_RADIUS_MM)
+        weak = low < blood_hu[0]
+        radius_mm = max(min_radius_mm, WEAK_POOL_RADIUS_MM) if weak else min_radius_mm
         blood = (coarse > low) & (coarse < blood_hu[1])
         labels, n = ndimage.label(blood)
         if n == 0:
             continue
         sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
-        pool = labels == int(np.argmax(sizes)) + 1
-        box = ndimage.find_objects(pool.astype(np.uint8))[0]
-        if distance_mm(np.pad(pool[box], 1), cspacing).max() < radius_mm:
-            continue
-        if low < blood_hu[0] and mediastinum is not None:
-            between = mediastinum()
-            if between is not None and not (pool & between).any():
+        # the largest component; at a weak level the next ones too (WEAK_POOL_CANDIDATES), where a whole-body
+        # CT's marrow may outgrow the heart's pool
+        for label in np.argsort(-sizes)[: WEAK_POOL_CANDIDATES if weak else 1] + 1:
+            pool = labels == label
+            box = ndimage.find_objects(pool.astype(np.uint8))[0]
+            if distance_mm(np.pad(pool[box], 1), cspacing).max() < radius_mm:
                 continue
-        return pool, float(low)
+            if weak and mediastinum is not None:
+                between = mediastinum()
+                if between is not None and not (pool & between).any():
+                    continue
+            return pool, float(low)
     return None, None
 
 

@@ -260,3 +260,18 @@ def test_a_weak_pool_lies_between_the_lungs():
     seg = segment_heart(ct, np.diag([2.0, 2.0, 2.0, 1.0]))
     assert seg.parameters["pool_hu"] is None and "between the lungs" in seg.notes[0]
     assert 0.9 * heart.sum() * 8e-3 <= seg.volume_ml <= 1.1 * heart.sum() * 8e-3
+
+
+def test_a_weak_pool_behind_larger_marrow():
+    """At a venous level the heart's pool need not be the largest component: a larger marrow block (below the
+    lungs) is passed over for the heart's 180 HU pool between them."""
+    k, j, i = (np.mgrid[:90, :60, :80] + 0.5) * 2.0
+    ct = np.full(k.shape, -100, np.int16)  # fat
+    ct[(k > 90) & (np.abs(i - 80) > 34) & (np.abs(i - 80) < 75) & (np.abs(j - 60) < 50)] = -800  # lungs
+    heart = ((i - 80) / 32) ** 2 + ((j - 60) / 28) ** 2 + ((k - 130) / 34) ** 2 < 1
+    ct[heart] = 80  # myocardium
+    ct[((i - 80) / 24) ** 2 + ((j - 60) / 21) ** 2 + ((k - 130) / 26) ** 2 < 1] = 180  # venous-phase blood
+    ct[(np.abs(i - 80) < 30) & (np.abs(j - 70) < 25) & (k < 80)] = 190  # marrow-like block, larger, below
+    seg = segment_heart(ct, np.diag([2.0, 2.0, 2.0, 1.0]))
+    assert seg.parameters["pool_hu"] in (150.0, 175.0) and "weak contrast" in seg.notes[0]
+    assert 0.85 * heart.sum() * 8e-3 <= seg.volume_ml <= 1.15 * heart.sum() * 8e-3
