@@ -30,6 +30,9 @@ from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, trim_
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]
 
+#: A CT spanning less than this (mm) along any of its axes cannot hold a heart (an adult's is 100-150 mm long).
+MIN_SPAN_MM = 40.0
+
 #: Whole-heart volumes (ml) of adults; an automatic segmentation outside this range is flagged.
 HEART_ML = (250.0, 1500.0)
 #: Largest rightward component (LPS -x) of a unit apex direction not warned about: a heart
@@ -157,7 +160,8 @@ def build_heart_model(
     Raises
     ------
     LabelMapError, SegmentationError
-        A mask far smaller than a heart (the message gives its volume in ml).
+        A mask far smaller than a heart (the message gives its volume in ml), or
+        a CT too small to hold one (a single slice).
 
     Examples
     --------
@@ -177,6 +181,13 @@ def build_heart_model(
     fiducial_floor_hu, segmentation, trim_vessels = opts.fiducial_floor_hu, opts.segmentation, opts.trim_vessels
     min_heart_ml = opts.min_heart_ml
     T = np.asarray(volume.T_patient_from_voxel, dtype=float)
+    span_mm = np.asarray(volume.hu.shape[::-1]) * np.linalg.norm(T[:3, :3], axis=0)  # along i, j, k
+    if span_mm.min() < MIN_SPAN_MM:
+        axis = ("its columns", "its rows", "its slices")[int(np.argmin(span_mm))]
+        raise SegmentationError(
+            f"the CT spans only {span_mm.min():.0f} mm along {axis} ({' x '.join(map(str, volume.hu.shape))} voxels); "
+            f"a heart model needs a 3-D CT of the whole heart (at least {MIN_SPAN_MM:.0f} mm each way)"
+        )
     timings: dict[str, float] = {}
     notes: list[str] = []
 

@@ -275,3 +275,18 @@ def test_a_weak_pool_behind_larger_marrow():
     seg = segment_heart(ct, np.diag([2.0, 2.0, 2.0, 1.0]))
     assert seg.parameters["pool_hu"] in (150.0, 175.0) and "weak contrast" in seg.notes[0]
     assert 0.85 * heart.sum() * 8e-3 <= seg.volume_ml <= 1.15 * heart.sum() * 8e-3
+
+
+def test_a_single_slice_is_no_heart_ct(tmp_path, capsys):
+    """pydicom-data's CT_small.dcm, a real single CT slice: one line saying why, not a segmentation failure."""
+    import shutil
+
+    from pydicom.data import get_testdata_file
+
+    study = tmp_path / "study"
+    study.mkdir()
+    shutil.copy(get_testdata_file("CT_small.dcm"), study)
+    assert main(["model", str(study), "-o", str(tmp_path / "model"), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the CT spans only 5 mm along its slices (1 x 128 x 128 voxels)" in err[0], err
+    assert not (tmp_path / "model").exists()
