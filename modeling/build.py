@@ -99,6 +99,27 @@ def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, n
         )
 
 
+#: Mask on a face of the volume (mm²) above which the heart counts as cut by the field of view.
+FOV_CUT_MM2 = 100.0
+_SIDES = (("patient's left", "patient's right"), ("posterior", "anterior"), ("superior", "inferior"))
+
+
+def _cut_by_field_of_view(mask, T) -> str:
+    """Where the mask lies on the volume's faces: '' if nowhere (more than FOV_CUT_MM2), else the patient sides."""
+    spacing = np.linalg.norm(T[:3, :3], axis=0)  # i, j, k
+    cuts = []
+    for col in range(3):  # voxel axis i, j, k = array axis 2, 1, 0
+        axis = 2 - col
+        face_mm2 = float(np.prod(np.delete(spacing, col)))
+        for end, sign in ((0, -1.0), (-1, 1.0)):
+            area = float(np.count_nonzero(np.take(mask, end, axis=axis))) * face_mm2
+            if area > FOV_CUT_MM2:
+                outward = sign * T[:3, col] / spacing[col]  # LPS
+                d = int(np.argmax(np.abs(outward)))
+                cuts.append(f"{_SIDES[d][0 if outward[d] > 0 else 1]} side, {area / 100.0:.0f} cm² on the edge")
+    return "; ".join(cuts)
+
+
 def _crop_mask(mask, T, margin_mm: float):
     """The mask's bounding box grown by ``margin_mm`` (+ 2 voxels), as a copy.
 
@@ -231,6 +252,10 @@ def build_heart_model(
             )
     _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path is not None, notes=notes,
                        source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+    cut = _cut_by_field_of_view(mask, T)
+    if cut:
+        fallback(f"the heart is cut by the CT's field of view ({cut}): the model ends flat there and misses what "
+                 "lies beyond; reconstruct a wider field of view if that side matters")
     if trim_vessels is None:
         trim_vessels = mask_path is None
         pool_hu, arterial_hu = seg_params.get("pool_hu"), seg_params.get("blood_hu", [None])[0]

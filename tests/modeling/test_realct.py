@@ -523,3 +523,15 @@ def test_storage_order_does_not_matter(realct):
     flipped = segment_heart(volume.hu[::-1, ::-1, ::-1], T @ flip)
     plain = segment_heart(volume.hu, T)
     assert np.array_equal(flipped.mask[::-1, ::-1, ::-1], plain.mask)  # measured: identical (Dice 1.0)
+
+
+def test_heart_cut_by_the_field_of_view(realct):
+    """The real CT cropped 40 mm on the patient's left: the model is made, with a warning naming the side.
+
+    (The whole CT, the phantoms and their tight field of view leave no mask voxel on the volume's faces.)
+    """
+    volume, _, _ = realct
+    cropped = dataclasses.replace(volume, hu=np.ascontiguousarray(volume.hu[:, :, :95]))
+    with pytest.warns(ModelingWarning, match=r"cut by the CT's field of view \(patient's left side, 3\d cm² on the edge\)"):
+        build = build_heart_model(cropped, cardiac_phase=None, cardiac_phase_source="test", expected_fiducials=None)
+    assert any("field of view" in w for w in build.model.parameters["warnings"])
