@@ -120,6 +120,22 @@ def _cut_by_field_of_view(mask, T) -> str:
     return "; ".join(cuts)
 
 
+def _decimate_or_keep_more(mesh, target_faces: int, fallback):
+    """Decimate to ``target_faces``; where that breaks the surface, to twice as many, and so on (with a warning)."""
+    faces = int(target_faces)
+    while True:
+        try:
+            out = decimate(mesh, faces)
+        except MeshError:
+            if 2 * faces >= len(mesh.faces):
+                raise
+            faces *= 2
+            continue
+        if faces != target_faces:
+            fallback(f"decimation to {target_faces} faces broke the surface; the model keeps {len(out.faces)} faces")
+        return out
+
+
 def _crop_mask(mask, T, margin_mm: float):
     """The mask's bounding box grown by ``margin_mm`` (+ 2 voxels), as a copy.
 
@@ -285,9 +301,9 @@ def build_heart_model(
             release_free_memory()
         except MeshError as exc:
             fallback(f"vessel stub trim skipped, surface kept as segmented: {exc}")
-            mesh = decimate(dense, target_faces)
+            mesh = _decimate_or_keep_more(dense, target_faces, fallback)
         else:
-            mesh = decimate(trim.mesh, target_faces)
+            mesh = _decimate_or_keep_more(trim.mesh, target_faces, fallback)
             if trim.n_removed_faces:
                 notes.append(
                     f"vessel stubs trimmed: {trim.n_removed_faces} of {len(dense.faces)} faces over "

@@ -533,5 +533,10 @@ def test_heart_cut_by_the_field_of_view(realct):
     volume, _, _ = realct
     cropped = dataclasses.replace(volume, hu=np.ascontiguousarray(volume.hu[:, :, :95]))
     with pytest.warns(ModelingWarning, match=r"cut by the CT's field of view \(patient's left side, 3\d cm² on the edge\)"):
-        build = build_heart_model(cropped, cardiac_phase=None, cardiac_phase_source="test", expected_fiducials=None)
-    assert any("field of view" in w for w in build.model.parameters["warnings"])
+        build = build_heart_model(cropped, cardiac_phase=None, cardiac_phase_source="test", expected_fiducials=None,
+                                  target_faces=4000)
+    warned = build.model.parameters["warnings"]
+    assert any("field of view" in w for w in warned)
+    # decimating this cut surface to 4000 faces breaks it (measured): the model keeps twice as many, and says so
+    assert any("decimation to 4000 faces broke the surface; the model keeps" in w for w in warned), warned
+    assert 4000 < build.model.mesh.faces.shape[0] <= 8000
