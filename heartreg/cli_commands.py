@@ -176,10 +176,10 @@ def _open_model_input(args):
     from heartreg.pipeline import open_study
 
     if is_volume_file(args.study_dir):
-        kind = "NIfTI" if is_nifti_path(args.study_dir) else "NRRD"
+        kind, article = ("NIfTI", "a") if is_nifti_path(args.study_dir) else ("NRRD", "an")
         if args.qrs is not None or args.series is not None:
             raise UsageError(f"--qrs and --series apply to DICOM studies, not to the {kind} file {args.study_dir}")
-        return read_volume_file(args.study_dir), None, f"a{'n' * (kind == 'NRRD')} {kind} volume has no slice clock", None
+        return read_volume_file(args.study_dir), None, f"{article} {kind} volume has no slice clock", None
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
         warn=lambda msg: print(msg, file=sys.stderr), phase_required=False,

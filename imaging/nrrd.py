@@ -31,11 +31,13 @@ _TYPES = {
     "uint": "u4", "unsigned int": "u4", "uint32": "u4", "uint32_t": "u4",
     "float": "f4", "double": "f8",
 }
-#: LPS from each anatomical space NRRD names.
+#: LPS from each anatomical space NRRD names (its long name and its short one).
 _SPACES = {
-    "left-posterior-superior": np.eye(4), "lps": np.eye(4),
-    "right-anterior-superior": np.diag([-1.0, -1.0, 1.0, 1.0]), "ras": np.diag([-1.0, -1.0, 1.0, 1.0]),
-    "left-anterior-superior": np.diag([1.0, -1.0, 1.0, 1.0]), "las": np.diag([1.0, -1.0, 1.0, 1.0]),
+    name: flip
+    for names, flip in ((("left-posterior-superior", "lps"), np.eye(4)),
+                        (("right-anterior-superior", "ras"), np.diag([-1.0, -1.0, 1.0, 1.0])),
+                        (("left-anterior-superior", "las"), np.diag([1.0, -1.0, 1.0, 1.0])))
+    for name in names
 }
 
 

@@ -80,13 +80,13 @@ def _panel(hu, T_voxel_from_patient, mesh, title, origin, view, lo, hi) -> CtPan
     from scipy import ndimage
     from trimesh.intersections import mesh_plane
 
-    normal, a_axis, b_axis, letters = (np.asarray(x, dtype=float) if i < 3 else x
-                                       for i, x in enumerate(_VIEWS[view]))
+    *axes, letters = _VIEWS[view]
+    normal, a_axis, b_axis = np.asarray(axes, dtype=float)
     # the heart's box on the plane, with a margin
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    a_range = np.sort([(corners - origin) @ a_axis][0])[[0, -1]] + [-MARGIN_MM, MARGIN_MM]
-    b_range = np.sort([(corners - origin) @ b_axis][0])[[0, -1]] + [-MARGIN_MM, MARGIN_MM]
-    step = max(float(max(np.ptp(a_range), np.ptp(b_range))) / MAX_PIXELS, 0.25)
+    a_range, b_range = ((p.min() - MARGIN_MM, p.max() + MARGIN_MM) for p in ((corners - origin) @ a_axis,
+                                                                             (corners - origin) @ b_axis))
+    step = max(max(a_range[1] - a_range[0], b_range[1] - b_range[0]) / MAX_PIXELS, 0.25)
     a = np.arange(a_range[0], a_range[1] + 1e-9, step)
     b = np.arange(b_range[0], b_range[1] + 1e-9, step)
     A, B = np.meshgrid(a, b)  # rows: b (bottom first), columns: a

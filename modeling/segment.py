@@ -8,8 +8,8 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
 2. *seed*: the contrast blood pool, the largest connected component of
    ``blood_hu`` voxels — vertebrae are cut apart by their discs, the liver and
    muscle stay below it; in a venous phase, whose blood is dimmer, the lower
-   bound steps down to ``blood_floor_hu`` until a chamber is found — or the component at a seed point the user gives in
-   patient mm.  Without contrast (that component holds no ball of
+   bound steps down to ``blood_floor_hu`` until a chamber is found — or the
+   component at a seed point the user gives in patient mm.  Without contrast (that component holds no ball of
    ``min_pool_radius_mm``: it is then the skeleton) the seed is the thickest
    soft tissue inside the convex hull of the lungs, slice by slice, and the
    tissue is limited to that hull and to ``soft_hu`` (bone is not heart);
