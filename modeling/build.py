@@ -275,7 +275,13 @@ def build_heart_model(
     if trim_vessels is None:
         trim_vessels = mask_path is None
         pool_hu, arterial_hu = seg_params.get("pool_hu"), seg_params.get("blood_hu", [None])[0]
-        if trim_vessels and pool_hu is not None and pool_hu < arterial_hu:
+        if trim_vessels and seg_params.get("contrast") is False:
+            trim_vessels = False
+            fallback(
+                "vessel stub trim skipped: the CT has no contrast blood, and the trim finds a vessel's mouth by "
+                "its contrast lumen (--trim-vessels to trim anyway)"
+            )
+        elif trim_vessels and pool_hu is not None and pool_hu < arterial_hu:
             trim_vessels = False
             fallback(
                 f"vessel stub trim skipped: the blood is dim (pool above {pool_hu:.0f} HU, a venous phase), and "
@@ -291,26 +297,24 @@ def build_heart_model(
     # the automatic segmentation has filled its cavities already (segment._fill_holes before its largest
     # component): labelling the box's background again (~0.1 s, an int32 box) would change nothing
     fill_cavities = mask_path is not None
+    # mesh densely, trim the stubs there (the patches get fine faces too), then decimate
+    dense = mask_to_mesh(mask, T_box, target_faces=max(int(target_faces), 400_000), grid_mm=MESH_GRID_MM,
+                         fill_cavities=fill_cavities)
+    release_free_memory()
     if trim_vessels:
-        # trim the dense surface, then decimate: the patches get fine faces too
-        dense = mask_to_mesh(mask, T_box, target_faces=max(int(target_faces), 400_000), grid_mm=MESH_GRID_MM,
-                             fill_cavities=fill_cavities)
-        release_free_memory()
         try:
             trim = trim_vessel_stubs(dense, volume.hu, T)
             release_free_memory()
         except MeshError as exc:
             fallback(f"vessel stub trim skipped, surface kept as segmented: {exc}")
-            mesh = _decimate_or_keep_more(dense, target_faces, fallback)
         else:
-            mesh = _decimate_or_keep_more(trim.mesh, target_faces, fallback)
             if trim.n_removed_faces:
                 notes.append(
                     f"vessel stubs trimmed: {trim.n_removed_faces} of {len(dense.faces)} faces over "
                     f"contrast lumen removed, mouths closed with {trim.n_patch_faces} faces"
                 )
-    else:
-        mesh = mask_to_mesh(mask, T_box, target_faces=target_faces, grid_mm=MESH_GRID_MM, fill_cavities=fill_cavities)
+            dense = trim.mesh
+    mesh = _decimate_or_keep_more(dense, target_faces, fallback)
     done("mesh")
 
     stage("fiducials")
@@ -345,9 +349,13 @@ def build_heart_model(
         long_axis = np.linalg.svd(v, full_matrices=False)[2][0]
         if abs(base_hint @ long_axis) < BASE_HINT_MIN_COSINE:
             base_hint = None
+    base_rule = "great vessels" if base_hint is not None else "usual orientation"
     if base_hint is None:
-        fallback("no contrast vessels leave the heart along its long axis: apex and base told apart "
-                 "by the cross-sections' width")
+        # a real heart's two ends differ too little in width to tell them apart (pyradiomics' lung2 without
+        # contrast: 0.6-1.4 mm of median radius over 140 mm, its sign flipping with the face count)
+        base_hint = -APEX_LAI_LPS
+        fallback("no contrast vessels leave the heart along its long axis: the apex taken at the end towards "
+                 "the patient's left-anterior-inferior, as usual (a mirrored heart, dextrocardia, would be missed)")
     series = volume.series
     source = {
         "series_instance_uid": series.series_instance_uid,
@@ -366,7 +374,7 @@ def build_heart_model(
         "segmentation": seg_params,
         "trim_vessels": bool(trim_vessels),
         "mesh_grid_mm": MESH_GRID_MM,
-        "base_from_great_vessels": base_hint is not None,
+        "base_from_great_vessels": base_rule == "great vessels",
     }
     if cardiac_phase is None:
         fallback(f"cardiac phase unknown ({cardiac_phase_source}); give it to 'heartreg register' with --cardiac-phase")
@@ -388,8 +396,8 @@ def build_heart_model(
             "as usual: check the model (dextrocardia, or a segmentation error)"
         )
     notes.append(
-        "heart frame: base where the great vessels leave" if base_hint is not None
-        else "heart frame: base at the broader end"
+        "heart frame: base where the great vessels leave" if base_rule == "great vessels"
+        else "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)"
     )
     model = dataclasses.replace(
         model, parameters={**dict(model.parameters), "notes": list(notes), "warnings": list(fallbacks)}

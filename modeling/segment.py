@@ -50,7 +50,7 @@ from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step, label_maximum
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
-from modeling.seed import blood_pool, mediastinal_seed, split_solid_organs
+from modeling.seed import blood_pool, mediastinal_seed, part_abdomen, split_solid_organs
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
@@ -126,24 +126,41 @@ def _largest_component(mask) -> np.ndarray:
     return labels == int(np.argmax(sizes))
 
 
-def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm, chamber_radius_mm):
+def _heart_body(body, seed, spacing_kji, heart_radius_mm):
+    """The heart body: the part of ``body`` a ball of ``heart_radius_mm`` fits in, around the seed (None if none)."""
+    heart = opening_mm(body, spacing_kji, heart_radius_mm)
+    labels, n = ndimage.label(heart)
+    if n == 0:
+        return None
+    counts = ndimage.sum_labels(seed, labels, index=np.arange(1, n + 1))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    return labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+
+
+def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm, chamber_radius_mm):
     """Cut the tubes leaving the heart body at their root, whatever their calibre.
 
-    The heart body is what an opening by a ball of ``heart_radius_mm`` keeps
-    (thicker than any great vessel); the rest of ``body`` are its branches and
-    corners.  A branch (connected component of the rest) that reaches farther
-    than ``vessel_length_mm`` from the body holds a vessel.  Walking out from
-    the body in shells :data:`ROOT_SHELL_MM` thick, the branch is still heart
-    (an atrium, the outflow tract: thicker than a vessel) while some voxel of
-    the shell lies deeper than ``chamber_radius_mm`` inside ``body``; the
-    branch is cut at the first thinner shell, never nearer the body than
-    ``root_mm`` and never farther than ``2 * heart_radius_mm`` (an atrium
-    reaches about one body-ball diameter past the ventricles; a liver pressed
-    broadly against the heart has no thin shell).  Without contrast the atria and the great vessels form one
-    branch of soft tissue, and the heart's contact with the liver another
-    (the diaphragm is its narrowest shell); with a fixed cut the atria went
-    with the vessels.  Shorter branches (apex, auricles, the corners of the
-    ventricles) are kept whole.
+    ``heart`` is the heart body (:func:`_heart_body`: thicker than any great
+    vessel); the rest of ``body`` are its branches and corners.  Walking out
+    from the body in shells :data:`ROOT_SHELL_MM` thick, a branch is heart (an
+    atrium, the outflow tract: thicker than a vessel) as far as some voxel of
+    a shell lies deeper than ``chamber_radius_mm`` inside ``body``.  Then:
+
+    - what lies beyond that thick stretch is a vessel when it reaches on for
+      more than ``vessel_length_mm``: cut where the stretch ends, never nearer
+      the body than ``root_mm``;
+    - a branch that ends sooner is kept whole: the apex, the auricles, the
+      corners of the ventricles, and an atrium whose far wall rounds off
+      (without contrast the right atrium is a branch of the soft tissue
+      35-45 mm long, 15-20 mm in inscribed radius, narrowed where it meets
+      the ventricles; cut at its first thin shell, it was lost);
+    - a branch thick for longer than ``2 * heart_radius_mm`` (an atrium
+      reaches about one body-ball diameter past the ventricles) is another
+      organ pressed to the heart (the liver, the descending aorta joined to
+      the left atrium on a 3 mm CT): cut at its first thin shell, its neck.
+
+    Without contrast the atria and the great vessels may form one branch of
+    soft tissue; with a fixed cut the atria went with the vessels.
 
     Returns
     -------
@@ -151,44 +168,45 @@ def _cut_great_vessels(body, seed, spacing_kji, *, heart_radius_mm, vessel_lengt
     note : str
         What was cut, or why nothing could be (the body is returned unchanged).
     """
-    heart = opening_mm(body, spacing_kji, heart_radius_mm)
-    labels, n = ndimage.label(heart)
-    if n == 0:
+    if heart is None:
         return body, (
             f"vessel cut skipped: no part of the heart region is thicker than {2 * heart_radius_mm:.0f} mm; "
             "great vessels may remain"
         )
-    counts = ndimage.sum_labels(seed, labels, index=np.arange(1, n + 1))
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
-    heart = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
     distance = distance_mm(~heart, spacing_kji)
     rest = body & ~heart
     labels, n = ndimage.label(rest)
     if n == 0:
         return body, "vessel cut: no branch leaves the heart body"
-    reach = label_maximum(distance, labels, n)
-    vessels = np.flatnonzero(np.asarray(reach) > vessel_length_mm) + 1
-    if vessels.size == 0:
-        return body, f"vessel cut: no branch reaches farther than {vessel_length_mm:.0f} mm from the heart body"
+    reach = np.asarray(label_maximum(distance, labels, n))
     depth = distance_mm(body, spacing_kji)
     shell = (distance // ROOT_SHELL_MM).astype(np.int64)
     cut = np.zeros_like(body)
-    order = np.argsort(-np.asarray(reach)[vessels - 1])
-    cuts_mm = []
-    for label in vessels[order]:
+    cuts = []  # (reach, cut) of each vessel, in mm
+    for label in np.argsort(-reach) + 1:
+        if reach[label - 1] <= vessel_length_mm:
+            break
         branch = labels == label
-        thickest = np.zeros(int(shell[branch].max()) + 2)
+        thickest = np.zeros(int(shell[branch].max()) + 1)
         np.maximum.at(thickest, shell[branch], depth[branch])
-        thick_mm = float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM
-        root = max(root_mm, min(thick_mm, 2.0 * heart_radius_mm))
+        thick = np.flatnonzero(thickest > chamber_radius_mm)
+        thick_mm = (thick[-1] + 1 if thick.size else 0) * ROOT_SHELL_MM
+        if thick_mm > 2.0 * heart_radius_mm:  # thick for longer than an atrium: an organ pressed to the heart
+            thick_mm = float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM
+        elif reach[label - 1] - thick_mm <= vessel_length_mm:
+            continue
+        root = max(root_mm, thick_mm)
         cut |= branch & (distance > root)
-        cuts_mm.append(root)
+        cuts.append((float(reach[label - 1]), root))
+    if not cuts:
+        return body, (f"vessel cut: no branch reaches farther than {vessel_length_mm:.0f} mm from the heart body "
+                      f"beyond where it is thicker than {chamber_radius_mm:.0f} mm in radius")
     kept = _largest_component(body & ~cut)
     removed_ml = float((body & ~kept).sum() * np.prod(spacing_kji) / 1000.0)
     return kept, (
-        f"great vessels cut at their root: {vessels.size} branch(es) reaching "
-        f"{', '.join(f'{r:.0f}' for r in np.asarray(reach)[vessels - 1][order])} mm from the "
-        f"heart body, cut {', '.join(f'{c:.0f}' for c in cuts_mm)} mm from it where thinner than "
+        f"great vessels cut at their root: {len(cuts)} branch(es) reaching "
+        f"{', '.join(f'{r:.0f}' for r, _ in cuts)} mm from the heart body, cut "
+        f"{', '.join(f'{c:.0f}' for _, c in cuts)} mm from it where thinner than "
         f"{chamber_radius_mm:.0f} mm in radius ({removed_ml:.0f} ml removed)"
     )
 
@@ -241,8 +259,10 @@ def segment_heart(
         vessel (the ascending aorta's lumen is 11-15 mm in radius, the heart's
         tissue 40-50 mm): what it cannot reach is a branch of the body.
     vessel_length_mm : float
-        A branch reaching farther than this from the heart body is a vessel
-        leaving the heart (corners such as the apex or an auricle stay closer).
+        A branch reaching farther than this from the heart body beyond its
+        last part thicker than ``chamber_radius_mm`` is a vessel leaving the
+        heart (corners such as the apex or an auricle, and an atrium's far
+        wall, end sooner).
     vessel_root_mm : float
         Vessels are cut this far from the heart body (at their root); their
         contrast lumen is traced to the valves apart (``trace_vessels``), so
@@ -388,8 +408,13 @@ def segment_heart(
     counts = ndimage.sum_labels(seed_mask[box], labels, index=np.arange(1, n + 1))
     sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
     core = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+    heart_body = _heart_body(core, seed_mask[box], cspacing, heart_radius_mm)
+    if not contrast and heart_body is not None:
+        core, split_note = part_abdomen(core, heart_body, coarse[box], cspacing, T[2, 2::-1] * step)
+        if split_note:
+            notes.append(split_note)
     core, cut_note = _cut_great_vessels(
-        core, seed_mask[box], cspacing, heart_radius_mm=heart_radius_mm,
+        core, heart_body, cspacing, heart_radius_mm=heart_radius_mm,
         vessel_length_mm=vessel_length_mm, root_mm=vessel_root_mm, chamber_radius_mm=chamber_radius_mm,
     )
     notes.append(cut_note)

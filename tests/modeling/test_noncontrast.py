@@ -20,6 +20,9 @@ from imaging.volume_file import read_nifti_volume
 from modeling.build import ModelingWarning, build_heart_model
 from modeling.segment import segment_heart
 from modeling.vessels import APEX_LAI_LPS
+from hrcore.geometry import apply_to_points
+from tests.data.fetch_chest_cts import paths as chest_cts
+from tests.modeling.realct import mesh_to_mask
 
 nrrd = pytest.importorskip("nrrd")
 slicerio = pytest.importorskip("slicerio")
@@ -68,17 +71,21 @@ def test_no_contrast_seeds_between_the_lungs(chest4):
 def test_heart_volume_and_apex(chest4):
     """Issue 9: an adult heart's volume, the apex towards patient left-anterior-inferior.
 
-    Measured 447 ml, apex . LAI 0.98.  The soft tissue between the lungs holds the heart, the liver's dome
-    beneath the diaphragm and the great vessels above it: two long branches of the heart body.  Cut 10 mm from
-    the body (as before), the atria went with the vessels (362 ml, the lower ventricles, apex to the right);
-    now each branch is followed while thicker than a chamber (17 mm radius): the upper one to 25 mm (the
-    atria), the liver's to 10 mm (the diaphragm is its narrowest shell).
+    Measured 474 ml, apex . LAI 0.98.  The soft tissue between the lungs holds the heart, the liver's dome
+    beneath the diaphragm and the great vessels above it.  The liver is parted first (328 ml: tissue below the
+    heart body and farther than 30 mm from it, flooded up to the diaphragm's dimmest layer); the vessels are then
+    one branch, thick for 25 mm (the atria), cut there.  Before the liver was parted it was a second branch, cut
+    10 mm from the body (447 ml); cut 10 mm from the body both, the atria went with the vessels (362 ml, the
+    lower ventricles, apex to the right).
     """
-    _, seg, build, _ = chest4
+    _, seg, build, caught = chest4
     assert 400.0 <= seg.volume_ml <= 1100.0  # issue 9: an adult heart with the 10 mm slices' partial volume
-    assert "cut 10, 25 mm from it" in " ".join(seg.notes)
+    notes = " ".join(seg.notes)
+    assert "soft tissue below the heart parted from it" in notes and "cut 25 mm from it" in notes
     apex = -build.model.frame.axes_patient[:, 2]
     assert apex @ APEX_LAI_LPS > 0.7
+    # no contrast lumen to trim stubs over (it trimmed the calcified rings and bone it took for lumen)
+    assert any("vessel stub trim skipped: the CT has no contrast blood" in w for w in caught)
 
 
 def test_the_nrrd_file_as_it_is(chest4, tmp_path, capsys):
@@ -100,3 +107,47 @@ def test_the_nrrd_file_as_it_is(chest4, tmp_path, capsys):
     assert main(["model", str(CTCHEST4), "-o", str(tmp_path / "m2"), "-q", "--qrs", "r.csv"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--qrs and --series apply to DICOM studies, not to the NRRD file" in err[0]
+
+
+# ---- pyradiomics' lung2: a full-field chest CT without contrast, 5 mm slices (tests/data/fetch_chest_cts.py)
+
+LUNG2 = chest_cts()["lung2_image.nrrd"]
+#: Points read off the CT by eye (LPS mm): the middle of the right atrium and of the left ventricle on the same
+#: slice, and the liver's dome 65 mm lower, under the right lung.
+LUNG2_RIGHT_ATRIUM = (-35.7, -196.0, -235.0)
+LUNG2_LEFT_VENTRICLE = (36.4, -205.4, -235.0)
+LUNG2_LIVER = (-60.8, -199.1, -300.0)
+
+
+@pytest.mark.skipif(not LUNG2.is_file(), reason="pyradiomics' lung2_image.nrrd was not fetched (offline)")
+def test_full_chest_without_contrast(tmp_path):
+    """The whole chest and the liver, no contrast: the heart with its right atrium, without the liver.
+
+    Before (measured): 379 ml, no right atrium, apex along patient right-anterior (warned): the liver's dome,
+    joined to the heart across the diaphragm, and the right atrium formed one branch of the heart body, cut
+    10 mm from it.  Now the liver is parted at the diaphragm (391 ml) and the right atrium, a branch that rounds
+    off 15 mm past its thick part, is kept: 486 ml, apex towards left-anterior-inferior.
+    """
+    from imaging.volume_file import read_volume_file
+    from modeling.mesh import check_mesh
+
+    volume = read_volume_file(LUNG2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        build = build_heart_model(volume, cardiac_phase=None, cardiac_phase_source="an NRRD volume has no slice clock",
+                                  expected_fiducials="auto", target_faces=8000)
+    messages = [str(w.message) for w in caught if issubclass(w.category, ModelingWarning)]
+    notes = " ".join(build.notes)
+    assert "no contrast blood pool" in notes and "soft tissue below the heart parted from it" in notes
+    mesh = build.model.mesh_patient()
+    volume_ml = check_mesh(mesh).volume_mm3 / 1000.0
+    assert 400.0 <= volume_ml <= 1100.0, volume_ml
+    T = volume.T_patient_from_voxel
+    solid = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)
+    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), [LUNG2_RIGHT_ATRIUM, LUNG2_LEFT_VENTRICLE, LUNG2_LIVER])).astype(int).T
+    inside = solid[k, j, i]
+    assert inside.tolist() == [True, True, False]
+    apex = -build.model.frame.axes_patient[:, 2]
+    assert apex @ APEX_LAI_LPS > 0.7, apex
+    assert not any("not towards patient left-anterior-inferior" in m for m in messages)
+

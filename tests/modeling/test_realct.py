@@ -134,6 +134,15 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   cubed radii) with ``widen_ratio`` 1.1 traces nothing more here; 1.2
   floods 50 ml of chamber, 1.3 150 ml (the pulmonary branches taper, the
   trunk is 1.1-1.3 times wider than the lobe feeding it);
+- the branch rule (session 9): a branch of the heart body is now cut where
+  its thick (atrial) stretch ends, not at its first thin shell, and kept
+  whole when it rounds off within 25 mm of that stretch (a right atrium
+  without contrast).  Here the one cut branch (the right atrium's roof and
+  the superior vena cava: 16.8 / 17.3 / 17.9 mm thick in its first three
+  shells) is cut 15 mm from the body instead of 10: the model's mesh
+  0.879 / 3.3 / 10.6 -> 0.884 / 3.2 / 9.6 against the reference, ``ref &
+  ~pa`` 0.892 / 2.76 / 7.5 -> 0.889 / 2.73 / 7.5, the frame 1.2 -> 2.1 deg
+  from the mask model's;
 - the frame (session seg9, round 2): with every accepted slab ellipse on the
   long axis, the automatic and the mask model were 11.0 deg apart, the
   reference with and without its pulmonary artery 9.9 deg; the mask model's
@@ -242,7 +251,7 @@ def test_model_with_no_options(realct, auto_model):
         assert any(message in w for w in caught), message
         assert any(message in w for w in payload["parameters"]["warnings"]), message
     model, m = _metrics(out, volume, reference)
-    # Measured 0.879 / 3.3 mm / 10.6 mm: bounds a few % looser than measured
+    # Measured 0.884 / 3.2 mm / 9.6 mm (0.879 / 3.3 / 10.6 before the branch rule of session 9): bounds a few % looser
     # (see the module docstring for what the reference includes; the issue's
     # targets are in test_issue_targets).
     assert m["dice"] >= 0.86 and m["msd_mm"] <= 3.7 and m["p95_mm"] <= 12.5, m
@@ -285,9 +294,9 @@ def test_frame_from_mesh_and_mask_agree(auto_model, mask_model):
     assert _angle_deg(a[:, 0], g[:, 0], signed=True) <= 10.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 9's surface targets are not reached yet (measured Dice 0.879, MSD "
-                   "3.3 mm, p95 10.6 mm); see the module docstring for why part of the gap is the reference "
-                   "(against it less its pulmonary artery: Dice 0.892, MSD 2.8 mm, p95 7.5 mm); its p95 cannot be met with "
+@pytest.mark.xfail(strict=True, reason="issue 9's surface targets are not reached yet (measured Dice 0.884, MSD "
+                   "3.2 mm, p95 9.6 mm); see the module docstring for why part of the gap is the reference "
+                   "(against it less its pulmonary artery: Dice 0.889, MSD 2.7 mm, p95 7.5 mm); its p95 cannot be met with "
                    "the pulmonary artery cut at its valve (the reference less its own pulmonary artery: p95 19.5 mm)")
 def test_issue_targets(realct, auto_model):
     volume, _, reference = realct
@@ -301,7 +310,8 @@ def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model):
     T = volume.T_patient_from_voxel
     artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
     _, m = _metrics(auto_model[2], volume, reference & ~artery)
-    # measured 0.892 / 2.76 mm / 7.5 mm (before the vessels were traced to their valves: 0.884 / 3.21 / 9.2);
+    # measured 0.889 / 2.73 mm / 7.5 mm (0.892 / 2.76 / 7.5 with the branch cut at its first thin shell; before the
+    # vessels were traced to their valves: 0.884 / 3.21 / 9.2);
     # the rest is mostly the atrial roofs and the thin walls (module docstring)
     assert m["dice"] >= 0.885 and m["msd_mm"] <= 2.9 and m["p95_mm"] <= 8.5, m
 
@@ -393,8 +403,8 @@ def test_venous_phase(realct):
     it: the vessel tracer took the left atrium, cut by the field of view's edge with a 20 mm lumen, for a
     vessel (Dice 0.806; vessels now start at most 17 mm wide), and the stub trim took the chambers' dim blood
     under thin walls for vessel lumen (Dice 0.795 with both; now skipped with a warning at weak contrast).
-    Measured 0.879 / 3.1 mm / 10.5 mm (segmentation) and 0.879 / 3.3 / 10.8 (the model's mesh) against the
-    reference (the arterial CT: 0.879 / 3.2 / 10.1 and 0.879 / 3.3 / 10.6).
+    Measured 0.884 / 3.0 mm / 9.1 mm (segmentation) and 0.884 / 3.1 / 9.6 (the model's mesh) against the
+    reference (the arterial CT: 0.884 / 3.0 / 9.0 and 0.884 / 3.2 / 9.6).
     """
     volume, _, reference = realct
     hu = volume.hu.astype(np.float32)
@@ -424,7 +434,8 @@ def test_thick_voxels(realct):
     At 3 mm the diaphragm and the fat over it blur into the tissue range and the liver joins the heart over a
     broad front (before: 1145 ml, Dice 0.699, p95 51 mm).  The liver is tissue thicker than any heart wall and
     far from blood: parted at the diaphragm (measured 791 ml, Dice 0.868, MSD 3.3 mm, p95 11.3 mm; the 1.5 mm
-    CT: 0.879 / 3.2 / 10.1).
+    CT: 0.884 / 3.0 / 9.0).  The descending aorta (its lumen a stent graft) joins the left atrium here into a
+    branch thick for 45 mm: longer than an atrium, it is cut at its first thin shell.
     """
     volume, _, reference = realct
     n = np.array(volume.shape) // 2 * 2
