@@ -157,7 +157,9 @@ def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_leng
     - a branch thick for longer than ``2 * heart_radius_mm`` (an atrium
       reaches about one body-ball diameter past the ventricles) is another
       organ pressed to the heart (the liver, the descending aorta joined to
-      the left atrium on a 3 mm CT): cut at its first thin shell, its neck.
+      the left atrium on a 3 mm CT): cut at its first thin shell, its neck,
+      or ``2 * heart_radius_mm`` out where it has none (a liver pressed
+      broadly against the heart).
 
     Without contrast the atria and the great vessels may form one branch of
     soft tissue; with a fixed cut the atria went with the vessels.
@@ -187,12 +189,12 @@ def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_leng
         if reach[label - 1] <= vessel_length_mm:
             break
         branch = labels == label
-        thickest = np.zeros(int(shell[branch].max()) + 1)
+        thickest = np.zeros(int(shell[branch].max()) + 2)  # the last shell is empty: thin
         np.maximum.at(thickest, shell[branch], depth[branch])
         thick = np.flatnonzero(thickest > chamber_radius_mm)
         thick_mm = (thick[-1] + 1 if thick.size else 0) * ROOT_SHELL_MM
         if thick_mm > 2.0 * heart_radius_mm:  # thick for longer than an atrium: an organ pressed to the heart
-            thick_mm = float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM
+            thick_mm = min(float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM, 2.0 * heart_radius_mm)
         elif reach[label - 1] - thick_mm <= vessel_length_mm:
             continue
         root = max(root_mm, thick_mm)
