@@ -120,6 +120,11 @@ def _cut_by_field_of_view(mask, T) -> str:
     return "; ".join(cuts)
 
 
+def _along(hint, long_axis) -> bool:
+    """Whether a direction towards the base lies along the long axis enough to sign it (BASE_HINT_MIN_COSINE)."""
+    return hint is not None and abs(float(hint @ long_axis)) >= BASE_HINT_MIN_COSINE
+
+
 def _decimate_or_keep_more(mesh, target_faces: int, fallback):
     """Decimate to ``target_faces``; where that breaks the surface, to twice as many, and so on (with a warning)."""
     faces = int(target_faces)
@@ -344,18 +349,20 @@ def build_heart_model(
     stage("frame")
     base_hint = base_direction(mask, volume.hu[box], T_box)
     del mask
-    if base_hint is not None:
-        v = mesh.vertices - mesh.vertices.mean(axis=0)
-        long_axis = np.linalg.svd(v, full_matrices=False)[2][0]
-        if abs(base_hint @ long_axis) < BASE_HINT_MIN_COSINE:
-            base_hint = None
-    base_rule = "great vessels" if base_hint is not None else "usual orientation"
-    if base_hint is None:
+    v = mesh.vertices - mesh.vertices.mean(axis=0)
+    long_axis = np.linalg.svd(v, full_matrices=False)[2][0]
+    base_rule = "great vessels" if _along(base_hint, long_axis) else "usual orientation"
+    if base_rule == "usual orientation":
         # a real heart's two ends differ too little in width to tell them apart (pyradiomics' lung2 without
         # contrast: 0.6-1.4 mm of median radius over 140 mm, its sign flipping with the face count)
         base_hint = -APEX_LAI_LPS
-        fallback("no contrast vessels leave the heart along its long axis: the apex taken at the end towards "
-                 "the patient's left-anterior-inferior, as usual (a mirrored heart, dextrocardia, would be missed)")
+        if _along(base_hint, long_axis):
+            fallback("no contrast vessels leave the heart along its long axis: the apex taken at the end towards "
+                     "the patient's left-anterior-inferior, as usual (a mirrored heart, dextrocardia, would be missed)")
+        else:
+            base_rule, base_hint = "cross-section", None
+            fallback("no contrast vessels leave the heart along its long axis, and the long axis lies across the "
+                     "usual apex direction: apex and base told apart by the cross-sections' width")
     series = volume.series
     source = {
         "series_instance_uid": series.series_instance_uid,
@@ -396,8 +403,9 @@ def build_heart_model(
             "as usual: check the model (dextrocardia, or a segmentation error)"
         )
     notes.append(
-        "heart frame: base where the great vessels leave" if base_rule == "great vessels"
-        else "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)"
+        {"great vessels": "heart frame: base where the great vessels leave",
+         "usual orientation": "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)",
+         "cross-section": "heart frame: base at the broader end"}[base_rule]
     )
     model = dataclasses.replace(
         model, parameters={**dict(model.parameters), "notes": list(notes), "warnings": list(fallbacks)}

@@ -49,7 +49,10 @@ class ModelOptions(OptionsRecord):
     trim_vessels : bool, optional
         Remove the great-vessel stubs over the vessels' mouths and close the
         surface (``--trim-vessels`` / ``--keep-vessels``); default: for the
-        automatic segmentation only (an external mask is trusted as given).
+        automatic segmentation of a CT with arterial contrast only (an external
+        mask is trusted as given; without contrast, or with the dim blood of a
+        venous phase, the trim cannot tell a vessel's lumen, and is skipped
+        with a warning).
     min_heart_ml : float, ml
         A mask smaller than this is refused: it is not a heart.
     """

@@ -1,4 +1,4 @@
-"""Automatic whole-heart (epicardial) segmentation of contrast cardiac CT.
+"""Automatic whole-heart (epicardial) segmentation of a chest CT, with contrast or without.
 
 Classical tools only (scipy.ndimage, scikit-image), in six steps:
 
@@ -11,8 +11,9 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    bound steps down to ``blood_floor_hu`` until a chamber is found — or the
    component at a seed point the user gives in patient mm.  Without contrast (that component holds no ball of
    ``min_pool_radius_mm``: it is then the skeleton) the seed is the thickest
-   soft tissue inside the convex hull of the lungs, slice by slice, and the
-   tissue is limited to that hull and to ``soft_hu`` (bone is not heart);
+   soft tissue inside the convex hull of the lungs, slice by slice (or the
+   point given), and the tissue is limited to that hull and to ``soft_hu``
+   (bone is not heart);
 3. *heart region*: the tissue component touching the seed; with contrast,
    less the solid organs it touches (tissue too thick and too far from blood
    to be a heart wall: the liver through a thick slice's blurred diaphragm),
@@ -22,13 +23,16 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    removes thin bridges to the liver or chest wall and thin vessels;
 5. *cut the great vessels at their root*, whatever their calibre: a second
    opening by ``heart_radius_mm`` (larger than any vessel's radius, smaller than
-   the heart's) gives the heart body; of what it leaves out, branches reaching
-   farther than ``vessel_length_mm`` from the body are tubes leaving the heart
-   (ascending aorta, pulmonary trunk, venae cavae; without contrast also the
-   atria with them, and the liver under the diaphragm), followed out from the
-   body while thicker than ``chamber_radius_mm`` and cut where they get
-   thinner, at least ``vessel_root_mm`` from the body; shorter ones (apex,
-   auricles) are kept.
+   the heart's) gives the heart body.  Without contrast, the soft tissue below
+   the body and far from it (the liver under the diaphragm) is parted first
+   at its dimmest layer (:func:`modeling.seed.part_abdomen`).  Of what the
+   body leaves out, each branch is followed out while thicker than
+   ``chamber_radius_mm`` (an atrium, the outflow tract); what reaches on
+   beyond for more than ``vessel_length_mm`` is a tube leaving the heart
+   (ascending aorta, pulmonary trunk, venae cavae; without contrast the atria
+   and the vessels are one soft tissue), cut there, at least
+   ``vessel_root_mm`` from the body; branches that end sooner (apex,
+   auricles, an atrium's rounded wall) are kept.
    The full-resolution tissue mask within ``margin_mm`` of the result is the
    heart, holes filled;
 6. *remove the great vessels' lumen down to their valves* (contrast CT only):
@@ -137,6 +141,24 @@ def _heart_body(body, seed, spacing_kji, heart_radius_mm):
     return labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
 
 
+def _thick_stretch(thick, start_mm) -> int:
+    """Shells (from the heart body out) of a branch's thick stretch: the first run of thick shells.
+
+    The run must start within ``start_mm`` of the body (an atrium is deepest
+    about its radius past where it meets the ventricles, and narrower there)
+    and may hold single thin shells (a 5 mm dip of the inscribed radius); it
+    ends at two thin shells in a row.  0 when no thick shell starts near the
+    body: a thick lobe beyond a longer thin neck is no atrium.
+    """
+    first = np.flatnonzero(thick)
+    if first.size == 0 or first[0] * ROOT_SHELL_MM > start_mm:
+        return 0
+    end = int(first[0])
+    while end + 1 < thick.size and (thick[end + 1] or (end + 2 < thick.size and thick[end + 2])):
+        end += 1 if thick[end + 1] else 2
+    return end + 1
+
+
 def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_length_mm, root_mm, chamber_radius_mm):
     """Cut the tubes leaving the heart body at their root, whatever their calibre.
 
@@ -144,7 +166,9 @@ def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_leng
     vessel); the rest of ``body`` are its branches and corners.  Walking out
     from the body in shells :data:`ROOT_SHELL_MM` thick, a branch is heart (an
     atrium, the outflow tract: thicker than a vessel) as far as some voxel of
-    a shell lies deeper than ``chamber_radius_mm`` inside ``body``.  Then:
+    a shell lies deeper than ``chamber_radius_mm`` inside ``body``
+    (:func:`_thick_stretch`: a stretch starting within ``heart_radius_mm`` of
+    the body, single thin shells bridged).  Then:
 
     - what lies beyond that thick stretch is a vessel when it reaches on for
       more than ``vessel_length_mm``: cut where the stretch ends, never nearer
@@ -191,8 +215,7 @@ def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_leng
         branch = labels == label
         thickest = np.zeros(int(shell[branch].max()) + 2)  # the last shell is empty: thin
         np.maximum.at(thickest, shell[branch], depth[branch])
-        thick = np.flatnonzero(thickest > chamber_radius_mm)
-        thick_mm = (thick[-1] + 1 if thick.size else 0) * ROOT_SHELL_MM
+        thick_mm = _thick_stretch(thickest > chamber_radius_mm, heart_radius_mm) * ROOT_SHELL_MM
         if thick_mm > 2.0 * heart_radius_mm:  # thick for longer than an atrium: an organ pressed to the heart
             thick_mm = min(float(np.argmax(thickest <= chamber_radius_mm)) * ROOT_SHELL_MM, 2.0 * heart_radius_mm)
         elif reach[label - 1] - thick_mm <= vessel_length_mm:
@@ -266,14 +289,14 @@ def segment_heart(
         heart (corners such as the apex or an auricle, and an atrium's far
         wall, end sooner).
     vessel_root_mm : float
-        Vessels are cut this far from the heart body (at their root); their
-        contrast lumen is traced to the valves apart (``trace_vessels``), so
-        this tissue-level cut keeps off the atrial roofs and the outflow tract.
+        Vessels are cut at least this far from the heart body (at their root);
+        their contrast lumen is traced to the valves apart (``trace_vessels``),
+        so this tissue-level cut keeps off the atrial roofs and the outflow tract.
     chamber_radius_mm : float
         A branch of the heart body is followed out while it is thicker than
         this (an atrium, 18-25 mm in inscribed radius; a great vessel with its
-        wall, at most ~16 mm) and cut where it gets thinner, at the earliest
-        ``vessel_root_mm`` from the body.
+        wall, at most ~16 mm); a vessel beyond is cut where that thick stretch
+        ends (see ``_cut_great_vessels``).
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
@@ -371,14 +394,20 @@ def segment_heart(
         kji = np.floor(ijk[::-1] / step + 0.5 / step).astype(int)
         if np.any(kji < 0) or np.any(kji >= np.array(coarse.shape)):
             raise SegmentationError(f"seed point {seed_mm.tolist()} mm lies outside the volume")
+        contrast = pool is not None
+        if not contrast:  # as unseeded: tissue above soft_hu[1] is bone, and the heart lies between the lungs
+            between = mediastinum()
+            tissue &= coarse < soft_hu[1]
+            if between is not None:
+                tissue &= ndimage.binary_dilation(between, iterations=1)
         if not tissue[tuple(kji)]:
             raise SegmentationError(
-                f"seed point {seed_mm.tolist()} mm is not in heart tissue "
-                f"({coarse[tuple(kji)]:.0f} HU outside {hu_low:.0f}..{hu_high:.0f})"
+                f"seed point {seed_mm.tolist()} mm is not in heart tissue ({coarse[tuple(kji)]:.0f} HU outside "
+                f"{hu_low:.0f}..{hu_high if contrast else soft_hu[1]:.0f})"
             )
         seed_mask = np.zeros(coarse.shape, bool)
         seed_mask[tuple(kji)] = True
-        notes.append("seed: given point")
+        notes.append("seed: given point" + ("" if contrast else " (no contrast blood pool in the CT)"))
 
     # ---- heart region: tissue connected to the seed
     labels, _ = ndimage.label(tissue)

@@ -269,30 +269,28 @@ def _interpolate_slices(solid, spacing_ji, factor: int) -> np.ndarray:
     (Raya and Udupa 1990): an outline moves smoothly from one slice to the
     next instead of stepping halfway between them.  Thin slice ``r`` of slice
     ``k`` lies at ``k + (r + 0.5) / factor - 0.5``, inside the thick voxel.
-    An empty slice beside a filled one takes minus the absolute value of the
-    filled one's distances, so that the mask ends at the filled voxels' face
-    as it did.
+    Towards an empty slice a filled one keeps its outline up to its voxels'
+    face (as if the empty one held minus its distances), as the voxels did;
+    an empty slice stays empty.
     """
     import edt
 
     n = solid.shape[0]
-    signed = np.empty(solid.shape, np.float32)
+    signed = np.zeros(solid.shape, np.float32)
     filled = solid.any(axis=(1, 2))
     for k in np.flatnonzero(filled):
         s = solid[k].view(np.uint8)
         signed[k] = edt.edt(s, anisotropy=tuple(spacing_ji), black_border=False)
         signed[k] -= edt.edt(1 - s, anisotropy=tuple(spacing_ji), black_border=False)
-    for k in np.flatnonzero(~filled):
-        near = [m for m in (k - 1, k + 1) if 0 <= m < n and filled[m]]
-        far = float(np.hypot(*(np.array(solid.shape[1:]) * spacing_ji)))  # beyond any distance in a slice
-        signed[k] = -np.abs(signed[near[0]]) if near else -far
-    out = np.empty((n * factor,) + solid.shape[1:], bool)
+    out = np.zeros((n * factor,) + solid.shape[1:], bool)
     for kk in range(out.shape[0]):
         k, r = divmod(kk, factor)
         t = (r + 0.5) / factor - 0.5  # offset from slice k, in slices
         other = min(max(k + (1 if t > 0 else -1), 0), n - 1)
-        w = abs(t)
-        out[kk] = (1.0 - w) * signed[k] + w * signed[other] > 0.0
+        if not filled[k]:
+            continue  # an empty slice's thin slices stay empty: its filled neighbour ends at their face
+        near = signed[other] if filled[other] else -np.abs(signed[k])
+        out[kk] = (1.0 - abs(t)) * signed[k] + abs(t) * near > 0.0
     return out
 
 

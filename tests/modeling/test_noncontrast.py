@@ -186,3 +186,22 @@ def test_ventricles_without_contrast(lung1):
 def test_heart_base_divided_by_fat(lung1):
     seg, (k, j, i) = lung1
     assert seg.volume_ml >= 250.0 and seg.mask[k[0], j[0], i[0]], seg.volume_ml
+
+
+@pytest.mark.skipif(not LUNG2.is_file(), reason="pyradiomics' lung2_image.nrrd was not fetched (offline)")
+def test_seeded_without_contrast():
+    """``--seed`` in a CT without contrast takes the same path as the automatic seed (measured: the same 488 ml).
+
+    Before, a given seed left the segmentation in its contrast path: no liver parted, tissue up to 1500 HU,
+    no restriction to the space between the lungs (2048 ml, the liver's dome inside).
+    """
+    from imaging.volume_file import read_volume_file
+
+    volume = read_volume_file(LUNG2)
+    T = volume.T_patient_from_voxel
+    seeded = segment_heart(volume.hu, T, seed_patient_mm=LUNG2_LEFT_VENTRICLE)
+    assert seeded.parameters["contrast"] is False
+    assert "soft tissue below the heart parted from it" in " ".join(seeded.notes)
+    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), [LUNG2_RIGHT_ATRIUM, LUNG2_LIVER])).astype(int).T
+    assert seeded.mask[k, j, i].tolist() == [True, False]
+    assert 400.0 <= seeded.volume_ml <= 1100.0

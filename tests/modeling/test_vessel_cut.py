@@ -64,3 +64,32 @@ def test_an_organ_pressed_to_the_heart_is_cut_at_its_neck():
     body = ventricle | neck | organ
     kept, note = _cut(body)
     assert np.all(kept[ventricle]) and kept[organ].mean() < 0.005, note
+
+
+def test_a_lobe_beyond_a_vessel_goes_with_it():
+    """Atrium, then a thin tube for 40 mm, then a ball as thick as a chamber: the atrium's stretch ends at the tube.
+
+    Counting the stretch to its last thick shell (the ball) kept the tube and the ball whole.
+    """
+    p = _grid()
+    ventricle = _ball(p, (0, 0, 0), 38)
+    atrium = _ball(p, (-50, 0, 0), 18.5)
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    tube = ((x + 50) ** 2 + y**2 <= 9.0**2) & (z >= 0) & (z <= 70)
+    lobe = _ball(p, (-50, 0, 80), 19.0)
+    body = ventricle | atrium | tube | lobe
+    kept, note = _cut(body)
+    assert not kept[lobe].any() and not kept[tube & (z > 35)].any(), note
+    assert np.all(kept[atrium & (x >= -40)]), note
+
+
+def test_an_organ_pressed_broadly_is_cut_two_heart_radii_out():
+    """A thick slab against the ventricle with no neck: thick all the way, cut 2 x 20 mm from the heart body."""
+    p = _grid()
+    ventricle = _ball(p, (0, 0, 0), 38)
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    organ = (np.abs(x) <= 100) & (np.abs(y) <= 40) & (z <= -20) & (z >= -56)  # 36 mm: no 20 mm ball fits
+    body = ventricle | organ
+    kept, note = _cut(body)
+    assert "cut 40 mm from it" in note, note
+    assert np.all(kept[ventricle]) and not kept[organ & (np.abs(x) > 90)].any(), note
