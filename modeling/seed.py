@@ -165,7 +165,7 @@ def part_abdomen(body, heart, hu, cspacing, up_kji):
                   f"diaphragm; farther than {SOLID_FAR_MM:.0f} mm below the heart body: liver)")
 
 
-def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
+def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu, height_axis: int = 0):
     """Seed of a CT without contrast: the thickest soft tissue lying between the lungs.
 
     Lungs are the air components larger than 100 ml enclosed in the body
@@ -177,6 +177,9 @@ def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
     vessels, oesophagus and chest wall are thinner; the liver lies below the
     lungs).
 
+    ``height_axis`` is the array axis along the patient's height (0 for a CT
+    stored as axial slices): the hull is taken in the planes across it.
+
     Returns
     -------
     (seed, between) : bool arrays like ``coarse`` (the seed: one voxel), or
@@ -186,7 +189,7 @@ def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
 
     air = coarse < lung_hu
     labels, n = ndimage.label(air)
-    sides = np.unique(np.concatenate([labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
+    sides = np.unique(np.concatenate([np.take(labels, [0, -1], axis=a).ravel() for a in range(3) if a != height_axis]))
     sizes = ndimage.sum_labels(air, labels, index=np.arange(1, n + 1)) * np.prod(cspacing) / 1000.0
     is_lung = np.zeros(n + 1, bool)
     is_lung[1:] = sizes > 100.0
@@ -198,8 +201,10 @@ def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu):
     is_lung &= ~outside
     lung = is_lung[labels]
     between = np.zeros_like(lung)
-    for k in np.flatnonzero(lung.any(axis=(1, 2))):
-        between[k] = convex_hull_image(lung[k])
+    # axial slices: along the array axis that runs along the patient's height
+    lung_axial, between_axial = np.moveaxis(lung, height_axis, 0), np.moveaxis(between, height_axis, 0)
+    for k in np.flatnonzero(lung_axial.any(axis=(1, 2))):
+        between_axial[k] = convex_hull_image(lung_axial[k])
     between &= ~lung
     candidate = between & (coarse > soft_hu[0]) & (coarse < soft_hu[1])
     if not candidate.any():

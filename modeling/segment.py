@@ -358,7 +358,9 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
-    seed_between = functools.cache(lambda: mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu))
+    height_axis = 2 - int(np.argmax(np.abs(T[2, :3]) / _spacing(T)))  # array axis along the patient's height
+    seed_between = functools.cache(lambda: mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu,
+                                                            height_axis=height_axis))
 
     def mediastinum():
         found = seed_between()

@@ -133,6 +133,15 @@ def mask_to_mesh(
     if sigma_vox < 0:
         raise ValueError(f"sigma_vox must be >= 0, got {sigma_vox}")
 
+    # thin slices are added along the array's first axis: a mask stored with its thick axis elsewhere is
+    # meshed transposed (the vertices are patient mm either way; the winding follows det(T))
+    thick_axis = 2 - int(np.argmax(np.linalg.norm(T[:3, :3], axis=0)))
+    if thick_axis != 0:
+        order = [thick_axis] + [a for a in range(3) if a != thick_axis]
+        mask = mask.transpose(order)
+        T = T.copy()
+        T[:3, :3] = T[:3, [2 - a for a in order[::-1]]]
+
     steps = _Steps(progress, 7)
     idx = np.nonzero(mask.any(axis=(1, 2)))[0]
     if idx.size == 0:

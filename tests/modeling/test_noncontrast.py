@@ -205,3 +205,17 @@ def test_seeded_without_contrast():
     i, j, k = np.rint(apply_to_points(np.linalg.inv(T), [LUNG2_RIGHT_ATRIUM, LUNG2_LIVER])).astype(int).T
     assert seeded.mask[k, j, i].tolist() == [True, False]
     assert 400.0 <= seeded.volume_ml <= 1100.0
+
+
+def test_stored_with_the_slices_along_another_axis(chest4):
+    """The same CT stored sagittally (the slice axis last in the array): the same heart.
+
+    The seed between the lungs takes the lungs' hull in axial planes, whichever array axis runs along the
+    patient's height (before: the hull was taken in the array's first-axis planes, sagittal here: 371 ml
+    instead of 474).
+    """
+    volume, seg, _, _ = chest4
+    T = volume.T_patient_from_voxel.copy()
+    T[:3, :3] = T[:3, [2, 1, 0]]
+    stored = segment_heart(np.ascontiguousarray(volume.hu.transpose(2, 1, 0)), T)
+    assert np.array_equal(stored.mask.transpose(2, 1, 0), seg.mask)
