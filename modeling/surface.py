@@ -135,8 +135,10 @@ def mask_to_mesh(
 
     # thin slices are added along the array's first axis: a mask stored with its thick axis elsewhere is
     # meshed transposed (the vertices are patient mm either way; the winding follows det(T))
-    thick_axis = 2 - int(np.argmax(np.linalg.norm(T[:3, :3], axis=0)))
-    if thick_axis != 0:
+    spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
+    thick_axis = int(np.argmax(spacing_kji))
+    across = np.delete(spacing_kji, thick_axis)
+    if spacing_kji[thick_axis] > spacing_kji[0] and _slices_per_slice(spacing_kji[thick_axis], across, grid_mm) > 1:
         order = [thick_axis] + [a for a in range(3) if a != thick_axis]
         mask = mask.transpose(order)
         T = T.copy()
@@ -161,10 +163,9 @@ def mask_to_mesh(
         solid = background != background[0, 0, 0]
         del background
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
-    in_plane_mm = max(float(spacing_kji[1:].max()), float(grid_mm or 0.0))
     scale = np.ones(3, int)  # thin slices per CT slice, along k
-    if spacing_kji[0] > THICK_SLICE_MM and round(spacing_kji[0] / in_plane_mm) >= 2:
-        scale[0] = int(round(spacing_kji[0] / in_plane_mm))
+    scale[0] = _slices_per_slice(spacing_kji[0], spacing_kji[1:], grid_mm)
+    if scale[0] > 1:
         solid = _interpolate_slices(solid, spacing_kji[1:], scale[0])
         if grid_mm is not None:
             step = coarse_step(spacing_kji / scale, grid_mm)
@@ -268,6 +269,13 @@ def _decimate(verts, faces, target_faces: int):
     )
     verts, faces = _repair(np.asarray(verts, np.float64), np.asarray(faces), smooth_iterations=0)
     return _largest_component(verts, faces)
+
+
+def _slices_per_slice(slice_mm, in_plane_mm, grid_mm) -> int:
+    """Thin slices to split a slice into: 1 unless it is thicker than THICK_SLICE_MM and twice the in-plane grid."""
+    fine = max(float(np.max(in_plane_mm)), float(grid_mm or 0.0))
+    factor = int(round(float(slice_mm) / fine))
+    return factor if slice_mm > THICK_SLICE_MM and factor >= 2 else 1
 
 
 def _interpolate_slices(solid, spacing_ji, factor: int) -> np.ndarray:
