@@ -366,6 +366,14 @@ def segment_heart(
         found = seed_between()
         return None if found is None else found[1]
 
+    def soft_tissue_between_lungs(tissue):
+        """Without contrast: tissue above soft_hu[1] is bone, and the heart lies between the lungs (where found)."""
+        between = mediastinum()
+        tissue &= coarse < soft_hu[1]
+        if between is not None:
+            tissue &= ndimage.binary_dilation(between, iterations=1)
+        return tissue
+
     pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
     if seed_patient_mm is None:
         if pool is not None:
@@ -380,9 +388,9 @@ def segment_heart(
                     "no contrast blood pool and no soft tissue between two lungs in the volume; "
                     "give a point inside the heart with --seed=X,Y,Z or a heart mask with --mask"
                 )
-            seed_mask, between = found
+            seed_mask = found[0]
             contrast = False
-            tissue &= (coarse < soft_hu[1]) & ndimage.binary_dilation(between, iterations=1)
+            tissue = soft_tissue_between_lungs(tissue)
             kji = (np.argwhere(seed_mask).mean(axis=0) + 0.5) * step - 0.5
             notes.append(
                 f"no contrast blood pool (none holds a ball of {min_pool_radius_mm:.0f} mm radius at "
@@ -397,11 +405,8 @@ def segment_heart(
         if np.any(kji < 0) or np.any(kji >= np.array(coarse.shape)):
             raise SegmentationError(f"seed point {seed_mm.tolist()} mm lies outside the volume")
         contrast = pool is not None
-        if not contrast:  # as unseeded: tissue above soft_hu[1] is bone, and the heart lies between the lungs
-            between = mediastinum()
-            tissue &= coarse < soft_hu[1]
-            if between is not None:
-                tissue &= ndimage.binary_dilation(between, iterations=1)
+        if not contrast:  # as unseeded
+            tissue = soft_tissue_between_lungs(tissue)
         if not tissue[tuple(kji)]:
             raise SegmentationError(
                 f"seed point {seed_mm.tolist()} mm is not in heart tissue ({coarse[tuple(kji)]:.0f} HU outside "

@@ -137,10 +137,12 @@ def mask_to_mesh(
     # meshed transposed (the vertices are patient mm either way; the winding follows det(T))
     spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
     thick_axis = int(np.argmax(spacing_kji))
-    across = np.delete(spacing_kji, thick_axis)
-    if spacing_kji[thick_axis] > spacing_kji[0] and _slices_per_slice(spacing_kji[thick_axis], across, grid_mm) > 1:
+    scale = np.ones(3, int)  # thin slices per CT slice, along k
+    scale[0] = _slices_per_slice(spacing_kji[thick_axis], np.delete(spacing_kji, thick_axis), grid_mm)
+    if scale[0] > 1 and thick_axis != 0:
         order = [thick_axis] + [a for a in range(3) if a != thick_axis]
         mask = mask.transpose(order)
+        spacing_kji = spacing_kji[order]
         T = T.copy()
         T[:3, :3] = T[:3, [2 - a for a in order[::-1]]]
 
@@ -151,7 +153,7 @@ def mask_to_mesh(
 
     # 1. crop + pad ------------------------------------------------------------
     steps.next("crop")
-    step = np.ones(3, int) if grid_mm is None else coarse_step(np.linalg.norm(T[:3, :3], axis=0)[::-1], grid_mm)
+    step = np.ones(3, int) if grid_mm is None else coarse_step(spacing_kji, grid_mm)
     pad = (int(np.ceil(3 * sigma_vox)) + 2) * step  # empty blocks round the mask
     box = mask_box(mask)
     lo = [b.start for b in box]
@@ -162,9 +164,6 @@ def mask_to_mesh(
         ndimage.label(~solid, output=background)
         solid = background != background[0, 0, 0]
         del background
-    spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]
-    scale = np.ones(3, int)  # thin slices per CT slice, along k
-    scale[0] = _slices_per_slice(spacing_kji[0], spacing_kji[1:], grid_mm)
     if scale[0] > 1:
         solid = _interpolate_slices(solid, spacing_kji[1:], scale[0])
         if grid_mm is not None:
