@@ -183,6 +183,11 @@ def _geometry_problem(ipp, iop, spacing) -> str | None:
     return None
 
 
+def _meta_str(meta, keyword: str) -> str:
+    """A file meta element as text, "" when the file has no meta or no such element."""
+    return str(_get(meta, keyword, "") or "").strip() if meta is not None else ""
+
+
 def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -> list[_Frame]:
     """One _Frame per image frame of `ds` (header only).
 
@@ -217,8 +222,9 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
     common = dict(
         path=path,
         n_frames_in_file=n_frames,
-        sop_instance_uid=_str(ds, "SOPInstanceUID"),
-        sop_class_uid=_str(ds, "SOPClassUID"),
+        # anonymisers may blank the dataset's UIDs and leave the file meta's
+        sop_instance_uid=_str(ds, "SOPInstanceUID") or _meta_str(meta, "MediaStorageSOPInstanceUID"),
+        sop_class_uid=_str(ds, "SOPClassUID") or _meta_str(meta, "MediaStorageSOPClassUID"),
         transfer_syntax_uid=ts,
         series_instance_uid=_str(ds, "SeriesInstanceUID"),
         study_instance_uid=_str(ds, "StudyInstanceUID"),
@@ -360,9 +366,7 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             (non_dicom.append(name) if why == "not-dicom" else broken.append((name, why)))
             continue
         meta = getattr(ds, "file_meta", None)
-        sop_class = _str(ds, "SOPClassUID") or (
-            str(_get(meta, "MediaStorageSOPClassUID", "")) if meta is not None else ""
-        )
+        sop_class = _str(ds, "SOPClassUID") or _meta_str(meta, "MediaStorageSOPClassUID")
         if sop_class == _DICOMDIR_SOP_CLASS or "DirectoryRecordSequence" in ds:
             dicomdir.append(name)
             continue

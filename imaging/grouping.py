@@ -151,15 +151,18 @@ def _drop_stray_duplicates(frames: list[_Frame]) -> tuple[list[_Frame], list[tup
 
 
 def _dedupe(frames: list[_Frame]) -> tuple[list[_Frame], list[str]]:
-    seen: dict[tuple[str, int | None], _Frame] = {}
-    dropped = []
+    """Drop repeats of an image (same SOPInstanceUID and frame); images without a
+    SOPInstanceUID (blanked by an anonymiser) are all kept."""
+    seen: set[tuple[str, int | None]] = set()
+    kept, dropped = [], []
     for f in frames:
         key = (f.sop_instance_uid, f.frame)
         if f.sop_instance_uid and key in seen:
             dropped.append(f.path)
             continue
-        seen[key] = f
-    return list(seen.values()), dropped
+        seen.add(key)
+        kept.append(f)
+    return kept, dropped
 
 
 def _summarise(

@@ -251,6 +251,26 @@ def test_duplicate_copies_are_kept_once(tmp_path, axial):
     assert any("duplicate image(s)" in n for n in vol.notes)
 
 
+@pytest.mark.parametrize("blank_meta", [False, True])
+def test_blanked_uids_keep_every_slice(tmp_path, axial, blank_meta):
+    """An anonymiser that empties SOPInstanceUID and SeriesInstanceUID (as in
+    TotalSegmentator's example DICOM series) must not merge the slices into one:
+    the file meta's MediaStorageSOPInstanceUID stands in, and images with no UID
+    at all are never taken for copies of each other."""
+    reference = load_study(axial)
+    for path in sorted(axial.iterdir()):
+        ds = pydicom.dcmread(path)
+        ds.SOPInstanceUID = ""
+        ds.SeriesInstanceUID = ""
+        if blank_meta:
+            ds.file_meta.MediaStorageSOPInstanceUID = ""
+        ds.save_as(path)
+    vol = load_study(axial)
+    assert vol.hu.shape == (20, 32, 32)
+    np.testing.assert_array_equal(vol.hu, reference.hu)
+    assert not any("duplicate" in n for n in vol.notes)
+
+
 # ------------------------------------------------------------- irregular stacks
 
 
