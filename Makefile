@@ -29,7 +29,7 @@ demo: sysdeps $(STAMP)
 	$(VENV)/bin/heartreg demo -o demo_out
 
 test: sysdeps $(STAMP)
-	$(PY) tests/data/fetch_chest_cts.py  # two more real chest CTs from PyPI (the tests skip them offline)
+	$(PY) tests/data/fetch_real_cts.py  # more real CTs from PyPI source archives (the tests skip them offline)
 	$(PY) -m pytest -q -n auto --dist loadfile  # one test file per worker: its module fixtures stay shared
 
 bench: sysdeps $(STAMP)

@@ -143,3 +143,59 @@ def test_jpeg_lossless_process_14_read_with_gdcm(tmp_path):
     assert writer.Write()
     assert pydicom.dcmread(folder / "693_P14.dcm").file_meta.TransferSyntaxUID == "1.2.840.10008.1.2.4.57"
     np.testing.assert_array_equal(_load(folder).hu, _load(_study(tmp_path / "u", "693_UNCR.dcm")).hu)
+
+
+# ---- TotalSegmentator's example DICOM series (tests/data/fetch_real_cts.py)
+
+def _ts_entry(name):
+    from tests.data.fetch_real_cts import paths
+
+    path = paths()[name]
+    if not path.exists():
+        pytest.skip(f"TotalSegmentator's {name} was not fetched (offline)")
+    return path
+
+
+#: TotalSegmentator's class numbers (its ``map_to_binary.py``, task "total")
+_TS_LABELS = {"spleen": 1, "liver": 5, "colon": 20, "vertebrae_T12": 32, "humerus_left": 69, "humerus_right": 70}
+
+
+def test_anonymised_jpeg2000_series_with_blanked_uids():
+    """A real series as an anonymiser left it: 20 JPEG 2000 slices whose
+    SOPInstanceUID and SeriesInstanceUID are empty (read as one slice before).
+
+    Every slice is read and equals pydicom's own decoding.  Against the
+    segmentation TotalSegmentator wrote on this series (through another reader,
+    NIfTI RAS): each of its voxel centres, taken to LPS by its affine, is one of
+    our voxel centres, and what it labels is what our HU show there (bone in its
+    humeri and vertebra, gas in its colon, air outside the body), on the side
+    the label names (left humerus and spleen at +x, right humerus and liver at -x)."""
+    import nibabel as nib
+
+    folder = _ts_entry("ts_dicom")
+    volume = _load(folder)
+    assert volume.hu.shape == (20, 512, 512)
+    T = np.asarray(volume.T_patient_from_voxel, dtype=float)
+    by_z = {round(float(pydicom.dcmread(f).ImagePositionPatient[2]), 3): f for f in folder.iterdir()}
+    for k in (0, 7, 19):
+        z = round(float((T @ [0, 0, k, 1])[2]), 3)
+        np.testing.assert_array_equal(volume.hu[k], _hu(pydicom.dcmread(by_z[z])))
+
+    seg = nib.load(_ts_entry("ts_dicom_seg.nii.gz"))
+    labels = np.asarray(seg.dataobj)
+    theirs = np.argwhere(np.ones(labels.shape, bool))[::7]
+    lps = (np.diag([-1.0, -1.0, 1.0, 1.0]) @ seg.affine @ np.c_[theirs, np.ones(len(theirs))].T).T[:, :3]
+    ijk = np.linalg.solve(T[:3, :3], (lps - T[:3, 3]).T).T
+    np.testing.assert_allclose(ijk, np.round(ijk), atol=1e-3)  # the same voxel centres
+    i, j, k = np.round(ijk).astype(int).T
+    assert (i.min(), j.min(), k.min(), i.max(), j.max(), k.max()) == (0, 0, 0, 511, 511, 19)
+    hu, label = volume.hu[k, j, i], labels[tuple(theirs.T)]
+
+    def median_hu(name):
+        return float(np.median(hu[label == _TS_LABELS[name]]))
+
+    assert np.median(hu[label == 0]) < -900
+    assert median_hu("colon") < -300
+    assert min(median_hu("humerus_left"), median_hu("humerus_right"), median_hu("vertebrae_T12")) > 150
+    for name, side in (("humerus_left", 1), ("spleen", 1), ("humerus_right", -1), ("liver", -1)):
+        assert side * np.median(lps[label == _TS_LABELS[name], 0]) > 30, name

@@ -21,7 +21,7 @@ from modeling.build import ModelingWarning, build_heart_model
 from modeling.segment import segment_heart
 from modeling.vessels import APEX_LAI_LPS
 from hrcore.geometry import apply_to_points
-from tests.data.fetch_chest_cts import paths as chest_cts
+from tests.data.fetch_real_cts import paths as real_cts
 from tests.modeling.realct import mesh_to_mask
 
 nrrd = pytest.importorskip("nrrd")
@@ -109,9 +109,9 @@ def test_the_nrrd_file_as_it_is(chest4, tmp_path, capsys):
     assert len(err) == 1 and "--qrs and --series apply to DICOM studies, not to the NRRD file" in err[0]
 
 
-# ---- pyradiomics' lung2: a full-field chest CT without contrast, 5 mm slices (tests/data/fetch_chest_cts.py)
+# ---- pyradiomics' lung2: a full-field chest CT without contrast, 5 mm slices (tests/data/fetch_real_cts.py)
 
-LUNG2 = chest_cts()["lung2_image.nrrd"]
+LUNG2 = real_cts()["lung2_image.nrrd"]
 #: Points read off the CT by eye (LPS mm): the middle of the right atrium and of the left ventricle on the same
 #: slice, and the liver's dome 65 mm lower, under the right lung.
 LUNG2_RIGHT_ATRIUM = (-35.7, -196.0, -235.0)
@@ -155,7 +155,7 @@ def test_full_chest_without_contrast(tmp_path):
 
 # ---- pyradiomics' lung1: no contrast, the scan from the neck down to the heart's lower wall
 
-LUNG1 = chest_cts()["lung1_image.nrrd"]
+LUNG1 = real_cts()["lung1_image.nrrd"]
 #: The middle of the left atrium and of the left ventricle (LPS mm, read off the CT by eye).
 LUNG1_LEFT_ATRIUM = (27.9, -114.0, -717.5)
 LUNG1_LEFT_VENTRICLE = (42.2, -153.9, -747.5)
