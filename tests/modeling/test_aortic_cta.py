@@ -90,3 +90,37 @@ def test_aorta_cut_at_its_valve(cta_model):
     assert (far & solid).sum() <= 0.01 * far.sum()
     assert (annulus & solid).sum() >= 0.25 * annulus.sum()
     assert (junction & solid).sum() <= 0.10 * junction.sum()
+
+
+#: Liver, 25 mm below the heart's lowest point (LPS mm, read off the CT by eye).
+LIVER = (-40.0, -190.0, 574.7)
+
+
+def test_thick_slices_keep_the_liver_out(tmp_path):
+    """The same CT averaged to 4.5 mm slices, as a routine chest CT is reconstructed: the diaphragm blurs
+    into the heart's and the liver's tissue, and contrast refluxed into the inferior vena cava and the
+    liver's veins joins them to the blood pool.  Before the heart's seeds were limited to the pool near its
+    chambers (``modeling.seed._heart_seeds``) the heart's flood ran through those veins into the liver:
+    1095 ml with a lobe of liver, apex . LAI 0.37 (measured).  Now 800 ml without it."""
+    import nibabel as nib
+
+    image = nib.load(AORTIC_CTA / "ct.nii.gz")
+    data = np.asanyarray(image.dataobj)
+    n = data.shape[2] // 3 * 3
+    thick = data[:, :, :n].reshape(*data.shape[:2], n // 3, 3).mean(axis=3).round().astype(np.int16)
+    affine = image.affine.copy()
+    affine[:3, 3] += affine[:3, 2]  # the centre of each group of three slices
+    affine[:3, 2] *= 3
+    path = tmp_path / "thick.nii.gz"
+    nib.save(nib.Nifti1Image(thick, affine), str(path))
+    assert main(["model", str(path), "-o", str(tmp_path / "model"), "-q", "--faces", "8000"]) == 0
+    model = read_model(tmp_path / "model")
+    mesh = model.mesh_patient()
+    volume_ml = check_mesh(mesh).volume_mm3 / 1000.0
+    assert 550.0 <= volume_ml <= 950.0, volume_ml
+    volume = read_volume_file(AORTIC_CTA / "ct.nii.gz")  # judged on the original grid
+    T = volume.T_patient_from_voxel
+    solid = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)
+    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), [*INSIDE.values(), LIVER])).astype(int).T
+    assert solid[k, j, i].tolist() == [True] * len(INSIDE) + [False]
+    assert -model.frame.axes_patient[:, 2] @ APEX_LAI_LPS > 0.8
