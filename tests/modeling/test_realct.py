@@ -145,7 +145,8 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   from the mask model's;
 - the heart's seeds (session 10): in the solid-organ watershed only the
   pool near the chambers' lumen seeds the heart, and the liver is marked by
-  its distance from that blood (``modeling.seed._heart_seeds``; for thick
+  its distance from the pool, not from every bright voxel
+  (``modeling.seed._heart_seeds``, ``split_solid_organs``; for thick
   slices of TotalSegmentator's aortic CTA, ``test_aortic_cta.py``).  Here:
   0.884 / 3.2 / 9.6 -> 0.887 / 3.1 / 9.2, ``ref & ~pa`` 0.889 / 2.73 / 7.5
   -> 0.891 / 2.67 / 7.5; the venous-phase variant unchanged;
