@@ -144,8 +144,8 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   ~pa`` 0.892 / 2.76 / 7.5 -> 0.889 / 2.73 / 7.5, the frame 1.2 -> 2.1 deg
   from the mask model's;
 - the heart's seeds (session 10): in the solid-organ watershed only the
-  pool near the chambers' lumen seeds the heart, and the liver is marked by
-  its distance from the pool, not from every bright voxel
+  pool near the chambers' lumen seeds the heart, and specks of blood (noise
+  on thin slices) no longer break the liver's marker
   (``modeling.seed._heart_seeds``, ``split_solid_organs``; for thick
   slices of TotalSegmentator's aortic CTA, ``test_aortic_cta.py``).  Here:
   0.884 / 3.2 / 9.6 -> 0.887 / 3.1 / 9.2, ``ref & ~pa`` 0.889 / 2.73 / 7.5
