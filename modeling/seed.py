@@ -24,7 +24,7 @@ from scipy import ndimage
 
 from modeling.distance import distance_mm, opening_mm
 
-__all__ = ["blood_pool", "mediastinal_seed", "part_abdomen", "split_solid_organs"]
+__all__ = ["blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
 
 #: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
 POOL_STEP_HU = 25.0
@@ -53,6 +53,24 @@ ROOM_AIR_HU = -950.0
 WEAK_POOL_RADIUS_MM = 18.0
 #: Components tried, largest first, at each level below ``blood_hu[0]``.
 WEAK_POOL_CANDIDATES = 3
+
+
+#: A CT in Hounsfield units holds fat, lung or air below FAT_HU in at least MIN_FAT_SHARE of its voxels (a
+#: heart lies in fat: the real CT cropped around it has 47 % there, a whole chest 56-76 %); an MR
+#: (TotalSegmentator's example: -47 to 833) or a CT stored without its rescale (0 to 4095) has none.
+FAT_HU = -80.0
+MIN_FAT_SHARE = 0.005
+
+
+def not_hounsfield(coarse, hu) -> str | None:
+    """Why a volume is no CT in Hounsfield units, or None: too little of its ``coarse`` grid lies below
+    :data:`FAT_HU` (fat, lung, air), so its values would be read as HU they are not."""
+    share = float(np.mean(coarse < FAT_HU))
+    if share >= MIN_FAT_SHARE:
+        return None
+    return (f"the volume does not look like a CT in Hounsfield units: {100 * share:.1f} % of it lies below "
+            f"{FAT_HU:.0f} HU (fat, lung, air; its values run {float(np.min(hu)):.0f} to {float(np.max(hu)):.0f}); "
+            "an MR, or a CT stored without its rescale, cannot be segmented: give a CT, or a heart mask with --mask")
 
 
 def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=None):

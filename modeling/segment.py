@@ -54,7 +54,7 @@ from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step, label_maximum
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
-from modeling.seed import blood_pool, mediastinal_seed, part_abdomen, split_solid_organs
+from modeling.seed import blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
@@ -354,6 +354,8 @@ def segment_heart(
     cspacing = spacing_kji * step
     if smooth_mm > 0:
         coarse = ndimage.gaussian_filter(coarse, sigma=smooth_mm / cspacing)
+    if (problem := not_hounsfield(coarse, hu)) is not None:
+        raise SegmentationError(problem)
     tissue = (coarse > hu_low) & (coarse < hu_high)
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast

@@ -21,7 +21,8 @@ PyTorch), only the files below are taken:
   - ``ts_dicom/``: a real DICOM series as an anonymiser left it (20 slices of
     a PET/CT's abdomen, 512 x 512, 2 mm, JPEG 2000, SOPInstanceUID and
     SeriesInstanceUID blanked) and ``ts_dicom_seg.nii.gz``, a segmentation on
-    its grid written by another reader (its affine, for the geometry).
+    its grid written by another reader (its affine, for the geometry);
+  - ``ts_mr.nii.gz``: a small MR volume, what a user may pass by mistake.
 
 Run by ``make test`` before pytest (``python tests/data/fetch_real_cts.py``);
 the files go to ``.cache/real_cts/`` in the checkout.  The archives and every
@@ -88,6 +89,8 @@ SOURCES = (
                          "62e48a2b3768c089f34567514bbd04f11457459e59d8a3cd9155b14fe71c826b"),
             "ts_dicom_seg.nii.gz": ("tests/reference_files/example_seg_dicom.nii.gz",
                                     "98af7f6536c316ff9084054f20956cd3e28af376b81d582d269fbea2744878fc"),
+            "ts_mr.nii.gz": ("tests/reference_files/example_mr_sm.nii.gz",
+                             "209b46efaff595dd54a9332872e17a722b62654bbb68dbd89acd5090701bbd4f"),
         },
     ),
 )

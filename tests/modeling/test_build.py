@@ -163,9 +163,15 @@ def test_bad_inputs(sample_case, tmp_path):
     nib.save(nib.Nifti1Image(np.ones((5, 5, 5), np.uint8), far), str(other))
     with pytest.raises(LabelMapError, match="does not overlap"):
         _build(volume, truth, mask_path=other)
-    # no heart-like region: water everywhere (no contrast pool, no lungs to seed between)
+    # no heart-like region: a body of water in air (no contrast pool, no lungs to seed between)
+    water = np.full((20, 30, 30), -1000, np.int16)
+    water[:, 5:25, 5:25] = 0
     with pytest.raises(SegmentationError, match="no contrast blood pool and no soft tissue between two lungs"):
-        segment_heart(np.zeros((20, 30, 30), np.int16), T)
+        segment_heart(water, T)
+    # no air at all: not a CT in HU (an MR's values, or a CT without its rescale)
+    for values in (np.zeros((20, 30, 30), np.int16), (volume.hu[:20, :30, :30].astype(np.int32) + 1024)):
+        with pytest.raises(SegmentationError, match=r"does not look like a CT in Hounsfield units: 0.0 % .*--mask$"):
+            segment_heart(values, T)
     # a hollow heart between two lungs: its contrast blood (10 mm in radius, too small for a chamber pool) counts
     # as bone without contrast, and its 4 mm wall is thinner than any heart body (the phantom timed as a
     # pulmonary CTA, left blood 150-220 HU, right 400 HU, failed so)
@@ -289,4 +295,19 @@ def test_a_single_slice_is_no_heart_ct(tmp_path, capsys):
     assert main(["model", str(study), "-o", str(tmp_path / "model"), "-q"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "the CT spans only 5 mm along its slices (1 x 128 x 128 voxels)" in err[0], err
+    assert not (tmp_path / "model").exists()
+
+
+def test_an_mr_volume_is_no_ct(tmp_path, capsys):
+    """TotalSegmentator's example MR (NIfTI, values -47 to 833, fetched by tests/data/fetch_real_cts.py), passed
+    where a CT is expected: one line saying it is no CT in HU.  Before, the automatic segmentation read its
+    values as HU and made an 837 ml "heart" of them."""
+    from tests.data.fetch_real_cts import paths
+
+    mr = paths()["ts_mr.nii.gz"]
+    if not mr.is_file():
+        pytest.skip("TotalSegmentator's example MR was not fetched (offline)")
+    assert main(["model", str(mr), "-o", str(tmp_path / "model"), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not look like a CT in Hounsfield units" in err[0], err
     assert not (tmp_path / "model").exists()
