@@ -461,7 +461,8 @@ def segment_heart(
     reach = margin_mm + 0.5 * float(np.max(cspacing))
     near = distance_mm(~core, cspacing) <= reach
     if trace_vessels and contrast and pool is not None:
-        vessels = trace_great_vessels(pool, cspacing)
+        body = np.pad(core, [(b.start, n - b.stop) for b, n in zip(box, coarse.shape)])  # on the whole grid
+        vessels = trace_great_vessels(pool, cspacing, heart=body)
         near &= ~vessels.territory[box]
         notes.append(vessels.note)
 

@@ -548,10 +548,16 @@ def test_heart_cut_by_the_field_of_view(realct):
     """The real CT cropped 40 mm on the patient's left: the model is made, with a warning naming the side.
 
     (The whole CT, the phantoms and their tight field of view leave no mask voxel on the volume's faces.)
+    The edge cuts the left ventricle: its blood pool's lobes there were traced as vessels leaving the field
+    of view and the ventricle removed with them (425 ml, Dice 0.646 against the reference within the crop,
+    measured); a lobe lying mostly inside the heart's body on the edge is now a chamber cut by it (690 ml,
+    Dice 0.883).
     """
-    volume, _, _ = realct
+    volume, _, reference = realct
     cropped = dataclasses.replace(volume, hu=np.ascontiguousarray(volume.hu[:, :, :95]))
-    with pytest.warns(ModelingWarning, match=r"cut by the CT's field of view \(patient's left side, 3\d cm² on the edge\)"):
+    assert overlap(segment_heart(cropped.hu, volume.T_patient_from_voxel).mask, reference[:, :, :95],
+                   SPACING)["dice"] >= 0.86
+    with pytest.warns(ModelingWarning, match=r"cut by the CT's field of view \(patient's left side, 4\d cm² on the edge\)"):
         build = build_heart_model(cropped, cardiac_phase=None, cardiac_phase_source="test", expected_fiducials=None,
                                   target_faces=4000)
     warned = build.model.parameters["warnings"]
