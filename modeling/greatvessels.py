@@ -129,7 +129,8 @@ def trace_great_vessels(
         Tissue closer to the lumen than to the chambers' blood, up to this far
         from the lumen, is the vessels' wall.
     heart : bool array like the pool, optional
-        The heart's body (the segmentation's region after its vessel cut).  A
+        The heart's body (the part of the segmentation's region a ball of the
+        ventricles' size fits in: no vessel stub left below a near edge).  A
         lobe whose footprint on the edge lies mostly inside it is a chamber cut
         by the field of view, not a vessel leaving it: a right ventricle's thin
         crescent at the edge is as narrow and as compact there as a vessel
@@ -180,6 +181,8 @@ def trace_great_vessels(
     sides = np.concatenate([np.take(lobes, end, axis=axis).ravel() for axis, end in edges] + [np.zeros(1, int)])
     starts = [int(i) for i in np.unique(sides) if i > 0 and radius[i] <= max_vessel_radius_mm]
     if heart is not None:  # a chamber cut by the edge, not a vessel leaving there
+        if np.shape(heart) != full_shape:
+            raise ValueError(f"heart must have the pool's shape {full_shape}, got {np.shape(heart)}")
         heart_box = np.asarray(heart, dtype=bool)[box]
         on_edge, in_heart = np.zeros(n + 1), np.zeros(n + 1)
         for axis, end in edges:

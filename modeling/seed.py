@@ -179,6 +179,7 @@ def _heart_seeds(pool, hu, cspacing):
     the caval junctions when it was lowered too: inferior vena cava 1.4 ->
     20 mm from its origin).  Unchanged when the pool holds no such lumen.
     """
+    hu = np.asarray(hu, dtype=np.float32)  # lowered to its minimum, an integer HU would wrap when negated
     depth = distance_mm(pool, cspacing)
     labels, n = ndimage.label(depth >= CHAMBER_CORE_MM)
     if n == 0:

@@ -461,8 +461,8 @@ def segment_heart(
     reach = margin_mm + 0.5 * float(np.max(cspacing))
     near = distance_mm(~core, cspacing) <= reach
     if trace_vessels and contrast and pool is not None:
-        body = np.pad(core, [(b.start, n - b.stop) for b, n in zip(box, coarse.shape)])  # on the whole grid
-        vessels = trace_great_vessels(pool, cspacing, heart=body)
+        vessels = trace_great_vessels(pool, cspacing, heart=np.pad(  # the heart body on the whole grid
+            core if heart_body is None else heart_body, [(b.start, n - b.stop) for b, n in zip(box, coarse.shape)]))
         near &= ~vessels.territory[box]
         notes.append(vessels.note)
 
