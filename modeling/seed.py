@@ -57,7 +57,8 @@ WEAK_POOL_CANDIDATES = 3
 
 #: A CT in Hounsfield units holds fat, lung or air below FAT_HU in at least MIN_FAT_SHARE of its voxels (a
 #: heart lies in fat: the real CT cropped around it has 47 % there, a whole chest 56-76 %); an MR
-#: (TotalSegmentator's example: -47 to 833) or a CT stored without its rescale (0 to 4095) has none.
+#: (TotalSegmentator's example: -47 to 833) or a CT stored without its rescale (0 to 4095) has none; such a CT
+#: padded outside its circular field of view with negative values passes, and fails later in the segmentation.
 FAT_HU = -80.0
 MIN_FAT_SHARE = 0.005
 

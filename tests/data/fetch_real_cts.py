@@ -26,10 +26,10 @@ PyTorch), only the files below are taken:
 
 Run by ``make test`` before pytest (``python tests/data/fetch_real_cts.py``);
 the files go to ``.cache/real_cts/`` in the checkout.  The archives and every
-file are checked against pinned SHA-256 digests (a folder's digest runs over
-its files' names and digests): a cached entry that does not match (a truncated
+file are checked against pinned SHA-256 digests (a folder's digest runs over its top-level
+files' names and digests): a cached entry that does not match (a truncated
 earlier run) is fetched again, and an entry is renamed into place only once its
-digest matches.  Offline, the script says so in one line, removes a cached
+digest matches.  Offline, the script says so in one line per archive, removes a cached
 entry that does not match, and the tests that need it skip.
 """
 
