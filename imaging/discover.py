@@ -184,8 +184,8 @@ def _geometry_problem(ipp, iop, spacing) -> str | None:
 
 
 def _meta_str(meta, keyword: str) -> str:
-    """A file meta element as text, "" when the file has no meta or no such element."""
-    return str(_get(meta, keyword, "") or "").strip() if meta is not None else ""
+    """A file meta element as text (:func:`_str`), "" when the file has no meta."""
+    return _str(meta, keyword) if meta is not None else ""
 
 
 def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -> list[_Frame]:

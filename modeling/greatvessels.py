@@ -184,11 +184,8 @@ def trace_great_vessels(
         if np.shape(heart) != full_shape:
             raise ValueError(f"heart must have the pool's shape {full_shape}, got {np.shape(heart)}")
         heart_box = np.asarray(heart, dtype=bool)[box]
-        on_edge, in_heart = np.zeros(n + 1), np.zeros(n + 1)
-        for axis, end in edges:
-            face = np.take(lobes, end, axis=axis).ravel()
-            on_edge += np.bincount(face, minlength=n + 1)
-            in_heart += np.bincount(face, weights=np.take(heart_box, end, axis=axis).ravel(), minlength=n + 1)
+        on_heart = np.concatenate([np.take(heart_box, end, axis=axis).ravel() for axis, end in edges] + [[False]])
+        on_edge, in_heart = np.bincount(sides, minlength=n + 1), np.bincount(sides, weights=on_heart, minlength=n + 1)
         starts = [i for i in starts if in_heart[i] <= 0.5 * on_edge[i]]
     vessel = np.zeros(n + 1, bool)
     vessel[starts] = True

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from modeling.coarse import label_maximum
 from modeling.distance import distance_mm, opening_mm
 
 __all__ = ["blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
@@ -185,8 +186,7 @@ def _heart_seeds(pool, hu, cspacing):
     labels, n = ndimage.label(depth >= CHAMBER_CORE_MM)
     if n == 0:
         return pool, hu
-    deepest = ndimage.maximum(depth, labels, index=np.arange(1, n + 1))
-    cores = np.isin(labels, np.flatnonzero(deepest >= CHAMBER_BALL_MM) + 1)
+    cores = np.isin(labels, np.flatnonzero(label_maximum(depth, labels, n) >= CHAMBER_BALL_MM) + 1)
     if not cores.any():
         return pool, hu
     # the lumen reaches CHAMBER_CORE_MM beyond its cores: within BLOOD_REACH_MM of it, the cores' reach plus that
