@@ -48,47 +48,72 @@ ASCENDING_AORTA = (5.0, -190.0, 688.7)
 
 
 @pytest.fixture(scope="module")
-def cta_model(tmp_path_factory):
+def cta():
+    """The CT as read: every model is judged on its grid."""
+    return read_volume_file(AORTIC_CTA / "ct.nii.gz")
+
+
+@pytest.fixture(scope="module")
+def cta_model(tmp_path_factory, cta):
     out = tmp_path_factory.mktemp("aortic_cta") / "model"
     rc = main(["model", str(AORTIC_CTA / "ct.nii.gz"), "-o", str(out), "-q"])
-    volume = read_volume_file(AORTIC_CTA / "ct.nii.gz")
     model = read_model(out)
-    mesh = model.mesh_patient()
-    solid = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, volume.T_patient_from_voxel)
-    return rc, out, volume, model, solid
+    return rc, out, model, _solid(model.mesh_patient(), cta)
 
 
-def _label(volume, name):
-    return mask_on_grid(read_label_map(AORTIC_CTA / name), volume.shape, volume.T_patient_from_voxel)
+def _solid(mesh, volume):
+    return mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, volume.T_patient_from_voxel)
 
 
-def test_model_of_the_whole_heart(cta_model):
-    rc, out, volume, model, solid = cta_model
+def _at(mask, T, points) -> list[bool]:
+    """``mask``'s value at each LPS point (mm), on the grid of ``T``."""
+    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), list(points))).astype(int).T
+    return mask[k, j, i].tolist()
+
+
+def _aorta_labels(shape, T):
+    """TotalSegmentator's aorta farther than 10 mm up its lumen from the annulus, the annulus, the
+    sinotubular junction (on the grid of ``shape``, ``T``), and the grid's voxel volume (mm³)."""
+    aorta, annulus, junction = (mask_on_grid(read_label_map(AORTIC_CTA / f"{n}.nii.gz"), shape, T)
+                                for n in ("aorta", "annulus", "sinotubular_junction"))
+    spacing = tuple(np.linalg.norm(np.asarray(T, dtype=float)[:3, :3], axis=0)[::-1])
+    along, _ = MCP_Geometric(np.where(aorta | annulus | junction, 1.0, np.inf),
+                             sampling=spacing).find_costs(np.argwhere(annulus))
+    return aorta & np.isfinite(along) & (along > 10.0), annulus, junction, float(np.prod(spacing))
+
+
+def _model_of(tmp_path, data, affine):
+    """``heartreg model`` of a NIfTI made of ``data`` and ``affine`` (8000 faces): the model."""
+    import nibabel as nib
+
+    path = tmp_path / "ct.nii.gz"
+    nib.save(nib.Nifti1Image(data, affine), str(path))
+    assert main(["model", str(path), "-o", str(tmp_path / "model"), "-q", "--faces", "8000"]) == 0
+    return read_model(tmp_path / "model")
+
+
+def test_model_of_the_whole_heart(cta_model, cta):
+    rc, out, model, solid = cta_model
     assert rc == 0
     volume_ml = check_mesh(model.mesh_patient()).volume_mm3 / 1000.0
     assert 550.0 <= volume_ml <= 950.0, volume_ml
-    T = volume.T_patient_from_voxel
-    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), [*INSIDE.values(), ASCENDING_AORTA])).astype(int).T
-    assert dict(zip([*INSIDE, "ascending aorta"], solid[k, j, i].tolist())) == {**dict.fromkeys(INSIDE, True),
-                                                                               "ascending aorta": False}
+    inside = _at(solid, cta.T_patient_from_voxel, [*INSIDE.values(), ASCENDING_AORTA])
+    assert dict(zip([*INSIDE, "ascending aorta"], inside)) == {**dict.fromkeys(INSIDE, True),
+                                                              "ascending aorta": False}
     apex = -model.frame.axes_patient[:, 2]
     assert apex @ APEX_LAI_LPS > 0.8, apex
     saved = json.loads((out / "model.json").read_text())
     assert saved["fiducials_patient_mm"] == [] and saved["cardiac_phase"] is None  # no markers, no gating
 
 
-def test_aorta_cut_at_its_valve(cta_model):
+def test_aorta_cut_at_its_valve(cta_model, cta):
     """The surface crosses the aortic annulus and leaves out the aorta beyond it: of the aorta's lumen
     farther than 10 mm from the annulus (along the lumen), at most 1 % is inside; at least a quarter of
     the annulus is inside (the cut is not below it, in the outflow tract) and at most a tenth of the
     sinotubular junction (the root is not kept)."""
-    _, _, volume, _, solid = cta_model
-    aorta, annulus, junction = (_label(volume, f"{n}.nii.gz") for n in ("aorta", "annulus", "sinotubular_junction"))
-    spacing = tuple(np.linalg.norm(np.asarray(volume.T_patient_from_voxel)[:3, :3], axis=0)[::-1])
-    lumen = aorta | annulus | junction
-    along, _ = MCP_Geometric(np.where(lumen, 1.0, np.inf), sampling=spacing).find_costs(np.argwhere(annulus))
-    far = aorta & np.isfinite(along) & (along > 10.0)
-    assert far.sum() * np.prod(spacing) > 200e3  # the aorta is there to be cut: > 200 ml of it beyond 10 mm
+    solid = cta_model[-1]
+    far, annulus, junction, voxel_mm3 = _aorta_labels(cta.shape, cta.T_patient_from_voxel)
+    assert far.sum() * voxel_mm3 > 200e3  # the aorta is there to be cut: > 200 ml of it beyond 10 mm
     assert (far & solid).sum() <= 0.01 * far.sum()
     assert (annulus & solid).sum() >= 0.25 * annulus.sum()
     assert (junction & solid).sum() <= 0.10 * junction.sum()
@@ -99,7 +124,7 @@ LIVER = (-40.0, -190.0, 574.7)
 
 
 @pytest.mark.parametrize("averaged", [True, False], ids=["averaged", "every-third"])
-def test_thick_slices_keep_the_liver_out(tmp_path, averaged):
+def test_thick_slices_keep_the_liver_out(tmp_path, cta, averaged):
     """The same CT on 4.5 mm slices, as a routine chest CT is reconstructed: averaged three by three, or
     every third 1.5 mm slice kept (noisier).  The diaphragm blurs into the heart's and the liver's tissue,
     and contrast refluxed into the inferior vena cava and the liver's veins joins them to the blood pool.
@@ -118,22 +143,15 @@ def test_thick_slices_keep_the_liver_out(tmp_path, averaged):
     affine = image.affine.copy()
     affine[:3, 3] += affine[:3, 2]  # the centre of each group of three slices
     affine[:3, 2] *= 3
-    path = tmp_path / "thick.nii.gz"
-    nib.save(nib.Nifti1Image(thick, affine), str(path))
-    assert main(["model", str(path), "-o", str(tmp_path / "model"), "-q", "--faces", "8000"]) == 0
-    model = read_model(tmp_path / "model")
+    model = _model_of(tmp_path, thick, affine)
     mesh = model.mesh_patient()
     volume_ml = check_mesh(mesh).volume_mm3 / 1000.0
     assert 550.0 <= volume_ml <= 950.0, volume_ml
-    volume = read_volume_file(AORTIC_CTA / "ct.nii.gz")  # judged on the original grid
-    T = volume.T_patient_from_voxel
-    solid = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)
-    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), [*INSIDE.values(), LIVER])).astype(int).T
-    assert solid[k, j, i].tolist() == [True] * len(INSIDE) + [False]
+    assert _at(_solid(mesh, cta), cta.T_patient_from_voxel, [*INSIDE.values(), LIVER]) == [True] * len(INSIDE) + [False]
     assert -model.frame.axes_patient[:, 2] @ APEX_LAI_LPS > 0.8
 
 
-def test_a_field_of_view_through_the_right_ventricle(tmp_path):
+def test_a_field_of_view_through_the_right_ventricle(tmp_path, cta):
     """The CT cropped as a cardiac reconstruction might be (600-748 mm in height, 195 x 203 mm across): its
     lower edge cuts through the right ventricle's thin crescent.  There the crescent is a lobe of the blood
     pool 10.6 mm in radius, as narrow and as compact on the edge as a vessel leaving the field of view; it
@@ -147,22 +165,16 @@ def test_a_field_of_view_through_the_right_ventricle(tmp_path):
     crop = (slice(50, 180), slice(15, 150), slice(40, 140))
     affine = image.affine.copy()
     affine[:3, 3] = (image.affine @ [50, 15, 40, 1])[:3]
-    path = tmp_path / "crop.nii.gz"
-    nib.save(nib.Nifti1Image(np.asanyarray(image.dataobj)[crop], affine), str(path))
-    assert main(["model", str(path), "-o", str(tmp_path / "model"), "-q", "--faces", "8000"]) == 0
-    model = read_model(tmp_path / "model")
+    model = _model_of(tmp_path, np.asanyarray(image.dataobj)[crop], affine)
     mesh = model.mesh_patient()
     assert 600.0 <= check_mesh(mesh).volume_mm3 / 1000.0 <= 900.0
-    volume = read_volume_file(AORTIC_CTA / "ct.nii.gz")
-    T = volume.T_patient_from_voxel
-    solid = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)
-    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), list(INSIDE.values()))).astype(int).T
-    assert solid[k, j, i].all(), dict(zip(INSIDE, solid[k, j, i].tolist()))
+    inside = _at(_solid(mesh, cta), cta.T_patient_from_voxel, INSIDE.values())
+    assert all(inside), dict(zip(INSIDE, inside))
     warned = json.loads((tmp_path / "model" / "model.json").read_text())["parameters"]["warnings"]
     assert any("cut by the CT's field of view" in w and "inferior side" in w for w in warned), warned
 
 
-def test_a_top_edge_just_above_the_aortic_root():
+def test_a_top_edge_just_above_the_aortic_root(cta):
     """The CT cropped 600-716 mm in height: its top edge runs through the ascending aorta 35 mm above the
     sinotubular junction, where the aorta's stub is too short for the vessel cut at the heart body's root.
     Its lobe on the edge then lies inside the opened region, and judged against that region it was taken for
@@ -171,18 +183,12 @@ def test_a_top_edge_just_above_the_aortic_root():
     none of the aorta farther than 10 mm up the lumen from the annulus is inside, and the four chambers are."""
     from modeling.segment import segment_heart
 
-    volume = read_volume_file(AORTIC_CTA / "ct.nii.gz")
-    hu = np.ascontiguousarray(volume.hu[40:118])
-    T = np.asarray(volume.T_patient_from_voxel, dtype=float).copy()
+    hu = np.ascontiguousarray(cta.hu[40:118])
+    T = np.asarray(cta.T_patient_from_voxel, dtype=float).copy()
     T[:3, 3] = T[:3, :3] @ [0, 0, 40] + T[:3, 3]
     mask = segment_heart(hu, T).mask
-    aorta, annulus, junction = (mask_on_grid(read_label_map(AORTIC_CTA / f"{n}.nii.gz"), hu.shape, T)
-                                for n in ("aorta", "annulus", "sinotubular_junction"))
-    spacing = tuple(np.linalg.norm(T[:3, :3], axis=0)[::-1])
-    along, _ = MCP_Geometric(np.where(aorta | annulus | junction, 1.0, np.inf),
-                             sampling=spacing).find_costs(np.argwhere(annulus))
-    far = aorta & np.isfinite(along) & (along > 10.0)
-    assert far.sum() * np.prod(spacing) > 20e3  # 20 ml of ascending aorta above the root, up to the edge
-    assert (far & mask).sum() <= 0.01 * far.sum(), (far & mask).sum() * np.prod(spacing) / 1000.0
-    i, j, k = np.rint(apply_to_points(np.linalg.inv(T), list(INSIDE.values()))).astype(int).T
-    assert mask[k, j, i].all(), dict(zip(INSIDE, mask[k, j, i].tolist()))
+    far, _, _, voxel_mm3 = _aorta_labels(hu.shape, T)
+    assert far.sum() * voxel_mm3 > 20e3  # 20 ml of ascending aorta above the root, up to the edge
+    assert (far & mask).sum() <= 0.01 * far.sum(), (far & mask).sum() * voxel_mm3 / 1000.0
+    inside = _at(mask, T, INSIDE.values())
+    assert all(inside), dict(zip(INSIDE, inside))
