@@ -43,3 +43,36 @@ def test_no_vessel_without_an_exit():
     assert "no blood leaves the field of view" in found.note
     empty = trace_great_vessels(np.zeros((10, 10, 10), bool), SPACING)
     assert not empty.lumen.any() and "no lobe" in empty.note
+
+
+def _branching_pool():
+    """A chamber (radius 25 mm) in a heart body (45 mm), its outflow (12 mm) open to it with no valve,
+    rising 25 mm past the body to a bifurcation into two narrower branches (9 mm) that run 90 mm out to
+    either side and end inside the volume, as the pulmonary arteries end in the lungs of a whole-chest CT.
+
+    Returns the pool, the heart body and each voxel's position (k, j, i) in mm.
+    """
+    k, j, i = (np.indices((100, 60, 160)) + 0.5) * 1.5
+    centre = (60.0, 45.0, 120.0)
+    from_centre = np.sqrt((k - centre[0]) ** 2 + (j - centre[1]) ** 2 + (i - centre[2]) ** 2)
+    chamber, body = from_centre <= 25.0, from_centre <= 45.0
+    across = np.sqrt((j - centre[1]) ** 2 + (i - centre[2]) ** 2)
+    trunk = (across <= 12.0) & (k >= centre[0]) & (k <= 130.0)
+    branches = (np.sqrt((k - 130.0) ** 2 + (j - centre[1]) ** 2) <= 9.0) & (np.abs(i - centre[2]) <= 90.0)
+    return chamber | trunk | branches, body, (k, j, i)
+
+
+def test_vessels_leaving_the_heart_inside_the_field_of_view():
+    """Steps 4-6 of the trace: with the heart body known, the branches ending far from it are vessels, the
+    wider trunk between them is reached across the bifurcation, and the trunk is vessel only outside the
+    body (it runs on into the chamber with no valve between)."""
+    pool, body, (k, j, i) = _branching_pool()
+    assert not trace_great_vessels(pool, SPACING).lumen.any()  # no blood leaves the field of view
+    found = trace_great_vessels(pool, SPACING, heart=body)
+    branch = pool & (k > 115.0) & (np.abs(i - 120.0) > 20.0)
+    assert found.lumen[branch].all()
+    trunk_outside = pool & ~body & (k < 118.0)  # the trunk between the body and the bifurcation
+    assert trunk_outside.any() and found.lumen[trunk_outside].mean() > 0.95
+    assert not found.lumen[body].any()  # the chamber and the trunk's root inside the body stay heart
+    # beyond reach: branches ending within leave_mm of the body start nothing
+    assert not trace_great_vessels(pool, SPACING, heart=body, leave_mm=120.0).lumen.any()

@@ -10,7 +10,8 @@ any epicardial surface can score against it:
 - it *includes* the pulmonary trunk and its branches (91 % of
   ``pulmonary_artery.nii.gz``, 44 ml of its 669 ml), which heartreg cuts at the
   pulmonary valve as the issue asks: ~6 % of the reference is therefore missed
-  by design;
+  by design (until session 11 the model kept the trunk up to its bifurcation,
+  17 ml of ``pulmonary_artery.nii.gz``; see the last point below);
 - its boundary lies about one voxel inside the myocardium's outer edge.  HU
   profile across it (median of each 6-connected voxel layer, pulmonary artery
   left out): inside -2: 411, -1: 241, outside +1: 104 (myocardium), +2: 35,
@@ -150,6 +151,30 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   slices of TotalSegmentator's aortic CTA, ``test_aortic_cta.py``).  Here:
   0.884 / 3.2 / 9.6 -> 0.887 / 3.1 / 9.2, ``ref & ~pa`` 0.889 / 2.73 / 7.5
   -> 0.891 / 2.67 / 7.5; the venous-phase variant unchanged;
+- the pulmonary trunk (session 11): the trace started only where blood
+  leaves the field of view, and followed a vessel only into lobes at most
+  1.1 times as wide as its narrowest so far.  Here the pulmonary branches
+  leave the crop with lobes of 7.5-9.6 mm radius, the bifurcation's lobe is
+  10.7 mm and the trunk's 12.1 mm: the trace stopped at the branches and the
+  model kept the trunk and the bifurcation (17 ml of
+  ``pulmonary_artery.nii.gz``; on TotalSegmentator's whole-chest aortic CTA,
+  the same patient, no pulmonary lobe reaches the edge at all).  Now lobes
+  outside the heart body reaching 40 mm beyond it start a vessel too, the
+  trace steps into lobes outside the body of a vessel's radius, and a vessel
+  lobe open to a chamber's (the trunk's lobe runs on into the outflow tract:
+  the valve leaves no saddle) is vessel only outside the body
+  (``modeling.greatvessels``, steps 4-6).  The model's mesh: full reference
+  0.887 / 3.1 / 9.2 -> 0.870 / 3.7 / 15.2 (the reference's own pulmonary
+  artery now lies outside), ``ref & ~pa`` 0.891 / 2.67 / 7.5 -> 0.899 /
+  2.78 / 7.6, the pulmonary artery inside the model 17.1 -> 0.0 ml; of the
+  31.6 ml removed, 17.1 ml are ``pulmonary_artery.nii.gz``, 6.3 ml lie
+  outside the reference and 8.9 ml in ``ref & ~pa``, the outflow tract
+  between the body's edge and where TotalSegmentator starts its pulmonary
+  artery (a few mm below it; taking the trunk's lobe whole took 12.4 ml).
+  The frame is 5.2 deg from the reference's mask model (1.2 before), 3.8 deg
+  from the mask model of the reference less its pulmonary artery, which is
+  itself 3.6 deg from the reference's: the pulmonary artery alone turns the
+  reference's frame that much;
 - the frame (session seg9, round 2): with every accepted slab ellipse on the
   long axis, the automatic and the mask model were 11.0 deg apart, the
   reference with and without its pulmonary artery 9.9 deg; the mask model's
@@ -258,11 +283,12 @@ def test_model_with_no_options(realct, auto_model):
         assert any(message in w for w in caught), message
         assert any(message in w for w in payload["parameters"]["warnings"]), message
     model, m = _metrics(out, volume, reference)
-    # Measured 0.887 / 3.1 mm / 9.2 mm (0.879 / 3.3 / 10.6 before the branch rule of session 9, 0.884 / 3.2 / 9.6
-    # before the heart's seeds of session 10): bounds a few % looser
-    # (see the module docstring for what the reference includes; the issue's
-    # targets are in test_issue_targets).
-    assert m["dice"] >= 0.86 and m["msd_mm"] <= 3.7 and m["p95_mm"] <= 12.5, m
+    # Measured 0.870 / 3.7 mm / 15.2 mm: the reference holds the pulmonary artery, which the model cuts at its
+    # valve since session 11 (0.887 / 3.1 / 9.2 with the trunk kept; the reference less its own pulmonary
+    # artery scores p95 19.5 mm against it).  The bounds a few % looser; the fair comparison, against the
+    # reference less its pulmonary artery, is test_against_the_reference_less_its_pulmonary_artery, the
+    # issue's targets are in test_issue_targets.
+    assert m["dice"] >= 0.85 and m["msd_mm"] <= 4.0 and m["p95_mm"] <= 17.0, m
     # the long axis follows the reference's principal axis (measured 12.6 deg: the frame's line runs through
     # the ventricular slabs, the principal axis leans towards the atria and the pulmonary trunk the reference holds)
     z = model.frame.axes_patient[:, 2]
@@ -288,23 +314,40 @@ def test_model_from_reference_mask(realct, mask_model, auto_model):
     assert apex @ APEX_LAI_LPS > 0.7
 
 
-def test_frame_from_mesh_and_mask_agree(auto_model, mask_model):
-    """Issue 9: the same frame within 5 deg from the automatic mesh and from the reference mask.
+@pytest.fixture(scope="module")
+def mask_model_less_artery(realct, tmp_path_factory):
+    """``heartreg model CT.nii.gz --mask M``, M the reference less TotalSegmentator's pulmonary artery."""
+    volume, _, reference = realct
+    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, volume.T_patient_from_voxel)
+    folder = tmp_path_factory.mktemp("mask_less_artery")
+    ct = nib.load(str(REALCT / "ct_cropped.nii.gz"))  # the CT's grid, in the CT's (i, j, k) order
+    nib.save(nib.Nifti1Image((reference & ~artery).transpose(2, 1, 0).astype(np.uint8), ct.affine),
+             str(folder / "heart.nii.gz"))
+    rc, _ = _run_model(["model", str(REALCT / "ct_cropped.nii.gz"), "-o", str(folder / "model"), "-q",
+                        "--mask", str(folder / "heart.nii.gz")])
+    assert rc == 0
+    return folder / "model"
 
-    Measured 1.2 deg (z, same apex->base sign) and 4.5 deg (x); before the line was fitted through the
-    longest run of adjacent slabs only, 11.0 deg: the reference's pulmonary trunk (two narrow slabs beyond a
-    gap at the base) and the automatic model's base tilted it.  The reference less its pulmonary artery:
-    3.7 deg from the reference, 3.4 deg from the automatic model (9.9 and 17.7 before).
+
+def test_frame_from_mesh_and_mask_agree(auto_model, mask_model_less_artery):
+    """Issue 9: the same frame within 5 deg from the automatic mesh and from the reference mask, the reference
+    less its pulmonary artery (the anatomy the automatic model keeps: it cuts the artery at its valve).
+
+    Measured 3.8 deg (z, same apex->base sign) and 5.0 deg (x).  Against the reference with its pulmonary
+    artery 5.2 deg (1.2 deg while the model kept the pulmonary trunk, before session 11): the artery alone
+    turns the reference's frame by 3.6 deg.  Before the line was fitted through the longest run of adjacent
+    slabs only, 11.0 deg from the reference: its pulmonary trunk (two narrow slabs beyond a gap at the base)
+    and the automatic model's base tilted it.
     """
-    auto, given = read_model(auto_model[2]), read_model(mask_model[2])
+    auto, given = read_model(auto_model[2]), read_model(mask_model_less_artery)
     a, g = auto.frame.axes_patient, given.frame.axes_patient
     assert _angle_deg(a[:, 2], g[:, 2], signed=True) <= 5.0
     assert _angle_deg(a[:, 0], g[:, 0], signed=True) <= 10.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 9's surface targets are not reached yet (measured Dice 0.887, MSD "
-                   "3.1 mm, p95 9.2 mm); see the module docstring for why part of the gap is the reference "
-                   "(against it less its pulmonary artery: Dice 0.891, MSD 2.7 mm, p95 7.5 mm); its p95 cannot be met with "
+@pytest.mark.xfail(strict=True, reason="issue 9's surface targets are not reached yet (measured Dice 0.870, MSD "
+                   "3.7 mm, p95 15.2 mm); see the module docstring for why part of the gap is the reference "
+                   "(against it less its pulmonary artery: Dice 0.899, MSD 2.8 mm, p95 7.6 mm); its p95 cannot be met with "
                    "the pulmonary artery cut at its valve (the reference less its own pulmonary artery: p95 19.5 mm)")
 def test_issue_targets(realct, auto_model):
     volume, _, reference = realct
@@ -317,11 +360,15 @@ def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model):
     volume, _, reference = realct
     T = volume.T_patient_from_voxel
     artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
-    _, m = _metrics(auto_model[2], volume, reference & ~artery)
-    # measured 0.889 / 2.73 mm / 7.5 mm (0.892 / 2.76 / 7.5 with the branch cut at its first thin shell; before the
-    # vessels were traced to their valves: 0.884 / 3.21 / 9.2);
+    model, m = _metrics(auto_model[2], volume, reference & ~artery)
+    # measured 0.899 / 2.78 mm / 7.6 mm (0.891 / 2.67 / 7.5 with the pulmonary trunk kept, before session 11; before
+    # the vessels were traced to their valves: 0.884 / 3.21 / 9.2);
     # the rest is mostly the atrial roofs and the thin walls (module docstring)
-    assert m["dice"] >= 0.885 and m["msd_mm"] <= 2.9 and m["p95_mm"] <= 8.5, m
+    assert m["dice"] >= 0.89 and m["msd_mm"] <= 2.9 and m["p95_mm"] <= 8.5, m
+    # the pulmonary trunk and its bifurcation are cut off (measured 0.0 ml of the artery inside; 17.1 ml before)
+    mesh = model.mesh_patient()
+    inside_ml = (artery & mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)).sum() * np.prod(SPACING) / 1000
+    assert inside_ml <= 2.0, inside_ml
 
 
 def test_fiducials_insisted_on(realct):
