@@ -289,10 +289,15 @@ def test_model_with_no_options(realct, auto_model):
     # reference less its pulmonary artery, is test_against_the_reference_less_its_pulmonary_artery, the
     # issue's targets are in test_issue_targets.
     assert m["dice"] >= 0.85 and m["msd_mm"] <= 4.0 and m["p95_mm"] <= 17.0, m
-    # the long axis follows the reference's principal axis (measured 12.6 deg: the frame's line runs through
-    # the ventricular slabs, the principal axis leans towards the atria and the pulmonary trunk the reference holds)
+    # the long axis follows the principal axis of the reference less its pulmonary artery, the anatomy the model
+    # keeps (measured 9.5 deg: the frame's line runs through the ventricular slabs, the principal axis leans
+    # towards the atria; with the artery the reference's axis leans towards it too: 14.6 deg from the model's,
+    # 12.6 while the model kept the pulmonary trunk)
+    T = volume.T_patient_from_voxel
+    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
     z = model.frame.axes_patient[:, 2]
-    assert _angle_deg(z, principal_axis(reference, volume.T_patient_from_voxel)) <= 15.0
+    angle = _angle_deg(z, principal_axis(reference & ~artery, T))
+    assert angle <= 15.0, angle
     apex = -z  # towards patient left, anterior, inferior (LPS: +x, -y, -z)
     assert apex[0] > 0 and apex[1] < 0 and apex[2] < 0 and apex @ APEX_LAI_LPS > 0.7
     assert payload["parameters"]["base_from_great_vessels"] is True
