@@ -113,7 +113,7 @@ def trace_great_vessels(
     widen_ratio: float = 1.1,
     wall_mm: float = 3.0,
     heart=None,
-    leave_mm: float = 40.0,
+    leave_mm: float = 50.0,
 ) -> GreatVessels:
     """Find the great vessels' lumen in a contrast blood pool.
 
@@ -161,7 +161,9 @@ def trace_great_vessels(
         mm from the body, the trunk's, the bifurcation's and the aortic root's
         30-31 mm (reached from their branches: no start), the other lobes
         outside the body (the right atrial appendage, the atria's outer
-        corners) 23-26 mm.
+        corners) 23-26 mm.  A blind pouch reaching farther (an appendage
+        longer than any seen here) would be taken for a vessel: only its part
+        outside the body, as it opens into its chamber (step 6).
 
     Returns
     -------

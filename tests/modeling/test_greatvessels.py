@@ -76,3 +76,14 @@ def test_vessels_leaving_the_heart_inside_the_field_of_view():
     assert not found.lumen[body].any()  # the chamber and the trunk's root inside the body stay heart
     # beyond reach: branches ending within leave_mm of the body start nothing
     assert not trace_great_vessels(pool, SPACING, heart=body, leave_mm=120.0).lumen.any()
+
+
+def test_an_appendage_is_no_vessel():
+    """A blind pouch off the chamber (an atrial appendage: 9 mm in radius, reaching 40 mm beyond the heart
+    body, ending inside the volume) is chamber, not a vessel leaving the heart; the branching vessel beside
+    it is still found.  (With ``leave_mm`` 30 or 40 the pouch's part outside the body was taken, measured.)"""
+    pool, body, (k, j, i) = _branching_pool()
+    pouch = (np.sqrt((k - 60.0) ** 2 + (j - 45.0) ** 2) <= 9.0) & (i >= 120.0) & (i <= 120.0 + 45.0 + 40.0)
+    found = trace_great_vessels(pool | pouch, SPACING, heart=body)
+    assert not found.lumen[pouch & ~body].any()
+    assert found.lumen[pool & (k > 115.0) & (np.abs(i - 120.0) > 20.0)].all()
