@@ -33,7 +33,8 @@ where a lobe lies tells vessels apart too:
    lobe, long before the field of view's edge;
 5. the trace also steps into a lobe wider than the vessel so far when that
    lobe lies mostly outside the body with a vessel's radius: a bifurcation,
-   the pulmonary trunk (wider than its branches);
+   the pulmonary trunk (wider than its branches); into a lobe mostly inside
+   the body it steps only at the vessel's own calibre (``body_widen_ratio``);
 6. a vessel lobe open to a chamber's lobe (a saddle as in step 3) runs on
    into that chamber with no valve between, and only its part outside the
    body is vessel: the pulmonary valve leaves no saddle in the blood, and the
@@ -114,6 +115,7 @@ def trace_great_vessels(
     wall_mm: float = 3.0,
     heart=None,
     leave_mm: float = 50.0,
+    body_widen_ratio: float = 1.05,
 ) -> GreatVessels:
     """Find the great vessels' lumen in a contrast blood pool.
 
@@ -164,6 +166,17 @@ def trace_great_vessels(
         corners) 23-26 mm.  A blind pouch reaching farther (an appendage
         longer than any seen here) would be taken for a vessel: only its part
         outside the body, as it opens into its chamber (step 6).
+    body_widen_ratio : float
+        Into a lobe mostly inside the heart body the trace steps only when it
+        is at most this many times as wide as the vessel's narrowest lobe
+        (``widen_ratio`` elsewhere): inside the body a lumen as wide as the
+        vessel is its own root (the anatomical phantom's aortic root, within
+        1 % of its aorta), a wider one a chamber.  With the CT's top edge
+        through the pulmonary bifurcation (TotalSegmentator's aortic CTA cut
+        at 707 mm) the trunk's lobe (12.1 mm) led at ``widen_ratio`` into the
+        outflow tract's (13.2 mm, 86 % inside the body) and on into the right
+        ventricle (its point lost).  An aortic sinus lying mostly inside the
+        body and wider than this stays heart.
 
     Returns
     -------
@@ -206,7 +219,8 @@ def trace_great_vessels(
 
     sides = np.concatenate([np.take(lobes, end, axis=axis).ravel() for axis, end in edges] + [np.zeros(1, int)])
     starts = [int(i) for i in np.unique(sides) if i > 0 and radius[i] <= max_vessel_radius_mm]
-    outside = np.zeros(n + 1, bool)  # lobes mostly outside the heart body (none known without it)
+    inside = np.zeros(n + 1, bool)  # lobes mostly inside the heart body
+    outside = np.zeros(n + 1, bool)  # ... and mostly outside it (neither known without the body)
     heart_box = None
     if heart is not None:
         if np.shape(heart) != full_shape:
@@ -217,11 +231,13 @@ def trace_great_vessels(
         on_edge, in_heart = np.bincount(sides, minlength=n + 1), np.bincount(sides, weights=on_heart, minlength=n + 1)
         starts = [i for i in starts if in_heart[i] <= 0.5 * on_edge[i]]
         if heart_box.any():  # vessels leaving the heart's surroundings, wherever they end
-            outside[1:] = ndimage.mean(heart_box, lobes, np.arange(1, n + 1)) <= 0.5
+            inside[1:] = ndimage.mean(heart_box, lobes, np.arange(1, n + 1)) > 0.5
+            outside[1:] = ~inside[1:]
             reach = np.zeros(n + 1)
             reach[1:] = label_maximum(distance_mm(~heart_box, spacing), lobes, n)
             leaving = np.flatnonzero(outside & (reach > leave_mm) & (radius <= max_vessel_radius_mm))
             starts = sorted(set(starts) | {int(i) for i in leaving})
+    widen = np.where(inside, body_widen_ratio, widen_ratio)
     vessel = np.zeros(n + 1, bool)
     vessel[starts] = True
     narrowest = radius.copy()  # the narrowest lobe on the way from the start
@@ -230,7 +246,7 @@ def trace_great_vessels(
         a = stack.pop(0)
         for b, width in neighbours[a]:
             if not vessel[b] and width >= saddle_ratio * min(radius[a], radius[b]) and (
-                    radius[b] <= widen_ratio * narrowest[a] or (outside[b] and radius[b] <= max_vessel_radius_mm)):
+                    radius[b] <= widen[b] * narrowest[a] or (outside[b] and radius[b] <= max_vessel_radius_mm)):
                 vessel[b] = True
                 narrowest[b] = min(narrowest[a], radius[b])
                 stack.append(b)
@@ -239,8 +255,7 @@ def trace_great_vessels(
     lumen = np.zeros(full_shape, bool)
     lumen[box] = vessel[lobes]
     if outside.any():  # a vessel lobe open to a chamber's runs on into it: only its part outside the body
-        chamber = ~vessel & ~outside
-        chamber[0] = False
+        chamber = inside & ~vessel
         open_to_chamber = np.zeros(n + 1, bool)
         for a in np.flatnonzero(vessel):
             open_to_chamber[a] = any(chamber[b] and width >= saddle_ratio * min(radius[a], radius[b])
