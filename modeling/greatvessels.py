@@ -1,4 +1,4 @@
-"""Great vessels in the contrast blood pool, traced from the edge of the field of view to their valve.
+"""Great vessels in the contrast blood pool, traced from where they leave to their valve.
 
 A chest CT cuts the aorta, the pulmonary arteries, the venae cavae and the
 pulmonary veins where they leave its field of view; inside, each widens into a
@@ -20,21 +20,24 @@ between the vessel's sinus and the chamber.  So:
    from the narrowest lobe, a chain of small steps cannot creep into a
    chamber).
 
-The chambers are never reached: a valve or junction narrows the ridge, or the
-chamber is much wider than the vessel feeding it.  Lobes of a chamber cut by
-the field of view's edge are wider than any vessel and are no start.
+A valve or junction narrows the ridge, or the chamber is much wider than the
+vessel feeding it: the trace stops there.  Lobes of a chamber cut by the field
+of view's edge are wider than any vessel and are no start.
 
 Given the heart's body (the tissue a ball of the ventricles' size fits in),
 where a lobe lies tells vessels apart too:
 
-4. a lobe mostly outside the body whose blood reaches farther than
-   ``leave_mm`` from it is a vessel leaving the heart, at the edge or not: on
+4. a lobe mostly outside the body, with a vessel's radius, whose blood
+   reaches farther than ``leave_mm`` from it is a vessel leaving the heart,
+   at the edge or not (unless step 2 found it a chamber cut by the edge): on
    a whole-chest CT the pulmonary arteries end in the lungs, thinner than any
    lobe, long before the field of view's edge;
 5. the trace also steps into a lobe wider than the vessel so far when that
-   lobe lies mostly outside the body with a vessel's radius: a bifurcation,
-   the pulmonary trunk (wider than its branches); into a lobe mostly inside
-   the body it steps only at the vessel's own calibre (``body_widen_ratio``);
+   lobe lies mostly outside the body, with a vessel's radius, and at most
+   ``branch_ratio`` times as wide as the vessel's narrowest lobe: a
+   bifurcation's parent (Murray's law: 2^(1/3) = 1.26 times each of two equal
+   branches), the pulmonary trunk; an atrium outside the body is wider than
+   the vein feeding it by more (1.5 times and up);
 6. a vessel lobe open to a chamber's lobe (a saddle as in step 3) runs on
    into that chamber with no valve between, and only its part outside the
    body is vessel: the pulmonary valve leaves no saddle in the blood, and the
@@ -61,7 +64,8 @@ class GreatVessels:
     Attributes
     ----------
     lumen : bool array like the blood pool
-        Blood of the vessels, from the field of view's edge to their valve or junction.
+        Blood of the vessels, from where they leave (the field of view, or the
+        heart's surroundings) to their valve or junction.
     territory : bool array like the blood pool
         ``lumen`` and the voxels closer to it than to the chambers' blood, up to
         ``wall_mm`` from it (the vessels' walls).
@@ -115,7 +119,7 @@ def trace_great_vessels(
     wall_mm: float = 3.0,
     heart=None,
     leave_mm: float = 50.0,
-    body_widen_ratio: float = 1.05,
+    branch_ratio: float = 1.4,
 ) -> GreatVessels:
     """Find the great vessels' lumen in a contrast blood pool.
 
@@ -166,22 +170,20 @@ def trace_great_vessels(
         corners) 23-26 mm.  A blind pouch reaching farther (an appendage
         longer than any seen here) would be taken for a vessel: only its part
         outside the body, as it opens into its chamber (step 6).
-    body_widen_ratio : float
-        Into a lobe mostly inside the heart body the trace steps only when it
-        is at most this many times as wide as the vessel's narrowest lobe
-        (``widen_ratio`` elsewhere): inside the body a lumen as wide as the
-        vessel is its own root (the anatomical phantom's aortic root, within
-        1 % of its aorta), a wider one a chamber.  With the CT's top edge
-        through the pulmonary bifurcation (TotalSegmentator's aortic CTA cut
-        at 707 mm) the trunk's lobe (12.1 mm) led at ``widen_ratio`` into the
-        outflow tract's (13.2 mm, 86 % inside the body) and on into the right
-        ventricle (its point lost).  An aortic sinus lying mostly inside the
-        body and wider than this stays heart.
+    branch_ratio : float
+        Outside the heart body the trace steps into a lobe at most this many
+        times as wide as the vessel's narrowest lobe (step 5): Murray's
+        2^(1/3) for a bifurcation of two equal branches, times 1.1 for the
+        distance map's unevenness.  On ``shared/realct`` the pulmonary trunk
+        (12.1 mm) is 1.26 times its left branch (9.6 mm); a right atrium
+        outside the body fed by a superior vena cava of 10 mm, or a left
+        atrium fed by veins of 7 mm, 1.5 times and more
+        (``tests/modeling/test_greatvessels.py``).
 
     Returns
     -------
     GreatVessels
-        Empty masks when no vessel leaves the field of view.
+        Empty masks when no vessel leaves the field of view or the heart's surroundings.
     """
     from skimage.feature import peak_local_max
     from skimage.segmentation import watershed
@@ -229,15 +231,15 @@ def trace_great_vessels(
         # a chamber cut by the edge, not a vessel leaving there
         on_heart = np.concatenate([np.take(heart_box, end, axis=axis).ravel() for axis, end in edges] + [[False]])
         on_edge, in_heart = np.bincount(sides, minlength=n + 1), np.bincount(sides, weights=on_heart, minlength=n + 1)
-        starts = [i for i in starts if in_heart[i] <= 0.5 * on_edge[i]]
+        cut_chambers = {i for i in starts if in_heart[i] > 0.5 * on_edge[i]}
+        starts = [i for i in starts if i not in cut_chambers]
         if heart_box.any():  # vessels leaving the heart's surroundings, wherever they end
             inside[1:] = ndimage.mean(heart_box, lobes, np.arange(1, n + 1)) > 0.5
             outside[1:] = ~inside[1:]
             reach = np.zeros(n + 1)
             reach[1:] = label_maximum(distance_mm(~heart_box, spacing), lobes, n)
             leaving = np.flatnonzero(outside & (reach > leave_mm) & (radius <= max_vessel_radius_mm))
-            starts = sorted(set(starts) | {int(i) for i in leaving})
-    widen = np.where(inside, body_widen_ratio, widen_ratio)
+            starts = sorted(set(starts) | ({int(i) for i in leaving} - cut_chambers))
     vessel = np.zeros(n + 1, bool)
     vessel[starts] = True
     narrowest = radius.copy()  # the narrowest lobe on the way from the start
@@ -246,7 +248,8 @@ def trace_great_vessels(
         a = stack.pop(0)
         for b, width in neighbours[a]:
             if not vessel[b] and width >= saddle_ratio * min(radius[a], radius[b]) and (
-                    radius[b] <= widen[b] * narrowest[a] or (outside[b] and radius[b] <= max_vessel_radius_mm)):
+                    radius[b] <= widen_ratio * narrowest[a]
+                    or (outside[b] and radius[b] <= min(max_vessel_radius_mm, branch_ratio * narrowest[a]))):
                 vessel[b] = True
                 narrowest[b] = min(narrowest[a], radius[b])
                 stack.append(b)
@@ -268,7 +271,7 @@ def trace_great_vessels(
     radii = tuple(sorted((float(r) for r in radius[vessel]), reverse=True))
     volume_ml = float(lumen.sum() * np.prod(spacing) / 1000.0)
     note = (
-        f"great vessels traced from the field of view's edge to their valves: {len(radii)} lobe(s) of "
+        f"great vessels traced to their valves: {len(radii)} lobe(s) of "
         f"{radii[-1]:.0f}-{radii[0]:.0f} mm radius, {volume_ml:.0f} ml of lumen; with their walls "
         f"(up to {wall_mm:.0f} mm) they are not heart"
     )

@@ -36,7 +36,7 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    The full-resolution tissue mask within ``margin_mm`` of the result is the
    heart, holes filled;
 6. *remove the great vessels' lumen down to their valves* (contrast CT only):
-   the blood pool's lobes traced from the field of view's edge
+   the blood pool's lobes traced from where they leave
    (:mod:`modeling.greatvessels`), with their walls, are taken out of the
    heart -- the aortic root the opening keeps, the vessels' mouths.
 """

