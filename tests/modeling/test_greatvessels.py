@@ -122,3 +122,16 @@ def test_an_atrium_outside_the_body_is_no_vessel():
     pool = ventricle | left_atrium | _segment(k, j, i, centre, atrium, 6.0) | veins
     found = trace_great_vessels(pool, SPACING, heart=body)
     assert found.lumen[veins & ~left_atrium].any() and not found.lumen[left_atrium].any()
+
+
+def test_a_vessel_closed_by_its_valve_is_taken_inside_the_body_too():
+    """Step 6 trims only a vessel lobe open to a chamber: the tube of ``_pool`` behind its valve's narrowing,
+    its first 20 mm inside a heart body around the chamber, is traced there as well (cut by the body, the
+    stub of an aortic root embedded between the chambers would stay)."""
+    pool, valve_mm = _pool()
+    k, j, i = (np.indices(pool.shape) + 0.5) * 1.5
+    body = (k - 40.0) ** 2 + (j - 52.5) ** 2 + (i - 52.5) ** 2 <= 45.0**2
+    found = trace_great_vessels(pool, SPACING, heart=body)
+    stub = pool & body & (k > valve_mm + 6)
+    assert stub.any() and found.lumen[stub].all()
+    assert not found.lumen[pool & (k < valve_mm - 6)].any()
