@@ -159,8 +159,9 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
   model kept the trunk and the bifurcation (17 ml of
   ``pulmonary_artery.nii.gz``; on TotalSegmentator's whole-chest aortic CTA,
   the same patient, no pulmonary lobe reaches the edge at all).  Now lobes
-  outside the heart body reaching 40 mm beyond it start a vessel too, the
-  trace steps into lobes outside the body of a vessel's radius, and a vessel
+  outside the heart body reaching 50 mm beyond it start a vessel too, the
+  trace steps into lobes outside the body of a vessel's radius (at most 1.4
+  times its narrowest: a bifurcation's parent), and a vessel
   lobe open to a chamber's (the trunk's lobe runs on into the outflow tract:
   the valve leaves no saddle) is vessel only outside the body
   (``modeling.greatvessels``, steps 4-6).  The model's mesh: full reference
