@@ -264,6 +264,9 @@ def trace_great_vessels(
             open_to_chamber[a] = any(chamber[b] and width >= saddle_ratio * min(radius[a], radius[b])
                                      for b, width in neighbours[a])
         lumen[box] &= ~(open_to_chamber[lobes] & heart_box)
+        vessel &= np.bincount(lobes[lumen[box]], minlength=n + 1) > 0  # lobes wholly inside the body are gone
+        if not vessel.any():
+            return GreatVessels(empty, empty, (), "great vessels: none outside the heart's body")
     to_lumen = distance_mm(~lumen[box], spacing)
     to_chambers = distance_mm(~(pool & ~lumen[box]), spacing)
     territory = np.zeros(full_shape, bool)
