@@ -168,8 +168,9 @@ def trace_great_vessels(
         30-31 mm (reached from their branches: no start), the other lobes
         outside the body (the right atrial appendage, the atria's outer
         corners) 23-26 mm.  A blind pouch reaching farther (an appendage
-        longer than any seen here) would be taken for a vessel: only its part
-        outside the body, as it opens into its chamber (step 6).
+        longer than any seen here) would be taken for a vessel: its part
+        outside the body where it opens into its chamber without a narrowing
+        (step 6), all of it behind one.
     branch_ratio : float
         Outside the heart body the trace steps into a lobe at most this many
         times as wide as the vessel's narrowest lobe (step 5): Murray's
