@@ -30,6 +30,7 @@ from imaging.volume_file import read_volume_file
 from modeling import read_model
 from modeling.labelmap import mask_on_grid, read_label_map
 from modeling.mesh import check_mesh
+from modeling.segment import segment_heart
 from modeling.vessels import APEX_LAI_LPS
 from tests.data.fetch_real_cts import paths as real_cts
 from tests.modeling.realct import mesh_to_mask
@@ -86,6 +87,13 @@ def _aorta_labels(shape, T):
     along, _ = MCP_Geometric(np.where(aorta | annulus | junction, 1.0, np.inf),
                              sampling=spacing).find_costs(np.argwhere(annulus))
     return aorta & np.isfinite(along) & (along > 10.0), annulus, junction, float(np.prod(spacing))
+
+
+def _slices_from_600_mm(cta, stop):
+    """The CT's slices 40 (600 mm) to ``stop`` (exclusive): the HU and their voxel-to-patient transform."""
+    T = np.asarray(cta.T_patient_from_voxel, dtype=float).copy()
+    T[:3, 3] = T[:3, :3] @ [0, 0, 40] + T[:3, 3]
+    return np.ascontiguousarray(cta.hu[40:stop]), T
 
 
 def _model_of(tmp_path, data, affine):
@@ -193,11 +201,7 @@ def test_a_top_edge_through_the_pulmonary_bifurcation(cta):
     ``shared/realct`` averaged to 3 mm voxels the aorta's lobes inside the body (radii 13.7 -> 14.7 mm: one
     step of the distance map there) were no longer traced (791 -> 847 ml, Dice 0.868 -> 0.839): reverted.
     Also left: 28.6 ml of ascending aorta stay, its lobe on this edge lying half inside the heart's body."""
-    from modeling.segment import segment_heart
-
-    hu = np.ascontiguousarray(cta.hu[40:112])
-    T = np.asarray(cta.T_patient_from_voxel, dtype=float).copy()
-    T[:3, 3] = T[:3, :3] @ [0, 0, 40] + T[:3, 3]
+    hu, T = _slices_from_600_mm(cta, 112)
     seg = segment_heart(hu, T)
     inside = _at(seg.mask, T, INSIDE.values())
     assert all(inside), dict(zip(INSIDE, inside))
@@ -211,11 +215,7 @@ def test_a_top_edge_just_above_the_aortic_root(cta):
     a chamber cut by the edge and kept (35 ml of aorta more than 10 mm up the lumen, measured); judged against the
     heart body (the part holding the ventricles' ball, which no vessel stub does) it is a vessel leaving:
     none of the aorta farther than 10 mm up the lumen from the annulus is inside, and the four chambers are."""
-    from modeling.segment import segment_heart
-
-    hu = np.ascontiguousarray(cta.hu[40:118])
-    T = np.asarray(cta.T_patient_from_voxel, dtype=float).copy()
-    T[:3, 3] = T[:3, :3] @ [0, 0, 40] + T[:3, 3]
+    hu, T = _slices_from_600_mm(cta, 118)
     mask = segment_heart(hu, T).mask
     far, _, _, voxel_mm3 = _aorta_labels(hu.shape, T)
     assert far.sum() * voxel_mm3 > 20e3  # 20 ml of ascending aorta above the root, up to the edge

@@ -9,14 +9,32 @@ from modeling.greatvessels import trace_great_vessels
 SPACING = (1.5, 1.5, 1.5)
 
 
+def _grid(shape):
+    """Each voxel's centre (k, j, i) in mm on the 1.5 mm grid of ``shape``."""
+    return (np.indices(shape) + 0.5) * 1.5
+
+
+def _ball(k, j, i, centre, r):
+    """Voxels within ``r`` mm of ``centre`` (mm, (k, j, i))."""
+    return (k - centre[0]) ** 2 + (j - centre[1]) ** 2 + (i - centre[2]) ** 2 <= r * r
+
+
+def _segment(k, j, i, p, q, r):
+    """Voxels within ``r`` mm of the segment from ``p`` to ``q`` (mm, (k, j, i))."""
+    p, q = np.asarray(p, float), np.asarray(q, float)
+    d = q - p
+    t = np.clip(((k - p[0]) * d[0] + (j - p[1]) * d[1] + (i - p[2]) * d[2]) / (d @ d), 0.0, 1.0)
+    return (k - p[0] - t * d[0]) ** 2 + (j - p[1] - t * d[1]) ** 2 + (i - p[2] - t * d[2]) ** 2 <= r * r
+
+
 def _pool(*, valve_radius_mm=7.0, through_edge=True):
     """A chamber (radius 25 mm) fed by a tube (12 mm) with a sinus (13 mm) and a valve narrowing.
 
     The tube runs along k from the chamber to the volume's top face (or stops
     short of it); returns the pool and the k (mm) of the valve plane.
     """
-    k, j, i = (np.indices((100, 70, 70)) + 0.5) * 1.5
-    chamber = (k - 40) ** 2 + (j - 52.5) ** 2 + (i - 52.5) ** 2 <= 25**2
+    k, j, i = _grid((100, 70, 70))
+    chamber = _ball(k, j, i, (40.0, 52.5, 52.5), 25.0)
     top = 150.0 if through_edge else 120.0
     valve_mm = 68.0
     along = np.clip(k, 0, top)
@@ -29,7 +47,7 @@ def _pool(*, valve_radius_mm=7.0, through_edge=True):
 def test_vessel_traced_to_its_valve():
     pool, valve_mm = _pool()
     found = trace_great_vessels(pool, SPACING)
-    k_mm = (np.indices(pool.shape)[0] + 0.5) * 1.5
+    k_mm = _grid(pool.shape)[0]
     assert found.lumen[pool & (k_mm > valve_mm + 6)].all()  # the tube and its sinus
     assert not found.lumen[pool & (k_mm < valve_mm - 6)].any()  # not the chamber
     assert found.territory[found.lumen].all() and found.lobe_radii_mm[0] <= 14.0
@@ -52,10 +70,9 @@ def _branching_pool():
 
     Returns the pool, the heart body and each voxel's position (k, j, i) in mm.
     """
-    k, j, i = (np.indices((100, 60, 160)) + 0.5) * 1.5
+    k, j, i = _grid((100, 60, 160))
     centre = (60.0, 45.0, 120.0)
-    from_centre = np.sqrt((k - centre[0]) ** 2 + (j - centre[1]) ** 2 + (i - centre[2]) ** 2)
-    chamber, body = from_centre <= 25.0, from_centre <= 45.0
+    chamber, body = _ball(k, j, i, centre, 25.0), _ball(k, j, i, centre, 45.0)
     across = np.sqrt((j - centre[1]) ** 2 + (i - centre[2]) ** 2)
     trunk = (across <= 12.0) & (k >= centre[0]) & (k <= 130.0)
     branches = (np.sqrt((k - 130.0) ** 2 + (j - centre[1]) ** 2) <= 9.0) & (np.abs(i - centre[2]) <= 90.0)
@@ -89,35 +106,25 @@ def test_an_appendage_is_no_vessel():
     assert found.lumen[pool & (k > 115.0) & (np.abs(i - 120.0) > 20.0)].all()
 
 
-def _segment(k, j, i, p, q, r):
-    """Voxels within ``r`` mm of the segment from ``p`` to ``q`` (mm, (k, j, i))."""
-    p, q = np.asarray(p, float), np.asarray(q, float)
-    d = q - p
-    t = np.clip(((k - p[0]) * d[0] + (j - p[1]) * d[1] + (i - p[2]) * d[2]) / (d @ d), 0.0, 1.0)
-    return (k - p[0] - t * d[0]) ** 2 + (j - p[1] - t * d[1]) ** 2 + (i - p[2] - t * d[2]) ** 2 <= r * r
-
-
 def test_an_atrium_outside_the_body_is_no_vessel():
     """An atrium lying mostly outside the heart body (15-16 mm in radius, 16-22 % inside), fed by a vein across
     an open junction and joined to the ventricle through a valve's narrowing, stays heart: a superior vena cava
     of 9.5 mm leaving through the volume's top, or two pulmonary veins of 7 mm ending in the lungs.  Wider than
     a bifurcation's parent (``branch_ratio``), the atrium is no trunk (review of session 11: both atria were
     traced whole before the bound, 7.9 and 12.6 ml)."""
-    k, j, i = (np.indices((110, 80, 120)) + 0.5) * 1.5
+    k, j, i = _grid((110, 80, 120))
     centre, atrium = (60.0, 60.0, 60.0), (60.0, 60.0, 110.0)
-    from_centre = np.sqrt((k - 60.0) ** 2 + (j - 60.0) ** 2 + (i - 60.0) ** 2)
-    ventricle, body = from_centre <= 25.0, from_centre <= 45.0
-    right_atrium = (k - 60.0) ** 2 + (j - 60.0) ** 2 + (i - 110.0) ** 2 <= 15.0**2
+    ventricle, body = _ball(k, j, i, centre, 25.0), _ball(k, j, i, centre, 45.0)
+    right_atrium = _ball(k, j, i, atrium, 15.0)
     pool = (ventricle | right_atrium | _segment(k, j, i, centre, atrium, 6.0)
             | _segment(k, j, i, atrium, (200.0, 60.0, 110.0), 10.0))
     found = trace_great_vessels(pool, SPACING, heart=body)
     assert found.lumen[k > 95.0].any() and not found.lumen[right_atrium].any()
 
-    k, j, i = (np.indices((90, 140, 130)) + 0.5) * 1.5
+    k, j, i = _grid((90, 140, 130))
     centre, atrium = (67.0, 60.0, 60.0), (67.0, 60.0, 112.0)
-    from_centre = np.sqrt((k - 67.0) ** 2 + (j - 60.0) ** 2 + (i - 60.0) ** 2)
-    ventricle, body = from_centre <= 25.0, from_centre <= 45.0
-    left_atrium = (k - 67.0) ** 2 + (j - 60.0) ** 2 + (i - 112.0) ** 2 <= 16.0**2
+    ventricle, body = _ball(k, j, i, centre, 25.0), _ball(k, j, i, centre, 45.0)
+    left_atrium = _ball(k, j, i, atrium, 16.0)
     veins = _segment(k, j, i, atrium, (67.0, 20.0, 180.0), 7.0) | _segment(k, j, i, atrium, (67.0, 190.0, 180.0), 7.0)
     pool = ventricle | left_atrium | _segment(k, j, i, centre, atrium, 6.0) | veins
     found = trace_great_vessels(pool, SPACING, heart=body)
@@ -129,8 +136,8 @@ def test_a_vessel_closed_by_its_valve_is_taken_inside_the_body_too():
     its first 20 mm inside a heart body around the chamber, is traced there as well (cut by the body, the
     stub of an aortic root embedded between the chambers would stay)."""
     pool, valve_mm = _pool()
-    k, j, i = (np.indices(pool.shape) + 0.5) * 1.5
-    body = (k - 40.0) ** 2 + (j - 52.5) ** 2 + (i - 52.5) ** 2 <= 45.0**2
+    k, j, i = _grid(pool.shape)
+    body = _ball(k, j, i, (40.0, 52.5, 52.5), 45.0)
     found = trace_great_vessels(pool, SPACING, heart=body)
     stub = pool & body & (k > valve_mm + 6)
     assert stub.any() and found.lumen[stub].all()

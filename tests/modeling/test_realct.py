@@ -230,11 +230,16 @@ def realct(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def heart_less_artery(realct):
-    """The reference less TotalSegmentator's pulmonary artery, on the CT's grid: the anatomy the model keeps."""
-    volume, _, reference = realct
-    T = volume.T_patient_from_voxel
-    return reference & ~mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
+def artery(realct):
+    """TotalSegmentator's pulmonary artery on the CT's grid."""
+    volume = realct[0]
+    return mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, volume.T_patient_from_voxel)
+
+
+@pytest.fixture(scope="module")
+def heart_less_artery(realct, artery):
+    """The reference less its pulmonary artery, on the CT's grid: the anatomy the model keeps."""
+    return realct[2] & ~artery
 
 
 def _run_model(args):
@@ -279,7 +284,7 @@ def test_nifti_and_dicom_give_the_same_volume(realct):
     assert all(s.acquisition_time_s is None for s in volume.slices)  # no slice clock
 
 
-def test_model_with_no_options(realct, auto_model):
+def test_model_with_no_options(realct, auto_model, heart_less_artery):
     volume, _, reference = realct
     rc, caught, out = auto_model
     assert rc == 0
@@ -302,10 +307,8 @@ def test_model_with_no_options(realct, auto_model):
     # keeps (measured 9.5 deg: the frame's line runs through the ventricular slabs, the principal axis leans
     # towards the atria; with the artery the reference's axis leans towards it too: 14.6 deg from the model's,
     # 12.6 while the model kept the pulmonary trunk)
-    T = volume.T_patient_from_voxel
-    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
     z = model.frame.axes_patient[:, 2]
-    angle = _angle_deg(z, principal_axis(reference & ~artery, T))
+    angle = _angle_deg(z, principal_axis(heart_less_artery, volume.T_patient_from_voxel))
     assert angle <= 15.0, angle
     apex = -z  # towards patient left, anterior, inferior (LPS: +x, -y, -z)
     assert apex[0] > 0 and apex[1] < 0 and apex[2] < 0 and apex @ APEX_LAI_LPS > 0.7
@@ -329,13 +332,11 @@ def test_model_from_reference_mask(realct, mask_model, auto_model):
 
 
 @pytest.fixture(scope="module")
-def mask_model_less_artery(realct, tmp_path_factory):
+def mask_model_less_artery(heart_less_artery, tmp_path_factory):
     """``heartreg model CT.nii.gz --mask M``, M the reference less TotalSegmentator's pulmonary artery."""
-    volume, _, reference = realct
-    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, volume.T_patient_from_voxel)
     folder = tmp_path_factory.mktemp("mask_less_artery")
     ct = nib.load(str(REALCT / "ct_cropped.nii.gz"))  # the CT's grid, in the CT's (i, j, k) order
-    nib.save(nib.Nifti1Image((reference & ~artery).transpose(2, 1, 0).astype(np.uint8), ct.affine),
+    nib.save(nib.Nifti1Image(heart_less_artery.transpose(2, 1, 0).astype(np.uint8), ct.affine),
              str(folder / "heart.nii.gz"))
     rc, _ = _run_model(["model", str(REALCT / "ct_cropped.nii.gz"), "-o", str(folder / "model"), "-q",
                         "--mask", str(folder / "heart.nii.gz")])
@@ -369,12 +370,11 @@ def test_issue_targets(realct, auto_model):
     assert m["dice"] >= 0.92 and m["msd_mm"] <= 1.5 and m["p95_mm"] <= 5.0, m
 
 
-def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model):
+def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model, artery, heart_less_artery):
     """The issue cuts the great vessels at their valves, the reference keeps the pulmonary artery."""
-    volume, _, reference = realct
+    volume = realct[0]
     T = volume.T_patient_from_voxel
-    artery = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
-    model, m = _metrics(auto_model[2], volume, reference & ~artery)
+    model, m = _metrics(auto_model[2], volume, heart_less_artery)
     # measured 0.899 / 2.78 mm / 7.6 mm (0.891 / 2.67 / 7.5 with the pulmonary trunk kept, before session 11; before
     # the vessels were traced to their valves: 0.884 / 3.21 / 9.2);
     # the rest is mostly the atrial roofs and the thin walls (module docstring)
@@ -523,7 +523,7 @@ def test_thick_voxels(realct):
     assert 650 <= seg.volume_ml <= 850 and m["dice"] >= 0.85 and m["p95_mm"] <= 12.5, m
 
 
-def test_no_contrast_in_a_tight_field_of_view(realct):
+def test_no_contrast_in_a_tight_field_of_view(realct, artery):
     """A calcium-scoring-like scan: the real CT without contrast, its field of view cutting both lungs.
 
     Within 18 mm of the heart and pulmonary artery the HU above 60 are pressed to ~40 (blood and myocardium
@@ -536,10 +536,8 @@ def test_no_contrast_in_a_tight_field_of_view(realct):
     from scipy import ndimage
 
     volume, _, reference = realct
-    T = volume.T_patient_from_voxel
-    pa = mask_on_grid(read_label_map(REALCT / "pulmonary_artery.nii.gz"), volume.shape, T)
     hu = volume.hu.astype(np.float32)
-    near = ndimage.binary_dilation(reference | pa, iterations=12)
+    near = ndimage.binary_dilation(reference | artery, iterations=12)
     plain = np.where(hu > 60, 40 + (hu - 60) * 0.03, hu)
     plain = np.where(~near & (hu > 150), hu, plain) + np.random.default_rng(1).normal(0, 15, hu.shape)
     plain = np.rint(plain).astype(np.int16)
@@ -549,7 +547,7 @@ def test_no_contrast_in_a_tight_field_of_view(realct):
     notes = " ".join(build.notes)
     assert "no contrast blood pool" in notes and "between the lungs" in notes
     mesh = build.model.mesh_patient()
-    m = overlap(mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T), reference, SPACING)
+    m = overlap(mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, volume.T_patient_from_voxel), reference, SPACING)
     assert m["dice"] >= 0.85 and m["msd_mm"] <= 4.0, m
     assert -build.model.frame.axes_patient[:, 2] @ APEX_LAI_LPS > 0.7
 
