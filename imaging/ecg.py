@@ -31,7 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage
 
 from imaging.events import SignalError, phase_from_events, zero_phase_filter
 from imaging.qrs_classify import _Classifier, _search_edges
@@ -253,6 +253,8 @@ def detect_r_peaks(
     energy[energy.size - edge :] /= coverage[coverage.size - edge :]
     refractory = int(round(float(refractory_s) * rate))
     pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
+    from scipy import signal  # on first use, as in imaging.events
+
     peaks, _ = signal.find_peaks(np.concatenate([np.zeros(pad), energy, np.zeros(pad)]), distance=pad)
     peaks = peaks - pad
     if peaks.size == 0:

@@ -12,10 +12,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-# scipy.signal is imported with the module, not inside the filters: imported first inside a
-# Dask worker's task, it left the worker's heap corrupt at exit (glibc: "malloc_consolidate():
-# unaligned fastbin chunk detected" in each of 7 evaluate-temporal runs of 4 cases; in neither of 2 with this import)
-from scipy import signal
 
 from hrcore.errors import HeartregError
 
@@ -85,6 +81,10 @@ def phase_from_events(time_s, events_s, *, name: str = "events_s", what: str = "
 
 @functools.lru_cache(maxsize=64)
 def _butter_sos(cutoff_hz: float | tuple[float, float], btype: str, rate_hz: float) -> np.ndarray:
+    # scipy.signal (~0.6 s to import) on first use: ``heartreg model`` needs the phases, not the
+    # filters; the batch's workers import it at start-up (heartreg.batch.cluster.PRELOAD)
+    from scipy import signal
+
     return signal.butter(2, cutoff_hz, btype=btype, fs=rate_hz, output="sos")
 
 
@@ -108,4 +108,6 @@ def zero_phase_filter(x: np.ndarray, cutoff_hz, btype: str, rate_hz: float) -> n
     """
     band = tuple(float(f) for f in cutoff_hz) if np.ndim(cutoff_hz) else float(cutoff_hz)
     # a copy: the cached design stays as designed (scipy's filter wants a writeable array)
+    from scipy import signal
+
     return signal.sosfiltfilt(_butter_sos(band, btype, float(rate_hz)).copy(), x)

@@ -28,6 +28,12 @@ DEFAULT_MEMORY_LIMIT = "4GB"
 CONNECT_TIMEOUT_S = 30
 #: Seconds the client and a local cluster get to close before the command goes on.
 CLOSE_TIMEOUT_S = 30
+#: Modules every worker imports when it joins, before it runs a task.  A task's
+#: code imports scipy.signal on first use (the model command need not pay for it);
+#: imported first inside a task's thread it left the worker's heap corrupt at exit
+#: (glibc: "malloc_consolidate(): unaligned fastbin chunk detected", 2 of 2 workers
+#: in a 4-case evaluate-temporal run), imported by the worker itself it never did.
+PRELOAD = ("scipy.signal",)
 
 
 class ClusterError(HeartregError, RuntimeError):
@@ -48,6 +54,14 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _preload(dask_worker=None) -> None:
+    """Import :data:`PRELOAD` in a worker's own thread (``Client.register_worker_callbacks``)."""
+    import importlib
+
+    for module in PRELOAD:
+        importlib.import_module(module)
 
 
 def _dashboard_link(client) -> str:
@@ -109,6 +123,7 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
         except ValueError as exc:
             raise ClusterError(f"cannot start {n} local worker(s) with memory limit {memory_limit!r}: {exc}") from None
         client = Client(cluster, set_as_default=False)
+    client.register_worker_callbacks(_preload)  # every worker, also those that join later
     link = _dashboard_link(client)
     if link:
         say(f"Dask dashboard: {link}")

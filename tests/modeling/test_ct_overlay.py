@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from modeling.ct_overlay import AXIAL_LEVELS, ct_panels, render_ct_png
+from modeling.ct_overlay import AXIAL_LEVELS, ct_panels, plane_section, render_ct_png
 from modeling.surface import mask_to_mesh
 
 
@@ -58,3 +58,25 @@ def test_markers_land_on_the_side_their_letters_name(tmp_path, reversed_axes):
     render_ct_png(panels, tmp_path / "ct.png")
     with pytest.raises(ValueError, match="must end in .png"):
         render_ct_png(panels, tmp_path / "ct.jpg")
+
+
+def test_plane_section_is_trimeshs():
+    """The outline's segments are trimesh's ``mesh_plane``: the same segments (either end first), also for a
+    plane through a vertex, where a face touching the plane at a corner adds nothing."""
+    import trimesh
+    from trimesh.intersections import mesh_plane
+
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=30.0)
+    rng = np.random.default_rng(7)
+    planes = [(mesh.vertices[5], np.array([0.0, 0.0, 1.0]))]
+    planes += [(10.0 * rng.normal(size=3), n / np.linalg.norm(n)) for n in rng.normal(size=(10, 3))]
+
+    def canonical(segments):  # each segment's ends in order, the segments sorted
+        return sorted(tuple(sorted(tuple(end) for end in np.round(segment, 5))) for segment in segments)
+
+    for origin, normal in planes:
+        ours = plane_section(mesh.vertices, mesh.faces, origin, normal)
+        theirs = mesh_plane(mesh, plane_normal=normal, plane_origin=origin)
+        theirs = theirs[np.linalg.norm(theirs[:, 1] - theirs[:, 0], axis=1) > 0]
+        assert ours.shape == theirs.shape and ours.shape[0] > 50
+        assert canonical(ours) == canonical(theirs)
