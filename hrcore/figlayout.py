@@ -9,7 +9,11 @@ figure that :meth:`matplotlib.figure.Figure.subplots_adjust` takes.
 
 from __future__ import annotations
 
-__all__ = ["fixed_margins"]
+__all__ = ["PNG_OPTIONS", "fixed_margins"]
+
+#: zlib level of the pictures' PNGs (Pillow's default 6): level 3 writes the model's two
+#: pictures in 0.10 s instead of 0.22 s, the files within 3 % of the size.
+PNG_OPTIONS = {"compress_level": 3}
 
 
 def fixed_margins(fig, *, left_in: float, right_in: float, bottom_in: float, top_in: float,

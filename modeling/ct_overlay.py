@@ -170,6 +170,7 @@ def render_ct_png(panels, path, *, suptitle: str = "Heart model over its CT: the
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
 
+    from hrcore.figlayout import PNG_OPTIONS
     from imaging.files import atomic_path
 
     path = Path(path)
@@ -202,7 +203,7 @@ def render_ct_png(panels, path, *, suptitle: str = "Heart model over its CT: the
         fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.8 / (4.2 * rows + 0.5), wspace=0.04,
                             hspace=0.12)  # fixed margins: tight_layout would draw the figure once more
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=90)
+            fig.savefig(tmp, format="png", dpi=90, pil_kwargs=PNG_OPTIONS)
     finally:
         plt.close(fig)
     return path

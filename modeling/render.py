@@ -216,8 +216,10 @@ def render_png(draw, path, *, size: tuple[int, int], what: str, opengl: bool = T
         raise RenderError("the rendered image is blank; check the offscreen OpenGL setup")
     from PIL import Image
 
+    from hrcore.figlayout import PNG_OPTIONS
+
     with atomic_path(path) as tmp:
-        Image.fromarray(img).save(tmp, format="PNG")
+        Image.fromarray(img).save(tmp, format="PNG", **PNG_OPTIONS)
     return path
 
 

@@ -28,12 +28,14 @@ DEFAULT_MEMORY_LIMIT = "4GB"
 CONNECT_TIMEOUT_S = 30
 #: Seconds the client and a local cluster get to close before the command goes on.
 CLOSE_TIMEOUT_S = 30
-#: Modules every worker imports when it joins, before it runs a task.  A task's
-#: code imports scipy.signal on first use (the model command need not pay for it);
-#: imported first inside a task's thread it left the worker's heap corrupt at exit
-#: (glibc: "malloc_consolidate(): unaligned fastbin chunk detected", 2 of 2 workers
-#: in a 4-case evaluate-temporal run), imported by the worker itself it never did.
-PRELOAD = ("scipy.signal",)
+#: Modules every worker imports when it joins, in its own (main) thread, before it
+#: runs a task: the compiled ones a case loads on first use.  Loaded first inside a
+#: task's thread they left workers' heaps corrupt at exit (glibc:
+#: "malloc_consolidate(): unaligned fastbin chunk detected", after every result was
+#: in): in 4-case evaluate-temporal runs on 2 workers, 1 of 3 runs with scipy.signal
+#: alone imported beforehand (then by ``imaging``'s import), 2 of 6 with it preloaded
+#: here, every run with nothing preloaded, none of 11 with all three preloaded.
+PRELOAD = ("scipy.signal", "pymeshlab", "registration._closest_kernel")
 
 
 class ClusterError(HeartregError, RuntimeError):

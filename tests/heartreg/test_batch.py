@@ -239,6 +239,18 @@ def test_scheduler_started_separately_on_loopback(batch, scheduler, sample_case,
         assert _files(remote / local[0] / part) == _files(out / local[0] / part)
 
 
+def test_workers_import_the_compiled_modules_before_any_task(scheduler):
+    """A worker that was running before the client connected has imported PRELOAD by the time the
+    client is handed out (a task's thread loading them left heaps corrupt at exit)."""
+    from heartreg.batch.cluster import PRELOAD, open_client
+
+    def loaded():
+        return [m for m in PRELOAD if m in sys.modules]
+
+    with open_client(scheduler=scheduler) as client:
+        assert list(client.run(loaded).values()) == [list(PRELOAD)]
+
+
 def test_an_unreachable_scheduler_is_one_line(tmp_path, sample_case, capsys, monkeypatch):
     case_dir, _ = sample_case
     monkeypatch.setattr("heartreg.batch.cluster.CONNECT_TIMEOUT_S", 2)  # Dask retries until then
