@@ -49,7 +49,8 @@ def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = Fa
 
 def phase_report_extra(volume, study_dir) -> dict:
     """Series identity and the volume's notes for ``phases.json``, with file paths
-    made relative to the study folder (a folder name can identify a patient)."""
+    made relative to the study folder (a folder name can identify a patient); not
+    the series' description, free text that can name the patient too."""
     root = str(Path(study_dir).resolve())
     notes = []
     for note in volume.notes:
@@ -58,7 +59,6 @@ def phase_report_extra(volume, study_dir) -> dict:
         notes.append(note)
     return {
         "series_instance_uid": volume.series.series_instance_uid,
-        "series_description": volume.series.description,
         "volume_notes": notes,
     }
 
@@ -97,7 +97,7 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
 
     try:
         report = compute_phase_report(
-            volume, qrs_s=qrs_s, qrs_label=f"R-peak file {Path(qrs).name}" if qrs else ""
+            volume, qrs_s=qrs_s, qrs_label="R-peak file (--qrs)" if qrs else ""
         )
     except GatingError as exc:
         if phase_required or qrs:

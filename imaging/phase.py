@@ -272,29 +272,31 @@ def _finite_stamps(r_s: np.ndarray, times_s: np.ndarray, notes: list):
     return r_s[~nan], None
 
 
-def _file_name(source: str) -> str:
-    """A source named by its file name only: a folder can name the patient."""
-    return Path(source).name if source and not source.startswith("<") else source
+def _waveform_label(k: int, n: int) -> str:
+    """An ECG waveform of the study named by its place, not its file: a file or folder name
+    can name the patient (``--list-series`` lists the files)."""
+    return "ECG waveform" if n == 1 else f"ECG waveform {k + 1} of {n}"
 
 
 def _read_study_waveforms(volume, notes: list[str]) -> list:
     from imaging.waveform import WaveformError, read_ecg_waveform
 
     records = []
-    for path in getattr(volume, "waveform_files", ()):
+    files = list(getattr(volume, "waveform_files", ()))
+    for k, path in enumerate(files):
         try:
             records.append(read_ecg_waveform(path))
         except WaveformError as exc:
-            notes.append(f"ECG waveform {_file_name(str(path))} unreadable: " + _strip_paths(str(exc), path))
+            notes.append(f"{_waveform_label(k, len(files))} unreadable: " + _strip_paths(str(exc), path))
     return records
 
 
 def _strip_paths(text: str, path) -> str:
-    """``text`` with ``path`` (and its folder) replaced by the file name."""
+    """``text`` without ``path``: its file and folder names become "the file"."""
     p = Path(path)
-    for long in (str(p.resolve()), str(p)):
-        text = text.replace(long, p.name)
-    return text.replace(str(p.parent) + "/", "")
+    for long in (str(p.resolve()), str(p), p.name):
+        text = text.replace(long, "the file")
+    return text
 
 
 def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_records=None) -> PhaseReport:
@@ -333,8 +335,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     (0.69, 'GE RpeakTimeStamps (0049,xx0C)')
     """
     notes: list[str] = []
-    if ecg_records is None:
-        ecg_records = _read_study_waveforms(volume, notes)
+    ecg_records = _read_study_waveforms(volume, notes) if ecg_records is None else list(ecg_records)
     acq = _column(volume, "acquisition_time_s")
     has_acq = bool(np.all(np.isfinite(acq)))
 
@@ -388,8 +389,8 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         notes.append("no GE RpeakTimeStamps (0049,xx0C)")
 
     # 3. an ECG waveform instance of the study, QRS detection on it
-    for record in ecg_records:
-        label = f"ECG waveform {_file_name(getattr(record, 'source', ''))}".strip()
+    for k, record in enumerate(ecg_records):
+        label = _waveform_label(k, len(ecg_records))
         if not has_acq:
             notes.append(f"{label}: slices lack AcquisitionTime, cannot align")
             continue

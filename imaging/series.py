@@ -119,9 +119,10 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
         )
         best = ranked[0].summary
         why = (
-            f"chose series [{best.index}] {best.uid} ({best.description!r}"
-            + (f", {best.subset}" if best.subset else "")
-            + f"): {best.orientation} CT, {best.n_slices} image(s)"
+            # not its description: free text that can name the patient (the listing shows it)
+            f"chose series [{best.index}] {best.uid}"
+            + (f" ({best.subset})" if best.subset else "")
+            + f": {best.orientation} CT, {best.n_slices} image(s)"
         )
         if prefer_gated:
             g0 = gating[id(ranked[0])]

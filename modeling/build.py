@@ -14,14 +14,13 @@ import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from hrcore.memory import release_free_memory
 from modeling.coarse import mask_box
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
-from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
+from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_label_map
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
@@ -252,9 +251,9 @@ def build_heart_model(
     fallbacks: list[str] = []
     stage("mask")
     if mask_path is not None:
-        label_map = read_label_map(mask_path)
+        label_map = read_label_map(mask_path, structure=label if isinstance(label, str) else None)
         mask = mask_on_grid(label_map, volume.shape, T, label=label)
-        mask_source = f"label map {Path(label_map.source).name}" + (f", label {label}" if label is not None else "")
+        mask_source = f"label map ({label_map_kind(label_map.source)})" + (f", label {label}" if label is not None else "")
         seg_params = {}
     else:
         seg = segment_heart(volume.hu, T, **(segmentation or {}))

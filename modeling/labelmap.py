@@ -8,6 +8,7 @@ disk), NRRD (``.nrrd`` through :mod:`imaging.nrrd`) and DICOM SEG (through :mod:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.nrrd import NrrdError, read_nrrd
 
-__all__ = ["LabelMapError", "LabelMap", "read_label_map", "mask_on_grid"]
+__all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
 
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
@@ -178,24 +179,40 @@ def _read_nrrd(path: Path) -> LabelMap:
     return LabelMap(np.round(data).astype(np.int32), T, str(path), names, segments)
 
 
-def read_label_map(path) -> LabelMap:
+def label_map_kind(source) -> str:
+    """What a label map file is, for outputs: not its name, which can name the patient."""
+    name = Path(source).name.lower()
+    if name.endswith(".seg.nrrd"):
+        return "3D Slicer segmentation"
+    if name.endswith(".nrrd"):
+        return "NRRD"
+    if name.endswith((".nii", ".nii.gz")):
+        return "NIfTI"
+    return "DICOM SEG"
+
+
+def read_label_map(path, structure: str | None = None) -> LabelMap:
     """Read a label map (NIfTI, NRRD or DICOM SEG) with its affine.
 
     ``path`` may also be a TotalSegmentator output folder: the folder holding
     ``heart.nii.gz`` (one file per structure), or the folder above it with a
-    ``segmentations/`` sub-folder.  A multi-label NIfTI keeps the names of its
-    labels (TotalSegmentator ``--ml``), so a label can be chosen by name.
+    ``segmentations/`` sub-folder; ``structure`` (e.g. ``"heart"``, the
+    default) names the file, and its label 1 carries that name.  A multi-label
+    NIfTI keeps the names of its labels (TotalSegmentator ``--ml``), so a label
+    can be chosen by name.
     """
     path = Path(path)
     if not path.exists():
         raise LabelMapError(f"label map {path} does not exist")
     if path.is_dir():
-        for candidate in (path / TOTALSEG_HEART, path / "segmentations" / TOTALSEG_HEART):
+        file = f"{structure}.nii.gz" if structure else TOTALSEG_HEART
+        for candidate in (path / file, path / "segmentations" / file):
             if candidate.is_file():
-                return _read_nifti(candidate)
+                found = _read_nifti(candidate)
+                return dataclasses.replace(found, names=found.names or {1: file[: -len(".nii.gz")]})
         raise LabelMapError(
-            f"{path} is a folder without {TOTALSEG_HEART} (or segmentations/{TOTALSEG_HEART}); "
-            "give the label map file itself with --mask FILE"
+            f"{path} is a folder without {file} (or segmentations/{file}); "
+            "give a structure of the folder with --label NAME, or the label map file itself with --mask FILE"
         )
     name = path.name.lower()
     if name.endswith((".nii", ".nii.gz")):

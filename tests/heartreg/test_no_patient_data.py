@@ -2,13 +2,15 @@
 
 A phantom study is copied into a folder named like a patient, every DICOM file
 gets (0010,0010) *Patient's Name*, (0010,0020) *Patient ID* and (0010,0030)
-*Patient's Birth Date*, and the GE R-peak stamps are removed so that the study
-is timed by its ECG waveform (the source whose absolute path used to leak into
-``phases.json`` and ``model.json``).  Then ``phases``, ``model``, ``register``
-and ``pipeline`` run (the session cut to its first 8 points: a registration in
-seconds), and every file they wrote is searched, as bytes and with the
-compressed text chunks of PNG files inflated, for the name, the ID, the birth
-date (both spellings), the folder name and the temporary path.
+*Patient's Birth Date*, and a *Series Description* that names the patient (free
+text), and the GE R-peak stamps are removed so that the study is timed by its ECG
+waveform (the source whose absolute path used to leak into ``phases.json`` and
+``model.json``).  Then ``phases``, ``model``, ``register`` and ``pipeline`` run (the
+session cut to its first 8 points: a registration in seconds), ``phases`` also with
+an R-peak file and ``model`` with a mask whose file names carry the patient's name
+(exports often do), and every file they wrote is searched, as bytes and with the
+compressed text chunks of PNG files inflated, for the name, the ID, the birth date
+(both spellings), the folder name and the temporary path.
 """
 
 from __future__ import annotations
@@ -40,9 +42,28 @@ def _patient_case(case_dir: Path, root: Path) -> Path:
         ds.PatientName = NAME
         ds.PatientID = PATIENT_ID
         ds.PatientBirthDate = BIRTH
+        ds.SeriesDescription = f"CTA {FOLDER}"
         ds.save_as(folder / "ct" / f.name)
     first_points(case_dir / "session", folder / "session", 8)  # 8 points: a registration in seconds
+    (folder / f"{FOLDER}_qrs.csv").write_bytes((case_dir / "qrs.csv").read_bytes())
     return folder
+
+
+def _patient_mask(ct: Path, path: Path) -> Path:
+    """A NIfTI mask on the CT's grid (a 40 mm ball at its centre), written to ``path``."""
+    import nibabel as nib
+    import numpy as np
+
+    from imaging import load_study
+
+    volume = load_study(ct)
+    k, j, i = np.indices(volume.shape)
+    c = (np.array(volume.shape) - 1) / 2
+    T = volume.T_patient_from_voxel
+    mm = np.sqrt(((np.stack([i - c[2], j - c[1], k - c[0]], axis=-1) @ T[:3, :3].T) ** 2).sum(axis=-1))
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T
+    nib.save(nib.Nifti1Image((mm < 40).astype(np.uint8).transpose(2, 1, 0), ras), str(path))
+    return path
 
 
 def _png_texts(data: bytes) -> bytes:
@@ -88,12 +109,17 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path):
     ct, session = folder / "ct", folder / "session"
     assert main(["phases", str(ct), "-o", str(out / "phases"), "-q"]) == 0
     assert main(["model", str(ct), "-o", str(out / "model"), "-q"]) == 0
+    assert main(["phases", str(ct), "--qrs", str(folder / f"{FOLDER}_qrs.csv"), "-o", str(out / "phases_qrs"),
+                 "-q"]) == 0
+    mask = _patient_mask(ct, folder / f"{FOLDER}_heart.nii.gz")
+    assert main(["model", str(ct), "--mask", str(mask), "-o", str(out / "model_mask"), "-q"]) == 0
     assert main(["register", str(out / "model"), str(session), "-o", str(out / "register"), "-q",
                  "--step", "0.05", "--no-view"]) == 0
     assert main(["pipeline", str(ct), str(session), "-o", str(out / "pipeline"), "-q", "--step", "0.05"]) == 0
-    # the study was timed by its ECG waveform: the source is named, by its file name only
-    phases = (out / "phases" / "phases.json").read_text()
-    assert '"source": "ECG waveform IM' in phases
+    # the study was timed by its ECG waveform, the second run by the R-peak file; each named by what it is
+    assert '"source": "ECG waveform (' in (out / "phases" / "phases.json").read_text()
+    assert '"source": "R-peak file (--qrs)' in (out / "phases_qrs" / "phases.json").read_text()
+    assert '"kind": "label map (NIfTI)"' in (out / "model_mask" / "model.json").read_text()
     needles = [NAME, NAME.replace("^", " "), PATIENT_ID, BIRTH, "1961-04-12", FOLDER, str(tmp_path),
                str(tmp_path.resolve())]
     assert _leaks(out, needles) == []

@@ -223,12 +223,11 @@ def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
     """Issue 10: a study whose only R-peak source is its ECG waveform (no GE stamps,
     no TriggerTime): ``compute_phase_report(volume)`` reads the waveform itself and
     gives the command's phi_C* (the truth, within VOLUME_TOL), naming the waveform
-    by its file name only."""
+    by what it is, not by its file (a file or folder name can name the patient)."""
     case, truth = sample_case
     ct = _copy_without(case, tmp_path, private=True, gating=True)
     report = compute_phase_report(load_study(ct))
-    assert report.source.startswith("ECG waveform IM") and str(tmp_path) not in report.source
-    assert "/" not in report.source
+    assert report.source == "ECG waveform (Pan-Tompkins QRS detection)"
     _check(report, truth)
     out = tmp_path / "out"
     assert main(["phases", str(ct), "-o", str(out), "-q"]) == 0
@@ -237,8 +236,9 @@ def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
     assert written["source"] == report.source
 
 
-def test_unreadable_waveform_is_named_by_file_in_the_notes(sample_case, tmp_path):
-    """A broken ECG waveform instance: the report falls back and its note names the file only."""
+def test_unreadable_waveform_is_named_by_its_place_in_the_notes(sample_case, tmp_path):
+    """A broken ECG waveform instance: the report falls back and its note names neither the file nor its
+    folder (either can name the patient)."""
     case, _ = sample_case
     ct = _copy_without(case, tmp_path, private=True)
     wave = next(f for f in ct.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "ECG")
@@ -248,7 +248,7 @@ def test_unreadable_waveform_is_named_by_file_in_the_notes(sample_case, tmp_path
     report = compute_phase_report(load_study(ct))
     assert report.source.startswith("TriggerTime")
     note = next(n for n in report.notes if "unreadable" in n)
-    assert wave.name in note and str(tmp_path) not in note
+    assert note.startswith("ECG waveform unreadable") and wave.name not in note and str(tmp_path) not in note
 
 
 def _shift_clock(path, shift_s):

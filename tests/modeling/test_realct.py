@@ -400,10 +400,19 @@ def test_totalsegmentator_outputs(realct, tmp_path):
     seg = tmp_path / "ts" / "segmentations"
     seg.mkdir(parents=True)
     shutil.copy(REALCT / "heart.nii.gz", seg / "heart.nii.gz")
+    shutil.copy(REALCT / "pulmonary_artery.nii.gz", seg / "pulmonary_artery.nii.gz")
     for path in (seg, seg.parent):
         assert np.array_equal(mask_on_grid(read_label_map(path), volume.shape, T), reference)
+        # a structure chosen by its name (--label), as --help suggests: each file's label 1 carries it
+        by_name = read_label_map(path, structure="heart")
+        assert np.array_equal(mask_on_grid(by_name, volume.shape, T, label="heart"), reference)
+        artery = mask_on_grid(read_label_map(path, structure="pulmonary_artery"), volume.shape, T,
+                              label="pulmonary_artery")
+        assert artery.sum() > 0 and not np.array_equal(artery, reference)
     with pytest.raises(LabelMapError, match="without heart.nii.gz"):
         read_label_map(tmp_path)
+    with pytest.raises(LabelMapError, match=r"without aorta.nii.gz .*--label NAME"):
+        read_label_map(seg, structure="aorta")
     # its multi-label file (--ml): the label table in a Caret XML header extension
     ct = nib.load(str(REALCT / "ct_cropped.nii.gz"))
     labels = np.zeros(ct.shape, np.uint8)
