@@ -437,8 +437,9 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
             np.empty(0), notes,
         )
     notes.append("no NominalPercentageOfCardiacPhase on every slice")
-    raise GatingError(
-        "no cardiac gating information for the slices; looked for: "
-        + "; ".join(notes)
-        + ". Pass an R-peak file with --qrs FILE (CSV, column time_s, seconds after midnight)"
+    advice = (
+        ". Check that the R-peak file's times are seconds after midnight on the slices' AcquisitionTime clock"
+        if qrs_s is not None
+        else ". Pass an R-peak file with --qrs FILE (CSV, column time_s, seconds after midnight)"
     )
+    raise GatingError("no cardiac gating information for the slices; looked for: " + "; ".join(notes) + advice)

@@ -48,8 +48,10 @@ def read_dicom_seg(path):
     """
     try:
         ds = pydicom.dcmread(str(path))
-    except (InvalidDicomError, OSError) as exc:
-        raise ValueError(f"not a readable DICOM file ({exc})") from None
+    except InvalidDicomError:  # pydicom's own advice (force=True) is no option of ours
+        raise ValueError("not a DICOM file (no DICOM file meta header)") from None
+    except OSError as exc:
+        raise ValueError(f"not a readable file ({exc.strerror or exc})") from None
     if str(ds.get("SOPClassUID", "")) != SEG_SOP_CLASS:
         raise ValueError(f"SOP class {ds.get('SOPClassUID', 'missing')} is not Segmentation Storage")
     pixels = ds.pixel_array

@@ -105,8 +105,8 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
             ranked = [g for g in loadable if g.summary.modality == "CT" and g.summary.kind == "slice"]
         if not ranked:
             raise SeriesError(
-                "no CT image stack found automatically; choose one with series=<index or "
-                "SeriesInstanceUID> among: " + _choices(groups)
+                "no CT image stack found automatically; choose one with --series INDEX or UID "
+                "(series= in Python) among: " + _choices(groups)
             )
         gating = {id(g): _gating(g, ecg_studies) for g in ranked} if prefer_gated else {}
         ranked.sort(

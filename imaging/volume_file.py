@@ -114,8 +114,18 @@ def read_nifti_volume(path) -> Volume:
         data = data[..., 0]
     if data.ndim != 3:
         raise SeriesError(f"NIfTI file {path} must hold a 3-D volume, got shape {data.shape}")
-    return _volume(data, _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), path, "NIfTI",
-                   "affine taken as RAS (NIfTI convention) and converted to LPS")
+    note = "affine taken as RAS (NIfTI convention) and converted to LPS"
+    if int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0:
+        # nibabel then gives the pixel sizes on a diagonal: the orientation is a guess
+        import warnings
+
+        from imaging.grouping import StudyWarning
+
+        note = ("no orientation in the header (qform_code and sform_code 0): the voxel axes taken as RAS at the "
+                "header's pixel sizes, so left-right and front-back may be wrong")
+        warnings.warn(f"NIfTI file {path.name}: {note}; write the file with its orientation (an sform or qform)",
+                      StudyWarning, stacklevel=2)
+    return _volume(data, _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), path, "NIfTI", note)
 
 
 def read_nrrd_volume(path) -> Volume:

@@ -84,18 +84,22 @@ def _label_ml(label_map, label) -> float:
     return float(np.count_nonzero(chosen)) * abs(float(np.linalg.det(label_map.T_patient_from_voxel[:3, :3]))) / 1000.0
 
 
-def _check_mask_volume(mask, T, source: str, min_ml: float, *, external: bool, notes: list, source_ml=None):
-    """Refuse a mask far smaller than a heart; note a label map partly outside the CT."""
+def _check_mask_volume(mask, T, source: str, min_ml: float, *, external, notes: list, source_ml=None) -> float:
+    """Refuse a mask far smaller than a heart; note a label map partly outside the CT; its volume, ml.
+
+    ``external``: the label map's path (named in the refusal, a console line, not in ``notes``, which
+    are written), or None for the automatic segmentation."""
     ml = float(np.count_nonzero(mask)) * abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
     if ml < min_ml:
         error = LabelMapError if external else SegmentationError
         hint = "check --label or the label map" if external else "give a heart mask with --mask"
-        raise error(f"{source}: the mask holds {ml:.1f} ml, far less than a heart ({min_ml:g} ml or more); {hint}")
+        raise error(f"{external or source}: the mask holds {ml:.1f} ml, far less than a heart ({min_ml:g} ml or more); {hint}")
     if source_ml and ml < (1.0 - OUTSIDE_NOTE_FRACTION) * source_ml:
         notes.append(
             f"{source}: {100 * (1 - ml / source_ml):.0f} % of the label ({source_ml:.0f} ml) lies outside "
             f"the CT; the model covers {ml:.0f} ml"
         )
+    return ml
 
 
 #: Mask on a face of the volume (mm²) above which the heart counts as cut by the field of view.
@@ -270,8 +274,13 @@ def build_heart_model(
                 f"the segmented heart is {seg.volume_ml:.0f} ml, outside the usual {HEART_ML[0]:.0f}-"
                 f"{HEART_ML[1]:.0f} ml: check the model (a CT without contrast? give --mask or a seed point)"
             )
-    _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path is not None, notes=notes,
-                       source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+    mask_ml = _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path, notes=notes,
+                                 source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+    if mask_path is not None and not HEART_ML[0] <= mask_ml <= HEART_ML[1]:
+        fallback(
+            f"{mask_source}: the mask holds {mask_ml:.0f} ml, outside a heart's usual {HEART_ML[0]:.0f}-"
+            f"{HEART_ML[1]:.0f} ml; it is meshed as given: check --label or the label map"
+        )
     cut = _cut_by_field_of_view(mask, T)
     if cut:
         fallback(f"the heart is cut by the CT's field of view ({cut}): the model ends flat there and misses what "

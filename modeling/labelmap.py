@@ -225,7 +225,8 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
         labels, T, names = read_dicom_seg(path)
     except ValueError as exc:
         raise LabelMapError(
-            f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}"
+            f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}; give the heart's label "
+            "map in one of these (an RT structure set: export it as a labelmap, e.g. from 3D Slicer)"
         ) from None
     return LabelMap(labels, T, str(path), names)
 

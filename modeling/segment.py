@@ -405,14 +405,14 @@ def segment_heart(
         ijk = np.linalg.solve(T[:3, :3], seed_mm - T[:3, 3])
         kji = np.floor(ijk[::-1] / step + 0.5 / step).astype(int)
         if np.any(kji < 0) or np.any(kji >= np.array(coarse.shape)):
-            raise SegmentationError(f"seed point {seed_mm.tolist()} mm lies outside the volume")
+            raise SegmentationError(f"seed point {seed_mm.tolist()} mm (--seed) lies outside the volume; give one in the heart")
         contrast = pool is not None
         if not contrast:  # as unseeded
             tissue = soft_tissue_between_lungs(tissue)
         if not tissue[tuple(kji)]:
             raise SegmentationError(
-                f"seed point {seed_mm.tolist()} mm is not in heart tissue ({coarse[tuple(kji)]:.0f} HU outside "
-                f"{hu_low:.0f}..{hu_high if contrast else soft_hu[1]:.0f})"
+                f"seed point {seed_mm.tolist()} mm (--seed) is not in heart tissue ({coarse[tuple(kji)]:.0f} HU outside "
+                f"{hu_low:.0f}..{hu_high if contrast else soft_hu[1]:.0f}); give one in the heart's blood or muscle"
             )
         seed_mask = np.zeros(coarse.shape, bool)
         seed_mask[tuple(kji)] = True

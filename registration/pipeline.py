@@ -233,10 +233,10 @@ def register_session(
     notes.extend(point_notes)
     timings["motion_models"] = time.perf_counter() - t
     if len(models) < 3:
-        reasons = "; ".join(f"point {i}: {r}" for i, r in exclusions[:5])
+        reasons = "; ".join(f"point {i}: {r}" for i, r in exclusions[:5]) + ("; ..." if len(exclusions) > 5 else "")
+        excluded = f" ({len(exclusions)} excluded: {reasons})" if exclusions else ""
         raise RegistrationError(
-            f"only {len(models)} point(s) could be modelled, ICP needs at least 3 "
-            f"({len(exclusions)} excluded: {reasons}); record more points"
+            f"only {len(models)} point(s) could be modelled, ICP needs at least 3{excluded}; record more points"
         )
     if exclusions:
         notes.append(f"{len(exclusions)} point(s) excluded (see exclusions)")
@@ -389,6 +389,8 @@ def register_session(
             n_excluded=len(exclusions), phase_estimate=chosen, icp_converged=report.converged,
             icp_degenerate=report.degenerate, sweep_unconverged=int(np.count_nonzero(~resp.converged)),
             fre_mm=float(fid.fre_rms_mm), max_fre_mm=max_fre_mm, fiducials_ambiguous=bool(fid.ambiguous),
+            rms_mm=float(reg.rms_mm), correction_mm=float(reg.translation_distance_mm),
+            correction_deg=float(reg.rotation_distance_deg),
         ),
         parameters=params,
         timings_s={k: float(v) for k, v in timings.items()},

@@ -26,6 +26,9 @@ import numpy as np
 from scipy import ndimage
 
 __all__ = [
+    "MAX_CORRECTION_DEG",
+    "MAX_CORRECTION_MM",
+    "MAX_RMS_MM",
     "MIN_POINTS",
     "MIN_SECTOR_FRACTION",
     "MIN_SPREAD_RATIO",
@@ -46,6 +49,13 @@ MIN_SECTOR_FRACTION = 0.5
 #: the points' spread along each principal axis of the surface, over the surface's own.
 MIN_SPREAD_RATIO = 0.35
 _SECTORS = 12
+#: points farther than this from the surface (RMS, mm) at phi_R*: the fit itself is in doubt.  Wood et
+#: al. 2018 report about 2 mm RMS in live animals; the phantom's fits are 0.2-0.4 mm.
+MAX_RMS_MM = 3.0
+#: a surface fit this far from the fiducial seed T0 (rotation deg, translation mm at the heart's
+#: centre) contradicts it: in Wood et al. 2018 the correction was 8.2 deg and 9.9 mm on average.
+MAX_CORRECTION_DEG = 25.0
+MAX_CORRECTION_MM = 30.0
 #: running-median window of the outlier check, s (short against a 1 s heartbeat).
 OUTLIER_WINDOW_S = 0.11
 #: a sample is an outlier this many robust standard deviations from the running median ...
@@ -197,7 +207,7 @@ class TrustReason:
         Stable name: ``few_points``, ``narrow_coverage``, ``outlier_samples``,
         ``excluded_points``, ``phase_undecided``, ``sweep_not_converged``,
         ``icp_not_converged``, ``icp_degenerate``, ``fiducial_error``,
-        ``fiducials_ambiguous``.
+        ``fiducials_ambiguous``, ``surface_misfit``, ``seed_contradicted``.
     level : TrustLevel
         What this reason alone makes of the result.
     message : str
@@ -258,6 +268,9 @@ def assess_trust(
     fre_mm: float,
     max_fre_mm: float,
     fiducials_ambiguous: bool,
+    rms_mm: float = 0.0,
+    correction_mm: float = 0.0,
+    correction_deg: float = 0.0,
 ) -> Trust:
     """The verdict on a registration from its checks and diagnostics.
 
@@ -280,6 +293,14 @@ def assess_trust(
         The fiducial registration error and its limit.
     fiducials_ambiguous : bool
         The touched fiducials fit the model in more than one order.
+    rms_mm : float, mm
+        The points' RMS distance to the surface at phi_R* (:data:`MAX_RMS_MM`).
+    correction_mm, correction_deg : float
+        How far the final registration lies from T0: translation at the heart's
+        centre and rotation (:data:`MAX_CORRECTION_MM`, :data:`MAX_CORRECTION_DEG`).
+        A model of another heart (or of this one in another state) fits with
+        its points mm off the surface, after the ICP turned tens of degrees away
+        from what the staples say.
 
     Returns
     -------
@@ -327,5 +348,15 @@ def assess_trust(
     if fiducials_ambiguous:
         reasons.append(TrustReason("fiducials_ambiguous", caution, (
             "the touched fiducials fit the model in more than one order: check T0 visually")))
+    if rms_mm > MAX_RMS_MM:
+        reasons.append(TrustReason("surface_misfit", caution, (
+            f"the points lie {rms_mm:.1f} mm RMS from the model's surface (more than {MAX_RMS_MM:g} mm): the model "
+            "may be of another heart or scan, or the points off the surface; check the model and the session")))
+    if correction_deg > MAX_CORRECTION_DEG or correction_mm > MAX_CORRECTION_MM:
+        reasons.append(TrustReason("seed_contradicted", poor, (
+            f"the surface fit lies {correction_deg:.0f} deg and {correction_mm:.0f} mm from the fiducial "
+            f"registration T0 (more than {MAX_CORRECTION_DEG:g} deg or {MAX_CORRECTION_MM:g} mm): one of them is "
+            "wrong (a model of another heart, staples touched in another order, points off the surface); "
+            "do not navigate on it unchecked")))
     level = max((r.level for r in reasons), key=lambda x: x.rank, default=TrustLevel.OK)
     return Trust(level, tuple(reasons))

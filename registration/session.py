@@ -122,8 +122,8 @@ def read_session(
     if not points:
         reasons = "; ".join(f"point {i}: {why}" for i, why in exclusions) or "session.json lists no points"
         raise SessionError(
-            f"{folder}: no usable point record ({reasons}); record longer points or "
-            "lower min_duration_s"
+            f"{folder}: no usable point record ({reasons}); record longer points (at least two breaths "
+            "each)"
         )
     fiducials = _read_fiducials(folder, meta["fiducials_file"])
     trace = None

@@ -106,7 +106,7 @@ def _check_finite(data: np.ndarray, rel: str, columns) -> None:
         raise SessionError(
             f"{rel}: column {columns[col]!r}, row {row + 1} (line {row + 2}): value "
             f"{float(data[row, col])!r} is not finite ({int(bad.sum())} such values in the file); "
-            "remove or re-record the point"
+            "remove the row or record it again"
         )
 
 

@@ -116,6 +116,12 @@ def test_qrs_outside_scan_is_not_extrapolated(sample_case, tmp_path):
         report = compute_phase_report(load_study(case / "ct"), qrs_s=read_qrs_file(bad), qrs_label="late.csv")
     assert report.source.startswith("GE")  # fell through to the next source
     assert any("not extrapolated" in n for n in report.notes)
+    # nothing to fall through to: the error asks to check the file given, not to give one
+    (tmp_path / "ungated").mkdir()
+    ungated = _copy_without(case, tmp_path / "ungated", private=True, ecg=True, gating=True)
+    with pytest.warns(GatingWarning), pytest.raises(GatingError, match=r"not extrapolated.*Check that the R-peak "
+                                                                         r"file's times are seconds after midnight"):
+        compute_phase_report(load_study(ungated), qrs_s=read_qrs_file(bad), qrs_label="late.csv")
 
 
 @pytest.mark.parametrize(

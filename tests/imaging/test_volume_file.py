@@ -52,6 +52,25 @@ def test_bad_files(tmp_path):
         read_nifti_volume(tmp_path / "junk.nii")
 
 
+def test_a_nifti_without_orientation_is_read_with_a_warning(tmp_path):
+    """qform_code = sform_code = 0 (some converters write that): read at the pixel sizes, with a warning
+    and a note that the orientation is a guess."""
+    import nibabel as nib
+
+    from imaging.grouping import StudyWarning
+
+    image = nib.Nifti1Image(np.zeros((4, 5, 6), np.int16), np.diag([0.7, 0.8, 2.0, 1.0]))
+    image.set_sform(None, code=0)
+    image.set_qform(None, code=0)
+    image.header.set_zooms((0.7, 0.8, 2.0))
+    path = tmp_path / "nocode.nii.gz"
+    nib.save(image, str(path))
+    with pytest.warns(StudyWarning, match=r"nocode.nii.gz: no orientation in the header .* write the file with its "
+                                          r"orientation"):
+        volume = read_nifti_volume(path)
+    assert volume.spacing_mm.tolist() == pytest.approx([0.7, 0.8, 2.0]) and "no orientation" in volume.notes[0]
+
+
 def _save_nrrd(path, data_ijk, directions, origin, *, space="left-posterior-superior", encoding="gzip"):
     """A 3D Slicer style NRRD: attached header, the i axis fastest."""
     import gzip

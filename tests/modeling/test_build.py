@@ -32,6 +32,7 @@ from modeling import (
     read_model,
     segment_heart,
 )
+from modeling.build import ModelingWarning
 from modeling.labelmap import LabelMapError
 
 from .conftest import dense_surface, distance_to_truth
@@ -163,6 +164,15 @@ def test_bad_inputs(sample_case, tmp_path):
     nib.save(nib.Nifti1Image(np.ones((5, 5, 5), np.uint8), far), str(other))
     with pytest.raises(LabelMapError, match="does not overlap"):
         _build(volume, truth, mask_path=other)
+    # a mask far larger than a heart (the whole field of view: a wrong label or file) is meshed as given, with
+    # a warning that names it; the model says so too
+    whole = tmp_path / "whole.nii.gz"
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T
+    nib.save(nib.Nifti1Image(np.ones(volume.shape[::-1], np.uint8), ras), str(whole))
+    with pytest.warns(ModelingWarning, match=r"label map \(NIfTI\): the mask holds \d+ ml, outside a heart's usual "
+                                             r"250-1500 ml; it is meshed as given: check --label"):
+        build = _build(volume, truth, mask_path=whole)
+    assert any("outside a heart's usual" in w for w in build.model.parameters["warnings"])
     # no heart-like region: a body of water in air (no contrast pool, no lungs to seed between)
     water = np.full((20, 30, 30), -1000, np.int16)
     water[:, 5:25, 5:25] = 0

@@ -114,6 +114,11 @@ def test_nothing_against_it_is_ok(sound):
     ({"fiducials_ambiguous": True}, "fiducials_ambiguous", TrustLevel.CAUTION),
     ({"phase_estimate": "undecided"}, "phase_undecided", TrustLevel.CAUTION),
     ({"coverage": "bunched"}, "narrow_coverage", TrustLevel.CAUTION),
+    # a model of another heart (the adversarial review's case: 5.1 mm RMS, 48 deg from T0)
+    ({"rms_mm": 5.1}, "surface_misfit", TrustLevel.CAUTION),
+    ({"correction_deg": 48.0, "correction_mm": 12.0}, "seed_contradicted", TrustLevel.POOR),
+    ({"correction_deg": 5.0, "correction_mm": 41.0}, "seed_contradicted", TrustLevel.POOR),
+    ({"rms_mm": 2.0, "correction_deg": 8.2, "correction_mm": 9.9}, None, TrustLevel.OK),  # the paper's in vivo means
 ])
 def test_each_other_reason_alone_sets_its_level(case, weak, sound, change, code, level):
     args = dict(sound, **change)
@@ -124,6 +129,9 @@ def test_each_other_reason_alone_sets_its_level(case, weak, sound, change, code,
         side = v[(v[:, 0] > 0.5 * v[:, 0].max()) & (np.abs(v[:, 2] - v[:, 2].mean()) < 10)]
         args["coverage"] = assess_coverage(side[np.random.default_rng(1).choice(len(side), 40)], v, warn=False)
     trust = assess_trust(**args)
+    if code is None:
+        assert trust.reasons == () and trust.level is level
+        return
     assert [(r.code, r.level) for r in trust.reasons] == [(code, level)] and trust.level is level
     assert trust.summary() == f"{level.value} ({code})"
 
