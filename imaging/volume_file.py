@@ -29,6 +29,8 @@ __all__ = ["is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 #: Largest |cosine| between two voxel axes accepted as orthogonal.
 ORTHOGONAL_TOL = 1e-3
+#: HU given to voxels that are not a number (air).
+OUTSIDE_HU = -1024
 #: A file's data are sampled to this many bytes for the volume's identity.
 _HASH_BYTES = 1 << 20
 
@@ -184,6 +186,16 @@ def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:
         flip[2, 2], flip[2, 3] = -1.0, hu.shape[0] - 1
         T = T @ flip
         notes.append(f"{kind} input: slice order reversed to make the voxel frame right-handed")
+    if np.issubdtype(hu.dtype, np.floating) and not np.all(np.isfinite(hu)):
+        import warnings
+
+        from imaging.grouping import StudyWarning
+
+        bad = ~np.isfinite(hu)
+        what = f"{int(bad.sum())} voxel(s) not a number (NaN or infinite) taken as air ({OUTSIDE_HU} HU)"
+        notes.append(f"{kind} input: {what}")
+        warnings.warn(f"{kind} file {path.name}: {what}; check how the file was written", StudyWarning, stacklevel=3)
+        hu = np.where(bad, np.float32(OUTSIDE_HU), hu)
     fits_int16 = (np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16) or (
         np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767
     )

@@ -52,6 +52,21 @@ def test_bad_files(tmp_path):
         read_nifti_volume(tmp_path / "junk.nii")
 
 
+def test_voxels_not_a_number_are_air_with_a_warning(tmp_path):
+    import nibabel as nib
+
+    from imaging.grouping import StudyWarning
+
+    data = np.full((4, 5, 6), 40.5, np.float32)
+    data[0, 0, :3] = np.nan
+    data[1, 1, 1] = np.inf
+    path = tmp_path / "nan.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.eye(4)), str(path))
+    with pytest.warns(StudyWarning, match=r"nan.nii.gz: 4 voxel\(s\) not a number .* taken as air \(-1024 HU\)"):
+        volume = read_nifti_volume(path)
+    assert np.isfinite(volume.hu).all() and (volume.hu == -1024).sum() == 4
+
+
 def test_a_nifti_without_orientation_is_read_with_a_warning(tmp_path):
     """qform_code = sform_code = 0 (some converters write that): read at the pixel sizes, with a warning
     and a note that the orientation is a guess."""
