@@ -36,7 +36,8 @@ def _warm_up() -> float:
     """
     t = time.perf_counter()
     import heartreg.cli  # noqa: F401
-    import imaging  # noqa: F401
+    import imaging.phase  # noqa: F401 - imaging's names load on first use
+    import imaging.series  # noqa: F401
     import modeling  # noqa: F401
     import registration  # noqa: F401
     import fast_simplification  # noqa: F401 - what the model stage imports on first use

@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     runs = common.run_steps_interleaved(
         {
             "ours": {"target": "bench_ecg:detect_ours", "kwargs": {"folder": folder},
-                     "imports": ("numpy", "scipy.signal", "imaging")},
+                     "imports": ("numpy", "scipy.signal", "imaging.ecg")},
             "nk": {"target": "bench_ecg:detect_neurokit", "kwargs": {"folder": folder, "clean": False},
                    "imports": ("numpy", "neurokit2")},
             "nk_clean": {"target": "bench_ecg:detect_neurokit", "kwargs": {"folder": folder, "clean": True},

@@ -97,7 +97,7 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
 
     try:
         report = compute_phase_report(
-            volume, qrs_s=qrs_s, qrs_label="R-peak file (--qrs)" if qrs else ""
+            volume, qrs_s=qrs_s, qrs_label="R-peak file given with --qrs" if qrs else ""
         )
     except GatingError as exc:
         if phase_required or qrs:

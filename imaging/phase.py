@@ -278,23 +278,25 @@ def _waveform_label(k: int, n: int) -> str:
     return "ECG waveform" if n == 1 else f"ECG waveform {k + 1} of {n}"
 
 
-def _read_study_waveforms(volume, notes: list[str]) -> list:
+def _read_study_waveforms(volume, notes: list[str]) -> list[tuple[str, object]]:
+    """The study's readable ECG waveforms as (label, record), each labelled by its place among all of them."""
     from imaging.waveform import WaveformError, read_ecg_waveform
 
     records = []
     files = list(getattr(volume, "waveform_files", ()))
     for k, path in enumerate(files):
+        label = _waveform_label(k, len(files))
         try:
-            records.append(read_ecg_waveform(path))
+            records.append((label, read_ecg_waveform(path)))
         except WaveformError as exc:
-            notes.append(f"{_waveform_label(k, len(files))} unreadable: " + _strip_paths(str(exc), path))
+            notes.append(f"{label} unreadable: " + _strip_paths(str(exc), path))
     return records
 
 
 def _strip_paths(text: str, path) -> str:
-    """``text`` without ``path``: its file and folder names become "the file"."""
+    """``text`` without ``path`` (as given or resolved): it becomes "the file"."""
     p = Path(path)
-    for long in (str(p.resolve()), str(p), p.name):
+    for long in (str(p.resolve()), str(p)):
         text = text.replace(long, "the file")
     return text
 
@@ -335,7 +337,10 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     (0.69, 'GE RpeakTimeStamps (0049,xx0C)')
     """
     notes: list[str] = []
-    ecg_records = _read_study_waveforms(volume, notes) if ecg_records is None else list(ecg_records)
+    if ecg_records is None:
+        labelled = _read_study_waveforms(volume, notes)
+    else:
+        labelled = [(_waveform_label(k, len(ecg_records)), r) for k, r in enumerate(ecg_records)]
     acq = _column(volume, "acquisition_time_s")
     has_acq = bool(np.all(np.isfinite(acq)))
 
@@ -389,8 +394,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         notes.append("no GE RpeakTimeStamps (0049,xx0C)")
 
     # 3. an ECG waveform instance of the study, QRS detection on it
-    for k, record in enumerate(ecg_records):
-        label = _waveform_label(k, len(ecg_records))
+    for label, record in labelled:
         if not has_acq:
             notes.append(f"{label}: slices lack AcquisitionTime, cannot align")
             continue
@@ -407,7 +411,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
                 peaks.times_s, notes,
             )
         notes.append(why)
-    if not ecg_records:
+    if not labelled:
         notes.append("no DICOM ECG waveform instance in the study")
 
     # 4. TriggerTime over the nominal RR interval
@@ -439,7 +443,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     notes.append("no NominalPercentageOfCardiacPhase on every slice")
     advice = (
         ". Check that the R-peak file's times are seconds after midnight on the slices' AcquisitionTime clock"
-        if qrs_s is not None
+        if qrs_s is not None and has_acq
         else ". Pass an R-peak file with --qrs FILE (CSV, column time_s, seconds after midnight)"
     )
     raise GatingError("no cardiac gating information for the slices; looked for: " + "; ".join(notes) + advice)

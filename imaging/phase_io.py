@@ -81,7 +81,7 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     out_dir : str or Path
         Created if missing; an existing non-empty folder is refused unless ``overwrite``.
     extra : dict, optional
-        More keys for ``phases.json`` (the series and study description of the command).
+        More keys for ``phases.json`` (the command's series UID and volume notes).
     overwrite : bool
         Replace an existing non-empty ``out_dir`` (``--overwrite``).
     inputs : iterable of str or Path

@@ -69,11 +69,13 @@ def list_series(path, *, progress: bool = False) -> tuple[SeriesSummary, ...]:
 
 
 def _choices(groups: list[_Group]) -> str:
+    """The series in one line, without their free-text descriptions: ``heartreg batch`` writes error lines
+    into its records, and a description can name the patient (``--list-series`` shows them)."""
     lines = []
     for g in groups:
         s = g.summary
         lines.append(
-            f"[{s.index}] {s.uid} #{s.series_number} {s.description!r} {s.modality} "
+            f"[{s.index}] {s.uid} #{s.series_number} {s.modality} "
             f"{s.kind} {s.orientation} {s.n_slices} image(s)"
             + (f" {s.subset}" if s.subset else "")
             + (f" ({s.reason})" if s.reason and s.kind != "volume" else "")

@@ -123,9 +123,11 @@ def read_nifti_volume(path) -> Volume:
 
         from imaging.grouping import StudyWarning
 
-        note = ("no orientation in the header (qform_code and sform_code 0): the voxel axes taken as RAS at the "
-                "header's pixel sizes, so left-right and front-back may be wrong")
-        warnings.warn(f"NIfTI file {path.name}: {note}; write the file with its orientation (an sform or qform)",
+        note = ("no orientation in the header (qform_code and sform_code 0): the voxel axes placed as nibabel "
+                "places an unoriented file (x flipped, centred on the volume), so left-right and front-back may "
+                "be wrong")
+        # not the file's name: batch writes warnings into its records, and a name can name the patient
+        warnings.warn(f"NIfTI input: {note}; write the file with its orientation (an sform or qform)",
                       StudyWarning, stacklevel=2)
     return _volume(data, _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), path, "NIfTI", note)
 
@@ -194,7 +196,7 @@ def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:
         bad = ~np.isfinite(hu)
         what = f"{int(bad.sum())} voxel(s) not a number (NaN or infinite) taken as air ({OUTSIDE_HU} HU)"
         notes.append(f"{kind} input: {what}")
-        warnings.warn(f"{kind} file {path.name}: {what}; check how the file was written", StudyWarning, stacklevel=3)
+        warnings.warn(f"{kind} input: {what}; check how the file was written", StudyWarning, stacklevel=3)
         hu = np.where(bad, np.float32(OUTSIDE_HU), hu)
     fits_int16 = (np.issubdtype(hu.dtype, np.integer) and hu.dtype.itemsize <= 2 and hu.dtype != np.uint16) or (
         np.all(np.isfinite(hu)) and np.array_equal(hu, np.round(hu)) and hu.min() >= -32768 and hu.max() <= 32767

@@ -269,17 +269,13 @@ def build_heart_model(
                 fallback(note)
             else:
                 notes.append(note)
-        if not HEART_ML[0] <= seg.volume_ml <= HEART_ML[1]:
-            fallback(
-                f"the segmented heart is {seg.volume_ml:.0f} ml, outside the usual {HEART_ML[0]:.0f}-"
-                f"{HEART_ML[1]:.0f} ml: check the model (a CT without contrast? give --mask or a seed point)"
-            )
     mask_ml = _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path, notes=notes,
                                  source_ml=_label_ml(label_map, label) if mask_path is not None else None)
-    if mask_path is not None and not HEART_ML[0] <= mask_ml <= HEART_ML[1]:
+    if not HEART_ML[0] <= mask_ml <= HEART_ML[1]:
         fallback(
             f"{mask_source}: the mask holds {mask_ml:.0f} ml, outside a heart's usual {HEART_ML[0]:.0f}-"
-            f"{HEART_ML[1]:.0f} ml; it is meshed as given: check --label or the label map"
+            f"{HEART_ML[1]:.0f} ml; " + ("it is meshed as given: check --label or the label map" if mask_path is not None
+                                         else "check the model (a CT without contrast? give --mask or a seed point)")
         )
     cut = _cut_by_field_of_view(mask, T)
     if cut:

@@ -82,9 +82,10 @@ def plane_section(vertices, faces, origin, normal) -> np.ndarray:
     A vertex on the plane counts as on its positive side, so each crossing face
     has exactly two edges whose ends lie on opposite sides; the segment joins
     their crossings (linear along the edge); a face that touches the plane at
-    one corner only gives none.  (trimesh's ``mesh_plane`` gives
-    the same segments; importing trimesh costs a quarter of a second of the
-    model command.)
+    one corner only gives none.  (trimesh's ``mesh_plane`` gives the same
+    segments, except on a plane that holds flat faces of the mesh, where
+    either may give or skip their edges; importing trimesh costs a quarter of
+    a second of the model command.)
     """
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces)

@@ -205,7 +205,8 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     if not path.exists():
         raise LabelMapError(f"label map {path} does not exist")
     if path.is_dir():
-        file = f"{structure}.nii.gz" if structure else TOTALSEG_HEART
+        name = str(structure or "").strip().lower().removesuffix(".gz").removesuffix(".nii")  # its files are lower case
+        file = f"{name}.nii.gz" if name else TOTALSEG_HEART
         for candidate in (path / file, path / "segmentations" / file):
             if candidate.is_file():
                 found = _read_nifti(candidate)

@@ -268,9 +268,9 @@ def assess_trust(
     fre_mm: float,
     max_fre_mm: float,
     fiducials_ambiguous: bool,
-    rms_mm: float = 0.0,
-    correction_mm: float = 0.0,
-    correction_deg: float = 0.0,
+    rms_mm: float,
+    correction_mm: float,
+    correction_deg: float,
 ) -> Trust:
     """The verdict on a registration from its checks and diagnostics.
 

@@ -125,11 +125,15 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
         except ValueError as exc:
             raise ClusterError(f"cannot start {n} local worker(s) with memory limit {memory_limit!r}: {exc}") from None
         client = Client(cluster, set_as_default=False)
-    client.register_worker_callbacks(_preload)  # every worker, also those that join later
-    link = _dashboard_link(client)
-    if link:
-        say(f"Dask dashboard: {link}")
     try:
+        try:
+            client.register_worker_callbacks(_preload)  # every worker, also those that join later
+        except ImportError as exc:
+            raise ClusterError(f"a Dask worker cannot import {exc.name or exc}: install heartreg and its "
+                               "dependencies where the workers run") from None
+        link = _dashboard_link(client)
+        if link:
+            say(f"Dask dashboard: {link}")
         yield client
     finally:
         # every result is back by now: a cluster slow to wind down (workers of a

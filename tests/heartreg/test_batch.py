@@ -239,15 +239,15 @@ def test_scheduler_started_separately_on_loopback(batch, scheduler, sample_case,
         assert _files(remote / local[0] / part) == _files(out / local[0] / part)
 
 
-def test_workers_import_the_compiled_modules_before_any_task(scheduler):
-    """A worker that was running before the client connected has imported PRELOAD by the time the
-    client is handed out (a task's thread loading them left heaps corrupt at exit)."""
+def test_workers_import_the_compiled_modules_before_any_task():
+    """A new local worker has imported PRELOAD by the time the client is handed out, before any task
+    (a task's thread loading them left heaps corrupt at exit)."""
     from heartreg.batch.cluster import PRELOAD, open_client
 
     def loaded():
         return [m for m in PRELOAD if m in sys.modules]
 
-    with open_client(scheduler=scheduler) as client:
+    with open_client(workers=1) as client:
         assert list(client.run(loaded).values()) == [list(PRELOAD)]
 
 

@@ -118,7 +118,7 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path):
     assert main(["pipeline", str(ct), str(session), "-o", str(out / "pipeline"), "-q", "--step", "0.05"]) == 0
     # the study was timed by its ECG waveform, the second run by the R-peak file; each named by what it is
     assert '"source": "ECG waveform (' in (out / "phases" / "phases.json").read_text()
-    assert '"source": "R-peak file (--qrs)' in (out / "phases_qrs" / "phases.json").read_text()
+    assert '"source": "R-peak file given with --qrs (R-peak times)' in (out / "phases_qrs" / "phases.json").read_text()
     assert '"kind": "label map (NIfTI)"' in (out / "model_mask" / "model.json").read_text()
     needles = [NAME, NAME.replace("^", " "), PATIENT_ID, BIRTH, "1961-04-12", FOLDER, str(tmp_path),
                str(tmp_path.resolve())]

@@ -257,6 +257,14 @@ def test_unreadable_waveform_is_named_by_its_place_in_the_notes(sample_case, tmp
     assert note.startswith("ECG waveform unreadable") and wave.name not in note and str(tmp_path) not in note
 
 
+def test_a_waveform_error_loses_its_path_not_its_words():
+    """A DICOM export names files 1, 2, ...: the path goes, the numbers in the message stay."""
+    from imaging.phase import _strip_paths
+
+    text = _strip_paths("/data/Smith_John/1: waveform has 12 channels, 1 multiplex group", "/data/Smith_John/1")
+    assert text == "the file: waveform has 12 channels, 1 multiplex group"
+
+
 def _shift_clock(path, shift_s):
     """Move every time of a DICOM file by ``shift_s`` seconds, with its dates."""
     import datetime

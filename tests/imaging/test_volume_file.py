@@ -62,7 +62,7 @@ def test_voxels_not_a_number_are_air_with_a_warning(tmp_path):
     data[1, 1, 1] = np.inf
     path = tmp_path / "nan.nii.gz"
     nib.save(nib.Nifti1Image(data, np.eye(4)), str(path))
-    with pytest.warns(StudyWarning, match=r"nan.nii.gz: 4 voxel\(s\) not a number .* taken as air \(-1024 HU\)"):
+    with pytest.warns(StudyWarning, match=r"NIfTI input: 4 voxel\(s\) not a number .* taken as air \(-1024 HU\)"):
         volume = read_nifti_volume(path)
     assert np.isfinite(volume.hu).all() and (volume.hu == -1024).sum() == 4
 
@@ -80,7 +80,7 @@ def test_a_nifti_without_orientation_is_read_with_a_warning(tmp_path):
     image.header.set_zooms((0.7, 0.8, 2.0))
     path = tmp_path / "nocode.nii.gz"
     nib.save(image, str(path))
-    with pytest.warns(StudyWarning, match=r"nocode.nii.gz: no orientation in the header .* write the file with its "
+    with pytest.warns(StudyWarning, match=r"NIfTI input: no orientation in the header .* write the file with its "
                                           r"orientation"):
         volume = read_nifti_volume(path)
     assert volume.spacing_mm.tolist() == pytest.approx([0.7, 0.8, 2.0]) and "no orientation" in volume.notes[0]

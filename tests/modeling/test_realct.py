@@ -404,7 +404,7 @@ def test_totalsegmentator_outputs(realct, tmp_path):
     for path in (seg, seg.parent):
         assert np.array_equal(mask_on_grid(read_label_map(path), volume.shape, T), reference)
         # a structure chosen by its name (--label), as --help suggests: each file's label 1 carries it
-        by_name = read_label_map(path, structure="heart")
+        by_name = read_label_map(path, structure="Heart.nii.gz")
         assert np.array_equal(mask_on_grid(by_name, volume.shape, T, label="heart"), reference)
         artery = mask_on_grid(read_label_map(path, structure="pulmonary_artery"), volume.shape, T,
                               label="pulmonary_artery")

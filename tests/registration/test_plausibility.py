@@ -99,7 +99,7 @@ def sound(case, weak):
         "coverage": assess_coverage(spread, v, warn=False), "outlier_samples_per_point": {0: 0, 2: 0},
         "n_excluded": 0, "phase_estimate": dataclasses.replace(weak.phase_estimates[0], decided=True),
         "icp_converged": True, "icp_degenerate": False, "sweep_unconverged": 0, "fre_mm": 0.4,
-        "max_fre_mm": 3.0, "fiducials_ambiguous": False,
+        "max_fre_mm": 3.0, "fiducials_ambiguous": False, "rms_mm": 0.3, "correction_mm": 10.0, "correction_deg": 3.0,
     }
 
 
