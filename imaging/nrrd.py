@@ -94,7 +94,8 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
         directions = [_vector(d) for d in re.findall(r"\([^)]*\)", fields["space directions"])]
         origin = _vector(fields.get("space origin", "(0,0,0)"))
     except (KeyError, ValueError) as exc:
-        raise NrrdError(f"NRRD file {path}: missing or bad header field ({exc})") from None
+        raise NrrdError(f"NRRD file {path}: missing or bad header field ({exc}); save the volume with its "
+                        "geometry ('space directions' and 'space origin', as 3D Slicer writes them)") from None
     if any(size < 1 for size in sizes):
         raise NrrdError(f"NRRD file {path}: sizes {sizes} must all be positive")
     for skip in ("byte skip", "byteskip", "line skip", "lineskip"):

@@ -42,7 +42,11 @@ def _read_header(file: Path, rel: str, required) -> list[int]:
         raise SessionNotFoundError(f"{rel} is listed in session.json but missing from the folder") from None
     except UnicodeDecodeError:
         raise SessionError(f"{rel}: not a UTF-8 text CSV file") from None
+    if not header.strip():
+        raise SessionError(f"{rel} is empty; record the point again or remove it from session.json")
     names = [c.strip() for c in header.strip().split(",")]
+    if len(names) == 1 and any(sep in header for sep in ";\t"):
+        raise SessionError(f"{rel}: columns separated by ';' or tabs; save it as comma-separated CSV")
     dupes = sorted({c for c in names if names.count(c) > 1})
     if dupes:
         raise SessionError(f"{rel}: header repeats column(s) {', '.join(dupes)}")

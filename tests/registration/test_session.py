@@ -300,6 +300,18 @@ def test_missing_column(copy):
         read_session(copy)
 
 
+def test_an_empty_or_semicolon_point_file_says_so(copy):
+    file = copy / "points/point_001.csv"
+    text = file.read_text()
+    file.write_text(text.replace(",", ";"))  # as a spreadsheet in a comma-decimal locale saves it
+    with pytest.raises(SessionError, match=r"points/point_001.csv: columns separated by ';' or tabs; save it as "
+                                           r"comma-separated CSV"):
+        read_session(copy)
+    file.write_text("")
+    with pytest.raises(SessionError, match=r"points/point_001.csv is empty; record the point again"):
+        read_session(copy)
+
+
 def test_columns_are_found_by_name_not_position(copy, phantom):
     """Readers select columns by header: a file with its columns reversed and an
     extra column (a later minor addition) reads the same."""
