@@ -79,8 +79,19 @@ def main(argv: list[str] | None = None) -> int:
     Refusals of bad input (:class:`HeartregError`) and OS errors are one line on
     stderr and status 1; any other exception is a bug: its traceback and status
     70. SIGINT (Ctrl-C) gives 130 and SIGTERM 143, after every staged output has
-    been removed.
+    been removed, also while the command line is still being read (its imports).
     """
+    try:
+        return _main(argv)
+    except Terminated:
+        print("heartreg: terminated (SIGTERM); nothing was written", file=sys.stderr)
+        return 143
+    except KeyboardInterrupt:
+        print("heartreg: interrupted; nothing was written", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     import signal
     import threading
     import warnings
@@ -118,12 +129,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"heartreg {args.command}: internal error (a bug in heartreg {__version__}); please report it "
               "with the traceback above and the command line", file=sys.stderr)
         return EXIT_BUG
-    except Terminated:
-        print("heartreg: terminated (SIGTERM); nothing was written", file=sys.stderr)
-        return 143
-    except KeyboardInterrupt:
-        print("heartreg: interrupted; nothing was written", file=sys.stderr)
-        return 130
     finally:
         warnings.formatwarning = format_warning
         if in_main:
