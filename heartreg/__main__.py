@@ -1,3 +1,3 @@
-from heartreg.cli import main
-import sys
-sys.exit(main())
+from heartreg.cli import run
+
+run()
