@@ -15,13 +15,15 @@ no acquisition times, so its cardiac phase is unknown (see
 from __future__ import annotations
 
 import hashlib
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from hrcore.geometry import apply_to_points
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
-from imaging.volume import SeriesError, SeriesInfo, SliceInfo, Volume
+from imaging.grouping import StudyWarning
+from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume
 
 __all__ = ["is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
            "read_volume_file"]
@@ -29,8 +31,6 @@ __all__ = ["is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 #: Largest |cosine| between two voxel axes accepted as orthogonal.
 ORTHOGONAL_TOL = 1e-3
-#: HU given to voxels that are not a number (air).
-OUTSIDE_HU = -1024
 #: A file's data are sampled to this many bytes for the volume's identity.
 _HASH_BYTES = 1 << 20
 
@@ -119,10 +119,6 @@ def read_nifti_volume(path) -> Volume:
     note = "affine taken as RAS (NIfTI convention) and converted to LPS"
     if int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0:
         # nibabel then gives the pixel sizes on a diagonal: the orientation is a guess
-        import warnings
-
-        from imaging.grouping import StudyWarning
-
         note = ("no orientation in the header (qform_code and sform_code 0): the voxel axes placed as nibabel "
                 "places an unoriented file (x flipped, centred on the volume), so left-right and front-back may "
                 "be wrong")
@@ -189,12 +185,8 @@ def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:
         T = T @ flip
         notes.append(f"{kind} input: slice order reversed to make the voxel frame right-handed")
     if np.issubdtype(hu.dtype, np.floating) and not np.all(np.isfinite(hu)):
-        import warnings
-
-        from imaging.grouping import StudyWarning
-
         bad = ~np.isfinite(hu)
-        what = f"{int(bad.sum())} voxel(s) not a number (NaN or infinite) taken as air ({OUTSIDE_HU} HU)"
+        what = f"{int(bad.sum())} voxel(s) not a number (NaN or infinite) taken as air ({OUTSIDE_HU:g} HU)"
         notes.append(f"{kind} input: {what}")
         warnings.warn(f"{kind} input: {what}; check how the file was written", StudyWarning, stacklevel=3)
         hu = np.where(bad, np.float32(OUTSIDE_HU), hu)
