@@ -48,8 +48,9 @@ def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = Fa
 
 
 def phase_report_extra(volume, study_dir) -> dict:
-    """Series identity and the volume's notes for ``phases.json``, with file paths
-    made relative to the study folder (a folder name can identify a patient); not
+    """Series identity and the volume's notes for ``phases.json``, without the study
+    folder's path (a folder name can identify a patient: the notes name files by
+    their names alone, and a path in a reader's message loses the study's root); not
     the series' description, free text that can name the patient too."""
     root = str(Path(study_dir).resolve())
     notes = []

@@ -213,7 +213,7 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
         if dropped:
             notes.append(
                 f"series {uid}: {len(dropped)} duplicate image(s) (same SOPInstanceUID) "
-                f"ignored: {_files_text(dropped)}"
+                f"ignored: {_files_text(dropped, names=True)}"
             )
         subsets: dict[tuple, list[_Frame]] = defaultdict(list)
         for f in frames:
@@ -227,7 +227,7 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
                 if repeated:
                     message = (
                         f"series {uid}: {len(repeated)} image(s) repeat the position of another and "
-                        f"were ignored: " + "; ".join(f"{a} repeats {b}" for a, b in repeated[:4])
+                        f"were ignored: " + "; ".join(f"{os.path.basename(a)} repeats {os.path.basename(b)}" for a, b in repeated[:4])
                     )
                     notes.append(message)
                     warnings.warn(message, StudyWarning, stacklevel=3)
@@ -283,9 +283,9 @@ def _scan_notes(found: _Scan) -> list[str]:
     if found.skipped_non_dicom:
         notes.append(f"{len(found.skipped_non_dicom)} non-DICOM file(s) ignored")
     if found.skipped_dicomdir:
-        notes.append(f"DICOMDIR ignored: {_files_text(found.skipped_dicomdir)}")
+        notes.append(f"DICOMDIR ignored: {_files_text(found.skipped_dicomdir, names=True)}")
     for path, why in found.skipped_broken:
-        notes.append(f"skipped unreadable DICOM file {path}: {why}")
+        notes.append(f"skipped unreadable DICOM file {os.path.basename(path)}: {why}")
     return notes
 
 

@@ -9,6 +9,8 @@ for irregular stacks, interpolated onto the planned grid.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pydicom
 from pydicom.errors import InvalidDicomError
@@ -268,7 +270,7 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
     if no_rescale:
         notes.append(
             f"{len(no_rescale)} image(s) lack RescaleSlope/RescaleIntercept "
-            f"({_files_text(no_rescale, 2)}): assumed slope 1, intercept 0 (stored values "
+            f"({_files_text(no_rescale, 2, names=True)}): assumed slope 1, intercept 0 (stored values "
             "taken as HU)"
         )
     resampling = plan.resample_k or plan.resample_plane
@@ -290,7 +292,7 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
                 hu = _slice_hu_int(arr, f)
                 if hu is None:
                     notes.append(
-                        f"values of {f.path} exceed int16 after rescale; volume stored as float32"
+                        f"values of {os.path.basename(f.path)} exceed int16 after rescale; volume stored as float32"
                     )
                     out = out.astype(np.float32)
                     out[k] = _slice_hu_float(arr, f)

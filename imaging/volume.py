@@ -24,6 +24,7 @@ Pass ``resample=False`` to `imaging.load_study` to refuse irregular stacks inste
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -191,8 +192,11 @@ class Volume:
 # ------------------------------------------------------------------ geometry
 
 
-def _files_text(paths, limit: int = 4) -> str:
-    paths = list(dict.fromkeys(paths))
+def _files_text(paths, limit: int = 4, *, names: bool = False) -> str:
+    """Up to ``limit`` of ``paths``, then how many more; ``names``: the file names
+    alone, for notes that go into outputs (a study's subfolders can be named
+    after the patient)."""
+    paths = list(dict.fromkeys(os.path.basename(p) if names else p for p in paths))
     shown = ", ".join(paths[:limit])
     return shown + (f" and {len(paths) - limit} more" if len(paths) > limit else "")
 

@@ -7,7 +7,8 @@ text), and the GE R-peak stamps are removed so that the study is timed by its EC
 waveform (the source whose absolute path used to leak into ``phases.json`` and
 ``model.json``).  Then ``phases``, ``model``, ``register`` and ``pipeline`` run (the
 session cut to its first 8 points: a registration in seconds), ``phases`` also with
-an R-peak file and ``model`` with a mask whose file names carry the patient's name
+an R-peak file and on the folder above the patient's (a duplicate image in a
+subfolder: its note names the file), ``model`` with a mask whose file names carry the patient's name
 (exports often do), and every file they wrote is searched, as bytes and with the
 compressed text chunks of PNG files inflated, for the name, the ID, the birth date
 (both spellings), the folder name and the temporary path.
@@ -44,6 +45,8 @@ def _patient_case(case_dir: Path, root: Path) -> Path:
         ds.PatientBirthDate = BIRTH
         ds.SeriesDescription = f"CTA {FOLDER}"
         ds.save_as(folder / "ct" / f.name)
+    (folder / "export").mkdir()  # a second copy of one image, in a subfolder: a note names it
+    (folder / "export" / "IM0001.dcm").write_bytes(next((folder / "ct").iterdir()).read_bytes())
     first_points(case_dir / "session", folder / "session", 8)  # 8 points: a registration in seconds
     (folder / f"{FOLDER}_qrs.csv").write_bytes((case_dir / "qrs.csv").read_bytes())
     return folder
@@ -111,6 +114,9 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path):
     assert main(["model", str(ct), "-o", str(out / "model"), "-q"]) == 0
     assert main(["phases", str(ct), "--qrs", str(folder / f"{FOLDER}_qrs.csv"), "-o", str(out / "phases_qrs"),
                  "-q"]) == 0
+    # given the folder above the patient's: the duplicate's note names the file, not its folders
+    assert main(["phases", str(folder.parent), "-o", str(out / "phases_root"), "-q"]) == 0
+    assert "ignored: IM0001.dcm" in (out / "phases_root" / "phases.json").read_text()
     mask = _patient_mask(ct, folder / f"{FOLDER}_heart.nii.gz")
     assert main(["model", str(ct), "--mask", str(mask), "-o", str(out / "model_mask"), "-q"]) == 0
     assert main(["register", str(out / "model"), str(session), "-o", str(out / "register"), "-q",
