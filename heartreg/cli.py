@@ -20,6 +20,7 @@ __all__ = ["CommandLineError", "command_parser", "main"]
 
 EXIT_USAGE = 2
 EXIT_BUG = 70  # EX_SOFTWARE
+EXIT_PIPE = 141  # 128 + SIGPIPE: the reader of the output left, as `yes | head` ends `yes`
 
 
 class CommandLineError(UsageError):
@@ -85,12 +86,31 @@ def _interruption(exc: BaseException) -> KeyboardInterrupt | None:
     return None
 
 
+def _reader_gone() -> bool:
+    """Whether standard output is a pipe whose reader has left (``heartreg ... | head``);
+    if so, further output goes to the null device (no second error at exit)."""
+    import os
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poll = select.poll()
+        poll.register(fd, 0)  # a pipe without reader reports an error to its writer
+        gone = any(events & select.POLLERR for _, events in poll.poll(0))
+    except (AttributeError, OSError, ValueError):  # no poll (Windows), no file descriptor
+        return False
+    if gone:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+    return gone
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit status.
 
     Refusals of bad input (:class:`HeartregError`) and OS errors are one line on
     stderr and status 1; any other exception is a bug: its traceback and status
-    70. SIGINT (Ctrl-C) gives 130 and SIGTERM 143, after every staged output has
+    70.  Output piped into a reader that leaves early (``| head``) ends the
+    command quietly with 141, as other programs. SIGINT (Ctrl-C) gives 130 and SIGTERM 143, after every staged output has
     been removed, also while the command line is still being read (its imports).
     """
     try:
@@ -151,6 +171,8 @@ def _main(argv: list[str] | None) -> int:
     except (HeartregError, OSError) as exc:
         if args.debug:
             raise
+        if isinstance(exc, BrokenPipeError) and _reader_gone():
+            return EXIT_PIPE  # quietly, as other programs: the outputs are complete, only the summary is lost
         print(f"heartreg {args.command}: error: {refusal_line(exc)}", file=sys.stderr)
         return 1
     except MemoryError as exc:

@@ -37,3 +37,29 @@ def test_a_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, exc):
 def test_usage_errors_are_heartreg_errors_and_value_errors():
     assert issubclass(UsageError, HeartregError) and issubclass(UsageError, ValueError)
     assert issubclass(cli.CommandLineError, UsageError)
+
+
+def test_output_piped_into_a_reader_that_leaves(sample_case, tmp_path):
+    """``heartreg phases STUDY -o OUT | head -1``: the reader leaves before the summary
+    is printed; the command ends quietly with 141 (as ``yes | head`` ends ``yes``),
+    its outputs complete, instead of "error: a file: Broken pipe" and status 1.  A
+    broken pipe that is not standard output's stays the one-line error."""
+    import json
+    import subprocess
+    import sys
+
+    case, _ = sample_case
+    out = tmp_path / "phases"
+    proc = subprocess.Popen([sys.executable, "-m", "heartreg", "phases", str(case / "ct"), "-o", str(out), "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader leaves at once
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == cli.EXIT_PIPE == 141, err
+    assert err == ""
+    assert json.loads((out / "phases.json").read_text())["volume_cardiac_phase"] >= 0
+
+
+def test_a_broken_pipe_elsewhere_is_still_an_error(monkeypatch, tmp_path, capsys):
+    status = _run_phases_raising(monkeypatch, tmp_path, BrokenPipeError(32, "Broken pipe"))
+    assert status == 1
+    assert capsys.readouterr().err.startswith("heartreg phases: error: ")
