@@ -225,6 +225,15 @@ def register_session(
         notes.append(f"fiducial registration error {fid.fre_rms_mm:.2f} mm exceeds {max_fre_mm:g} mm")
 
     # ---- phases and motion models per point
+    longest = max((record.time_s.shape[0] for record in session.points), default=harmonics.n_terms)
+    if longest < harmonics.n_terms:  # no point can have a model: say so once, not once per point
+        h = harmonics
+        raise RegistrationError(
+            "harmonics (--harmonics HC HR HMC HMR) "
+            f"{h.cardiac} {h.respiratory} {h.coupled_cardiac} {h.coupled_respiratory} "
+            f"need {h.n_terms} Fourier terms, more than the longest point's {longest} samples: lower them "
+            "(the paper's 5 4 2 1 need 27)"
+        )
     t = time.perf_counter()
     models, fits, exclusions, point_notes = fit_point_models(
         session, harmonics, min_beats=min_beats, min_breaths=min_breaths, coverage_bins=coverage_bins,

@@ -354,6 +354,17 @@ def test_short_points_are_excluded_with_a_reason(case, tmp_path):
         register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False, min_beats=10_000)
 
 
+def test_harmonics_no_point_can_fit_are_refused_once(case):
+    """More Fourier terms than the longest point has samples: one line naming the
+    option, not every point excluded with the same reason."""
+    longest = max(record.time_s.shape[0] for record in case["session"].points)
+    with pytest.raises(RegistrationError) as info:
+        register_session(case["model"], case["session"], harmonics=(2000, 2000, 5, 5), cardiac_sweep=False)
+    assert str(info.value) == (
+        f"harmonics (--harmonics HC HR HMC HMR) 2000 2000 5 5 need 8101 Fourier terms, more than the longest "
+        f"point's {longest} samples: lower them (the paper's 5 4 2 1 need 27)")
+
+
 def test_options_are_checked():
     with pytest.raises(ValueError, match="divide one cycle"):
         sweep_phases(0.03)
