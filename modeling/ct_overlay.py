@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from imaging.volume import OUTSIDE_HU
+
 __all__ = ["CtPanel", "ct_panels", "render_ct_png"]
 
 #: Axial planes at these fractions of the heart's height (from its lowest vertex).
@@ -31,8 +33,6 @@ MARGIN_MM = 15.0
 MAX_PIXELS = 360
 #: Display window (HU): fat, myocardium and contrast blood apart; metal and bone saturate.
 WINDOW_HU = (-250.0, 450.0)
-#: Outside the CT.
-OUTSIDE_HU = -1024.0
 
 
 @dataclass(frozen=True)
