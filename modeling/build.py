@@ -24,7 +24,7 @@ from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
-from modeling.surface import MeshError, decimate, mask_to_mesh
+from modeling.surface import MeshError, decimate, mask_to_mesh, refine_to_edge
 from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, trim_vessel_stubs
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]
@@ -324,6 +324,10 @@ def build_heart_model(
                 )
             dense = trim.mesh
     mesh = _decimate_or_keep_more(dense, target_faces, fallback)
+    edge_hu = None if mask_path is not None else float(seg_params["hu_low"])
+    if edge_hu is not None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
+        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu)
+        notes.append(f"surface moved to the CT's {edge_hu:g} HU edge at {refined:.0%} of its vertices (sub-voxel)")
     done("mesh")
 
     stage("fiducials")
@@ -385,6 +389,7 @@ def build_heart_model(
         "segmentation": seg_params,
         "trim_vessels": bool(trim_vessels),
         "mesh_grid_mm": MESH_GRID_MM,
+        "refined_to_edge_hu": edge_hu,
         "base_from_great_vessels": base_rule == "great vessels",
     }
     if cardiac_phase is None:

@@ -30,6 +30,13 @@ closed, decimated"):
 8. verification: watertight, manifold, consistently wound, enclosed volume > 0,
    else :class:`MeshError`.
 
+A mesh of a mask is only as fine as the mask's voxels: a threshold's boundary
+steps by whole voxels, and smoothing leaves it up to about half a voxel off
+the image's edge.  :func:`refine_to_edge` then moves each vertex of the final
+mesh along its normal to where the CT itself crosses the threshold (the
+image's edge at sub-voxel accuracy, linear interpolation), within a fraction
+of a voxel, the moves averaged over each vertex's neighbours against noise.
+
 The :class:`~modeling.mesh.Mesh` type and its checks are :mod:`modeling.mesh`;
 files are :mod:`modeling.mesh_io`.
 """
@@ -41,16 +48,21 @@ from scipy import ndimage
 
 from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, coarse_step, mask_box
-from modeling.mesh import Mesh, MeshError, _vertex_components, check_mesh
+from modeling.mesh import Mesh, MeshError, _vertex_components, check_mesh, vertex_normals
 from modeling.repair import clean_adjacency, taubin_smooth
 
-__all__ = ["mask_to_mesh", "decimate"]
+__all__ = ["mask_to_mesh", "decimate", "refine_to_edge"]
 
 #: Gaussian smoothing of the binary mask before the isosurface, in voxels.
 DEFAULT_SIGMA_VOX = 0.7
 #: Taubin smoothing defaults (pymeshlab ``apply_coord_taubin_smoothing``).
 TAUBIN_LAMBDA = 0.5
 TAUBIN_MU = -0.53
+#: :func:`refine_to_edge`: the farthest a vertex moves, in voxels (largest spacing); the CT sampled every
+#: this fraction of the smallest spacing along the normal; the moves averaged over neighbours this many times.
+REFINE_REACH_VOX = 0.75
+REFINE_STEP_VOX = 0.25
+REFINE_SMOOTH = 3
 #: Holes with up to this many boundary edges are closed.
 MAX_HOLE_EDGES = 1000
 #: Slices thicker than this (mm; a routine chest CT's 2.5-10 mm) are split into slices as thin as the in-plane
@@ -308,6 +320,77 @@ def _interpolate_slices(solid, spacing_ji, factor: int) -> np.ndarray:
         near = signed[other] if filled[other] else -np.abs(signed[k])
         out[kk] = (1.0 - abs(t)) * signed[k] + abs(t) * near > 0.0
     return out
+
+
+def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_vox: float = REFINE_REACH_VOX,
+                   smooth: int = REFINE_SMOOTH) -> tuple[Mesh, float]:
+    """Move each vertex along its normal to where the CT crosses ``level`` HU.
+
+    Along each vertex's outward normal, within ``reach_vox`` times the largest
+    voxel spacing either way, the CT is sampled every ``REFINE_STEP_VOX`` of the
+    smallest spacing (trilinear); the crossing from above ``level`` (inside) to
+    below it (outside) nearest the vertex gives its move.  Vertices without such
+    a crossing (a lid across a vessel's lumen, the heart against the liver) have
+    none.  The moves are then averaged ``smooth`` times over each vertex and its
+    neighbours (image noise moves single crossings), vertices without a crossing
+    taking their neighbours' mean: a lid's rim follows the wall it closes.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Closed surface in the patient frame (mm), outward normals.
+    hu : (n_k, n_j, n_i) array
+        The CT, indexed ``[k, j, i]``.
+    T_patient_from_voxel : (4, 4) float64
+    level : float, HU
+        The threshold the surface stands for (the segmentation's ``hu_low``:
+        half-way between pericardial fat and myocardium).
+
+    Returns
+    -------
+    mesh : Mesh
+        Same faces, vertices moved.
+    fraction : float
+        Of vertices that found a crossing.
+    """
+    import scipy.sparse as sparse
+
+    T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
+    spacing = np.linalg.norm(T[:3, :3], axis=0)
+    reach = reach_vox * float(spacing.max())
+    offsets = np.linspace(-reach, reach, 2 * int(np.ceil(reach / (REFINE_STEP_VOX * spacing.min()))) + 1)
+    v = np.asarray(mesh.vertices, dtype=float)
+    faces = np.asarray(mesh.faces)
+    normals = vertex_normals(v, faces)
+    Ti = np.linalg.inv(T)
+    # the CT's box around the surface, as stored (no float copy of a whole volume)
+    ijk = apply_to_points(Ti, v)
+    lo = np.maximum(np.floor(ijk.min(axis=0) - reach / spacing) - 1, 0).astype(int)[::-1]
+    hi = np.minimum(np.ceil(ijk.max(axis=0) + reach / spacing) + 2, np.shape(hu)[::-1]).astype(int)[::-1]
+    box = np.asarray(hu[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
+    points = v[:, None, :] + offsets[None, :, None] * normals[:, None, :]  # (n, m, 3)
+    kji = (apply_to_points(Ti, points.reshape(-1, 3))[:, ::-1] - lo).T
+    profile = ndimage.map_coordinates(box, kji, order=1, mode="nearest", output=np.float32)
+    profile = profile.reshape(len(v), len(offsets)) - np.float32(level)
+    inside = profile > 0
+    crossing = inside[:, :-1] & ~inside[:, 1:]
+    centre = (len(offsets) - 1) / 2.0
+    rank = np.where(crossing, np.abs(np.arange(len(offsets) - 1) + 0.5 - centre), np.inf)
+    j = rank.argmin(axis=1)
+    found = np.isfinite(rank[np.arange(len(v)), j])
+    a, b = profile[np.arange(len(v)), j], profile[np.arange(len(v)), j + 1]
+    step = offsets[1] - offsets[0]
+    move = np.where(found, offsets[j] + step * a / np.where(found, a - b, 1.0), 0.0)
+    # average over each vertex and its neighbours, weighted by whether a crossing was found
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    ring = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v))).tocsr()
+    ring = ((ring + ring.T) > 0).astype(float) + sparse.identity(len(v), format="csr")
+    weight = found.astype(float)
+    for _ in range(int(smooth)):
+        total = ring @ weight
+        move = np.where(total > 0, (ring @ (move * weight)) / np.maximum(total, 1e-12), 0.0)
+        weight = (total > 0).astype(float)
+    return Mesh(v + move[:, None] * normals, faces), float(found.mean())
 
 
 def decimate(mesh: Mesh, target_faces: int) -> Mesh:

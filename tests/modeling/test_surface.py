@@ -278,3 +278,53 @@ def test_read_ply_errors(tmp_path):
     good.write_bytes(good.read_bytes()[:-4])
     with pytest.raises(MeshError, match="truncated"):
         read_ply(good)
+
+
+def _ball_ct(T, shape, centre_mm, radius_mm, *, ramp_mm, noise_hu=0.0, seed=0):
+    """Myocardium (100 HU) in fat (-100 HU) with a linear ramp ``ramp_mm`` wide across the
+    sphere: 0 HU exactly on it (the phantom's partial volume); and its voxel mask."""
+    k, j, i = np.indices(shape)
+    ijk1 = np.stack([i, j, k, np.ones_like(i)], axis=-1).astype(float)
+    r = np.linalg.norm((ijk1 @ T.T)[..., :3] - centre_mm, axis=-1)
+    hu = 200.0 * np.clip((radius_mm - r) / ramp_mm, -0.5, 0.5)
+    hu += noise_hu * np.random.default_rng(seed).standard_normal(shape)
+    return hu.astype(np.int16), r < radius_mm
+
+
+@pytest.mark.parametrize("det_sign", [1, -1])
+def test_refine_to_edge_finds_the_sub_voxel_edge(det_sign):
+    """A ball on a sample-size grid (1.95 x 1.95 x 2.5 mm), noise 10 HU: the mask's mesh is off by up
+    to half a voxel, the refined one follows the CT's 0 HU edge (measured: mean 0.15 -> 0.04 mm,
+    p95 0.33 -> 0.09 mm); same faces, still closed."""
+    from modeling.surface import refine_to_edge
+
+    T = np.diag([1.95, 1.95 * det_sign, 2.5, 1.0])
+    T[:3, 3] = (-40.0, -40.0 * det_sign, -50.0)
+    centre, radius = np.array([0.3, 0.7 * det_sign, 0.4]), 30.0
+    hu, mask = _ball_ct(T, (40, 42, 42), centre, radius, ramp_mm=1.95, noise_hu=10.0)
+    mesh = mask_to_mesh(mask, T, target_faces=8000)
+    refined, fraction = refine_to_edge(mesh, hu, T, 0.0)
+    before = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius)
+    after = np.abs(np.linalg.norm(refined.vertices - centre, axis=1) - radius)
+    assert fraction == 1.0
+    assert after.mean() <= 0.1 and np.percentile(after, 95) <= 0.25
+    assert after.mean() < 0.6 * before.mean()
+    np.testing.assert_array_equal(refined.faces, mesh.faces)
+    assert check_mesh(refined).ok
+
+
+def test_refine_to_edge_leaves_a_surface_without_edge():
+    """No 0 HU crossing within reach (the heart against the liver, a lid across a vessel's blood):
+    no move; a crossing farther than 0.75 of a voxel is not taken either."""
+    from modeling.surface import refine_to_edge
+
+    T = np.diag([1.0, 1.0, 1.0, 1.0])
+    hu, mask = _ball_ct(T, (30, 30, 30), np.array([15.0, 15.0, 15.0]), 9.0, ramp_mm=1.0)
+    mesh = mask_to_mesh(mask, T, target_faces=2000)
+    flat, fraction = refine_to_edge(mesh, np.full(hu.shape, 60, np.int16), T, 0.0)
+    assert fraction == 0.0
+    np.testing.assert_array_equal(flat.vertices, mesh.vertices)
+    shrunk = _ball_ct(T, (30, 30, 30), np.array([15.0, 15.0, 15.0]), 7.0, ramp_mm=1.0)[0]  # its edge 2 mm inside
+    moved, fraction = refine_to_edge(mesh, shrunk, T, 0.0)
+    assert fraction < 0.05
+    assert np.abs(moved.vertices - mesh.vertices).max() <= 0.75 + 1e-9
