@@ -24,7 +24,7 @@ from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
-from modeling.surface import MeshError, decimate, mask_to_mesh, refine_to_edge
+from modeling.surface import MeshError, decimate, edge_refinable, mask_to_mesh, refine_to_edge
 from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, trim_vessel_stubs
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]
@@ -324,8 +324,13 @@ def build_heart_model(
                 )
             dense = trim.mesh
     mesh = _decimate_or_keep_more(dense, target_faces, fallback)
-    edge_hu = None if mask_path is not None else float(seg_params["hu_low"])
-    if edge_hu is not None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
+    edge_hu = None
+    if mask_path is None and not edge_refinable(T):
+        spacing = np.linalg.norm(T[:3, :3], axis=0)  # i, j, k
+        notes.append("surface kept as meshed between the slices, not moved onto the CT's edge: the slices are "
+                     f"{spacing[2]:.2g} mm apart, the pixels {spacing[:2].max():.2g} mm")
+    elif mask_path is None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
+        edge_hu = float(seg_params["hu_low"])
         mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu)
         notes.append(f"surface moved to the CT's {edge_hu:g} HU edge at {refined:.0%} of its vertices (sub-voxel)")
     done("mesh")

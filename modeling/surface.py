@@ -35,7 +35,8 @@ steps by whole voxels, and smoothing leaves it up to about half a voxel off
 the image's edge.  :func:`refine_to_edge` then moves each vertex of the final
 mesh along its normal to where the CT itself crosses the threshold (the
 image's edge at sub-voxel accuracy, linear interpolation), within a fraction
-of a voxel, the moves averaged over each vertex's neighbours against noise.
+of a voxel, the moves averaged over each vertex's neighbours against noise;
+not across slices much thicker than the pixels (:func:`edge_refinable`).
 
 The :class:`~modeling.mesh.Mesh` type and its checks are :mod:`modeling.mesh`;
 files are :mod:`modeling.mesh_io`.
@@ -51,7 +52,7 @@ from modeling.coarse import block_mean_max, coarse_step, mask_box
 from modeling.mesh import Mesh, MeshError, _vertex_components, check_mesh, vertex_normals
 from modeling.repair import clean_adjacency, taubin_smooth
 
-__all__ = ["mask_to_mesh", "decimate", "refine_to_edge"]
+__all__ = ["mask_to_mesh", "decimate", "edge_refinable", "refine_to_edge"]
 
 #: Gaussian smoothing of the binary mask before the isosurface, in voxels.
 DEFAULT_SIGMA_VOX = 0.7
@@ -63,6 +64,10 @@ TAUBIN_MU = -0.53
 REFINE_REACH_VOX = 0.75
 REFINE_STEP_VOX = 0.25
 REFINE_SMOOTH = 3
+#: ... only on a CT whose slices are at most this many times its pixels: across thicker slices the CT's edge
+#: is a grey-level interpolation, which the shape-based interpolation of step 1 does better (measured on
+#: ``shared/realct`` averaged to 3 and 6 mm slices: Dice 0.886 -> 0.882 and 0.820 -> 0.806 with the move).
+REFINE_MAX_SLICE_RATIO = 1.5
 #: Holes with up to this many boundary edges are closed.
 MAX_HOLE_EDGES = 1000
 #: Slices thicker than this (mm; a routine chest CT's 2.5-10 mm) are split into slices as thin as the in-plane
@@ -320,6 +325,13 @@ def _interpolate_slices(solid, spacing_ji, factor: int) -> np.ndarray:
         near = signed[other] if filled[other] else -np.abs(signed[k])
         out[kk] = (1.0 - abs(t)) * signed[k] + abs(t) * near > 0.0
     return out
+
+
+def edge_refinable(T_patient_from_voxel) -> bool:
+    """Whether :func:`refine_to_edge` may move a surface of this CT: its slices (``k``) at most
+    ``REFINE_MAX_SLICE_RATIO`` times its largest pixel spacing."""
+    spacing = np.linalg.norm(check_transform(T_patient_from_voxel, name="T_patient_from_voxel")[:3, :3], axis=0)
+    return bool(spacing[2] <= REFINE_MAX_SLICE_RATIO * spacing[:2].max())
 
 
 def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_vox: float = REFINE_REACH_VOX,

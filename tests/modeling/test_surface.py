@@ -328,3 +328,12 @@ def test_refine_to_edge_leaves_a_surface_without_edge():
     moved, fraction = refine_to_edge(mesh, shrunk, T, 0.0)
     assert fraction < 0.05
     assert np.abs(moved.vertices - mesh.vertices).max() <= 0.75 + 1e-9
+
+
+def test_edge_refinable_only_where_slices_are_near_the_pixels():
+    """The move onto the CT's edge samples across slices: fine on the sample size's 1.95 x 2.5 mm grid, not
+    across routine 3-10 mm slices (their edge is a grey-level interpolation; shape-based is better)."""
+    from modeling.surface import edge_refinable
+
+    assert edge_refinable(np.diag([1.95, 1.95, 2.5, 1.0])) and edge_refinable(np.diag([0.49, -0.49, 0.625, 1.0]))
+    assert not edge_refinable(np.diag([1.5, 1.5, 3.0, 1.0])) and not edge_refinable(np.diag([0.6, 0.6, 5.0, 1.0]))
