@@ -176,6 +176,13 @@ def _env():
     return env
 
 
+def _ctrl_c_as_from_a_terminal():
+    """In the child before exec: SIGINT back to its default, so that Python installs its Ctrl-C handler.
+    A background job of a non-interactive shell (``make test &``) inherits SIGINT ignored, and Python keeps
+    it ignored: the tests below would see no interrupt at all."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _register_cmd(case, out):
     return [sys.executable, "-m", "heartreg.cli", "register", str(case["model"]), str(case["session"]),
             "-o", str(out), "-q", "--step", "0.1", "--no-view"]
@@ -194,7 +201,8 @@ def _complete_registration(out: Path) -> bool:
 def _start_and_wait_for_staging(cmd, parent: Path, *, files: int = 0):
     """Start a command; return it once its staging folder beside the output
     holds at least ``files`` entries (the write is under way), or once it ended."""
-    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ctrl_c_as_from_a_terminal)
     deadline = time.monotonic() + 600
     while proc.poll() is None and time.monotonic() < deadline:
         stages = list(parent.glob(".*.heartreg-*.tmp"))
@@ -242,7 +250,8 @@ def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path):
     and 130, no traceback."""
     cmd = [sys.executable, "-c", "import time, heartreg.cli as c; c._build_parser = lambda: time.sleep(60); "
            "raise SystemExit(c.main(['phases', 'x', '-o', 'y']))"]
-    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ctrl_c_as_from_a_terminal)
     time.sleep(2.0)  # inside the (slow) parser
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
