@@ -327,8 +327,9 @@ def build_heart_model(
     edge_hu = None
     if mask_path is None and not edge_refinable(T):
         spacing = np.linalg.norm(T[:3, :3], axis=0)  # i, j, k
-        notes.append("surface kept as meshed between the slices, not moved onto the CT's edge: the slices are "
-                     f"{spacing[2]:.2g} mm apart, the pixels {spacing[:2].max():.2g} mm")
+        notes.append("surface kept as meshed, not moved onto the CT's edge: voxels of "
+                     + " x ".join(f"{s:.2g}" for s in spacing) + " mm, coarser than the move's 2.5 mm "
+                     "(their blur and thick slices place the edge less well than the mesh)")
     elif mask_path is None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
         edge_hu = float(seg_params["hu_low"])
         mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu)

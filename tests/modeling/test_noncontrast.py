@@ -53,8 +53,8 @@ def test_no_contrast_seeds_between_the_lungs(chest4):
     volume, seg, build, caught = chest4
     notes = " ".join(build.notes)
     assert "no contrast blood pool" in notes and "between the lungs" in notes
-    # 10 mm slices against 3 mm pixels: the surface between them stays the shape-based interpolation's
-    assert "surface kept as meshed between the slices, not moved onto the CT's edge: the slices are 10 mm" in notes
+    # 10 mm slices, 3 mm pixels: the surface stays the mesh's (shape-based between the slices)
+    assert "surface kept as meshed, not moved onto the CT's edge: voxels of 3 x 3 x 10 mm" in notes
     assert build.model.parameters["refined_to_edge_hu"] is None
     assert build.model.parameters["segmentation"]["contrast"] is False
     T = volume.T_patient_from_voxel

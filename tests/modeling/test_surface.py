@@ -330,10 +330,11 @@ def test_refine_to_edge_leaves_a_surface_without_edge():
     assert np.abs(moved.vertices - mesh.vertices).max() <= 0.75 + 1e-9
 
 
-def test_edge_refinable_only_where_slices_are_near_the_pixels():
-    """The move onto the CT's edge samples across slices: fine on the sample size's 1.95 x 2.5 mm grid, not
-    across routine 3-10 mm slices (their edge is a grey-level interpolation; shape-based is better)."""
+def test_edge_refinable_only_on_voxels_up_to_2_5_mm():
+    """The move onto the CT's edge: on the sample size's 1.95 x 2.5 mm grid and finer, not on routine 3-10 mm
+    voxels or slices (blur and grey-level interpolation across slices place their edge less well)."""
     from modeling.surface import edge_refinable
 
     assert edge_refinable(np.diag([1.95, 1.95, 2.5, 1.0])) and edge_refinable(np.diag([0.49, -0.49, 0.625, 1.0]))
-    assert not edge_refinable(np.diag([1.5, 1.5, 3.0, 1.0])) and not edge_refinable(np.diag([0.6, 0.6, 5.0, 1.0]))
+    assert not edge_refinable(np.diag([1.5, 1.5, 3.0, 1.0])) and not edge_refinable(np.diag([3.0, 3.0, 3.0, 1.0]))
+    assert not edge_refinable(np.diag([0.6, 0.6, 5.0, 1.0]))
