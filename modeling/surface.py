@@ -408,7 +408,26 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_
         total = ring @ weight
         move = np.where(total > 0, (ring @ (move * weight)) / np.maximum(total, 1e-12), 0.0)
         weight = (total > 0).astype(float)
+    # where two sheets of the surface lie within a voxel (a narrow groove), their moves can cross: such
+    # vertices and their neighbours keep their place (on the anatomical phantom 18 of 16 636 faces crossed)
+    for _ in range(3):
+        crossed = _self_intersecting(v + move[:, None] * normals, faces) & (move != 0)
+        if not crossed.any():
+            break
+        move[(ring @ crossed.astype(float)) > 0] = 0.0
     return Mesh(v + move[:, None] * normals, faces), float(found.mean())
+
+
+def _self_intersecting(vertices, faces) -> np.ndarray:
+    """(n,) bool: vertices of faces that intersect another face of the mesh (pymeshlab)."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=np.asarray(faces, dtype=np.int32)))
+    ms.compute_selection_by_self_intersections_per_face()
+    out = np.zeros(len(vertices), bool)
+    out[np.asarray(faces)[ms.current_mesh().face_selection_array()].ravel()] = True
+    return out
 
 
 def decimate(mesh: Mesh, target_faces: int) -> Mesh:
