@@ -110,8 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     Refusals of bad input (:class:`HeartregError`) and OS errors are one line on
     stderr and status 1; any other exception is a bug: its traceback and status
     70.  Output piped into a reader that leaves early (``| head``) ends the
-    command quietly with 141, as other programs. SIGINT (Ctrl-C) gives 130 and SIGTERM 143, after every staged output has
-    been removed, also while the command line is still being read (its imports).
+    command quietly with 141, as other programs.  SIGINT (Ctrl-C) gives 130 and
+    SIGTERM 143, after every staged output has been removed, also while the
+    command line is still being read (its imports).
     """
     try:
         return _main(argv)
