@@ -1,4 +1,4 @@
-"""Coarse grids for fast searches over a whole CT volume.
+"""Coarse grids and boxes for fast work over a whole CT volume.
 
 A full-size cardiac CT holds ~75 M voxels; finding the blood pool, the body
 outline or the skin markers does not need that resolution.  Block statistics
@@ -15,7 +15,31 @@ import weakref
 
 import numpy as np
 
-__all__ = ["coarse_step", "block_mean_max", "centroid", "label_maximum", "mask_box"]
+__all__ = ["coarse_step", "block_mean_max", "centroid", "label_maximum", "mask_box", "sample_ct"]
+
+
+def sample_ct(hu, T_patient_from_voxel, points_mm) -> np.ndarray:
+    """The CT at patient points, trilinear (nearest voxel beyond the volume's edge), float32.
+
+    Reads only the box of voxels around the points, as stored: no float copy of
+    the whole volume (a full-size CT as float32 is ~300 MB).
+
+    Parameters
+    ----------
+    hu : (n_k, n_j, n_i) array
+        The CT, indexed ``[k, j, i]``.
+    T_patient_from_voxel : (4, 4) float64
+    points_mm : (n, 3) float, patient frame
+    """
+    from scipy import ndimage
+
+    T = np.asarray(T_patient_from_voxel, dtype=float)
+    kji = np.linalg.solve(T[:3, :3], (np.asarray(points_mm, dtype=float) - T[:3, 3]).T)[::-1]  # (3, n)
+    shape = np.array(np.shape(hu))
+    lo = np.clip(np.floor(kji.min(axis=1)).astype(int) - 1, 0, shape - 1)
+    hi = np.clip(np.ceil(kji.max(axis=1)).astype(int) + 2, 1, shape)
+    box = np.asarray(hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]])
+    return ndimage.map_coordinates(box, kji - lo[:, None], order=1, mode="nearest", output=np.float32)
 
 
 def mask_box(mask, pad=0) -> tuple[slice, slice, slice] | None:

@@ -48,7 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, coarse_step, mask_box
+from modeling.coarse import block_mean_max, coarse_step, mask_box, sample_ct
 from modeling.mesh import Mesh, MeshError, _vertex_components, check_mesh, vertex_normals
 from modeling.repair import clean_adjacency, taubin_smooth
 
@@ -380,16 +380,8 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_
     v = np.asarray(mesh.vertices, dtype=float)
     faces = np.asarray(mesh.faces)
     normals = vertex_normals(v, faces)
-    Ti = np.linalg.inv(T)
-    # the CT's box around the surface, as stored (no float copy of a whole volume)
-    ijk = apply_to_points(Ti, v)
-    lo = np.maximum(np.floor(ijk.min(axis=0) - reach / spacing) - 1, 0).astype(int)[::-1]
-    hi = np.minimum(np.ceil(ijk.max(axis=0) + reach / spacing) + 2, np.shape(hu)[::-1]).astype(int)[::-1]
-    box = np.asarray(hu[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
     points = v[:, None, :] + offsets[None, :, None] * normals[:, None, :]  # (n, m, 3)
-    kji = (apply_to_points(Ti, points.reshape(-1, 3))[:, ::-1] - lo).T
-    profile = ndimage.map_coordinates(box, kji, order=1, mode="nearest", output=np.float32)
-    profile = profile.reshape(len(v), len(offsets)) - np.float32(level)
+    profile = sample_ct(hu, T, points.reshape(-1, 3)).reshape(len(v), len(offsets)) - np.float32(level)
     inside = profile > 0
     crossing = inside[:, :-1] & ~inside[:, 1:]
     centre = (len(offsets) - 1) / 2.0

@@ -28,9 +28,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
-from modeling.coarse import centroid, mask_box
+from modeling.coarse import centroid, mask_box, sample_ct
 from modeling.distance import distance_mm
 from modeling.mesh import Mesh, MeshError, check_mesh, vertex_normals
 
@@ -109,15 +108,7 @@ def trim_vessel_stubs(
     half_voxel = 0.5 * np.linalg.norm((normals @ axes) * spacing, axis=1)  # half the voxel's extent along the normal
     depth_mm = np.maximum(wall_mm - half_voxel, 0.5 * wall_mm)
     inside = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals])
-    kji = np.linalg.solve(T[:3, :3], (inside - T[:3, 3]).T)[::-1]  # (3, 2n)
-    # sample a crop around the surface only (the whole volume as float would
-    # double the memory of the model stage)
-    hu = np.asarray(hu)
-    lo = np.clip(np.floor(kji.min(axis=1)).astype(int) - 1, 0, np.array(hu.shape) - 1)
-    hi = np.clip(np.ceil(kji.max(axis=1)).astype(int) + 2, 1, np.array(hu.shape))
-    crop = hu[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(np.float32)
-    samples = ndimage.map_coordinates(crop, kji - lo[:, None], order=1, mode="nearest")
-    del crop, kji, inside  # the crop is the heart's box as float32 (~90 MB at full size): not kept through the repair
+    samples = sample_ct(hu, T, inside)
     deep, shallow = samples[: len(v)], samples[len(v) :]
     flagged = deep > blood_hu
     flagged |= (deep > vein_hu) & (shallow > vein_hu)  # venous blood under a vein's ~1 mm wall
