@@ -332,7 +332,8 @@ def build_heart_model(
                      "(their blur and thick slices place the edge less well than the mesh)")
     elif mask_path is None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
         edge_hu = float(seg_params["hu_low"])
-        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu)
+        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, blood_level=seg_params.get("pool_hu"),
+                                       blood_reach_mm=seg_params["coarse_mm"])
         notes.append(f"surface moved to the CT's {edge_hu:g} HU edge at {refined:.0%} of its vertices (sub-voxel)")
     done("mesh")
 

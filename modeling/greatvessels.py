@@ -68,7 +68,9 @@ class GreatVessels:
         heart's surroundings) to their valve or junction.
     territory : bool array like the blood pool
         ``lumen`` and the voxels closer to it than to the chambers' blood, up to
-        ``wall_mm`` from it (the vessels' walls).
+        ``wall_mm`` from it (the vessels' walls), outside the heart's body when
+        it is given: inside, the tissue around a lumen is the chambers' own (the
+        aortic root sits between the atria, the RVOT and the LV's top).
     lobe_radii_mm : tuple of float
         Inscribed radius of each vessel lobe, largest first.
     note : str
@@ -149,7 +151,10 @@ def trace_great_vessels(
         aorta, a chamber much wider).
     wall_mm : float
         Tissue closer to the lumen than to the chambers' blood, up to this far
-        from the lumen, is the vessels' wall.
+        from the lumen and outside the heart's body (``heart``), is the
+        vessels' wall.  Inside the body it is the chambers' myocardium around
+        the aortic root's well: removed with the lumen, it put the
+        anatomical phantom's well walls 2-3 mm outside the true ones.
     heart : bool array like the pool, optional
         The heart's body (the part of the segmentation's region a ball of the
         ventricles' size fits in: no vessel stub left below a near edge).  A
@@ -270,8 +275,11 @@ def trace_great_vessels(
             return GreatVessels(empty, empty, (), "great vessels: none outside the heart's body")
     to_lumen = distance_mm(~lumen[box], spacing)
     to_chambers = distance_mm(~(pool & ~lumen[box]), spacing)
+    wall = (to_lumen < to_chambers) & (to_lumen <= wall_mm)
+    if heart_box is not None:  # inside the heart's body the tissue around a lumen is the chambers' myocardium
+        wall &= ~heart_box
     territory = np.zeros(full_shape, bool)
-    territory[box] = lumen[box] | ((to_lumen < to_chambers) & (to_lumen <= wall_mm))
+    territory[box] = lumen[box] | wall
     radii = tuple(sorted((float(r) for r in radius[vessel]), reverse=True))
     volume_ml = float(lumen.sum() * np.prod(spacing) / 1000.0)
     note = (

@@ -340,7 +340,26 @@ def edge_refinable(T_patient_from_voxel) -> bool:
     return bool(spacing.max() <= REFINE_MAX_VOXEL_MM + 1e-6)
 
 
-def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_vox: float = REFINE_REACH_VOX,
+def _crossings(hu, T, v, normals, level: float, reach: float, step: float, *, brighter_outside=False):
+    """Signed move (mm, along ``normals``) of each of ``v`` to the CT's ``level`` crossing nearest it within
+    ``reach`` (above inside, below outside; the other way round with ``brighter_outside``), and whether one was found."""
+    offsets = np.linspace(-reach, reach, 2 * int(np.ceil(reach / step)) + 1)
+    points = v[:, None, :] + offsets[None, :, None] * normals[:, None, :]  # (n, m, 3)
+    profile = sample_ct(hu, T, points.reshape(-1, 3)).reshape(len(v), len(offsets)) - np.float32(level)
+    inside = (profile < 0) if brighter_outside else (profile > 0)
+    crossing = inside[:, :-1] & ~inside[:, 1:]
+    centre = (len(offsets) - 1) / 2.0
+    rank = np.where(crossing, np.abs(np.arange(len(offsets) - 1) + 0.5 - centre), np.inf)
+    j = rank.argmin(axis=1)
+    rows = np.arange(len(v))
+    found = np.isfinite(rank[rows, j])
+    a, b = profile[rows, j], profile[rows, j + 1]
+    move = np.where(found, offsets[j] + (offsets[1] - offsets[0]) * a / np.where(found, a - b, 1.0), 0.0)
+    return move, found
+
+
+def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, blood_level: float | None = None,
+                   blood_reach_mm: float = 0.0, reach_vox: float = REFINE_REACH_VOX,
                    smooth: int = REFINE_SMOOTH) -> tuple[Mesh, float]:
     """Move each vertex along its normal to where the CT crosses ``level`` HU.
 
@@ -349,9 +368,15 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_
     smallest spacing (trilinear); the crossing from above ``level`` (inside) to
     below it (outside) nearest the vertex gives its move.  Vertices without such
     a crossing (a lid across a vessel's lumen, the heart against the liver) have
-    none.  The moves are then averaged ``smooth`` times over each vertex and its
-    neighbours (image noise moves single crossings), vertices without a crossing
-    taking their neighbours' mean: a lid's rim follows the wall it closes.
+    none.  With ``blood_level``, a vertex with contrast blood just beyond its
+    reach outside (a great vessel's lumen taken out of the heart down to its
+    valve: the wall of the aortic root's well) looks for the opposite edge,
+    from below ``blood_level`` inside (myocardium) to above it outside, as far
+    as ``blood_reach_mm`` if that is farther (the lumen was taken out on a
+    coarser grid than the CT's).  The moves are then averaged ``smooth`` times
+    over each vertex and its neighbours (image noise moves single crossings),
+    vertices without a crossing taking their neighbours' mean: a lid's rim
+    follows the wall it closes.
 
     Parameters
     ----------
@@ -363,6 +388,11 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_
     level : float, HU
         The threshold the surface stands for (the segmentation's ``hu_low``:
         half-way between pericardial fat and myocardium).
+    blood_level : float, HU, optional
+        The threshold of the contrast blood pool the segmentation took the
+        vessels' lumen from (its ``pool_hu``).
+    blood_reach_mm : float
+        Reach of the search for the blood edge (the segmentation's coarse grid spacing).
 
     Returns
     -------
@@ -375,22 +405,16 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, reach_
 
     T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
     spacing = np.linalg.norm(T[:3, :3], axis=0)
-    reach = reach_vox * float(spacing.max())
-    offsets = np.linspace(-reach, reach, 2 * int(np.ceil(reach / (REFINE_STEP_VOX * spacing.min()))) + 1)
+    reach, step = reach_vox * float(spacing.max()), REFINE_STEP_VOX * float(spacing.min())
     v = np.asarray(mesh.vertices, dtype=float)
     faces = np.asarray(mesh.faces)
     normals = vertex_normals(v, faces)
-    points = v[:, None, :] + offsets[None, :, None] * normals[:, None, :]  # (n, m, 3)
-    profile = sample_ct(hu, T, points.reshape(-1, 3)).reshape(len(v), len(offsets)) - np.float32(level)
-    inside = profile > 0
-    crossing = inside[:, :-1] & ~inside[:, 1:]
-    centre = (len(offsets) - 1) / 2.0
-    rank = np.where(crossing, np.abs(np.arange(len(offsets) - 1) + 0.5 - centre), np.inf)
-    j = rank.argmin(axis=1)
-    found = np.isfinite(rank[np.arange(len(v)), j])
-    a, b = profile[np.arange(len(v)), j], profile[np.arange(len(v)), j + 1]
-    step = offsets[1] - offsets[0]
-    move = np.where(found, offsets[j] + step * a / np.where(found, a - b, 1.0), 0.0)
+    move, found = _crossings(hu, T, v, normals, level, reach, step)
+    if blood_level is not None:  # over a lumen: the myocardium -> blood edge
+        over = sample_ct(hu, T, v + (reach + float(spacing.max())) * normals) > blood_level
+        if over.any():
+            move[over], found[over] = _crossings(hu, T, v[over], normals[over], blood_level,
+                                                 max(reach, blood_reach_mm), step, brighter_outside=True)
     # average over each vertex and its neighbours, weighted by whether a crossing was found
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     ring = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v))).tocsr()

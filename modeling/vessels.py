@@ -16,7 +16,13 @@ contrast-filled lumen.  So:
    fine one: the full-size phantom kept its aortic root's wall as heart);
 2. vertices over contrast blood (> ``blood_hu``), or over less enhanced
    venous blood (> ``vein_hu``) already at half that depth, grown by
-   ``grow_rings`` rings of neighbours, are the stubs: their faces are removed;
+   ``grow_rings`` rings of neighbours, are the stubs: their faces are removed.
+   A surface with contrast blood ``cut_mm`` *outside* it too is no vessel's
+   wall: it is a cut across the blood pool the segmentation made on purpose,
+   the floor of a great vessel's lumen traced down to its valve
+   (:mod:`modeling.greatvessels`), and stays: trimmed, the aortic root's well
+   lost its floor and was lidded at its rim, 14 mm above the valve on the
+   anatomical phantom;
 3. the holes left at the vessels' mouths are closed with new faces spanning
    each mouth's rim (the epicardium across a mouth is nearly flat: the base);
    decimating afterwards (as :func:`modeling.build.build_heart_model` does)
@@ -55,6 +61,7 @@ def trim_vessel_stubs(
     vein_hu: float = 140.0,
     grow_rings: int = 2,
     max_removed: float = 0.5,
+    cut_mm: float = 4.0,
 ) -> VesselTrim:
     """Remove the parts of ``mesh`` that cover contrast-filled vessel lumen.
 
@@ -78,6 +85,11 @@ def trim_vessel_stubs(
         too: only a vein's wall (~1 mm) is that thin over it, never myocardium.
     grow_rings : int
         Rings of neighbouring vertices removed with each stub vertex.
+    cut_mm : float
+        Vertices with contrast blood this far outside them (along the normal)
+        as well as inside are a cut across the blood pool, not a stub: beyond a
+        stub's wall lies the vessel's surroundings, beyond the floor of a traced
+        lumen its blood (past the partial volume of a 1.5 mm voxel at 4 mm).
     max_removed : float
         Largest fraction of the faces a trim may remove.  The stubs of the
         great vessels are a small part of the heart's surface (the phantom's:
@@ -107,11 +119,12 @@ def trim_vessel_stubs(
     axes = T[:3, :3] / spacing  # unit voxel axes in the patient frame
     half_voxel = 0.5 * np.linalg.norm((normals @ axes) * spacing, axis=1)  # half the voxel's extent along the normal
     depth_mm = np.maximum(wall_mm - half_voxel, 0.5 * wall_mm)
-    inside = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals])
-    samples = sample_ct(hu, T, inside)
-    deep, shallow = samples[: len(v)], samples[len(v) :]
+    probes = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals,
+                             v + cut_mm * normals])
+    deep, shallow, beyond = np.split(sample_ct(hu, T, probes), 3)
     flagged = deep > blood_hu
     flagged |= (deep > vein_hu) & (shallow > vein_hu)  # venous blood under a vein's ~1 mm wall
+    flagged &= beyond <= blood_hu  # blood on both sides: a cut across the pool (a traced lumen's floor)
     if not flagged.any():
         return VesselTrim(mesh, 0, 0)
     for _ in range(grow_rings):

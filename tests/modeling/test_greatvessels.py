@@ -142,3 +142,18 @@ def test_a_vessel_closed_by_its_valve_is_taken_inside_the_body_too():
     stub = pool & body & (k > valve_mm + 6)
     assert stub.any() and found.lumen[stub].all()
     assert not found.lumen[pool & (k < valve_mm - 6)].any()
+
+
+def test_the_wall_is_taken_outside_the_heart_body_only():
+    """A vessel's wall (``wall_mm`` around its lumen) is not heart where the vessel has left the heart's
+    body; inside it, around the aortic root embedded between the chambers, the tissue is the chambers'
+    myocardium and stays (taken with the lumen, the anatomical phantom's well walls lay 2-3 mm out)."""
+    pool, valve_mm = _pool()
+    k, j, i = _grid(pool.shape)
+    body = _ball(k, j, i, (40.0, 52.5, 52.5), 45.0)
+    found = trace_great_vessels(pool, SPACING, heart=body)
+    wall = found.territory & ~found.lumen
+    assert wall.any() and not (wall & body).any()
+    assert found.lumen[pool & body & (k > valve_mm + 6)].all()
+    ring = ~pool & ~body & (np.hypot(j - 52.5, i - 52.5) <= 14.5) & (k > 100.0) & (k < 140.0)
+    assert ring.any() and found.territory[ring].all()  # 12 mm lumen, its 2.5 mm wall outside the body

@@ -330,6 +330,29 @@ def test_refine_to_edge_leaves_a_surface_without_edge():
     assert np.abs(moved.vertices - mesh.vertices).max() <= 0.75 + 1e-9
 
 
+def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
+    """Myocardium (100 HU) with contrast blood (400 HU) beyond it, as around the aortic root's well whose
+    lumen the segmentation took out on its 2 mm grid: the mesh, 1.2 mm too far into the blood, has no
+    0 HU edge; with ``blood_level`` it moves onto the blood's edge (measured: 1.2 -> 0.05 mm), and with
+    a reach of the coarse grid's spacing, farther than the 0.75 voxel of the 0 HU move."""
+    from modeling.surface import refine_to_edge
+
+    T = np.diag([1.0, 1.0, 1.0, 1.0])
+    centre, radius = np.array([15.0, 15.0, 15.0]), 9.0
+    ramp = _ball_ct(T, (30, 30, 30), centre, radius, ramp_mm=1.0)[0].astype(float)  # -100 .. 100 across r = 9
+    hu = (250.0 - 1.5 * ramp).astype(np.int16)  # 100 HU inside, 400 HU outside: 250 HU on the sphere
+    mask = _ball_ct(T, (30, 30, 30), centre, radius + 1.2, ramp_mm=1.0)[1]
+    mesh = mask_to_mesh(mask, T, target_faces=3000)
+    before = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius)
+    kept, fraction = refine_to_edge(mesh, hu, T, 0.0)
+    assert fraction == 0.0 and np.array_equal(kept.vertices, mesh.vertices)
+    moved, fraction = refine_to_edge(mesh, hu, T, 0.0, blood_level=250.0, blood_reach_mm=2.0)
+    after = np.abs(np.linalg.norm(moved.vertices - centre, axis=1) - radius)
+    assert fraction == 1.0 and before.mean() > 0.9
+    assert after.mean() <= 0.15 and np.percentile(after, 95) <= 0.3
+    assert check_mesh(moved).ok
+
+
 def test_edge_refinable_only_on_voxels_up_to_2_5_mm():
     """The move onto the CT's edge: on the sample size's 1.95 x 2.5 mm grid and finer, not on routine 3-10 mm
     voxels or slices (blur and grey-level interpolation across slices place their edge less well)."""
