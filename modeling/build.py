@@ -24,7 +24,8 @@ from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
-from modeling.surface import MeshError, decimate, edge_refinable, mask_to_mesh, refine_to_edge
+from modeling.edge import edge_refinable, refine_to_edge
+from modeling.surface import MeshError, decimate, mask_to_mesh
 from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, trim_vessel_stubs
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]
@@ -332,9 +333,12 @@ def build_heart_model(
                      "(their blur and thick slices place the edge less well than the mesh)")
     elif mask_path is None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
         edge_hu = float(seg_params["hu_low"])
-        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, blood_level=seg_params.get("pool_hu"),
+        pool_hu = seg_params.get("pool_hu") if seg_params.get("contrast") else None  # the traced lumens' level
+        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, blood_level=pool_hu,
                                        blood_reach_mm=seg_params["coarse_mm"])
-        notes.append(f"surface moved to the CT's {edge_hu:g} HU edge at {refined:.0%} of its vertices (sub-voxel)")
+        notes.append(f"surface moved to the CT's {edge_hu:g} HU edge"
+                     + ("" if pool_hu is None else f" ({pool_hu:g} HU over a vessel's lumen)")
+                     + f" at {refined:.0%} of its vertices (sub-voxel)")
     done("mesh")
 
     stage("fiducials")

@@ -296,7 +296,7 @@ def test_refine_to_edge_finds_the_sub_voxel_edge(det_sign):
     """A ball on a sample-size grid (1.95 x 1.95 x 2.5 mm), noise 10 HU: the mask's mesh is off by up
     to half a voxel, the refined one follows the CT's 0 HU edge (measured: mean 0.15 -> 0.04 mm,
     p95 0.33 -> 0.09 mm); same faces, still closed."""
-    from modeling.surface import refine_to_edge
+    from modeling.edge import refine_to_edge
 
     T = np.diag([1.95, 1.95 * det_sign, 2.5, 1.0])
     T[:3, 3] = (-40.0, -40.0 * det_sign, -50.0)
@@ -316,7 +316,7 @@ def test_refine_to_edge_finds_the_sub_voxel_edge(det_sign):
 def test_refine_to_edge_leaves_a_surface_without_edge():
     """No 0 HU crossing within reach (the heart against the liver, a lid across a vessel's blood):
     no move; a crossing farther than 0.75 of a voxel is not taken either."""
-    from modeling.surface import refine_to_edge
+    from modeling.edge import refine_to_edge
 
     T = np.diag([1.0, 1.0, 1.0, 1.0])
     hu, mask = _ball_ct(T, (30, 30, 30), np.array([15.0, 15.0, 15.0]), 9.0, ramp_mm=1.0)
@@ -335,7 +335,7 @@ def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
     lumen the segmentation took out on its 2 mm grid: the mesh, 1.2 mm too far into the blood, has no
     0 HU edge; with ``blood_level`` it moves onto the blood's edge (measured: 1.2 -> 0.05 mm), and with
     a reach of the coarse grid's spacing, farther than the 0.75 voxel of the 0 HU move."""
-    from modeling.surface import refine_to_edge
+    from modeling.edge import refine_to_edge
 
     T = np.diag([1.0, 1.0, 1.0, 1.0])
     centre, radius = np.array([15.0, 15.0, 15.0]), 9.0
@@ -356,7 +356,7 @@ def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
 def test_edge_refinable_only_on_voxels_up_to_2_5_mm():
     """The move onto the CT's edge: on the sample size's 1.95 x 2.5 mm grid and finer, not on routine 3-10 mm
     voxels or slices (blur and grey-level interpolation across slices place their edge less well)."""
-    from modeling.surface import edge_refinable
+    from modeling.edge import edge_refinable
 
     assert edge_refinable(np.diag([1.95, 1.95, 2.5, 1.0])) and edge_refinable(np.diag([0.49, -0.49, 0.625, 1.0]))
     assert not edge_refinable(np.diag([1.5, 1.5, 3.0, 1.0])) and not edge_refinable(np.diag([3.0, 3.0, 3.0, 1.0]))
@@ -370,7 +370,7 @@ def test_moves_that_would_cross_the_surface_are_undone():
     each other in one mesh are found, a ball is not."""
     import trimesh as tm
 
-    from modeling.surface import _self_intersecting
+    from modeling.edge import _self_intersecting
 
     a, b = tm.creation.box((10, 10, 10)), tm.creation.box((10, 10, 10))
     b.apply_translation((5.0, 5.0, 5.0))
