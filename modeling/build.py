@@ -258,11 +258,12 @@ def build_heart_model(
     if mask_path is not None:
         label_map = read_label_map(mask_path, structure=label if isinstance(label, str) else None)
         mask = mask_on_grid(label_map, volume.shape, T, label=label)
+        lumen = T_lumen = None
         mask_source = f"label map ({label_map_kind(label_map.source)})" + (f", label {label}" if label is not None else "")
         seg_params = {}
     else:
         seg = segment_heart(volume.hu, T, **(segmentation or {}))
-        mask = seg.mask
+        mask, lumen, T_lumen = seg.mask, seg.vessel_lumen, seg.T_patient_from_lumen
         mask_source = "automatic segmentation"
         seg_params = seg.parameters
         for note in seg.notes:
@@ -313,7 +314,7 @@ def build_heart_model(
     release_free_memory()
     if trim_vessels:
         try:
-            trim = trim_vessel_stubs(dense, volume.hu, T)
+            trim = trim_vessel_stubs(dense, volume.hu, T, lumen=lumen, T_patient_from_lumen=T_lumen)
             release_free_memory()
         except MeshError as exc:
             fallback(f"vessel stub trim skipped, surface kept as segmented: {exc}")
@@ -333,11 +334,11 @@ def build_heart_model(
                      "(their blur and thick slices place the edge less well than the mesh)")
     elif mask_path is None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
         edge_hu = float(seg_params["hu_low"])
-        pool_hu = seg_params.get("pool_hu") if seg_params.get("contrast") else None  # the traced lumens' level
-        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, blood_level=pool_hu,
-                                       blood_reach_mm=seg_params["coarse_mm"])
+        pool_hu = seg_params.get("pool_hu")  # the traced lumens' level
+        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, lumen=lumen, T_patient_from_lumen=T_lumen,
+                                       blood_level=pool_hu, blood_reach_mm=seg_params["coarse_mm"])
         notes.append(f"surface moved to the CT's {edge_hu:g} HU edge"
-                     + ("" if pool_hu is None else f" ({pool_hu:g} HU over a vessel's lumen)")
+                     + ("" if lumen is None else f" ({pool_hu:g} HU over a vessel's lumen cut at its valve)")
                      + f" at {refined:.0%} of its vertices (sub-voxel)")
     done("mesh")
 

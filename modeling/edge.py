@@ -17,6 +17,7 @@ import numpy as np
 from hrcore.geometry import check_transform
 from modeling.coarse import sample_ct
 from modeling.mesh import Mesh, vertex_normals
+from modeling.vessels import over_lumen
 
 __all__ = ["edge_refinable", "refine_to_edge"]
 
@@ -62,8 +63,8 @@ def _crossings(hu, T, v, normals, level: float, reach: float, step: float, *, br
     return move, found
 
 
-def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, blood_level: float | None = None,
-                   blood_reach_mm: float = 0.0, reach_vox: float = REFINE_REACH_VOX,
+def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, lumen=None, T_patient_from_lumen=None,
+                   blood_level: float | None = None, blood_reach_mm: float = 0.0, reach_vox: float = REFINE_REACH_VOX,
                    smooth: int = REFINE_SMOOTH) -> tuple[Mesh, float]:
     """Move each vertex along its normal to where the CT crosses ``level`` HU.
 
@@ -72,11 +73,11 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, blood_
     smallest spacing (trilinear); the crossing from above ``level`` (inside) to
     below it (outside) nearest the vertex gives its move.  Vertices without such
     a crossing (a lid across a vessel's lumen, the heart against the liver) have
-    none.  With ``blood_level``, a vertex with contrast blood just beyond its
-    reach outside (a great vessel's lumen taken out of the heart down to its
-    valve: the wall of the aortic root's well) looks for the opposite edge,
-    from below ``blood_level`` inside (myocardium) to above it outside, as far
-    as ``blood_reach_mm`` if that is farther (the lumen was taken out on a
+    none.  A vertex over a great vessel's ``lumen`` taken out of the heart down
+    to its valve (:func:`modeling.vessels.over_lumen`: the floor and the walls
+    of the aortic root's well) looks for the opposite edge, from below
+    ``blood_level`` inside (myocardium) to above it outside, as far as
+    ``blood_reach_mm`` if that is farther (the lumen was taken out on a
     coarser grid than the CT's).  The moves are then averaged ``smooth`` times
     over each vertex and its neighbours (image noise moves single crossings),
     vertices without a crossing taking their neighbours' mean: a lid's rim
@@ -92,9 +93,11 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, blood_
     level : float, HU
         The threshold the surface stands for (the segmentation's ``hu_low``:
         half-way between pericardial fat and myocardium).
+    lumen, T_patient_from_lumen : bool array and (4, 4) float64, optional
+        :attr:`modeling.segment.HeartSegmentation.vessel_lumen` and its grid.
     blood_level : float, HU, optional
         The threshold of the contrast blood pool the segmentation took the
-        vessels' lumen from (its ``pool_hu``).
+        vessels' lumen from (its ``pool_hu``); needed with ``lumen``.
     blood_reach_mm : float
         Reach of the search for the blood edge (the segmentation's coarse grid spacing).
 
@@ -114,8 +117,8 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, blood_
     faces = np.asarray(mesh.faces)
     normals = vertex_normals(v, faces)
     move, found = _crossings(hu, T, v, normals, level, reach, step)
-    if blood_level is not None:  # over a lumen: the myocardium -> blood edge
-        over = sample_ct(hu, T, v + (reach + float(spacing.max())) * normals) > blood_level
+    if lumen is not None:  # over a lumen taken out at its valve: the myocardium -> blood edge
+        over = over_lumen(v, normals, lumen, T_patient_from_lumen)
         if over.any():
             move[over], found[over] = _crossings(hu, T, v[over], normals[over], blood_level,
                                                  max(reach, blood_reach_mm), step, brighter_outside=True)

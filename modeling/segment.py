@@ -82,6 +82,14 @@ class HeartSegmentation:
     parameters : dict
         The parameters used.
     notes : tuple of str
+    vessel_lumen : bool array, optional
+        The great vessels' lumen traced to their valves and taken out of the
+        mask (:func:`modeling.greatvessels.trace_great_vessels`) inside the
+        heart's body (the aortic root's well, down to its valve; a lumen cut
+        where it leaves the body is not here), on the segmentation's coarse
+        grid; None when there is none.
+    T_patient_from_lumen : (4, 4) float64, optional
+        The coarse grid's voxel -> patient transform.
     """
 
     mask: np.ndarray
@@ -89,6 +97,8 @@ class HeartSegmentation:
     volume_ml: float
     parameters: dict
     notes: tuple[str, ...] = ()
+    vessel_lumen: np.ndarray | None = None
+    T_patient_from_lumen: np.ndarray | None = None
 
 
 def _spacing(T) -> np.ndarray:
@@ -460,11 +470,17 @@ def segment_heart(
     notes.append(cut_note)
     reach = margin_mm + 0.5 * float(np.max(cspacing))
     near = distance_mm(~core, cspacing) <= reach
+    vessel_lumen = T_lumen = None
     if trace_vessels and contrast and pool is not None:
-        vessels = trace_great_vessels(pool, cspacing, heart=np.pad(  # the heart body on the whole grid
-            core if heart_body is None else heart_body, [(b.start, n - b.stop) for b, n in zip(box, coarse.shape)]))
+        body = np.pad(core if heart_body is None else heart_body,  # the heart body on the whole grid
+                      [(b.start, n - b.stop) for b, n in zip(box, coarse.shape)])
+        vessels = trace_great_vessels(pool, cspacing, heart=body)
         near &= ~vessels.territory[box]
         notes.append(vessels.note)
+        if (vessels.lumen & body).any():  # cut at its valve (the aortic root's well), not at the body's edge
+            vessel_lumen = vessels.lumen & body
+            T_lumen = T @ np.diag(np.r_[step[::-1], 1.0])  # coarse (i, j, k) -> the centre of its block
+            T_lumen[:3, 3] = T[:3, :3] @ (0.5 * (step[::-1] - 1.0)) + T[:3, 3]
 
     # ---- full resolution inside the near band's bounding box
     nbox = ndimage.find_objects(near.astype(np.uint8))[0]
@@ -496,5 +512,5 @@ def segment_heart(
         trace_vessels=trace_vessels,
         seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),
     )
-    return HeartSegmentation(mask, seed_mm, volume_ml, parameters, tuple(notes))
+    return HeartSegmentation(mask, seed_mm, volume_ml, parameters, tuple(notes), vessel_lumen, T_lumen)
 

@@ -17,12 +17,12 @@ contrast-filled lumen.  So:
 2. vertices over contrast blood (> ``blood_hu``), or over less enhanced
    venous blood (> ``vein_hu``) already at half that depth, grown by
    ``grow_rings`` rings of neighbours, are the stubs: their faces are removed.
-   A surface with contrast blood ``cut_mm`` *outside* it too is no vessel's
-   wall: it is a cut across the blood pool the segmentation made on purpose,
-   the floor of a great vessel's lumen traced down to its valve
-   (:mod:`modeling.greatvessels`), and stays: trimmed, the aortic root's well
-   lost its floor and was lidded at its rim, 14 mm above the valve on the
-   anatomical phantom;
+   A surface with a great vessel's lumen traced down to its valve
+   (:mod:`modeling.greatvessels`) just *outside* it is no vessel's
+   wall: it is the cut the segmentation made there on purpose (the lumen's
+   floor at the valve, the walls of the aortic root's well), and stays:
+   trimmed, the well lost its floor and was lidded at its rim, 14 mm above
+   the valve on the anatomical phantom;
 3. the holes left at the vessels' mouths are closed with new faces spanning
    each mouth's rim (the epicardium across a mouth is nearly flat: the base);
    decimating afterwards (as :func:`modeling.build.build_heart_model` does)
@@ -35,11 +35,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hrcore.geometry import apply_to_points
 from modeling.coarse import centroid, mask_box, sample_ct
 from modeling.distance import distance_mm
 from modeling.mesh import Mesh, MeshError, check_mesh, vertex_normals
 
-__all__ = ["APEX_LAI_LPS", "VesselTrim", "base_direction", "trim_vessel_stubs"]
+__all__ = ["APEX_LAI_LPS", "VesselTrim", "base_direction", "over_lumen", "trim_vessel_stubs"]
+
+#: A vertex is over a traced lumen when the lumen lies this far outside it: two voxels of the
+#: segmentation's 2 mm grid, past the partial volume of the lumen's edge.
+LUMEN_PROBE_MM = 4.0
 
 
 @dataclass(frozen=True)
@@ -61,7 +66,8 @@ def trim_vessel_stubs(
     vein_hu: float = 140.0,
     grow_rings: int = 2,
     max_removed: float = 0.5,
-    cut_mm: float = 4.0,
+    lumen=None,
+    T_patient_from_lumen=None,
 ) -> VesselTrim:
     """Remove the parts of ``mesh`` that cover contrast-filled vessel lumen.
 
@@ -85,19 +91,15 @@ def trim_vessel_stubs(
         too: only a vein's wall (~1 mm) is that thin over it, never myocardium.
     grow_rings : int
         Rings of neighbouring vertices removed with each stub vertex.
-    cut_mm : float
-        Vertices with contrast blood this far outside them (along the normal)
-        as well as inside are a cut across the blood pool, not a stub: beyond a
-        stub's wall lies the vessel's surroundings, beyond the floor of a traced
-        lumen its blood (past the partial volume of a 1.5 mm voxel at 4 mm).
-    max_removed : float
-        Largest fraction of the faces a trim may remove.  The stubs of the
-        great vessels are a small part of the heart's surface (the phantom's:
-        4 %; the anatomical phantom's, aortic root well and eight vessels, 25 %);
-        a trim that would remove more reads chamber blood under thin walls as
-        lumen (the real CT of ``shared/realct``: 66 %, the atria's and the
-        right ventricle's walls) and is refused.
-
+    lumen : bool array, optional
+        The great vessels' lumen the segmentation traced to their valves and
+        took out inside the heart's body
+        (:attr:`modeling.segment.HeartSegmentation.vessel_lumen`): a surface
+        over it is the cut at the valve.  Where a lumen was cut at the body's
+        edge instead (a vessel open to its chamber, the phantom's stubs), the
+        stub's end is trimmed with its sides.
+    T_patient_from_lumen : (4, 4) float64, optional
+        Its voxel -> patient transform.
     Returns
     -------
     VesselTrim
@@ -119,12 +121,12 @@ def trim_vessel_stubs(
     axes = T[:3, :3] / spacing  # unit voxel axes in the patient frame
     half_voxel = 0.5 * np.linalg.norm((normals @ axes) * spacing, axis=1)  # half the voxel's extent along the normal
     depth_mm = np.maximum(wall_mm - half_voxel, 0.5 * wall_mm)
-    probes = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals,
-                             v + cut_mm * normals])
-    deep, shallow, beyond = np.split(sample_ct(hu, T, probes), 3)
+    inside = np.concatenate([v - depth_mm[:, None] * normals, v - 0.5 * depth_mm[:, None] * normals])
+    deep, shallow = np.split(sample_ct(hu, T, inside), 2)
     flagged = deep > blood_hu
     flagged |= (deep > vein_hu) & (shallow > vein_hu)  # venous blood under a vein's ~1 mm wall
-    flagged &= beyond <= blood_hu  # blood on both sides: a cut across the pool (a traced lumen's floor)
+    if lumen is not None:  # the traced lumen's own cut stays
+        flagged &= ~over_lumen(v, normals, lumen, T_patient_from_lumen)
     if not flagged.any():
         return VesselTrim(mesh, 0, 0)
     for _ in range(grow_rings):
@@ -156,6 +158,20 @@ def trim_vessel_stubs(
             "pass trim_vessels=False (--keep-vessels) to keep the stubs"
         )
     return VesselTrim(trimmed, n_removed, int(n_patch))
+
+
+def over_lumen(vertices, normals, lumen, T_patient_from_lumen, *, probe_mm: float = LUMEN_PROBE_MM) -> np.ndarray:
+    """(n,) bool: vertices with a traced lumen ``probe_mm`` outside them along their normals.
+
+    ``lumen`` is :attr:`modeling.segment.HeartSegmentation.vessel_lumen`, indexed
+    ``[k, j, i]`` (points outside its grid are not over it).
+    """
+    points = np.asarray(vertices, dtype=float) + probe_mm * np.asarray(normals, dtype=float)
+    kji = np.rint(apply_to_points(np.linalg.inv(T_patient_from_lumen), points)).astype(np.int64)[:, ::-1]
+    ok = np.all((kji >= 0) & (kji < np.asarray(lumen.shape)), axis=1)
+    out = np.zeros(len(points), bool)
+    out[ok] = np.asarray(lumen)[tuple(kji[ok].T)]
+    return out
 
 
 #: Contrast blood (HU) just outside a heart mask marks a vessel's mouth.

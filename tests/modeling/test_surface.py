@@ -333,7 +333,7 @@ def test_refine_to_edge_leaves_a_surface_without_edge():
 def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
     """Myocardium (100 HU) with contrast blood (400 HU) beyond it, as around the aortic root's well whose
     lumen the segmentation took out on its 2 mm grid: the mesh, 1.2 mm too far into the blood, has no
-    0 HU edge; with ``blood_level`` it moves onto the blood's edge (measured: 1.2 -> 0.05 mm), and with
+    0 HU edge; over the traced lumen it moves onto the blood's edge (measured: 1.2 -> 0.05 mm), and with
     a reach of the coarse grid's spacing, farther than the 0.75 voxel of the 0 HU move."""
     from modeling.edge import refine_to_edge
 
@@ -346,7 +346,9 @@ def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
     before = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius)
     kept, fraction = refine_to_edge(mesh, hu, T, 0.0)
     assert fraction == 0.0 and np.array_equal(kept.vertices, mesh.vertices)
-    moved, fraction = refine_to_edge(mesh, hu, T, 0.0, blood_level=250.0, blood_reach_mm=2.0)
+    lumen = ~_ball_ct(T, (30, 30, 30), centre, radius + 2.0, ramp_mm=1.0)[1]  # the traced lumen, on the CT's grid
+    moved, fraction = refine_to_edge(mesh, hu, T, 0.0, lumen=lumen, T_patient_from_lumen=T, blood_level=250.0,
+                                     blood_reach_mm=2.0)
     after = np.abs(np.linalg.norm(moved.vertices - centre, axis=1) - radius)
     assert fraction == 1.0 and before.mean() > 0.9
     assert after.mean() <= 0.15 and np.percentile(after, 95) <= 0.3

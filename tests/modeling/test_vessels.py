@@ -90,20 +90,25 @@ def test_a_trim_of_most_of_the_surface_is_refused():
 def test_the_floor_of_a_traced_lumen_stays():
     """The segmentation takes a great vessel's lumen out down to its valve, into the chamber's blood (the
     aortic root's well, open to the left ventricle): that floor and the well's walls in the pool have
-    blood on both sides.  They are a cut made on purpose, not a stub: the trim keeps them (removing them
-    lidded the anatomical phantom's well at its rim, 14 mm above the valve)."""
+    blood on both sides.  Over the traced lumen they are the cut made on purpose, not a stub: the trim keeps
+    them (removing them lidded the anatomical phantom's well at its rim, 14 mm above the valve)."""
     hu, T = _ct(1.0)
     n = hu.shape[0]
     x = (np.arange(n) + 0.5) - HALF_MM
     p = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)[..., ::-1]
     d, s = _tube_distance(p, ARTERY[0])
-    direction, lumen, wall, _ = ARTERY
+    direction, radius, wall, _ = ARTERY
     floor_mm = 10.0
-    taken = ((s >= floor_mm) & (d <= lumen)) | ((np.linalg.norm(p, axis=-1) > CHAMBER_MM) & (s > 0) & (d <= lumen + wall))
-    mesh = mask_to_mesh((hu > 0.0) & ~taken, T, target_faces=40_000)
-    trim = trim_vessel_stubs(mesh, hu, T)
-    dv, sv = _tube_distance(np.asarray(trim.mesh.vertices), direction)
-    on_floor = (np.abs(sv - floor_mm) < 1.0) & (dv < lumen - 2.0)
-    assert on_floor.sum() >= 20, int(on_floor.sum())
-    lid = (sv > CHAMBER_MM) & (dv < lumen - 2.0)  # no lid across the well's rim
-    assert not lid.any(), int(lid.sum())
+    lumen = (s >= floor_mm) & (d <= radius)  # the lumen traced to its valve, inside the heart's body
+    wall_outside = (np.linalg.norm(p, axis=-1) > CHAMBER_MM) & (s > 0) & (d <= radius + wall)
+    mesh = mask_to_mesh((hu > 0.0) & ~lumen & ~wall_outside, T, target_faces=40_000)
+
+    def floor_and_lid(m):
+        dv, sv = _tube_distance(np.asarray(m.vertices), direction)
+        return int(((np.abs(sv - floor_mm) < 1.0) & (dv < radius - 2.0)).sum()), int(
+            ((sv > CHAMBER_MM) & (dv < radius - 2.0)).sum())  # a lid across the well's rim
+
+    floor, lid = floor_and_lid(trim_vessel_stubs(mesh, hu, T, lumen=lumen, T_patient_from_lumen=T).mesh)
+    assert floor >= 20 and lid == 0, (floor, lid)
+    floor, _ = floor_and_lid(trim_vessel_stubs(mesh, hu, T).mesh)  # without the lumen: a stub, trimmed
+    assert floor == 0, floor
