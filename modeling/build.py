@@ -305,7 +305,7 @@ def build_heart_model(
     done("mask")
 
     stage("mesh")
-    # the automatic segmentation has filled its cavities already (segment._fill_holes before its largest
+    # the automatic segmentation has filled its cavities already (coarse.fill_holes before its largest
     # component): labelling the box's background again (~0.1 s, an int32 box) would change nothing
     fill_cavities = mask_path is not None
     # mesh densely, trim the stubs there (the patches get fine faces too), then decimate

@@ -15,7 +15,9 @@ import weakref
 
 import numpy as np
 
-__all__ = ["coarse_step", "block_mean_max", "centroid", "label_maximum", "mask_box", "sample_ct"]
+__all__ = [
+    "coarse_step", "block_mean_max", "centroid", "fill_holes", "label_maximum", "largest_component", "mask_box", "sample_ct",
+]
 
 
 def sample_ct(hu, T_patient_from_voxel, points_mm) -> np.ndarray:
@@ -177,3 +179,41 @@ def _block_mean_max(hu, step):
         peak[out] = top
     mean /= count
     return mean, peak
+
+
+def _label(mask):
+    """Connected components with 16-bit labels when they fit (half the memory)."""
+    from scipy import ndimage
+
+    out = np.empty(mask.shape, np.uint16)
+    try:
+        n = ndimage.label(mask, output=out)
+    except RuntimeError:  # more than 65535 components
+        return ndimage.label(mask)
+    return out, n
+
+
+def fill_holes(mask) -> np.ndarray:
+    """Fill enclosed cavities: background components not touching the border."""
+    labels, n = _label(~mask)
+    if n == 0:
+        return mask
+    border = np.unique(np.concatenate([
+        labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()
+    ]))
+    inside = np.ones(n + 1, bool)
+    inside[border] = False
+    return mask | inside[labels]
+
+
+def largest_component(mask) -> np.ndarray:
+    """The largest connected component (face-connected) of a bool mask."""
+    labels, n = _label(mask)
+    if n <= 1:
+        return mask
+    # slice by slice: bincount casts its input to int64, four times the 16-bit labels of a full-size box
+    sizes = np.zeros(n + 1, np.int64)
+    for plane in labels:
+        sizes += np.bincount(plane.ravel(), minlength=n + 1)
+    sizes[0] = 0
+    return labels == int(np.argmax(sizes))

@@ -51,7 +51,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, coarse_step, label_maximum
+from modeling.coarse import block_mean_max, coarse_step, fill_holes, label_maximum, largest_component
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
 from modeling.seed import blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
@@ -103,41 +103,6 @@ class HeartSegmentation:
 
 def _spacing(T) -> np.ndarray:
     return np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
-
-
-def _label(mask):
-    """Connected components with 16-bit labels when they fit (half the memory)."""
-    out = np.empty(mask.shape, np.uint16)
-    try:
-        n = ndimage.label(mask, output=out)
-    except RuntimeError:  # more than 65535 components
-        return ndimage.label(mask)
-    return out, n
-
-
-def _fill_holes(mask) -> np.ndarray:
-    """Fill enclosed cavities: background components not touching the border."""
-    labels, n = _label(~mask)
-    if n == 0:
-        return mask
-    border = np.unique(np.concatenate([
-        labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()
-    ]))
-    inside = np.ones(n + 1, bool)
-    inside[border] = False
-    return mask | inside[labels]
-
-
-def _largest_component(mask) -> np.ndarray:
-    labels, n = _label(mask)
-    if n <= 1:
-        return mask
-    # slice by slice: bincount casts its input to int64, four times the 16-bit labels of a full-size box
-    sizes = np.zeros(n + 1, np.int64)
-    for plane in labels:
-        sizes += np.bincount(plane.ravel(), minlength=n + 1)
-    sizes[0] = 0
-    return labels == int(np.argmax(sizes))
 
 
 def _heart_body(body, seed, spacing_kji, heart_radius_mm):
@@ -236,7 +201,7 @@ def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_leng
     if not cuts:
         return body, (f"vessel cut: no branch reaches farther than {vessel_length_mm:.0f} mm from the heart body "
                       f"beyond where it is thicker than {chamber_radius_mm:.0f} mm in radius")
-    kept = _largest_component(body & ~cut)
+    kept = largest_component(body & ~cut)
     removed_ml = float((body & ~kept).sum() * np.prod(spacing_kji) / 1000.0)
     return kept, (
         f"great vessels cut at their root: {len(cuts)} branch(es) reaching "
@@ -493,7 +458,7 @@ def segment_heart(
     near_full = near[nbox][np.ix_(*idx)]
     sub = hu[full_box]
     heart = near_full & (sub > hu_low) & (sub < (hu_high if contrast else soft_hu[1]))
-    heart = _largest_component(_fill_holes(heart))
+    heart = largest_component(fill_holes(heart))
 
     mask = np.zeros(hu.shape, bool)
     mask[full_box] = heart
