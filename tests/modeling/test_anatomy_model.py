@@ -1,0 +1,70 @@
+"""The automatic model of the anatomical phantom (four chambers, great vessels) against its exact epicardium.
+
+``bench/anatomy_accuracy.py`` measures the same at full size (issue 9's targets, mean <= 0.3 mm, p95 <= 0.8
+mm, every vessel cut within 5 mm of its origin); this is its sample-size slice, run on every change.  The
+truth is the chambers' envelope less the arteries' lumens beyond their valves: the aortic root's lumen
+leaves a 35 mm deep well in it, whose floor is the aortic valve.
+
+Measured (seed 0, 1.95 x 1.95 x 2.5 mm voxels): mesh -> truth mean 0.17 mm, p95 0.47 mm; truth -> mesh
+p95 3.0 mm; the aortic cap 3.5 mm from the mesh at most.  Before the stub trim spared the surface over a
+lumen traced to its valve (session 14) the trim took the well's floor and lidded the well at its rim:
+the cap 23.8 mm from the mesh, truth -> mesh p95 9.9 mm (mesh -> truth 0.17 / 0.43 mm: a lid over the
+well lies close to the well's rim).  The pulmonary trunk's cap is not bounded:
+the trunk is cut inside the right ventricle's outflow tract, 12 mm below its valve (a known limit).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from heartreg.phantom import heart_from_truth, make_phantom
+from imaging import load_study
+from modeling import build_heart_model
+
+
+@pytest.fixture(scope="module")
+def anatomy(tmp_path_factory):
+    out = tmp_path_factory.mktemp("anatomy_model")
+    make_phantom(out, preset="human", size="sample", seed=0, session=False, overwrite=True)
+    truth = json.loads((out / "truth.json").read_text())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        build = build_heart_model(load_study(out / "ct"), cardiac_phase=truth["cardiac_phase"],
+                                  cardiac_phase_source="truth")
+    model = build.model
+    T = np.linalg.inv(model.T_heart_from_patient)
+    verts = model.mesh.vertices @ T[:3, :3].T + T[:3, 3]
+    heart = heart_from_truth(truth)
+    e = truth["anatomy"]["epicardium"]
+    pts, _ = heart.sample_surface(e["phase_c"], e["phase_r"])
+    samples, _ = trimesh.sample.sample_surface_even(trimesh.Trimesh(verts, model.mesh.faces, process=False),
+                                                    200_000, seed=0)
+    return dict(truth=truth, build=build, verts=verts, heart=heart, phases=(e["phase_c"], e["phase_r"]),
+                pts=pts, back=cKDTree(samples).query(pts)[0])
+
+
+def test_mesh_on_the_true_epicardium(anatomy):
+    d = np.abs(anatomy["heart"].surface_distance(anatomy["verts"], *anatomy["phases"]))
+    assert d.mean() <= 0.25 and np.percentile(d, 95) <= 0.6, (d.mean(), np.percentile(d, 95))
+    assert np.percentile(anatomy["back"], 95) <= 3.6, np.percentile(anatomy["back"], 95)
+
+
+def test_the_aortic_root_is_cut_at_its_valve(anatomy):
+    """The true cap over the aorta's mouth (its valve, at the floor of the root's well) lies on the mesh."""
+    origins = anatomy["truth"]["anatomy"]["vessel_origins"]
+    pts = anatomy["pts"]
+    owner = cKDTree([o["centre_patient_mm"] for o in origins]).query(pts)[1]
+    index, aorta = next((i, o) for i, o in enumerate(origins) if o["name"] == "aorta")
+    c, u = np.asarray(aorta["centre_patient_mm"]), np.asarray(aorta["direction_patient"])
+    s = (pts - c) @ u
+    r = np.linalg.norm((pts - c) - s[:, None] * u, axis=1)
+    cap = (r <= aorta["lumen_radius_mm"]) & (np.abs(s) <= 5.0) & (owner == index)
+    assert cap.sum() > 100
+    assert anatomy["back"][cap].max() <= 5.0, anatomy["back"][cap].max()
+    assert any("over a vessel's lumen cut at its valve" in n for n in anatomy["build"].notes)
