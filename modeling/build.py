@@ -26,7 +26,8 @@ from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.surface import MeshError, decimate, mask_to_mesh
-from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, trim_vessel_stubs
+from modeling.mesh import vertex_normals
+from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, over_lumen, trim_vessel_stubs
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]
 
@@ -334,11 +335,16 @@ def build_heart_model(
                      "(their blur and thick slices place the edge less well than the mesh)")
     elif mask_path is None:  # the automatic mask's threshold, to sub-voxel accuracy (an external mask is kept as given)
         edge_hu = float(seg_params["hu_low"])
-        pool_hu = seg_params.get("pool_hu")  # the traced lumens' level
-        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, lumen=lumen, T_patient_from_lumen=T_lumen,
-                                       blood_level=pool_hu, blood_reach_mm=seg_params["coarse_mm"])
+        over, lumen_mm = None, 0.0
+        if lumen is not None:  # the traced lumen cut at its valve: its surface moves to the blood's edge
+            over = over_lumen(mesh.vertices, vertex_normals(mesh.vertices, mesh.faces), lumen, T_lumen)
+            lumen_mm = float(np.linalg.norm(T_lumen[:3, :3], axis=0).max())  # its grid's spacing
+        mesh, refined = refine_to_edge(mesh, volume.hu, T, edge_hu, over_blood=over,
+                                       blood_level=seg_params.get("pool_hu"), blood_reach_mm=lumen_mm)
         notes.append(f"surface moved to the CT's {edge_hu:g} HU edge"
-                     + ("" if lumen is None else f" ({pool_hu:g} HU over a vessel's lumen cut at its valve)")
+                     + ("" if over is None or not over.any() else
+                        f" ({seg_params['pool_hu']:g} HU, the blood's, at the {int(over.sum())} vertices over a "
+                        "vessel's lumen cut at its valve)")
                      + f" at {refined:.0%} of its vertices (sub-voxel)")
     done("mesh")
 

@@ -16,7 +16,7 @@ import weakref
 import numpy as np
 
 __all__ = [
-    "coarse_step", "block_mean_max", "centroid", "fill_holes", "label_maximum", "largest_component", "mask_box", "sample_ct",
+    "coarse_step", "block_mean_max", "block_transform", "centroid", "fill_holes", "label_maximum", "largest_component", "mask_box", "sample_ct",
 ]
 
 
@@ -93,6 +93,16 @@ def label_maximum(values, labels, n: int) -> np.ndarray:
     np.maximum.at(top, labels[inside], values[inside])
     top[np.isneginf(top)] = 0
     return top[1:]
+
+
+def block_transform(T_patient_from_voxel, step) -> np.ndarray:
+    """(4, 4): the voxel -> patient transform of the blocks of ``step`` (k, j, i) voxels
+    (:func:`block_mean_max`): a block's (i, j, k) index to the centre of its voxels (a full block's)."""
+    T = np.asarray(T_patient_from_voxel, dtype=float)
+    step_ijk = np.asarray(step, dtype=float)[::-1]
+    out = T @ np.diag(np.r_[step_ijk, 1.0])
+    out[:3, 3] = T[:3, :3] @ (0.5 * (step_ijk - 1.0)) + T[:3, 3]
+    return out
 
 
 def coarse_step(spacing_kji, target_mm: float) -> np.ndarray:

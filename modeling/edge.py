@@ -17,7 +17,6 @@ import numpy as np
 from hrcore.geometry import check_transform
 from modeling.coarse import sample_ct
 from modeling.mesh import Mesh, vertex_normals
-from modeling.vessels import over_lumen
 
 __all__ = ["edge_refinable", "refine_to_edge"]
 
@@ -29,8 +28,8 @@ REFINE_SMOOTH = 3
 #: ... only on a CT whose voxels are at most this large (mm, each way).  On coarser voxels the CT's blur mixes
 #: a thin wall's contrast blood into its edge, and across thick slices the edge is a grey-level interpolation,
 #: which the shape-based interpolation of :func:`modeling.surface.mask_to_mesh` does better.  Measured on
-#: ``shared/realct`` (1.5 mm): averaged to 3 mm voxels the move took the surface 0.3 mm further out from the 1.5 mm CT's (median distance 0.85 ->
-#: 0.94 mm; Dice against the reference 0.876 -> 0.866); to 3 and 6 mm slices, Dice 0.886 -> 0.882 and
+#: ``shared/realct`` (1.5 mm): averaged to 3 mm voxels the move took the surface 0.3 mm further out from the
+#: 1.5 mm CT's (median distance 0.85 -> 0.94 mm; Dice against the reference 0.876 -> 0.866); to 3 and 6 mm slices, Dice 0.886 -> 0.882 and
 #: 0.820 -> 0.806; at 1.5 mm it is neutral there (0.899 -> 0.898).  With the truth: the anatomical phantom
 #: (full size) blurred by a scanner's PSF (FWHM 1-1.5 mm) and averaged to 1.5 mm voxels, mean / p95 0.21 / 0.67
 #: -> 0.17 / 0.38 mm with the move; averaged to 3 mm (FWHM 2.5 mm) it would gain too (0.48 / 1.11 -> 0.40 / 0.73
@@ -63,7 +62,7 @@ def _crossings(hu, T, v, normals, level: float, reach: float, step: float, *, br
     return move, found
 
 
-def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, lumen=None, T_patient_from_lumen=None,
+def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, over_blood=None,
                    blood_level: float | None = None, blood_reach_mm: float = 0.0, reach_vox: float = REFINE_REACH_VOX,
                    smooth: int = REFINE_SMOOTH) -> tuple[Mesh, float]:
     """Move each vertex along its normal to where the CT crosses ``level`` HU.
@@ -73,12 +72,12 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, lumen=
     smallest spacing (trilinear); the crossing from above ``level`` (inside) to
     below it (outside) nearest the vertex gives its move.  Vertices without such
     a crossing (a lid across a vessel's lumen, the heart against the liver) have
-    none.  A vertex over a great vessel's ``lumen`` taken out of the heart down
-    to its valve (:func:`modeling.vessels.over_lumen`: the floor and the walls
-    of the aortic root's well) looks for the opposite edge, from below
-    ``blood_level`` inside (myocardium) to above it outside, as far as
-    ``blood_reach_mm`` if that is farther (the lumen was taken out on a
-    coarser grid than the CT's).  The moves are then averaged ``smooth`` times
+    none.  A vertex ``over_blood`` (a great vessel's lumen taken out of the
+    heart down to its valve lies beyond it, :func:`modeling.vessels.over_lumen`:
+    the floor and the walls of the aortic root's well) looks for the opposite
+    edge, from below ``blood_level`` inside (myocardium) to above it outside,
+    as far as ``blood_reach_mm`` if that is farther (the lumen was taken out
+    on a coarser grid than the CT's).  The moves are then averaged ``smooth`` times
     over each vertex and its neighbours (image noise moves single crossings),
     vertices without a crossing taking their neighbours' mean: a lid's rim
     follows the wall it closes.
@@ -93,11 +92,13 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, lumen=
     level : float, HU
         The threshold the surface stands for (the segmentation's ``hu_low``:
         half-way between pericardial fat and myocardium).
-    lumen, T_patient_from_lumen : bool array and (4, 4) float64, optional
-        :attr:`modeling.segment.HeartSegmentation.vessel_lumen` and its grid.
+    over_blood : (n_vertices,) bool, optional
+        The vertices over a traced lumen.
     blood_level : float, HU, optional
         The threshold of the contrast blood pool the segmentation took the
-        vessels' lumen from (its ``pool_hu``); needed with ``lumen``.
+        vessels' lumen from (its ``pool_hu``, the pool's lower bound: the edge
+        found lies a little into the blood's partial volume, as the lumen's
+        own outline does); needed with ``over_blood``.
     blood_reach_mm : float
         Reach of the search for the blood edge (the segmentation's coarse grid spacing).
 
@@ -110,6 +111,8 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, lumen=
     """
     import scipy.sparse as sparse
 
+    if over_blood is not None and blood_level is None:
+        raise ValueError("over_blood needs blood_level: the HU of the blood's edge")
     T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
     spacing = np.linalg.norm(T[:3, :3], axis=0)
     reach, step = reach_vox * float(spacing.max()), REFINE_STEP_VOX * float(spacing.min())
@@ -117,8 +120,10 @@ def refine_to_edge(mesh: Mesh, hu, T_patient_from_voxel, level: float, *, lumen=
     faces = np.asarray(mesh.faces)
     normals = vertex_normals(v, faces)
     move, found = _crossings(hu, T, v, normals, level, reach, step)
-    if lumen is not None:  # over a lumen taken out at its valve: the myocardium -> blood edge
-        over = over_lumen(v, normals, lumen, T_patient_from_lumen)
+    if over_blood is not None:  # over a lumen taken out at its valve: the myocardium -> blood edge
+        over = np.asarray(over_blood, dtype=bool)
+        if over.shape != (len(v),):
+            raise ValueError(f"over_blood must hold one flag per vertex ({len(v)}), got shape {over.shape}")
         if over.any():
             move[over], found[over] = _crossings(hu, T, v[over], normals[over], blood_level,
                                                  max(reach, blood_reach_mm), step, brighter_outside=True)

@@ -285,6 +285,6 @@ def trace_great_vessels(
     note = (
         f"great vessels traced to their valves: {len(radii)} lobe(s) of "
         f"{radii[-1]:.0f}-{radii[0]:.0f} mm radius, {volume_ml:.0f} ml of lumen; with their walls "
-        f"(up to {wall_mm:.0f} mm) they are not heart"
+        f"(up to {wall_mm:.0f} mm) outside the heart's body they are not heart"
     )
     return GreatVessels(lumen, territory, radii, note)

@@ -37,8 +37,10 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    heart, holes filled;
 6. *remove the great vessels' lumen down to their valves* (contrast CT only):
    the blood pool's lobes traced from where they leave
-   (:mod:`modeling.greatvessels`), with their walls, are taken out of the
-   heart -- the aortic root the opening keeps, the vessels' mouths.
+   (:mod:`modeling.greatvessels`), with their walls outside the heart's body,
+   are taken out of the heart -- the aortic root the opening keeps, the
+   vessels' mouths; the lumen cut at its valve inside the body (the aortic
+   root's well) goes on to the mesh steps (:attr:`HeartSegmentation.vessel_lumen`).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, coarse_step, fill_holes, label_maximum, largest_component
+from modeling.coarse import block_mean_max, block_transform, coarse_step, fill_holes, label_maximum, largest_component
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
 from modeling.seed import blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
@@ -294,8 +296,8 @@ def segment_heart(
         without contrast the seed is the thickest such tissue lying between the
         lungs, and tissue above ``soft_hu[1]`` (bone) is not heart.
     trace_vessels : bool
-        Remove the great vessels' lumen and walls traced in the contrast blood
-        pool down to their valves (:func:`modeling.greatvessels.trace_great_vessels`).
+        Remove the great vessels' lumen (and their walls outside the heart's body)
+        traced in the contrast blood pool down to their valves (:func:`modeling.greatvessels.trace_great_vessels`).
 
     Raises
     ------
@@ -444,8 +446,7 @@ def segment_heart(
         notes.append(vessels.note)
         if (vessels.lumen & body).any():  # cut at its valve (the aortic root's well), not at the body's edge
             vessel_lumen = vessels.lumen & body
-            T_lumen = T @ np.diag(np.r_[step[::-1], 1.0])  # coarse (i, j, k) -> the centre of its block
-            T_lumen[:3, 3] = T[:3, :3] @ (0.5 * (step[::-1] - 1.0)) + T[:3, 3]
+            T_lumen = block_transform(T, step)
 
     # ---- full resolution inside the near band's bounding box
     nbox = ndimage.find_objects(near.astype(np.uint8))[0]

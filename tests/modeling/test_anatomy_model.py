@@ -66,5 +66,7 @@ def test_the_aortic_root_is_cut_at_its_valve(anatomy):
     r = np.linalg.norm((pts - c) - s[:, None] * u, axis=1)
     cap = (r <= aorta["lumen_radius_mm"]) & (np.abs(s) <= 5.0) & (owner == index)
     assert cap.sum() > 100
-    assert anatomy["back"][cap].max() <= 5.0, anatomy["back"][cap].max()
-    assert any("over a vessel's lumen cut at its valve" in n for n in anatomy["build"].notes)
+    # measured 3.5 mm (4.3 without the move onto the blood's edge over the lumen, 23.8 with the well trimmed)
+    assert anatomy["back"][cap].max() <= 4.0, anatomy["back"][cap].max()
+    note = next(n for n in anatomy["build"].notes if n.startswith("surface moved"))
+    assert int(note.split(" at the ")[1].split()[0]) > 100, note  # vertices over the lumen cut at its valve

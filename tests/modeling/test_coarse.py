@@ -6,7 +6,7 @@ import numpy as np
 from scipy import ndimage
 
 from modeling import coarse
-from modeling.coarse import block_mean_max, label_maximum
+from modeling.coarse import block_mean_max, block_transform, label_maximum
 
 
 def test_label_maximum_is_ndimage_maximum():
@@ -49,3 +49,22 @@ def test_centroid_is_ndimage_center_of_mass():
     one = np.zeros((4, 5, 6), bool)
     one[3, 0, 5] = True
     assert centroid(one).tolist() == [3.0, 0.0, 5.0]
+
+
+def test_block_transform_puts_each_block_at_its_voxels_centre():
+    """The coarse grid's voxel -> patient transform (the traced lumen's, ``HeartSegmentation.vessel_lumen``):
+    each block's index maps to the mean of its voxels' centres, on an oblique, mirrored grid with blocks of
+    2 x 3 x 4 voxels (k, j, i)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [20, -10, 35], degrees=True).as_matrix() @ np.diag([0.5, -0.6, 1.25])
+    T[:3, 3] = (-40.0, 12.0, 300.0)
+    step = np.array([2, 3, 4])
+    shape = (8, 9, 12)  # whole blocks
+    k, j, i = np.indices(shape)
+    centres = np.stack([i, j, k, np.ones_like(i)], axis=-1) @ T.T
+    means = np.stack([block_mean_max(np.ascontiguousarray(centres[..., a]), step)[0] for a in range(3)], axis=-1)
+    ck, cj, ci = np.indices(means.shape[:3])
+    mapped = np.stack([ci, cj, ck, np.ones_like(ci)], axis=-1) @ block_transform(T, step).T
+    np.testing.assert_allclose(mapped[..., :3], means, atol=1e-9)

@@ -331,28 +331,49 @@ def test_refine_to_edge_leaves_a_surface_without_edge():
 
 
 def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
-    """Myocardium (100 HU) with contrast blood (400 HU) beyond it, as around the aortic root's well whose
-    lumen the segmentation took out on its 2 mm grid: the mesh, 1.2 mm too far into the blood, has no
-    0 HU edge; over the traced lumen it moves onto the blood's edge (measured: 1.2 -> 0.05 mm), and with
-    a reach of the coarse grid's spacing, farther than the 0.75 voxel of the 0 HU move."""
+    """Myocardium (100 HU) with fat (-100 HU) beyond its lower half and contrast blood (400 HU) beyond its
+    upper half, as around the aortic root's well, whose lumen the segmentation took out on its 2 mm grid.
+    The mesh lies 0.6 mm out: the vertices flagged over the lumen move onto the blood's edge (250 HU, from
+    below inside to above outside), the others onto the 0 HU edge (measured mean 0.6 -> 0.03 mm over each
+    half); unflagged, the upper half has no 0 HU edge and stays.  With blood all round and the mesh
+    1.2 mm out, the blood's edge is found within the lumen grid's 2 mm reach, beyond the 0.75 voxel of
+    the 0 HU move."""
     from modeling.edge import refine_to_edge
 
     T = np.diag([1.0, 1.0, 1.0, 1.0])
     centre, radius = np.array([15.0, 15.0, 15.0]), 9.0
-    ramp = _ball_ct(T, (30, 30, 30), centre, radius, ramp_mm=1.0)[0].astype(float)  # -100 .. 100 across r = 9
-    hu = (250.0 - 1.5 * ramp).astype(np.int16)  # 100 HU inside, 400 HU outside: 250 HU on the sphere
-    mask = _ball_ct(T, (30, 30, 30), centre, radius + 1.2, ramp_mm=1.0)[1]
-    mesh = mask_to_mesh(mask, T, target_faces=3000)
-    before = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius)
-    kept, fraction = refine_to_edge(mesh, hu, T, 0.0)
-    assert fraction == 0.0 and np.array_equal(kept.vertices, mesh.vertices)
-    lumen = ~_ball_ct(T, (30, 30, 30), centre, radius + 2.0, ramp_mm=1.0)[1]  # the traced lumen, on the CT's grid
-    moved, fraction = refine_to_edge(mesh, hu, T, 0.0, lumen=lumen, T_patient_from_lumen=T, blood_level=250.0,
-                                     blood_reach_mm=2.0)
-    after = np.abs(np.linalg.norm(moved.vertices - centre, axis=1) - radius)
-    assert fraction == 1.0 and before.mean() > 0.9
-    assert after.mean() <= 0.15 and np.percentile(after, 95) <= 0.3
+    ramp = _ball_ct(T, (30, 30, 30), centre, radius, ramp_mm=1.0)[0].astype(float)  # 100 .. -100 across r = 9
+    blood = (250.0 - 1.5 * ramp).astype(np.int16)  # 100 HU inside, 400 HU outside: 250 HU on the sphere
+    upper = np.indices(ramp.shape)[0] > 15  # k = z > 15 mm
+    hu = np.where(upper, blood, ramp).astype(np.int16)
+
+    def mesh_out(offset):
+        return mask_to_mesh(_ball_ct(T, (30, 30, 30), centre, radius + offset, ramp_mm=1.0)[1], T, target_faces=3000)
+
+    def error(m):
+        return np.abs(np.linalg.norm(np.asarray(m.vertices) - centre, axis=1) - radius)
+
+    mesh = mesh_out(0.6)
+    z = np.asarray(mesh.vertices)[:, 2]
+    over = z > centre[2] + 2.0
+    moved, _ = refine_to_edge(mesh, hu, T, 0.0, over_blood=over, blood_level=250.0, blood_reach_mm=2.0)
+    after = error(moved)
+    assert error(mesh)[over].mean() > 0.4
+    assert after[over].mean() <= 0.15 and np.percentile(after[over], 95) <= 0.3, after[over].mean()
+    assert after[z < centre[2] - 2.0].mean() <= 0.15
     assert check_mesh(moved).ok
+    kept, _ = refine_to_edge(mesh, hu, T, 0.0)
+    top = z > centre[2] + 4.0  # clear of the seam, whose moves the averaging spreads a ring or two
+    assert np.array_equal(kept.vertices[top], mesh.vertices[top])  # no 0 HU edge over the blood
+    with pytest.raises(ValueError, match="over_blood needs blood_level"):
+        refine_to_edge(mesh, hu, T, 0.0, over_blood=over)
+
+    far = mesh_out(1.2)
+    everywhere = np.ones(len(far.vertices), bool)
+    assert error(refine_to_edge(far, blood, T, 0.0, over_blood=everywhere, blood_level=250.0)[0]).mean() > 0.4
+    moved, fraction = refine_to_edge(far, blood, T, 0.0, over_blood=everywhere, blood_level=250.0,
+                                     blood_reach_mm=2.0)
+    assert fraction == 1.0 and error(moved).mean() <= 0.15 and np.percentile(error(moved), 95) <= 0.3
 
 
 def test_edge_refinable_only_on_voxels_up_to_2_5_mm():
