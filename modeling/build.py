@@ -19,14 +19,14 @@ import numpy as np
 
 from hrcore.memory import release_free_memory
 from modeling.coarse import mask_box
+from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_label_map
+from modeling.mesh import vertex_normals
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
-from modeling.edge import edge_refinable, refine_to_edge
 from modeling.surface import MeshError, decimate, mask_to_mesh
-from modeling.mesh import vertex_normals
 from modeling.vessels import APEX_LAI_LPS, MOUTH_REACH_MM, base_direction, over_lumen, trim_vessel_stubs
 
 __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarning", "build_heart_model"]

@@ -16,7 +16,8 @@ import weakref
 import numpy as np
 
 __all__ = [
-    "coarse_step", "block_mean_max", "block_transform", "centroid", "fill_holes", "label_maximum", "largest_component", "mask_box", "sample_ct",
+    "coarse_step", "block_mean_max", "block_transform", "centroid", "fill_holes", "label_maximum",
+    "largest_component", "mask_box", "sample_ct",
 ]
 
 

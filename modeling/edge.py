@@ -25,15 +25,15 @@ __all__ = ["edge_refinable", "refine_to_edge"]
 REFINE_REACH_VOX = 0.75
 REFINE_STEP_VOX = 0.25
 REFINE_SMOOTH = 3
-#: ... only on a CT whose voxels are at most this large (mm, each way).  On coarser voxels the CT's blur mixes
-#: a thin wall's contrast blood into its edge, and across thick slices the edge is a grey-level interpolation,
-#: which the shape-based interpolation of :func:`modeling.surface.mask_to_mesh` does better.  Measured on
-#: ``shared/realct`` (1.5 mm): averaged to 3 mm voxels the move took the surface 0.3 mm further out from the
-#: 1.5 mm CT's (median distance 0.85 -> 0.94 mm; Dice against the reference 0.876 -> 0.866); to 3 and 6 mm slices, Dice 0.886 -> 0.882 and
-#: 0.820 -> 0.806; at 1.5 mm it is neutral there (0.899 -> 0.898).  With the truth: the anatomical phantom
-#: (full size) blurred by a scanner's PSF (FWHM 1-1.5 mm) and averaged to 1.5 mm voxels, mean / p95 0.21 / 0.67
-#: -> 0.17 / 0.38 mm with the move; averaged to 3 mm (FWHM 2.5 mm) it would gain too (0.48 / 1.11 -> 0.40 / 0.73
-#: mm), but the real CT, whose walls and fat are not the phantom's, decides.
+#: ... only on a CT whose voxels are at most this large (mm, each way).  On coarser voxels the CT's blur mixes a
+#: thin wall's contrast blood into its edge, and across thick slices the edge is a grey-level interpolation, which
+#: the shape-based interpolation of :func:`modeling.surface.mask_to_mesh` does better.  Measured on
+#: ``shared/realct`` (1.5 mm): averaged to 3 mm voxels the move took the surface 0.3 mm further out from the 1.5 mm
+#: CT's (median distance 0.85 -> 0.94 mm; Dice against the reference 0.876 -> 0.866); to 3 and 6 mm slices, Dice
+#: 0.886 -> 0.882 and 0.820 -> 0.806; at 1.5 mm it is neutral there (0.899 -> 0.898).  With the truth: the
+#: anatomical phantom (full size) blurred by a scanner's PSF (FWHM 1-1.5 mm) and averaged to 1.5 mm voxels, mean /
+#: p95 0.21 / 0.67 -> 0.17 / 0.38 mm with the move; averaged to 3 mm (FWHM 2.5 mm) it would gain too (0.48 / 1.11 ->
+#: 0.40 / 0.73 mm), but the real CT, whose walls and fat are not the phantom's, decides.
 REFINE_MAX_VOXEL_MM = 2.5
 
 
@@ -46,7 +46,8 @@ def edge_refinable(T_patient_from_voxel) -> bool:
 
 def _crossings(hu, T, v, normals, level: float, reach: float, step: float, *, brighter_outside=False):
     """Signed move (mm, along ``normals``) of each of ``v`` to the CT's ``level`` crossing nearest it within
-    ``reach`` (above inside, below outside; the other way round with ``brighter_outside``), and whether one was found."""
+    ``reach`` (above inside, below outside; the other way round with ``brighter_outside``), and whether one was
+    found."""
     offsets = np.linspace(-reach, reach, 2 * int(np.ceil(reach / step)) + 1)
     points = v[:, None, :] + offsets[None, :, None] * normals[:, None, :]  # (n, m, 3)
     profile = sample_ct(hu, T, points.reshape(-1, 3)).reshape(len(v), len(offsets)) - np.float32(level)
