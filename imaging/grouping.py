@@ -227,7 +227,8 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
                 if repeated:
                     message = (
                         f"series {uid}: {len(repeated)} image(s) repeat the position of another and "
-                        f"were ignored: " + "; ".join(f"{os.path.basename(a)} repeats {os.path.basename(b)}" for a, b in repeated[:4])
+                        f"were ignored: "
+                        + "; ".join(f"{os.path.basename(a)} repeats {os.path.basename(b)}" for a, b in repeated[:4])
                     )
                     notes.append(message)
                     warnings.warn(message, StudyWarning, stacklevel=3)

@@ -367,6 +367,8 @@ def test_refine_to_edge_over_a_lumen_finds_the_blood_edge():
     assert np.array_equal(kept.vertices[top], mesh.vertices[top])  # no 0 HU edge over the blood
     with pytest.raises(ValueError, match="over_blood needs blood_level"):
         refine_to_edge(mesh, hu, T, 0.0, over_blood=over)
+    with pytest.raises(ValueError, match=r"over_blood must hold one flag per vertex \(\d+\), got shape \(3,\)"):
+        refine_to_edge(mesh, hu, T, 0.0, over_blood=over[:3], blood_level=250.0)
 
     far = mesh_out(1.2)
     everywhere = np.ones(len(far.vertices), bool)
