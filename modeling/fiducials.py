@@ -112,14 +112,15 @@ def order_fiducials(centres_mm, *, n_rows: int = 3) -> np.ndarray:
     return np.asarray(order, dtype=int)
 
 
-def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji) -> str:
+def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 2)) -> str:
     """Why a dense blob found in the skin shell is not a skin marker ('' if it is one).
 
     A staple is a small piece of metal wholly on the skin.  The dense voxels
     (> ``floor_hu``) connected to the blob, looked at ``MARKER_CONTEXT_MM``
     around it, must stay within the shell (bone and contrast-filled vessels
     that reach the shell, e.g. where the field of view cuts a lung, continue
-    beneath it) and span at most ``MAX_EXTENT_MM``.
+    beneath it) and span at most ``MAX_EXTENT_MM``.  ``plane_axes``: the
+    array axes across the patient's height (the field of view's edges).
     """
     pad = [int(np.ceil(MARKER_CONTEXT_MM / s)) for s in spacing_kji]
     big = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, hu.shape))
@@ -141,7 +142,7 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji) -> str:
     if extent > MAX_EXTENT_MM:
         return f"larger than a marker ({extent:.0f} mm > {MAX_EXTENT_MM:.0f} mm)"
     lo, hi = kji.min(axis=0) + [g.start for g in big], kji.max(axis=0) + [g.start for g in big]
-    if lo[1] == 0 or lo[2] == 0 or hi[1] == hu.shape[1] - 1 or hi[2] == hu.shape[2] - 1:
+    if any(lo[a] == 0 or hi[a] == hu.shape[a] - 1 for a in plane_axes):
         return "cut by the edge of the field of view"
     # the part's own box, grown past the contact distance: nothing outside it is near
     grow = np.ceil(SKIN_CONTACT_MM / np.asarray(spacing_kji, float)).astype(int) + 1
@@ -219,10 +220,12 @@ def find_fiducials(
     cmean, cmax = block_mean_max(hu, step)
     cspacing = spacing_kji * step
 
-    # the air outside the body: low-HU components that reach the in-plane border
-    # (not the end slices, where trachea and lungs leave the volume)
+    # the air outside the body: low-HU components that reach the border across the patient's height
+    # (not the ends along it, where trachea and lungs leave the volume), whichever array axes those are
+    height = 2 - int(np.argmax(np.abs(T[2, :3]) / spacing_kji[::-1]))
+    plane_axes = tuple(a for a in range(3) if a != height)
     air_labels, _ = ndimage.label(cmean < -500)
-    border = np.unique(np.concatenate([air_labels[:, [0, -1]].ravel(), air_labels[:, :, [0, -1]].ravel()]))
+    border = np.unique(np.concatenate([np.take(air_labels, [0, -1], axis=a).ravel() for a in plane_axes]))
     outside = np.isin(air_labels, border[border > 0])
     del air_labels
     if not outside.any():
@@ -256,7 +259,7 @@ def find_fiducials(
             if mass > 0.1 * min_mass:
                 rejected[f"excess mass outside {min_mass:.3g}-{max_mass:.3g} HU.mm3"] += 1
             continue
-        why = _not_on_skin(hu, box, weight > 0, in_shell, floor_hu, spacing_kji)
+        why = _not_on_skin(hu, box, weight > 0, in_shell, floor_hu, spacing_kji, plane_axes)
         if why:
             rejected[why] += 1
             continue

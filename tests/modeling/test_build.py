@@ -125,6 +125,25 @@ def test_oblique_volume_gives_the_same_model(sample_case):
                - trimesh.Trimesh(b.mesh.vertices, b.mesh.faces).volume) / 1e3 < 5.0  # ml
 
 
+def test_storage_order_does_not_change_the_fiducials(sample_case):
+    """The same CT stored with its slice axis last (a NIfTI written (x, y, z) and read as is): the staples found
+    are the same.  The air around the body was the air reaching the array's last two axes' borders, i.e. the
+    borders across the patient's height only when the slices come first; stored otherwise, the body's sides
+    were taken for its ends (``CTChest4.nrrd`` of slicerio stored (z, y, x): 6 "staples" found in a scan with
+    none, against 0 as read, session 15's robustness sweep)."""
+    case, truth = sample_case
+    volume = load_study(case / "ct")
+    T = volume.T_patient_from_voxel
+    a = find_fiducials(volume.hu, T, expected=9)
+    hu = np.ascontiguousarray(np.transpose(volume.hu, (2, 1, 0)))  # hu[i, j, k]
+    b = find_fiducials(hu, T[:, [2, 1, 0, 3]], expected=9)  # its array axes are now the columns k, j, i
+    np.testing.assert_allclose(b.centres_patient_mm, a.centres_patient_mm, atol=1e-6)
+    np.testing.assert_allclose(a.centres_patient_mm, truth["fiducials_patient_mm"], atol=0.8)
+    # nothing else looked at: stored (x, y, z) the lungs reaching the volume's ends were "air around the
+    # body", and 16 blobs beside them were searched and turned down
+    assert b.notes == a.notes
+
+
 def test_external_nifti_mask_on_another_grid(sample_case, tmp_path):
     """The phantom's true heart rasterised on a 1 mm RAS grid as NIfTI (as 3D Slicer
     or TotalSegmentator write it) is resampled through both affines."""
