@@ -371,12 +371,22 @@ def _repair_pymeshlab(verts: np.ndarray, faces: np.ndarray, *, smooth_iterations
     ms.meshing_remove_unreferenced_vertices()
     ms.meshing_close_holes(maxholesize=MAX_HOLE_EDGES, selfintersection=False)
     ms.meshing_remove_unreferenced_vertices()
+    # a decimation that pinched a handle (a real heart's surface has some: genus 3 on the real CT at 2.5 mm
+    # slices) can leave faces flipped after the clean-up: wind them all alike, as most of them were (below)
+    m = ms.current_mesh()
+    before = m.face_matrix().astype(np.int64)
+    reoriented = not check_mesh(Mesh(m.vertex_matrix(), before)).winding_consistent
+    if reoriented:
+        ms.meshing_re_orient_faces_coherently()  # flips faces in place
     if smooth_iterations > 0:
         ms.apply_coord_taubin_smoothing(
             lambda_=TAUBIN_LAMBDA, mu=TAUBIN_MU, stepsmoothnum=smooth_iterations
         )
     m = ms.current_mesh()
-    return (
-        np.asarray(m.vertex_matrix(), dtype=np.float64),
-        np.asarray(m.face_matrix(), dtype=np.int64),
-    )
+    verts, faces = np.asarray(m.vertex_matrix(), dtype=np.float64), np.asarray(m.face_matrix(), dtype=np.int64)
+    if reoriented and len(faces) == len(before):
+        kept = (faces == before).all(axis=1) | (faces == before[:, [1, 2, 0]]).all(axis=1) | (
+            faces == before[:, [2, 0, 1]]).all(axis=1)
+        if kept.sum() < 0.5 * len(faces):  # most faces turned: turn them all back
+            faces = faces[:, ::-1].copy()
+    return verts, faces

@@ -72,3 +72,23 @@ def test_only_markers_on_the_skin_are_fiducials():
     assert "dense tissue continues beneath the skin" in notes
     with pytest.raises(FiducialError, match=r"found 1 metal marker\(s\) on the skin, expected 9"):
         find_fiducials(hu, T, expected=9)
+
+
+def test_a_decimation_that_breaks_the_surface_keeps_more_faces(sample_case, monkeypatch):
+    """Where decimating to the faces asked for breaks the surface, the model keeps twice as many (and so on),
+    and says so."""
+    case, truth = sample_case
+    volume = load_study(case / "ct")
+    real = modeling.build.decimate
+
+    def decimate(mesh, target_faces):
+        if target_faces < 8000:
+            raise MeshError(f"decimation to {target_faces} faces broke the surface")
+        return real(mesh, target_faces)
+
+    monkeypatch.setattr(modeling.build, "decimate", decimate)
+    with pytest.warns(ModelingWarning, match="decimation to 4000 faces broke the surface; the model keeps"):
+        build = build_heart_model(volume, cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
+                                  expected_fiducials="auto", target_faces=4000)
+    assert 7000 < build.model.mesh.n_faces <= 8000
+    assert any(w.startswith("decimation to 4000 faces broke the surface") for w in build.model.parameters["warnings"])
