@@ -3,7 +3,8 @@
 The detector follows Pan and Tompkins (IEEE Trans Biomed Eng 1985;32:230), the
 choice of Wood et al. 2018 (section 2.2.4):
 
-1. band-pass 5-15 Hz (Butterworth, run forwards and backwards: zero phase);
+1. band-pass 5-25 Hz (Butterworth, run forwards and backwards: zero phase; the
+   upper edge at most 0.8 of the Nyquist frequency);
 2. five-point derivative, squaring, moving-window integration (150 ms,
    centred: no delay);
 3. peaks of the integrated signal at least one refractory period (200 ms)
@@ -58,7 +59,7 @@ LOCAL_POLARITY_RATIO = 1.0
 EDGE_MARGIN_S = 0.050
 #: Shortest record (s) on which detection is attempted.
 MIN_DURATION_S = 2.0
-#: Lowest sampling rate (Hz): the 5-15 Hz band must sit well below Nyquist.
+#: Lowest sampling rate (Hz): the QRS band's upper edge is cut to 0.8 Nyquist (20 Hz here).
 MIN_RATE_HZ = 50.0
 #: Below this 99.9th-percentile absolute value of the QRS-band signal (mV) the
 #: record is called flat.
@@ -131,7 +132,12 @@ def cardiac_phase(time_s, r_peaks_s) -> np.ndarray:
 def _check_signal(signal_mv, rate_hz) -> tuple[np.ndarray, float]:
     if signal_mv is None:
         raise SignalError("signal_mv is None: give the ECG samples in mV")
-    x = np.asarray(signal_mv, dtype=float)
+    if np.iscomplexobj(signal_mv):
+        raise SignalError("signal_mv is complex: give the ECG's real samples in mV")
+    try:
+        x = np.asarray(signal_mv, dtype=float)
+    except (TypeError, ValueError):
+        raise SignalError(f"signal_mv must be numbers (the ECG in mV), got {type(signal_mv).__name__}") from None
     if x.ndim != 1:
         raise SignalError(f"signal_mv must have shape (n,), got {x.shape}: pick one lead")
     try:
@@ -172,6 +178,13 @@ def _parabolic(y_m: np.ndarray, y_0: np.ndarray, y_p: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         delta = np.where(den < 0, 0.5 * (y_m - y_p) / den, 0.0)
     return np.clip(delta, -0.5, 0.5)
+
+
+def _number(value, name: str) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise SignalError(f"{name} must be a number in s, got {value!r}") from None
 
 
 def detect_r_peaks(
@@ -228,12 +241,13 @@ def detect_r_peaks(
     True
     """
     x, rate = _check_signal(signal_mv, rate_hz)
-    start = float(start_s)
+    start, refractory_s = _number(start_s, "start_s"), _number(refractory_s, "refractory_s")
     if not np.isfinite(start):
         raise SignalError(f"start_s must be a finite time in s, got {start_s!r}")
-    if not (0.05 <= float(refractory_s) <= 1.0):
+    if not (0.05 <= refractory_s <= 1.0):
         raise SignalError(f"refractory_s must be in [0.05, 1.0] s, got {refractory_s!r}")
-    if polarity not in ("auto", 1, -1):
+    if not (isinstance(polarity, str) and polarity == "auto") and not (
+            isinstance(polarity, (int, np.integer)) and not isinstance(polarity, bool) and polarity in (1, -1)):
         raise SignalError(f"polarity must be 'auto', 1 or -1, got {polarity!r}")
 
     # --- energy of the QRS band: band-pass, derivative, square, integrate ---

@@ -192,6 +192,8 @@ def test_cardiac_phase_of_detected_peaks_matches_truth():
         (np.sin(np.arange(150.0)), 100.0, "at least 2 s"),
         (np.sin(np.arange(1000.0)), 20.0, "rate_hz must be at least"),
         (np.sin(np.arange(1000.0)), "fast", "rate_hz must be a number"),
+        ("abc", 100.0, "signal_mv must be numbers"),  # numpy's own ValueError before session 15
+        (np.sin(np.arange(1000.0)).astype(complex), 100.0, "complex"),  # its imaginary part was dropped
     ],
 )
 def test_bad_signals_are_refused_clearly(signal, rate, match_):
@@ -207,6 +209,14 @@ def test_bad_options_are_refused_clearly():
         detect_r_peaks(ecg, 100.0, refractory_s=0.0)
     with pytest.raises(SignalError, match="start_s"):
         detect_r_peaks(ecg, 100.0, start_s=np.nan)
+    # a bare TypeError from float(), or from deep inside, before session 15
+    with pytest.raises(SignalError, match="start_s must be a number"):
+        detect_r_peaks(ecg, 100.0, start_s=None)
+    with pytest.raises(SignalError, match="refractory_s must be a number"):
+        detect_r_peaks(ecg, 100.0, refractory_s=None)
+    with pytest.raises(SignalError, match="polarity"):
+        detect_r_peaks(ecg, 100.0, polarity=np.array([1]))
+    assert len(detect_r_peaks(ecg, 100.0, polarity=np.int64(1))) == len(detect_r_peaks(ecg, 100.0, polarity=1))
     assert issubclass(SignalError, ValueError)
 
 
