@@ -98,7 +98,7 @@ def _cmd_phases(args) -> int:
     if args.out_dir is None:
         raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")
     inputs = (args.study_dir, args.qrs)
-    check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite)
+    check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite, earlier=("phases.json",))
     volume, report = _open_study(args)
     extra = phase_report_extra(volume, args.study_dir)
     paths = write_phase_report(report, args.out_dir, extra=extra, overwrite=args.overwrite, inputs=inputs)
@@ -195,6 +195,7 @@ def _open_model_input(args):
 def _cmd_model(args) -> int:
     from modeling import build_heart_model, render_model_png, write_model
     from modeling.ct_overlay import ct_panels, render_ct_png
+    from modeling.model import JSON_FILE as MODEL_JSON
 
     if args.list_series:
         return _print_series(args.study_dir)
@@ -205,7 +206,8 @@ def _cmd_model(args) -> int:
         raise UsageError("--label chooses a label of --mask; give the label map with --mask FILE")
     options = _model_options(args)
     inputs = (args.study_dir, args.qrs, args.mask)
-    check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite)
+    check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite,
+                      earlier=(MODEL_JSON,))
     volume, phase, phase_source, slice_phases = _open_model_input(args)
     from tqdm import tqdm
 
@@ -235,7 +237,8 @@ def _cmd_model(args) -> int:
     release_free_memory()
     out = Path(args.out_dir)
     # the pictures are drawn inside the staging folder: the model appears complete or not at all
-    with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite) as staging:
+    with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite,
+                       earlier=(MODEL_JSON,)) as staging:
         write_model(model, staging, overwrite=True)
         render_model_png(model, staging / "model.png")  # matplotlib only: no OpenGL needed
         render_ct_png(panels, staging / "model_ct.png")
@@ -261,6 +264,7 @@ def _cmd_model(args) -> int:
 def _cmd_register(args) -> int:
     from modeling.model import read_model
     from registration.pipeline import register_session
+    from registration.report import JSON_FILE as REPORT_JSON
     from registration.report import write_registration
     from registration.session import read_session
 
@@ -268,7 +272,7 @@ def _cmd_register(args) -> int:
 
     options = _registration_options(args)
     inputs = (args.model_dir, args.session_dir)
-    check_output_path(args.out_dir, inputs=inputs, overwrite=args.overwrite)
+    check_output_path(args.out_dir, inputs=inputs, overwrite=args.overwrite, earlier=(REPORT_JSON,))
     model = read_model(args.model_dir)
     if args.cardiac_phase is not None:
         if not 0.0 <= args.cardiac_phase < 1.0:

@@ -65,6 +65,7 @@ def check_output_path(
     what: str = "output folder",
     overwrite: bool = False,
     folder: bool = True,
+    earlier: Iterable[str] = (),
 ) -> Path:
     """Check an output path before any work; create nothing.
 
@@ -78,9 +79,15 @@ def check_output_path(
     what : str
         How messages name ``out`` (e.g. ``"model folder"``, ``"-o"``).
     overwrite : bool
-        Accept an existing non-empty folder (or an existing file).
+        Accept an existing file, or an existing non-empty folder that holds an
+        earlier output of the same kind (``earlier``): a folder holding
+        anything else is refused even so (``-o ~ --overwrite`` would have
+        emptied the home folder).
     folder : bool
         ``out`` is a folder (else a single file).
+    earlier : iterable of str
+        Names of the files that mark the folder as an earlier output of this
+        kind (``model.json`` for a model): one of them at its top level.
 
     Returns
     -------
@@ -97,8 +104,15 @@ def check_output_path(
     if folder:
         if out.exists() and not out.is_dir():
             raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
-        if out.is_dir() and not overwrite and any(out.iterdir()):
-            raise OutputError(f"{what} {out} is not empty; choose an empty folder or pass --overwrite")
+        if out.is_dir() and any(out.iterdir()):
+            if not overwrite:
+                raise OutputError(f"{what} {out} is not empty; choose an empty folder or pass --overwrite")
+            if not any((out / name).is_file() for name in earlier):
+                marks = " or ".join(earlier) or "an earlier output"
+                raise OutputError(
+                    f"{what} {out} is not empty and holds no {marks}: --overwrite replaces an earlier output only, "
+                    "not a folder of other files; choose an empty folder or a new name"
+                )
     else:
         if out.is_dir():
             raise OutputError(f"{what} {out} is a folder; give a file name")
@@ -306,6 +320,7 @@ def staged_output(
     overwrite: bool = False,
     folder: bool = True,
     parts: Iterable[str] | None = None,
+    earlier: Iterable[str] = (),
 ) -> Iterator[Path]:
     """Stage an output beside its target; rename it into place on success.
 
@@ -313,7 +328,7 @@ def staged_output(
     ----------
     out : str or Path
         Target folder (or file, with ``folder=False``).
-    inputs, what, overwrite, folder
+    inputs, what, overwrite, folder, earlier
         As for :func:`check_output_path` (called first).
     parts : iterable of str, optional
         Names of the entries this output owns inside an ``out`` folder that
@@ -370,7 +385,7 @@ def staged_output(
         if whole:
             _check_inputs(out, inputs, what)
     else:
-        check_output_path(out, inputs=inputs, what=what, overwrite=overwrite, folder=folder)
+        check_output_path(out, inputs=inputs, what=what, overwrite=overwrite, folder=folder, earlier=earlier)
     absolute = Path(os.path.abspath(out))
     home = absolute.parent if whole else absolute
     created = []

@@ -109,7 +109,7 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     True
     """
     out_dir = Path(out_dir)
-    with staged_output(out_dir, inputs=inputs, overwrite=overwrite) as stage:
+    with staged_output(out_dir, inputs=inputs, overwrite=overwrite, earlier=("phases.json",)) as stage:
         write_text_atomic(stage / "phases.csv", _csv_text(report))
         payload = report.to_dict()
         if extra:

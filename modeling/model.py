@@ -320,7 +320,7 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
 
     The files are written into a staging folder beside ``out_dir`` that is
     renamed into place (:func:`hrcore.output.staged_output`). An existing empty folder, or one with byte-identical content, is
-    fine; another non-empty folder is refused unless ``overwrite=True``.
+    fine; another earlier model is refused unless ``overwrite=True``, and a folder of other files always.
 
     Returns
     -------
@@ -347,7 +347,10 @@ def write_model(model: HeartModel, out_dir, *, overwrite: bool = False) -> Path:
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
     existing = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
-    with staged_output(out, what="model folder", overwrite=True) as tmp:
+    if existing and JSON_FILE not in existing:  # not an earlier model: never replaced, even with overwrite
+        raise FileExistsError(f"{out} holds other files ({', '.join(existing[:5])}) and no {JSON_FILE}; "
+                              "choose an empty folder or a new name")
+    with staged_output(out, what="model folder", overwrite=True, earlier=(JSON_FILE,)) as tmp:
         os.chmod(tmp, umask_mode(directory=True))
         note = "heart (T_heart_from_patient in model.json)"
         for name in MESH_FILES:

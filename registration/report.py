@@ -178,7 +178,7 @@ def write_registration(
     if not isinstance(result, RegistrationResult):
         raise TypeError(f"result must be a RegistrationResult, got {type(result).__name__}")
     out = Path(out_dir)
-    with staged_output(out, inputs=inputs, overwrite=overwrite) as stage:
+    with staged_output(out, inputs=inputs, overwrite=overwrite, earlier=(JSON_FILE,)) as stage:
         paths = _write_files(result, stage, model=model, view=view, fiducials_probe_mm=fiducials_probe_mm)
     return _moved(paths, stage, out)
 

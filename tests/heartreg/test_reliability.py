@@ -65,6 +65,22 @@ def test_phases_and_model_never_write_into_the_study(case, capsys, where, comman
     assert digest(case["ct"]) == before
 
 
+@pytest.mark.parametrize("command", ["phases", "model", "register"])
+def test_overwrite_never_replaces_a_folder_of_other_files(case, tmp_path, capsys, command):
+    """``--overwrite`` replaces an earlier output of the command, not any folder: a folder of the user's files
+    was replaced whole by a model, exit 0 (session 15's sweep; ``-o ~ --overwrite`` would empty the home)."""
+    out = tmp_path / "home"
+    (out / "thesis").mkdir(parents=True)
+    (out / "thesis" / "ch1.tex").write_text("mine")
+    before = digest(out)
+    args = ([command, str(case["model"]), str(case["session"])] if command == "register"
+            else [command, str(case["ct"])])
+    assert main(args + ["-o", str(out), "-q", "--overwrite"]) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert f"{out} is not empty and holds no" in line and "choose an empty folder or a new name" in line, line
+    assert digest(out) == before
+
+
 def test_register_overwrite_refuses_an_input_as_output(case, capsys):
     before = digest(case["model"])
     rc = main(["register", str(case["model"]), str(case["session"]), "-o", str(case["model"]), "--overwrite", "-q"])

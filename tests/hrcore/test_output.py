@@ -45,13 +45,33 @@ def test_failure_leaves_previous_output_untouched(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "old.txt").write_text("old")
-    with pytest.raises(RuntimeError), staged_output(out, overwrite=True) as stage:
+    with pytest.raises(RuntimeError), staged_output(out, overwrite=True, earlier=("old.txt",)) as stage:
         (stage / "new.txt").write_text("new")
         raise RuntimeError("stop")
     assert _listing(tmp_path) == ["out", "out/old.txt"]
-    with staged_output(out, overwrite=True) as stage:
+    with staged_output(out, overwrite=True, earlier=("old.txt",)) as stage:
         (stage / "new.txt").write_text("new")
     assert _listing(tmp_path) == ["out", "out/new.txt"]  # replaced whole, no stray staging
+
+
+def test_overwrite_replaces_an_earlier_output_only(tmp_path):
+    """--overwrite replaced any folder whole: ``-o ~ --overwrite`` would have emptied the home folder (session
+    15's sweep: a folder holding notes and a thesis was replaced by a model, exit 0).  A folder is replaced
+    only when it holds one of the files that mark an earlier output of the same kind."""
+    out = tmp_path / "home"
+    (out / "thesis").mkdir(parents=True)
+    (out / "thesis" / "ch1.tex").write_text("mine")
+    (out / "notes.txt").write_text("mine")
+    for earlier in ((), ("model.json",)):
+        with pytest.raises(OutputError, match=r"home is not empty and holds no .*--overwrite replaces an earlier "
+                                              r"output only, not a folder of other files; choose an empty folder"):
+            with staged_output(out, overwrite=True, earlier=earlier) as stage:
+                (stage / "model.json").write_text("{}")
+    assert _listing(tmp_path) == ["home", "home/notes.txt", "home/thesis", "home/thesis/ch1.tex"]
+    (out / "model.json").write_text("{}")  # an earlier model (with whatever else its user put there)
+    with staged_output(out, overwrite=True, earlier=("model.json",)) as stage:
+        (stage / "model.json").write_text("{}")
+    assert _listing(tmp_path) == ["home", "home/model.json"]
 
 
 def test_non_empty_needs_overwrite_and_a_file_is_refused(tmp_path):
@@ -134,7 +154,7 @@ import sys, time
 from pathlib import Path
 from hrcore.output import staged_output
 out = Path(sys.argv[1])
-with staged_output(out, overwrite=True) as stage:
+with staged_output(out, overwrite=True, earlier=("part00.txt",)) as stage:
     for k in range(40):
         (stage / f"part{k:02d}.txt").write_text(sys.argv[2] * 1000)
         time.sleep(0.01)

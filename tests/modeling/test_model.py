@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -88,13 +89,19 @@ def test_refuses_to_overwrite_other_folder(model, tmp_path):
     other = tmp_path / "busy"
     other.mkdir()
     (other / "notes.txt").write_text("mine")
-    with pytest.raises(FileExistsError, match="overwrite=True"):
-        write_model(model, other)
-    assert (other / "notes.txt").read_text() == "mine"
-    write_model(model, other, overwrite=True)
-    assert not (other / "notes.txt").exists() and read_model(other) == model
+    for overwrite in (False, True):  # a folder of other files is never replaced (overwrite=True did, before session 15)
+        with pytest.raises(FileExistsError, match="holds other files .* and no model.json"):
+            write_model(model, other, overwrite=overwrite)
+    assert sorted(p.name for p in other.iterdir()) == ["notes.txt"]
     (tmp_path / "empty").mkdir()
     write_model(model, tmp_path / "empty")
+    # an earlier model: refused unless overwrite=True, then replaced
+    earlier = tmp_path / "earlier"
+    write_model(dataclasses.replace(model, cardiac_phase=0.1), earlier)
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        write_model(model, earlier)
+    write_model(model, earlier, overwrite=True)
+    assert read_model(earlier) == model
 
 
 def test_read_errors(model, tmp_path):
