@@ -182,10 +182,18 @@ def _checked_shape(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     return arr
 
 
+#: Largest rescale slope and intercept (magnitude) taken for HU: a CT's are about 1 and -1024.
+MAX_RESCALE_SLOPE = 1.0e4
+MAX_RESCALE_INTERCEPT = 1.0e6
+
+
 def _rescale(frame: _Frame) -> tuple[float, float]:
     slope = 1.0 if frame.slope is None else frame.slope
     intercept = 0.0 if frame.intercept is None else frame.intercept
-    if slope == 0 or not np.isfinite(slope) or not np.isfinite(intercept):
+    # a slope beyond MAX_RESCALE maps the smallest step of 16-bit data past any tissue's HU (and a Python int
+    # that large overflowed numpy's arithmetic: a traceback for a slope of 1e30)
+    if (slope == 0 or not np.isfinite(slope) or not np.isfinite(intercept)
+            or abs(slope) > MAX_RESCALE_SLOPE or abs(intercept) > MAX_RESCALE_INTERCEPT):
         raise PixelDataError(
             f"{frame.path}: (0028,1053) Rescale Slope {slope!r} / (0028,1052) Rescale Intercept "
             f"{intercept!r} cannot map stored values to HU; the file is corrupt"

@@ -623,6 +623,19 @@ def test_zero_rescale_slope_is_a_clear_error(tmp_path):
         load_study(tmp_path)
 
 
+def test_a_huge_rescale_slope_is_a_clear_error(tmp_path):
+    """A slope of 1e30 overflowed numpy's integer arithmetic: a 24-line traceback, exit 70 (session 15's sweep)."""
+    from imaging.pixels import PixelDataError
+
+    fac.write_ct_series(tmp_path)
+    for path in sorted(tmp_path.glob("*.dcm"))[:1]:
+        ds = pydicom.dcmread(path)
+        ds.RescaleSlope = 1e30
+        ds.save_as(path)
+    with pytest.raises(PixelDataError, match=r"\(0028,1053\) Rescale Slope 1e\+30 .* cannot map stored values to HU"):
+        load_study(tmp_path)
+
+
 def test_tilted_series_keeps_every_acquired_pixel(tmp_path):
     """Issue 10: a tilt of 1.3 mm per 2 mm slice (33 deg) over 20 slices moves the
     last slice 24.7 mm (77 % of its width): the grid is widened to every slice's
