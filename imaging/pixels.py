@@ -9,6 +9,7 @@ for irregular stacks, interpolated onto the planned grid.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
@@ -253,6 +254,28 @@ def _slice_hu_float(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     return arr.astype(np.float32) * np.float32(s) + np.float32(b)
 
 
+def _series_rescale(frames):
+    """Frames lacking RescaleSlope or RescaleIntercept take the rest of the series' own, where it has one.
+
+    One image of a series without them was read with slope 1, intercept 0: 1024 HU too bright beside its
+    neighbours (session 15's DICOM sweep).  Where the others share no one value, or every image lacks them,
+    the stored values are taken as HU (slope 1, intercept 0), as before.  Returns (frames, note or "").
+    """
+    lacking = [f for f in frames if f.slope is None or f.intercept is None]
+    if not lacking:
+        return frames, ""
+    names = _files_text([f.path for f in lacking], 2, names=True)
+    given = {(f.slope, f.intercept) for f in frames if f.slope is not None and f.intercept is not None}
+    if len(given) == 1:
+        slope, intercept = given.pop()
+        frames = tuple(f if f.slope is not None and f.intercept is not None
+                       else dataclasses.replace(f, slope=slope, intercept=intercept) for f in frames)
+        return frames, (f"{len(lacking)} image(s) lack RescaleSlope/RescaleIntercept ({names}): the series' other "
+                        f"images' slope {slope:g} and intercept {intercept:g} taken")
+    return frames, (f"{len(lacking)} image(s) lack RescaleSlope/RescaleIntercept ({names}): slope 1 and "
+                    "intercept 0 assumed where missing (stored values taken as HU)")
+
+
 def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple[str, ...]]:
     """Decode and place every slice; returns (hu, notes).
 
@@ -274,13 +297,10 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
         if f.transfer_syntax_uid not in plugins:
             plugins[f.transfer_syntax_uid] = _choose_plugin(f.transfer_syntax_uid, f.path)
     notes: list[str] = []
-    no_rescale = [f.path for f in frames if f.slope is None or f.intercept is None]
-    if no_rescale:
-        notes.append(
-            f"{len(no_rescale)} image(s) lack RescaleSlope/RescaleIntercept "
-            f"({_files_text(no_rescale, 2, names=True)}): assumed slope 1, intercept 0 (stored values "
-            "taken as HU)"
-        )
+    frames, rescale_note = _series_rescale(frames)
+    if rescale_note:
+        notes.append(rescale_note)
+        plan = dataclasses.replace(plan, frames=frames)
     resampling = plan.resample_k or plan.resample_plane
     use_int16 = not resampling and _int16_possible(frames)
     out = np.empty((plan.n_out, *(plan.grid_shape or (rows, cols))), dtype=np.int16 if use_int16 else np.float32)

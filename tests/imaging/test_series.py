@@ -439,6 +439,21 @@ def test_missing_rescale_tags_assumed_identity(tmp_path):
     assert pattern_error(vol) == 0
 
 
+def test_one_image_without_rescale_takes_the_series_own(tmp_path):
+    """One image of a series lacking RescaleSlope/RescaleIntercept was read with slope 1, intercept 0: 1024 HU
+    brighter than its neighbours, and a model was built from it (session 15's sweep).  It takes the series'
+    common rescale, and the warning says so."""
+    files = fac.write_ct_series(tmp_path, n_slices=5)
+    expected = load_study(tmp_path).hu
+    ds = pydicom.dcmread(files[2])
+    del ds.RescaleSlope, ds.RescaleIntercept
+    ds.save_as(files[2])
+    with pytest.warns(StudyWarning, match=r"1 image\(s\) lack RescaleSlope/RescaleIntercept \(.*\): the series' "
+                                          r"other images' slope 1 and intercept -1024 taken"):
+        vol = load_study(tmp_path)
+    np.testing.assert_array_equal(vol.hu, expected)
+
+
 def test_fractional_slope_gives_float32(tmp_path):
     fac.write_ct_series(tmp_path, n_slices=4, rescale=(0.5, -1024.0))
     vol = load_study(tmp_path)
