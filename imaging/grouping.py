@@ -165,6 +165,12 @@ def _dedupe(frames: list[_Frame]) -> tuple[list[_Frame], list[str]]:
     return kept, dropped
 
 
+def _missing_geometry(f: _Frame) -> tuple[str, ...]:
+    """The attributes placing an image in the patient frame that it lacks."""
+    return tuple(name for name, value in (("ImagePositionPatient", f.ipp), ("ImageOrientationPatient", f.iop),
+                                          ("PixelSpacing", f.pixel_spacing)) if value is None)
+
+
 def _summarise(
     frames: list[_Frame], subset: str, reason: str, kind: str | None = None
 ) -> tuple[SeriesSummary, tuple[_Frame, ...]]:
@@ -173,9 +179,9 @@ def _summarise(
     if kind is None:
         if first.is_localizer:
             kind, reason = "localizer", reason or "ImageType says LOCALIZER"
-        elif first.iop is None or any(f.ipp is None or f.pixel_spacing is None for f in frames):
+        elif any(_missing_geometry(f) for f in frames):
             kind = "unusable"
-            reason = reason or "no ImagePositionPatient/ImageOrientationPatient/PixelSpacing"
+            reason = reason or "no " + "/".join(dict.fromkeys(t for f in frames for t in _missing_geometry(f)))
         elif _has_duplicates(frames):
             kind = "unusable"
             reason = (
@@ -215,6 +221,17 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
                 f"series {uid}: {len(dropped)} duplicate image(s) (same SOPInstanceUID) "
                 f"ignored: {_files_text(dropped, names=True)}"
             )
+        unplaced = [f for f in frames if not f.is_localizer and _missing_geometry(f)]
+        if unplaced and len(unplaced) < len(frames):  # the rest can still be a volume: leave these out, by name
+            message = (
+                f"series {uid}: {len(unplaced)} image(s) without "
+                f"{'/'.join(dict.fromkeys(t for f in unplaced for t in _missing_geometry(f)))} left out: "
+                f"{_files_text([f.path for f in unplaced], 4, names=True)}"
+            )
+            notes.append(message)
+            warnings.warn(message, StudyWarning, stacklevel=3)
+            raw.append(_summarise(unplaced, "", message.split(": ", 1)[1]))
+            frames = [f for f in frames if f not in unplaced]
         subsets: dict[tuple, list[_Frame]] = defaultdict(list)
         for f in frames:
             subsets[(f.is_localizer, f.rows, f.columns)].append(f)
