@@ -191,6 +191,13 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
             f"series [{chosen.summary.index}] {chosen.summary.uid} cannot be loaded as a "
             f"volume: {chosen.summary.reason}. Choose another among: " + _choices(groups)
         )
+    if chosen.summary.modality != "CT":  # the caller's choice, but no Hounsfield units: say so
+        warnings.warn(
+            f"series [{chosen.summary.index}] {chosen.summary.uid} is {chosen.summary.modality or 'of no modality'}, "
+            "not CT: its values are not Hounsfield units, which the heart's segmentation reads",
+            StudyWarning,
+            stacklevel=3,
+        )
     return chosen, f"series [{chosen.summary.index}] {chosen.summary.uid} chosen by the caller"
 
 

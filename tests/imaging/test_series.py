@@ -476,6 +476,19 @@ def test_an_image_that_cannot_be_placed_is_left_out_by_name(tmp_path, tag):
         load_study(tmp_path)
 
 
+def test_a_series_chosen_that_is_not_ct_is_warned(tmp_path):
+    """--series chose an MR series and a heart model was built from it with no word (session 15's sweep)."""
+    files = fac.write_ct_series(tmp_path, n_slices=6)
+    for f in files:
+        ds = pydicom.dcmread(f)
+        ds.Modality = "MR"
+        ds.save_as(f)
+    with pytest.raises(SeriesError, match="no CT image stack found"):
+        load_study(tmp_path)
+    with pytest.warns(StudyWarning, match=r"series \[0\] .* is MR, not CT: its values are not Hounsfield units"):
+        load_study(tmp_path, series=0)
+
+
 def test_fractional_slope_gives_float32(tmp_path):
     fac.write_ct_series(tmp_path, n_slices=4, rescale=(0.5, -1024.0))
     vol = load_study(tmp_path)
