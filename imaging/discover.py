@@ -163,11 +163,20 @@ def _floats_or_none(values):
         return None
 
 
+def _two_orthonormal(a: np.ndarray) -> bool:
+    """Image Orientation (Patient): a row and a column direction, each of unit length, at right angles
+    (all zeros made every slice's position along the normal 0: "repeated slice positions")."""
+    if a.size != 6:
+        return abs(a).max() <= 1.0 + 1e-3  # a wrong count is the caller's to report
+    row, col = a[:3], a[3:]
+    return abs(np.linalg.norm(row) - 1.0) <= 0.01 and abs(np.linalg.norm(col) - 1.0) <= 0.01 and abs(row @ col) <= 0.01
+
+
 def _geometry_problem(ipp, iop, spacing) -> str | None:
     """Why a frame's geometry cannot be used, or None (absent values are left to the caller)."""
     checks = (
         ("(0020,0032) Image Position (Patient)", ipp, lambda a: abs(a).max() <= MAX_POSITION_MM, "mm"),
-        ("(0020,0037) Image Orientation (Patient)", iop, lambda a: abs(a).max() <= 1.0 + 1e-3, ""),
+        ("(0020,0037) Image Orientation (Patient)", iop, _two_orthonormal, ""),
         ("(0028,0030) Pixel Spacing", spacing, lambda a: (a > 0).all() and a.max() <= MAX_SPACING_MM, "mm"),
     )
     for name, value, plausible, unit in checks:

@@ -325,6 +325,10 @@ def _scan_groups(path, progress: bool):
     found = _scan(path, progress=progress)
     _warn_broken(found)
     groups, notes = _group(found)
+    if not groups and found.skipped_broken:  # DICOM files there, none readable: why, for one of them
+        path_, why = found.skipped_broken[0]
+        raise StudyError(f"no readable DICOM image under {os.fspath(path)!r}: {len(found.skipped_broken)} "
+                         f"DICOM file(s) cannot be read, e.g. {path_}: {why}")
     if not groups:
         detail = (
             f"{found.n_files} file(s) examined: {len(found.skipped_non_dicom)} not DICOM, "

@@ -99,12 +99,18 @@ def _gating(group: _Group, ecg_studies: set) -> str:
     return ""
 
 
-def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_studies=frozenset()) -> tuple[_Group, str]:
+def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_studies=frozenset(),
+            unreadable=()) -> tuple[_Group, str]:
     loadable = [g for g in groups if g.summary.kind in _LOADABLE]
     if series is None:
         ranked = [g for g in loadable if g.summary.modality == "CT" and g.summary.kind == "volume"]
         if not ranked:
             ranked = [g for g in loadable if g.summary.modality == "CT" and g.summary.kind == "slice"]
+        if not ranked and unreadable:  # the images are there, but none could be read: say why, not --series
+            path, why = unreadable[0]
+            raise SeriesError(
+                f"no CT image stack: {len(unreadable)} DICOM file(s) cannot be read, e.g. {path}: {why}"
+            )
         if not ranked:
             raise SeriesError(
                 "no CT image stack found automatically; choose one with --series INDEX or UID "
@@ -256,7 +262,8 @@ def load_study(
     ecg_studies = {
         o.study_instance_uid for o in found.others if o.sop_class_uid.startswith("1.2.840.10008.5.1.4.1.1.9.1.")
     }
-    group, why = _select(groups, series, prefer_gated=prefer_gated, ecg_studies=ecg_studies)
+    group, why = _select(groups, series, prefer_gated=prefer_gated, ecg_studies=ecg_studies,
+                         unreadable=found.skipped_broken)
     notes.append(why)
     summary = group.summary
     label = f"[{summary.index}] {summary.uid}" + (f" ({summary.subset})" if summary.subset else "")

@@ -489,6 +489,33 @@ def test_a_series_chosen_that_is_not_ct_is_warned(tmp_path):
         load_study(tmp_path, series=0)
 
 
+@pytest.mark.parametrize("tag, value, named", [
+    ("PixelSpacing", [-1.0, -1.0], r"\(0028,0030\) Pixel Spacing is \(-1, -1\) mm, not a plausible value"),
+    ("ImageOrientationPatient", [0.0] * 6, r"\(0020,0037\) Image Orientation \(Patient\) is \(0, 0, 0, 0, 0, 0\)"),
+    ("ImageOrientationPatient", [1.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+     r"\(0020,0037\) Image Orientation \(Patient\) is \(1, 0, 0, 1, 0, 0\)"),
+])
+def test_a_series_of_unreadable_geometry_says_why(tmp_path, tag, value, named):
+    """Every image with an impossible geometry: the error named --series (which could not help) or blamed
+    "repeated slice positions" (an orientation of zeros); it now gives a file and what is wrong with it."""
+    files = fac.write_ct_series(tmp_path, n_slices=4)
+    for f in files:
+        ds = pydicom.dcmread(f)
+        setattr(ds, tag, value)
+        ds.save_as(f)
+    with pytest.warns(StudyWarning), pytest.raises(
+            StudyError, match=r"no readable DICOM image under .*: 4 DICOM file\(s\) cannot be read, e.g. "
+                              r".*slice_\d+\.dcm: " + named):
+        load_study(tmp_path)
+    for f in fac.write_ct_series(tmp_path / "mr", n_slices=3):  # another, readable series: no CT still
+        ds = pydicom.dcmread(f)
+        ds.Modality = "MR"
+        ds.save_as(f)
+    with pytest.warns(StudyWarning), pytest.raises(
+            SeriesError, match=r"no CT image stack: 4 DICOM file\(s\) cannot be read, e.g. .*slice_\d+\.dcm: " + named):
+        load_study(tmp_path)
+
+
 def test_fractional_slope_gives_float32(tmp_path):
     fac.write_ct_series(tmp_path, n_slices=4, rescale=(0.5, -1024.0))
     vol = load_study(tmp_path)
