@@ -92,7 +92,11 @@ def _cmd_phases(args) -> int:
     from hrcore.output import check_output_path
 
     from heartreg.pipeline import phase_report_extra
+    from imaging.volume_file import is_volume_file
 
+    if is_volume_file(args.study_dir):
+        raise UsageError(f"{args.study_dir} is a volume file: phases reads a DICOM study (its slice times and "
+                         "ECG); a NIfTI or NRRD volume has no slice clock: give the DICOM folder")
     if args.list_series:
         return _print_series(args.study_dir)
     if args.out_dir is None:

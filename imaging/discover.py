@@ -348,6 +348,8 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
     root = Path(path)
     if not root.exists():
         raise FileNotFoundError(f"study path {str(root)!r} does not exist")
+    if root.is_file() and root.name.upper() == "DICOMDIR":  # the index of the files beside it: read those
+        root = root.parent
     files = list(_iter_files(root))
     frames: list[_Frame] = []
     others: list[_Other] = []

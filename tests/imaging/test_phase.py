@@ -355,3 +355,12 @@ def test_automatic_choice_prefers_the_gated_series(sample_case, tmp_path, capsys
         json.loads((out / "phases.json").read_text())["volume_cardiac_phase"],
         np.mean(np.asarray(truth["slice_cardiac_phase"])[10:50]), atol=VOLUME_TOL,
     )
+
+
+def test_phases_of_a_volume_file_says_it_needs_dicom(tmp_path, capsys):
+    """``heartreg phases CT.nii.gz`` said "no DICOM images found" (session 15's sweep): it now says why."""
+    (tmp_path / "ct.nii.gz").write_bytes(b"\x1f\x8b")  # never read: the name says what it is
+    assert main(["phases", str(tmp_path / "ct.nii.gz"), "-o", str(tmp_path / "out"), "-q"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "is a volume file: phases reads a DICOM study" in err, err
+    assert not (tmp_path / "out").exists()

@@ -98,6 +98,9 @@ def test_dicomdir_folders(tmp_path):
     ds = pydicom.dcmread(files[0])
     k = [Path(s.file) for s in volume.slices].index(Path(files[0]))
     np.testing.assert_array_equal(volume.hu[k], _hu(ds))
+    # the DICOMDIR file itself, as a viewer's "open" dialog gives it: the files beside it (before session 15,
+    # "no DICOM images found under .../DICOMDIR")
+    assert list_series(DICOMDIR_TESTS / "DICOMDIR") == series
 
 
 def test_deflated_explicit_vr_is_read(tmp_path):
