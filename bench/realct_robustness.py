@@ -97,7 +97,8 @@ def main(argv=None) -> int:
 
     env = dict(os.environ, PYTHONPATH=str(HERE.parent))  # this checkout's heartreg, whatever is installed
     rows = []
-    print("| case | exit | s | mesh ml | faces | Dice | MSD mm | p95 mm | apex . LAI | warnings beyond the CT as read |")
+    print("| case | exit | s | mesh ml | faces | Dice | MSD mm | p95 mm | apex . LAI "
+          "| warnings beyond the CT as read |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     base_warnings = None
     with tempfile.TemporaryDirectory() as tmp:
@@ -126,7 +127,8 @@ def main(argv=None) -> int:
             rows.append(row)
             print(f"| {name} | {row['exit']} | {row['seconds']} | {row.get('mesh_ml', '-')} | {row.get('faces', '-')} "
                   f"| {row.get('dice', '-')} | {row.get('msd_mm', '-')} | {row.get('p95_mm', '-')} "
-                  f"| {row.get('apex', '-')} | {'; '.join(row.get('warnings', [])) or row.get('error', '') or '-'} |",
+                  f"| {row.get('apex', '-')} "
+                  f"| {'; '.join(row.get('warnings', [])) or row.get('error', '') or '-'} |",
                   flush=True)
     (HERE / "out").mkdir(exist_ok=True)
     (HERE / "out" / "realct_robustness.json").write_text(json.dumps(rows, indent=1) + "\n")

@@ -173,7 +173,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("phases", help="cardiac phase of every CT slice (paper Fig. 4)")
     _add_study_options(p)
     p.add_argument("-o", "--out-dir", type=Path, default=None, help="folder for phases.csv/json/png")
-    p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier phases output in OUT_DIR (a folder holding phases.json)")
     p.set_defaults(func=_cmd_phases)
 
     p = sub.add_parser("model", help="CT study (DICOM folder, NIfTI or NRRD file) -> heart model in the heart-centric "
@@ -182,7 +183,8 @@ def _build_parser() -> argparse.ArgumentParser:
                           "NRRD (.nrrd) CT volume")
     p.add_argument("-o", "--out-dir", type=Path, required=True, help="model folder to write")
     _add_model_options(p)
-    p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing model folder (one holding model.json)")
     p.set_defaults(func=_cmd_model)
 
     p = sub.add_parser("pipeline", help="study + session -> phases, model, registration, report.html")
@@ -208,7 +210,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cardiac-phase", type=_finite, default=None, metavar="P",
                    help="the CT's cardiac phase (0..1), needed when the model's is unknown; replaces it otherwise")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty OUT_DIR")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier registration in OUT_DIR (a folder holding registration.json)")
     p.set_defaults(func=_cmd_register)
 
     p = sub.add_parser("track", help="the robot on the map, live: causal phases, CSV log, OpenIGTLink to Slicer")

@@ -88,6 +88,7 @@ def check_output_path(
     earlier : iterable of str
         Names of the files that mark the folder as an earlier output of this
         kind (``model.json`` for a model): one of them at its top level.
+        Without them ``overwrite`` replaces no non-empty folder.
 
     Returns
     -------
@@ -108,7 +109,7 @@ def check_output_path(
             if not overwrite:
                 raise OutputError(f"{what} {out} is not empty; choose an empty folder or pass --overwrite")
             if not any((out / name).is_file() for name in earlier):
-                marks = " or ".join(earlier) or "an earlier output"
+                marks = " or ".join(earlier) or "file marking an earlier output"
                 raise OutputError(
                     f"{what} {out} is not empty and holds no {marks}: --overwrite replaces an earlier output only, "
                     "not a folder of other files; choose an empty folder or a new name"
@@ -130,6 +131,8 @@ def _check_inputs(out: Path, inputs: Iterable, what: str, *, contains: bool = Tr
         if inp is None:
             continue
         source = _resolved(inp)
+        if source.name.upper() == "DICOMDIR" and source.is_file():  # the study is the folder it indexes
+            source = source.parent
         if target == source:
             raise OutputError(f"{what} {out} is the input {inp}; choose another output path")
         if target.is_relative_to(source):

@@ -231,7 +231,8 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
             notes.append(message)
             warnings.warn(message, StudyWarning, stacklevel=3)
             raw.append(_summarise(unplaced, "", message.split(": ", 1)[1]))
-            frames = [f for f in frames if f not in unplaced]
+            left_out = {id(f) for f in unplaced}
+            frames = [f for f in frames if id(f) not in left_out]
         subsets: dict[tuple, list[_Frame]] = defaultdict(list)
         for f in frames:
             subsets[(f.is_localizer, f.rows, f.columns)].append(f)

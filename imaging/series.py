@@ -106,15 +106,14 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
         ranked = [g for g in loadable if g.summary.modality == "CT" and g.summary.kind == "volume"]
         if not ranked:
             ranked = [g for g in loadable if g.summary.modality == "CT" and g.summary.kind == "slice"]
-        if not ranked and unreadable:  # the images are there, but none could be read: say why, not --series
-            path, why = unreadable[0]
-            raise SeriesError(
-                f"no CT image stack: {len(unreadable)} DICOM file(s) cannot be read, e.g. {path}: {why}"
-            )
+        broken = (f"{len(unreadable)} DICOM file(s) cannot be read, e.g. {unreadable[0][0]}: {unreadable[0][1]}"
+                  if unreadable else "")
+        if not loadable and broken:  # the images are there, but none could be read: say why, not --series
+            raise SeriesError(f"no CT image stack: {broken}")
         if not ranked:
             raise SeriesError(
-                "no CT image stack found automatically; choose one with --series INDEX or UID "
-                "(series= in Python) among: " + _choices(groups)
+                "no CT image stack found automatically" + (f" ({broken})" if broken else "")
+                + "; choose one with --series INDEX or UID (series= in Python) among: " + _choices(groups)
             )
         gating = {id(g): _gating(g, ecg_studies) for g in ranked} if prefer_gated else {}
         ranked.sort(

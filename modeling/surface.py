@@ -377,7 +377,10 @@ def _repair_pymeshlab(verts: np.ndarray, faces: np.ndarray, *, smooth_iterations
     before = m.face_matrix().astype(np.int64)
     reoriented = not check_mesh(Mesh(m.vertex_matrix(), before)).winding_consistent
     if reoriented:
-        ms.meshing_re_orient_faces_coherently()  # flips faces in place
+        try:
+            ms.meshing_re_orient_faces_coherently()  # flips faces in place
+        except pymeshlab.PyMeshLabException:  # a non-manifold edge left: the check after says what is wrong
+            reoriented = False
     if smooth_iterations > 0:
         ms.apply_coord_taubin_smoothing(
             lambda_=TAUBIN_LAMBDA, mu=TAUBIN_MU, stepsmoothnum=smooth_iterations

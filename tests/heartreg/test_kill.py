@@ -65,10 +65,11 @@ KILL_POINTS = {
 
 #: an earlier run's output: a marker in each part (its content does not matter to the
 #: contract, but none of its names is a kill point; for the pipeline only its
-#: parts, so that the whole folder is swapped in one step).
+#: parts, so that the whole folder is swapped in one step), and the file that makes
+#: a folder an earlier output --overwrite may replace.
 EARLIER = {
-    "model": ["earlier_marker"],
-    "register": ["earlier_marker"],
+    "model": ["model.json", "earlier_marker"],
+    "register": ["registration.json", "earlier_marker"],
     "pipeline": ["phases/earlier_marker", "model/earlier_marker", "registration/earlier_marker"],
 }
 

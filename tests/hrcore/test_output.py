@@ -205,3 +205,14 @@ def test_parts_alone_in_their_folder_are_swapped_whole(tmp_path):
         (stage / "model" / "new").write_text("new")
     assert out.stat().st_ino != inode
     assert _listing(tmp_path) == ["run", "run/model", "run/model/new"]  # no part of the old run left
+
+
+def test_a_dicomdir_input_is_its_folder(tmp_path):
+    """A study given as its DICOMDIR file is the folder it indexes: an output inside that folder is inside the
+    input (the reader reads the files beside a DICOMDIR since session 15)."""
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "DICOMDIR").write_bytes(b"index")
+    with pytest.raises(OutputError, match="lies inside the input"):
+        check_output_path(study / "out", inputs=[study / "DICOMDIR"])
+    check_output_path(tmp_path / "out", inputs=[study / "DICOMDIR"])

@@ -511,8 +511,9 @@ def test_a_series_of_unreadable_geometry_says_why(tmp_path, tag, value, named):
         ds = pydicom.dcmread(f)
         ds.Modality = "MR"
         ds.save_as(f)
-    with pytest.warns(StudyWarning), pytest.raises(
-            SeriesError, match=r"no CT image stack: 4 DICOM file\(s\) cannot be read, e.g. .*slice_\d+\.dcm: " + named):
+    with pytest.warns(StudyWarning), pytest.raises(  # the MR series can still be chosen: both are said
+            SeriesError, match=r"no CT image stack found automatically \(4 DICOM file\(s\) cannot be read, e.g. "
+                               r".*slice_\d+\.dcm: " + named + r".*\); choose one with --series"):
         load_study(tmp_path)
 
 

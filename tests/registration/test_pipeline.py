@@ -209,9 +209,14 @@ def test_write_registration_refuses_a_full_folder_and_overwrite_leaves_nothing_s
     (out / "fig8_view.png").write_bytes(b"an earlier run's view")
     with pytest.raises(OutputError, match="not empty.*--overwrite"):
         write_registration(case["result"], out, view=False)
+    # a folder that is no earlier registration is refused even with overwrite (session 15)
+    with pytest.raises(OutputError, match="holds no registration.json"):
+        write_registration(case["result"], out, view=False, overwrite=True)
     assert [p.name for p in out.iterdir()] == ["fig8_view.png"]
+    (out / "registration.json").write_text("{}")  # an earlier run's
     paths = write_registration(case["result"], out, view=False, overwrite=True)
     assert not (out / "fig8_view.png").exists() and paths["json"] == out / "registration.json"
+    assert (out / "registration.json").read_text() != "{}"
     assert all(p.is_file() for k, p in paths.items() if isinstance(p, Path))
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
 
