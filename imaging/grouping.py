@@ -236,6 +236,17 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
         subsets: dict[tuple, list[_Frame]] = defaultdict(list)
         for f in frames:
             subsets[(f.is_localizer, f.rows, f.columns)].append(f)
+        images = {key: members for key, members in subsets.items() if not key[0]}
+        if len(images) > 1:  # a few images of another size among a stack: say which, not only the gap they leave
+            main_key = max(images, key=lambda key: len(images[key]))
+            odd = [f for key, members in images.items() if key != main_key for f in members]
+            if len(odd) <= max(2, 0.1 * len(images[main_key])):
+                message = (
+                    f"series {uid}: {len(odd)} image(s) of another size than its {main_key[1]}x{main_key[2]} "
+                    f"left out of its stack: {_files_text([f.path for f in odd], 4, names=True)}"
+                )
+                notes.append(message)
+                warnings.warn(message, StudyWarning, stacklevel=3)
         for (_, rows, cols), members in subsets.items():
             for cluster in _cluster_orientation(members):
                 if cluster[0].is_localizer or not _has_duplicates(cluster):

@@ -476,6 +476,26 @@ def test_an_image_that_cannot_be_placed_is_left_out_by_name(tmp_path, tag):
         load_study(tmp_path)
 
 
+def test_an_image_of_another_size_is_named(tmp_path):
+    """One slice of 8 at another size left the stack unnamed, seen only as a gap (session 15's sweep)."""
+    files = fac.write_ct_series(tmp_path, n_slices=8)
+    small = tmp_path / "small"
+    fac.write_ct_series(small, n_slices=8, rows=16, cols=16)
+    ds = pydicom.dcmread(sorted(small.glob("*.dcm"))[3])
+    ref = pydicom.dcmread(files[3])
+    ds.SeriesInstanceUID, ds.StudyInstanceUID, ds.FrameOfReferenceUID = (
+        ref.SeriesInstanceUID, ref.StudyInstanceUID, ref.FrameOfReferenceUID)
+    ds.ImagePositionPatient = ref.ImagePositionPatient
+    files[3].unlink()
+    ds.save_as(tmp_path / "odd.dcm")
+    import shutil
+
+    shutil.rmtree(small)
+    with pytest.warns(StudyWarning, match=r"1 image\(s\) of another size than its 32x32 left out of its stack: odd.dcm"):
+        vol = load_study(tmp_path)
+    assert vol.hu.shape[0] == 8 and len(vol.slices) == 7
+
+
 def test_a_series_chosen_that_is_not_ct_is_warned(tmp_path):
     """--series chose an MR series and a heart model was built from it with no word (session 15's sweep)."""
     files = fac.write_ct_series(tmp_path, n_slices=6)
