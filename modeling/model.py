@@ -473,8 +473,8 @@ def read_model(model_dir) -> HeartModel:
             version=str(meta["version"]),
             slice_phases=None if meta.get("slice_phases") is None else SlicePhases.from_dict(meta["slice_phases"]),
         )
-    except MeshError as exc:
-        raise ModelError(f"{ply}: {exc}") from exc
+    except MeshError as exc:  # the mesh reader names its file already
+        raise ModelError(str(exc) if str(ply) in str(exc) else f"{ply}: {exc}") from exc
     except KeyError as exc:
         raise ModelError(f"{jpath} is incomplete or corrupt (no field {exc.args[0]!r}); re-create the model") from exc
     except (TypeError, ValueError) as exc:

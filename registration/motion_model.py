@@ -55,6 +55,12 @@ class CoverageWarning(UserWarning):
     """The phases of a trace do not cover the cycle: the model extrapolates there."""
 
 
+#: Most harmonics per term of a motion model.  The heart's motion holds its energy in the first few (the
+#: paper: 5 cardiac, 4 respiratory); 20 cardiac harmonics at 2 Hz reach the Nyquist frequency of a 100 Hz
+#: tracker (500 and 400, accepted before session 15, took 98 s and fitted the noise: 4.4 mm off).
+MAX_HARMONICS = 20
+
+
 @dataclass(frozen=True)
 class Harmonics:
     """Numbers of harmonics of the AM dual Fourier series.
@@ -83,6 +89,9 @@ class Harmonics:
             value = getattr(self, name)
             if int(value) != value or value < 0:
                 raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+            if value > MAX_HARMONICS:
+                raise ValueError(f"{name} must be at most {MAX_HARMONICS}, got {value!r}: higher orders fit the "
+                                 "noise (the paper uses 5 4 2 1)")
 
     @property
     def n_terms(self) -> int:

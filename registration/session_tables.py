@@ -303,7 +303,7 @@ def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrac
     if bad.any():
         row = int(np.argmax(bad))
         raise SessionError(
-            f"{rel}: column 'fiducial', row {row + 1} (line {row + 2}): {labels[row]!r} is not a staple "
+            f"{rel}: column 'fiducial', row {row + 1} (line {row + 2}): {float(labels[row]):g} is not a staple "
             f"number 1..{N_FIDUCIALS} (or 0 in transit)"
         )
     missing = sorted(set(range(1, N_FIDUCIALS + 1)) - set(labels.astype(int).tolist()))
