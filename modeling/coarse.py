@@ -204,8 +204,8 @@ def _label(mask):
     return out, n
 
 
-def fill_holes(mask) -> np.ndarray:
-    """Fill enclosed cavities: background components not touching the border."""
+def fill_holes(mask, max_voxels: int | None = None) -> np.ndarray:
+    """Fill enclosed cavities: background components not touching the border (of at most ``max_voxels``)."""
     labels, n = _label(~mask)
     if n == 0:
         return mask
@@ -214,6 +214,8 @@ def fill_holes(mask) -> np.ndarray:
     ]))
     inside = np.ones(n + 1, bool)
     inside[border] = False
+    if max_voxels is not None:
+        inside &= np.bincount(labels.ravel(), minlength=n + 1) <= max_voxels
     return mask | inside[labels]
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from modeling.coarse import label_maximum
+from modeling.coarse import fill_holes, label_maximum
 from modeling.distance import distance_mm, opening_mm
 
 __all__ = ["blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
@@ -81,8 +81,8 @@ SPECKLE_VOXELS = 2
 SPECKLE_MM3 = 35.0
 
 
-def _speckles(pool, cspacing) -> np.ndarray:
-    """The pool's cavities of :data:`SPECKLE_VOXELS` voxels and :data:`SPECKLE_MM3` at most: its noise.
+def _with_speckles(pool, cspacing) -> np.ndarray:
+    """The pool with its cavities of :data:`SPECKLE_VOXELS` voxels and :data:`SPECKLE_MM3` at most: its noise.
 
     With white noise of 40-50 HU standard deviation on the real CT they riddle the left atrium (700-1100
     cavities, most of a voxel or two): its inscribed radius fell from 24 mm to 16-18, and the vessel trace
@@ -94,13 +94,7 @@ def _speckles(pool, cspacing) -> np.ndarray:
     pool's level, the skeleton's marrow's cavities (filled whole, or two of CTChest4's 3 x 3 x 10 mm voxels,
     they made a pool of its bones).
     """
-    holes, n = ndimage.label(~pool)
-    size = np.bincount(holes.ravel(), minlength=n + 1)
-    small = (size <= SPECKLE_VOXELS) & (size * float(np.prod(cspacing)) <= SPECKLE_MM3)
-    small[0] = False
-    for axis in range(3):  # what reaches the grid's sides is no cavity
-        small[np.take(holes, [0, -1], axis=axis).ravel()] = False
-    return small[holes]
+    return fill_holes(pool, max_voxels=int(min(SPECKLE_VOXELS, SPECKLE_MM3 // float(np.prod(cspacing)))))
 
 
 def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=None):
@@ -120,7 +114,7 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=
     are lungs: ``mediastinum()`` gives that region (None without lungs), so
     that the marrow of a pelvis on a whole-body CT is no pool.
 
-    The pool's speckles are blood too (:func:`_speckles`).
+    The pool's speckles are blood too (:func:`_with_speckles`).
     """
     for low in np.arange(blood_hu[0], min(floor_hu, blood_hu[0]) - 1e-9, -POOL_STEP_HU):
         weak = low < blood_hu[0]
@@ -133,8 +127,7 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=
         # the largest component; at a weak level the next ones too (WEAK_POOL_CANDIDATES), where a whole-body
         # CT's marrow may outgrow the heart's pool
         for label in np.argsort(-sizes)[: WEAK_POOL_CANDIDATES if weak else 1] + 1:
-            pool = labels == label
-            pool |= _speckles(pool, cspacing)
+            pool = _with_speckles(labels == label, cspacing)
             box = ndimage.find_objects(pool.astype(np.uint8))[0]
             if distance_mm(np.pad(pool[box], 1), cspacing).max() < radius_mm:
                 continue

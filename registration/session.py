@@ -124,9 +124,10 @@ def read_session(
                 )
             )
             continue
-        gap = float(np.max(np.diff(record.time_s)))
+        steps = np.diff(record.time_s)
+        gap = float(steps.max())
         if gap > MAX_GAP_S:
-            at = float(record.time_s[int(np.argmax(np.diff(record.time_s)))])
+            at = float(record.time_s[int(np.argmax(steps))])
             exclusions.append(
                 (
                     record.point_id,

@@ -201,7 +201,7 @@ def test_a_top_edge_through_the_pulmonary_bifurcation(cta):
     Also left: 28.6 ml of ascending aorta stay, its lobe on this edge lying half inside the heart's body.
 
     Passing since session 15: the blood pool's speckles (cavities of one or two voxels, the CT's noise above
-    the pool's upper 650 HU; ``modeling.seed._speckles``) are blood, and the outflow tract's lobe measures
+    the pool's upper 650 HU; ``modeling.seed._with_speckles``) are blood, and the outflow tract's lobe measures
     13.6 mm, 1.12 times the trunk's: the trace stops there (764 ml, all four chambers in; 717 ml cropped at
     108, 716 ml at 116).  The margin over the 1.1 widening is small."""
     hu, T = _slices_from_600_mm(cta, 112)
