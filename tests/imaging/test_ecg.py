@@ -194,6 +194,8 @@ def test_cardiac_phase_of_detected_peaks_matches_truth():
         (np.sin(np.arange(1000.0)), "fast", "rate_hz must be a number"),
         ("abc", 100.0, "signal_mv must be numbers"),  # numpy's own ValueError before session 15
         (np.sin(np.arange(1000.0)).astype(complex), 100.0, "complex"),  # its imaginary part was dropped
+        # 30 s of noise (a floating electrode): ~3500 "beats" per 30 min before session 16
+        (np.random.default_rng(0).normal(0.0, 1.0, 30 * 360), 360.0, "no QRS complexes that stand out of its noise"),
     ],
 )
 def test_bad_signals_are_refused_clearly(signal, rate, match_):

@@ -342,18 +342,32 @@ def _truncate(path: Path, seconds: float, rate_hz: float = 100.0):
     path.write_text("\n".join(lines[: 1 + int(seconds * rate_hz)]) + "\n")
 
 
+def _ecg_to_noise(path: Path, seed: int = 0):
+    """Replace a point record's ECG by noise (a floating electrode), 1 mV standard deviation."""
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    noise = np.random.default_rng(seed).normal(0.0, 1.0, len(rows))
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows({**row, "ecg_mv": f"{v:.4f}"} for row, v in zip(rows, noise))
+
+
 def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     session_dir = tmp_path / "session"
     shutil.copytree(case["phantom"] / "session", session_dir)
     _truncate(session_dir / "points" / "point_000.csv", 8.0)   # reader: shorter than 10 s
     _truncate(session_dir / "points" / "point_001.csv", 12.0)  # at most 2 breaths of 5 s
+    # an ECG lead that records noise only: its ~110 "beats" per minute were used before session 16
+    _ecg_to_noise(session_dir / "points" / "point_002.csv")
     session = read_session(session_dir)
     result = register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False, min_breaths=4)
     reasons = dict(result.exclusions)
-    assert set(reasons) == {0, 1}
+    assert set(reasons) == {0, 1, 2}
     assert "shorter than min_duration_s" in reasons[0]
     assert "breath" in reasons[1] and "min_breaths = 4" in reasons[1]
-    assert result.n_points == N_POINTS - 2 and 0 not in result.point_ids and 1 not in result.point_ids
+    assert "point_002.csv: the ECG holds no QRS complexes that stand out of its noise" in reasons[2], reasons[2]
+    assert result.n_points == N_POINTS - 3 and not {0, 1, 2} & set(result.point_ids)
     assert any("excluded" in note for note in result.notes)
     # too few points left is an error that says what to do
     with pytest.raises(RegistrationError, match="record more points"):
