@@ -64,6 +64,8 @@ MIN_RATE_HZ = 50.0
 #: Below this 99.9th-percentile absolute value of the QRS-band signal (mV) the
 #: record is called flat.
 MIN_QRS_BAND_MV = 0.02
+#: Samples at the record's extreme value in a row that make a clipped (saturated) R.
+MIN_CLIPPED_RUN = 3
 #: Half-width (s) of the window in which a beat's QRS-band peak is taken for its contrast.
 CONTRAST_HALF_WIDTH_S = 0.060
 #: Below this QRS contrast (:attr:`RPeaks.qrs_contrast`) the record holds no QRS
@@ -313,7 +315,7 @@ def detect_r_peaks(
     idx, amp, keep = _dedupe(idx, amp, refractory)
     side = sign[inside][keep]
     delta = _parabolic(side * light[idx - 1], side * light[idx], side * light[idx + 1])
-    times = start + (idx + delta) / rate
+    times = start + (_unclipped(x, idx + delta, side, int(round(REFINE_HALF_WIDTH_S * rate)))) / rate
     for arr in (times, idx, amp):
         arr.setflags(write=False)
     dominant = 1 if np.count_nonzero(side > 0) >= np.count_nonzero(side < 0) else -1
@@ -325,6 +327,35 @@ def detect_r_peaks(
         )
     return RPeaks(times_s=times, indices=idx, amplitudes_mv=amp, rate_hz=rate, start_s=start, polarity=dominant,
                   qrs_contrast=contrast)
+
+
+def _unclipped(x: np.ndarray, at: np.ndarray, side: np.ndarray, reach: int) -> np.ndarray:
+    """R-peak positions (samples) with the beats whose R the amplifier clipped put mid-plateau.
+
+    A saturated R is a run of at least :data:`MIN_CLIPPED_RUN` samples at the
+    record's extreme value; the filtered signal's maximum wanders over such a
+    plateau (up to 40 ms from the R on MIT-BIH 119 clipped at 1.5 mV, a fifth of
+    its beats), its middle is the best estimate.  ``at`` within ``reach``
+    samples of a run on the beat's side moves to the run's middle.
+    """
+    out = np.array(at, dtype=float)
+    for sign, rail in ((1, x.max()), (-1, x.min())):
+        runs, n = ndimage.label(x == rail)
+        if n == 0:
+            continue
+        bounds = ndimage.find_objects(runs)
+        starts = np.array([b[0].start for b in bounds])
+        stops = np.array([b[0].stop for b in bounds])
+        long = stops - starts >= MIN_CLIPPED_RUN
+        starts, stops = starts[long], stops[long]
+        if starts.size == 0:
+            continue
+        for k in np.flatnonzero(side == sign):
+            near = np.flatnonzero((starts - reach <= at[k]) & (at[k] <= stops - 1 + reach))
+            if near.size:
+                j = near[np.argmin(np.abs(0.5 * (starts[near] + stops[near] - 1) - at[k]))]
+                out[k] = 0.5 * (starts[j] + stops[j] - 1)
+    return out
 
 
 def _qrs_contrast(band_abs: np.ndarray, idx: np.ndarray, rate: float) -> float:
