@@ -340,12 +340,10 @@ def _unclipped(x: np.ndarray, at: np.ndarray, side: np.ndarray, reach: int) -> n
     """
     out = np.array(at, dtype=float)
     for sign, rail in ((1, x.max()), (-1, x.min())):
-        runs, n = ndimage.label(x == rail)
-        if n == 0:
-            continue
-        bounds = ndimage.find_objects(runs)
-        starts = np.array([b[0].start for b in bounds])
-        stops = np.array([b[0].stop for b in bounds])
+        at_rail = np.flatnonzero(x == rail)
+        breaks = np.flatnonzero(np.diff(at_rail) > 1)
+        starts = at_rail[np.concatenate([[0], breaks + 1])]
+        stops = at_rail[np.concatenate([breaks, [at_rail.size - 1]])] + 1
         long = stops - starts >= MIN_CLIPPED_RUN
         starts, stops = starts[long], stops[long]
         if starts.size == 0:
