@@ -293,6 +293,30 @@ def _read_study_waveforms(volume, notes: list[str]) -> list[tuple[str, object]]:
     return records
 
 
+def _r_peaks_of_some_lead(record, label: str, notes: list[str]):
+    """(R-peaks, label) of the record's lead, or of the first other lead of its group with QRS complexes
+    when that one has none (lead II off in a 12-lead ECG whose other leads are good); (None, label) if no lead has."""
+    from imaging.waveform import WaveformError, read_ecg_waveform
+
+    try:
+        return detect_r_peaks(record.signal_mv, record.rate_hz, start_s=record.start_time_s), label
+    except ValueError as exc:
+        notes.append(f"{label}: {exc}")
+    if record.source == "<Dataset>":
+        return None, label
+    for k, lead in enumerate(record.channel_labels):
+        if k == record.channel_index:
+            continue
+        try:
+            other = read_ecg_waveform(record.source, channel=k, group=record.group_index)
+            peaks = detect_r_peaks(other.signal_mv, other.rate_hz, start_s=other.start_time_s)
+        except (ValueError, WaveformError):
+            continue
+        notes.append(f"{label}: lead {record.channel_label} has no usable QRS complexes, lead {lead} used")
+        return peaks, f"{label} (lead {lead})"
+    return None, label
+
+
 def _strip_paths(text: str, path) -> str:
     """``text`` without ``path`` (as given or resolved): it becomes "the file"."""
     p = Path(path)
@@ -398,10 +422,8 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         if not has_acq:
             notes.append(f"{label}: slices lack AcquisitionTime, cannot align")
             continue
-        try:
-            peaks = detect_r_peaks(record.signal_mv, record.rate_hz, start_s=record.start_time_s)
-        except ValueError as exc:
-            notes.append(f"{label}: {exc}")
+        peaks, label = _r_peaks_of_some_lead(record, label, notes)
+        if peaks is None:
             continue
         phases, why = _from_r_peaks(acq, peaks.times_s, label)
         if phases is not None:

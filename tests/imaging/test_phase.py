@@ -242,6 +242,31 @@ def test_library_and_command_agree_on_an_ecg_only_study(sample_case, tmp_path):
     assert written["source"] == report.source
 
 
+def test_a_dead_lead_ii_gives_way_to_another_lead(sample_case, tmp_path):
+    """Lead II off (flat) in a two-lead waveform whose other lead is good: the phases come from the other lead,
+    and the notes say so.  Before session 16 the waveform was given up and the nominal TriggerTime phases taken
+    (on real 12-lead MIT-BIH studies 0.27 of a cycle off)."""
+    import copy
+
+    case, truth = sample_case
+    ct = _copy_without(case, tmp_path, private=True, gating=True)
+    wave = next(f for f in ct.iterdir() if pydicom.dcmread(f, stop_before_pixels=True).Modality == "ECG")
+    ds = pydicom.dcmread(wave)
+    group = ds.WaveformSequence[0]
+    good = np.frombuffer(group.WaveformData, dtype="<i2")  # the one lead's stored samples
+    v5 = copy.deepcopy(group.ChannelDefinitionSequence[0])
+    v5.ChannelLabel = "V5"
+    del v5.ChannelSourceSequence
+    group.ChannelDefinitionSequence.append(v5)
+    group.NumberOfWaveformChannels = 2
+    group.WaveformData = np.stack([np.zeros_like(good), good], axis=1).tobytes()  # lead II flat, V5 the ECG
+    ds.save_as(wave)
+    report = compute_phase_report(load_study(ct))
+    assert report.source == "ECG waveform (lead V5) (Pan-Tompkins QRS detection)", report.source
+    assert any("lead II has no usable QRS complexes, lead V5 used" in n for n in report.notes), report.notes
+    _check(report, truth)
+
+
 def test_unreadable_waveform_is_named_by_its_place_in_the_notes(sample_case, tmp_path):
     """A broken ECG waveform instance: the report falls back and its note names neither the file nor its
     folder (either can name the patient)."""
