@@ -323,15 +323,26 @@ def _cmd_track(args) -> int:
 
     if args.speed is not None and not args.speed > 0:
         raise UsageError(f"--speed must be positive (1 = real time), got {args.speed}")
+    if args.igtl_rate < 0:
+        raise UsageError(f"--igtl-rate must be 0 (all samples) or a positive rate, got {args.igtl_rate}")
+    if args.igtl_in is not None and args.replay is not None:
+        raise UsageError("--igtl-in and --replay are two sources of the stream: give one")
+    if not args.idle_timeout > 0:
+        raise UsageError(f"--idle-timeout must be positive (s), got {args.idle_timeout}")
+    _check_log(args)
     tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
+    skipped: dict[str, int] = {}
     if args.igtl_in is not None:
         host, _, port = args.igtl_in.rpartition(":")
-        if not port.isdigit():
-            raise UsageError(f"--igtl-in must be HOST:PORT, got {args.igtl_in!r}")
-        chunks = igtl_client_chunks(host or "127.0.0.1", int(port), idle_timeout_s=args.idle_timeout)
+        if not port.isdigit() or not 0 < int(port) <= 65535:
+            raise UsageError(f"--igtl-in must be HOST:PORT with a port 1..65535, got {args.igtl_in!r}")
+        chunks = igtl_client_chunks(host or "127.0.0.1", int(port), idle_timeout_s=args.idle_timeout,
+                                    skipped=skipped)
         speed = None  # a live stream paces itself
     else:
         replay = read_session(args.replay if args.replay is not None else args.session_dir)
+        if replay.sample_rate_hz != tracker.rate_hz:  # the causal filters follow the stream's own rate
+            tracker = tracker.at_rate(replay.sample_rate_hz)
         chunks = session_chunks(replay, chunk=1 if args.speed is not None else 2000)
         speed = args.speed
     bar = None
@@ -344,12 +355,26 @@ def _cmd_track(args) -> int:
             tracker, chunks, args.log, model=model, speed=speed, igtl_port=args.igtl_port,
             igtl_rate_hz=args.igtl_rate if args.igtl_rate > 0 else None, wait_client_s=args.wait_client,
             progress=None if bar is None else (lambda rows: bar.update(len(rows.time_s))),
+            listening=None if args.quiet else (lambda port: print(f"OpenIGTLink server on port {port}", flush=True)),
         )
     finally:
         if bar is not None:
             bar.close()
     print_summary(summary, args.log)
-    return 130 if summary.interrupted else 0
+    for why, n in skipped.items():
+        print(f"  skipped           {n} sample(s) from --igtl-in: {why}")
+    return (143 if summary.terminated else 130) if summary.interrupted else 0
+
+
+def _check_log(args) -> None:
+    """--log must not overwrite an input, nor an earlier log unless --overwrite says so."""
+    log = args.log.resolve()
+    for name, folder in (("MODEL_DIR", args.model_dir), ("REGISTRATION_DIR", args.registration_dir),
+                         ("SESSION_DIR", args.session_dir), ("--replay", args.replay)):
+        if folder is not None and log.is_relative_to(folder.resolve()):
+            raise UsageError(f"--log {args.log} lies inside {name} {folder}: write the log outside the input folders")
+    if log.exists() and not log.is_dir() and not args.overwrite:
+        raise UsageError(f"--log {args.log} exists: give another file name, or --overwrite to replace it")
 
 
 def _cmd_evaluate_temporal(args) -> int:

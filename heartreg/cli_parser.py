@@ -39,6 +39,17 @@ def _finite(value: str) -> float:
     return number
 
 
+def _port(value: str) -> int:
+    """A TCP port option: an integer 0..65535 (0: any free port)."""
+    try:
+        port = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a TCP port (0..65535)")
+    return port
+
+
 def _label_arg(value: str):
     """``--label``: a label value, or its name in the label map (TotalSegmentator, DICOM SEG)."""
     return int(value) if value.lstrip("-").isdigit() else value
@@ -226,8 +237,10 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--idle-timeout", type=_finite, default=5.0, help="--igtl-in: end after this many idle seconds")
     p.add_argument("--speed", type=_finite, default=None,
                    help="replay pacing: 1 = real time, 2 = twice as fast (default: as fast as possible)")
-    p.add_argument("--log", type=Path, required=True, help="CSV log to write (one row per sample)")
-    p.add_argument("--igtl-port", type=int, default=None,
+    p.add_argument("--log", type=Path, required=True,
+                   help="CSV log to write (one row per sample), outside the input folders")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --log")
+    p.add_argument("--igtl-port", type=_port, default=None,
                    help="serve OpenIGTLink to Slicer on this port (18944 is Slicer's default; 0: any free)")
     p.add_argument("--igtl-rate", type=_finite, default=100.0,
                    help="most samples per second sent over OpenIGTLink (0: all)")

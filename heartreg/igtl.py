@@ -191,43 +191,70 @@ def lossless_client(host: str, port: int):
     return _Client(host=host, port=int(port)), received
 
 
-def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0) -> Iterator:
+def _signals(text: str):
+    """The three finite numbers of a ``Signals`` string, or None."""
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        return None
+    return values if len(values) == 3 and all(np.isfinite(values)) else None
+
+
+def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, skipped: dict | None = None) -> Iterator:
     """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample.
 
     A sample is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM``
     ``ProbeToTracker`` and a ``STRING`` ``Signals`` (``"ecg_mv,flow_insp_lpm,
-    flow_exp_lpm"``) with the same timestamp (the sample time, s).  A sample
-    missing a part is skipped; the stream ends after ``idle_timeout_s``
-    without a message.
+    flow_exp_lpm"``: three finite numbers) with the same timestamp (the sample
+    time, s).  A sample missing a part, with bad signals or not later than the
+    one before is skipped, counted by reason in ``skipped``; one bad sample
+    does not end a live run.  The stream ends after ``idle_timeout_s`` without
+    a message; a server that never answers is an :class:`IgtlError`.
     """
     from heartreg.track import chunks_from_samples
+
+    skipped = {} if skipped is None else skipped
+
+    def skip(why):
+        skipped[why] = skipped.get(why, 0) + 1
 
     client, received = lossless_client(host, port)
     pending: dict[float, dict] = {}
     last = time.monotonic()
+    latest = -np.inf
+    heard = False
     try:
         while True:
             if not received:
                 if time.monotonic() - last > idle_timeout_s:
+                    if not heard:
+                        state = "connected but sent nothing" if client.is_connected() else "no connection"
+                        raise IgtlError(f"--igtl-in {host}:{port}: {state} within {idle_timeout_s:g} s "
+                                        "(--idle-timeout); is the tracker's OpenIGTLink server running there?")
                     return
                 time.sleep(0.001)
                 continue
-            last = time.monotonic()
+            last, heard = time.monotonic(), True
             msg = received.popleft()
             key = round(float(msg.timestamp), 6)
             slot = pending.setdefault(key, {})
             if msg.device_name in (DEVICE_ROBOT, DEVICE_PROBE) and msg.message_type == "TRANSFORM":
                 slot[msg.device_name] = np.asarray(msg.matrix, dtype=float)
             elif msg.device_name == DEVICE_SIGNALS and msg.message_type == "STRING":
-                try:
-                    slot[DEVICE_SIGNALS] = [float(x) for x in msg.string.split(",")]
-                except ValueError:
+                values = _signals(msg.string)
+                if values is None:
                     pending.pop(key)
+                    skip("Signals not three finite numbers (ecg_mv,flow_insp_lpm,flow_exp_lpm)")
                     continue
+                slot[DEVICE_SIGNALS] = values
             if len(slot) == 3:
                 pending.pop(key)
                 for old in [k for k in pending if k < key]:
                     pending.pop(old)  # an incomplete earlier sample will not complete now
+                if not key > latest:
+                    skip("timestamp not later than the sample before")
+                    continue
+                latest = key
                 ecg, fi, fe = slot[DEVICE_SIGNALS]
                 yield next(chunks_from_samples(
                     [(key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE], True, ecg, fi, fe)]))

@@ -214,6 +214,10 @@ class Tracker:
         self.r_peaks: list[tuple[float, float]] = []
         self.onsets: list[tuple[float, float]] = []
 
+    def at_rate(self, rate_hz: float) -> "Tracker":
+        """The same tracker for a stream sampled at ``rate_hz`` (its causal filters are built for its rate)."""
+        return Tracker(self.localiser, rate_hz, **self._priors)
+
     def process(self, chunk: StreamChunk) -> TrackRows:
         """Phases and map positions of every sample of ``chunk``."""
         t = chunk.time_s
@@ -254,6 +258,7 @@ def load_tracker(model_dir, registration_dir, session_dir):
 
     model = read_model(model_dir)
     reg = read_registration(registration_dir)
+    _check_same_model(model, reg, model_dir, registration_dir)
     session = read_session(session_dir)
     ids = [int(i) for i in reg.point_ids]
     parameters = reg.parameters
@@ -277,6 +282,25 @@ def load_tracker(model_dir, registration_dir, session_dir):
     rr = 1.0 / float(np.mean([f.heart_rate_hz for f in reg.point_fits]))
     br = 1.0 / float(np.mean([f.resp_rate_hz for f in reg.point_fits]))
     return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
+
+
+def _check_same_model(model, reg, model_dir, registration_dir) -> None:
+    """Refuse a registration made to another model: its points, placed by its transform, must lie on this
+    model's surface as they lay on the registration's (the same RMS distance; another heart puts them mm off)."""
+    from registration.closest import SurfaceIndex, closest_points
+
+    why = None
+    if model.mesh.n_faces != reg.n_faces:
+        why = f"it was registered to a mesh of {reg.n_faces} faces, the model has {model.mesh.n_faces}"
+    else:
+        d = closest_points(SurfaceIndex(model.mesh.vertices, model.mesh.faces),
+                           apply_to_points(reg.T_heart_from_probe, reg.points_probe_mm)).distances_mm
+        rms = float(np.sqrt(np.mean(d**2)))
+        if not np.isclose(rms, reg.rms_mm, rtol=1e-3, atol=1e-3):
+            why = f"its points lie {rms:.3f} mm (RMS) from this model's surface, {reg.rms_mm:.3f} mm from its own"
+    if why:
+        raise TrackError(f"{registration_dir} was not made with the model {model_dir}: {why}; "
+                         "give the model the session was registered to")
 
 
 def _status_text(rows: TrackRows, i: int) -> str:
@@ -326,6 +350,8 @@ class TrackSummary:
     wall_s: float
     r_peak_latency_ms: tuple
     interrupted: bool
+    #: the interruption was a termination request (SIGTERM), not Ctrl-C
+    terminated: bool = False
 
 
 def run_track(
@@ -340,6 +366,7 @@ def run_track(
     wait_client_s: float = 0.0,
     sink: IgtlSink | None = None,
     progress=None,
+    listening=None,
 ) -> TrackSummary:
     """Run a stream through the tracker to the CSV log and OpenIGTLink.
 
@@ -365,6 +392,8 @@ def run_track(
         An open sink to use instead of ``igtl_port`` (left open).
     progress : callable, optional
         Called with each :class:`TrackRows` (e.g. a progress bar).
+    listening : callable, optional
+        Called with the port once the OpenIGTLink server listens (``igtl_port`` 0 picks a free one).
 
     Returns
     -------
@@ -382,6 +411,8 @@ def run_track(
         vertices_ras = apply_to_points(T_RAS_FROM_LPS @ model.T_patient_from_heart, mesh.vertices)
         sink = IgtlSink(igtl_port, vertices_ras, mesh.faces)
         own_sink = True
+        if listening is not None:
+            listening(sink.port)
     T_ras_from_heart = None if model is None else T_RAS_FROM_LPS @ model.T_patient_from_heart
     if sink is not None and T_ras_from_heart is None:
         raise TrackError("OpenIGTLink needs the model (its frame)")
@@ -418,8 +449,8 @@ def run_track(
                         sent_total += int(sent.sum())
                         if progress is not None:
                             progress(rows)
-            except KeyboardInterrupt:
-                interrupted = True
+            except KeyboardInterrupt as exc:
+                interrupted = type(exc).__name__  # KeyboardInterrupt, or the CLI's Terminated (SIGTERM)
         if sink is not None:
             sink.flush()
         os.chmod(tmp, 0o666 & ~_umask())
@@ -434,7 +465,7 @@ def run_track(
         n_samples=n, n_placed=placed, n_sent=sent_total, n_dropped=limiter.dropped,
         models_sent=0 if sink is None else sink.models_sent, wall_s=time.perf_counter() - t_wall0,
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
-        interrupted=interrupted,
+        interrupted=bool(interrupted), terminated=interrupted == "Terminated",
     )
 
 

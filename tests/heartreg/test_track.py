@@ -21,6 +21,7 @@ from heartreg.igtl import (
     DEVICE_PROBE,
     DEVICE_ROBOT,
     DEVICE_SIGNALS,
+    IgtlError,
     IgtlSink,
     igtl_client_chunks,
     lossless_client,
@@ -207,39 +208,46 @@ def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):
         assert f'"quality":"{r["quality"]}"' in status[t].string
 
 
-def test_openigtlink_input_gives_the_replay_results(nav, loaded, tmp_path):
+def _serve_stream(rec, n, run, *, bad=None):
+    """A pyigtl server sending the record's first ``n`` samples as a PLUS-like stream (``bad``: sample index ->
+    (time, Signals text) replacing that sample's); ``run(port)`` consumes it.  Returns what ``run`` returns."""
+    import signal
+    import threading
+
     import pyigtl
 
-    root = nav["root"]
-    tracker = loaded()
-    rec = read_session(root / "navigation").points[0]
-    n = 900
+    bad = bad or {}
     server = pyigtl.OpenIGTLinkServer(port=0, local_server=True)
-    import signal
-
     for s in (signal.SIGINT, signal.SIGTERM):  # pyigtl's handlers: give Ctrl-C back to pytest
         signal.signal(s, signal.default_int_handler if s == signal.SIGINT else signal.SIG_DFL)
-    port = server.server_address[1]
-    import threading
 
     def send():
         while not server.is_connected():
             time.sleep(0.005)
         for i in range(n):
-            t = float(rec.time_s[i])
+            t, text = bad.get(i, (float(rec.time_s[i]), f"{float(rec.ecg_mv[i])!r},{float(rec.flow_insp_lpm[i])!r},"
+                                                            f"{float(rec.flow_exp_lpm[i])!r}"))
             server.send_message(pyigtl.TransformMessage(rec.T_probe_from_robot[i], timestamp=t, device_name=DEVICE_ROBOT), wait=False)
             server.send_message(pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name=DEVICE_PROBE), wait=False)
-            server.send_message(pyigtl.StringMessage(
-                f"{float(rec.ecg_mv[i])!r},{float(rec.flow_insp_lpm[i])!r},{float(rec.flow_exp_lpm[i])!r}", timestamp=t,
-                device_name=DEVICE_SIGNALS), wait=i % 25 == 24)  # keep pyigtl's 100-message queue from overflowing
+            server.send_message(pyigtl.StringMessage(text, timestamp=t, device_name=DEVICE_SIGNALS),
+                                wait=i % 25 == 24)  # keep pyigtl's 100-message queue from overflowing
 
     thread = threading.Thread(target=send, daemon=True)
     thread.start()
     try:
-        summary = run_track(tracker, igtl_client_chunks("127.0.0.1", port, idle_timeout_s=3.0), tmp_path / "in.csv")
+        return run(server.server_address[1])
     finally:
         thread.join(timeout=10)
         server.stop()
+
+
+def test_openigtlink_input_gives_the_replay_results(nav, loaded, tmp_path):
+    root = nav["root"]
+    tracker = loaded()
+    rec = read_session(root / "navigation").points[0]
+    n = 900
+    summary = _serve_stream(rec, n, lambda port: run_track(
+        tracker, igtl_client_chunks("127.0.0.1", port, idle_timeout_s=3.0), tmp_path / "in.csv"))
     assert summary.n_samples == n
     ref = loaded()
     rows_ref = run_track(ref, session_chunks(read_session(root / "navigation"), chunk=n), tmp_path / "ref.csv")
@@ -252,6 +260,62 @@ def test_openigtlink_input_gives_the_replay_results(nav, loaded, tmp_path):
     a = _column(got, "map_x_mm", "map_y_mm", "map_z_mm")
     b = _column(want, "map_x_mm", "map_y_mm", "map_z_mm")
     np.testing.assert_allclose(a, b, atol=2e-3, equal_nan=True)  # poses went as float32
+
+
+def test_bad_live_samples_are_skipped_not_fatal(nav, loaded, tmp_path):
+    """A sample with a NaN or a missing signal, or a timestamp going back, is skipped and counted: the live run
+    goes on and keeps its log (before session 16 each ended the run with exit 1 or a traceback, and the log of
+    every sample before it was lost)."""
+    rec = read_session(nav["root"] / "navigation").points[0]
+    t = rec.time_s
+    bad = {100: (float(t[100]), "nan,1.0,2.0"), 150: (float(t[150]), "0.1,2.0"), 200: (float(t[190]), "0.1,1.0,2.0")}
+    skipped = {}
+    summary = _serve_stream(rec, 300, lambda port: run_track(
+        loaded(), igtl_client_chunks("127.0.0.1", port, idle_timeout_s=2.0, skipped=skipped), tmp_path / "bad.csv"),
+        bad=bad)
+    assert summary.n_samples == 297
+    assert sum(skipped.values()) == 3 and skipped["timestamp not later than the sample before"] == 1, skipped
+    with open(tmp_path / "bad.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 297
+    # a server that is not there is said, not taken for an empty stream
+    with pytest.raises(IgtlError, match="no connection within 0.5 s"):
+        list(igtl_client_chunks("127.0.0.1", _free_port(), idle_timeout_s=0.5))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_replay_sampled_at_its_own_rate(nav, tmp_path):
+    """A replay recorded at 50 Hz while the registration's session was at 100 Hz: the causal phases follow the
+    replay's rate (they took the session's before session 16: 79 % of the cardiac phases > 0.1 cycle off)."""
+    import json
+    import shutil
+
+    replay = tmp_path / "nav50"
+    shutil.copytree(nav["root"] / "navigation", replay)
+    meta = json.loads((replay / "session.json").read_text())
+    meta["sample_rate_hz"] = 50.0
+    (replay / "session.json").write_text(json.dumps(meta))
+    for f in (replay / "points").glob("*.csv"):
+        lines = f.read_text().splitlines()
+        f.write_text("\n".join(lines[:1] + lines[1::2]) + "\n")
+    log = tmp_path / "track50.csv"
+    assert main(["track", str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"),
+                 "--replay", str(replay), "--log", str(log), "-q"]) == 0
+    with open(log, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    nt, T = nav["nav_truth"], nav["model"].T_heart_from_patient
+    at = np.searchsorted(np.round(nt.time_s, 3), np.round(_column(rows, "time_s")[:, 0], 3))
+    truth_heart = nt.map_patient_mm[at] @ T[:3, :3].T + T[:3, 3]
+    pos = _column(rows, "map_x_mm", "map_y_mm", "map_z_mm")
+    placed = np.isfinite(pos[:, 0])
+    err = np.linalg.norm(pos[placed] - truth_heart[placed], axis=1)
+    assert placed.mean() > 0.8 and err.mean() <= 2.0 and np.percentile(err, 95) <= 4.0, (err.mean(), placed.mean())
 
 
 def test_rate_limiter_and_ctrl_c(nav, loaded, tmp_path):
@@ -285,9 +349,41 @@ def test_rate_limiter_and_ctrl_c(nav, loaded, tmp_path):
 
 def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
     root = nav["root"]
-    status = main(["track", str(nav["model_dir"]), str(tmp_path), str(nav["case"] / "session"), "--log", str(tmp_path / "x.csv")])
+    (tmp_path / "empty").mkdir()
+    status = main(["track", str(nav["model_dir"]), str(tmp_path / "empty"), str(nav["case"] / "session"),
+                   "--log", str(tmp_path / "x.csv")])
     assert status == 1
     assert "registration.json not found" in capsys.readouterr().err
+    inputs = [str(nav["model_dir"]), str(root / "registration"), str(nav["case"] / "session")]
+    # the log never overwrites an input (before session 16 it replaced registration.json, a session record, ...)
+    before = (root / "registration" / "registration.json").read_bytes()
+    assert main(["track", *inputs, "--log", str(root / "registration" / "registration.json")]) == 1
+    assert "lies inside REGISTRATION_DIR" in capsys.readouterr().err
+    assert (root / "registration" / "registration.json").read_bytes() == before
+    # nor an earlier log, unless --overwrite
+    (tmp_path / "old.csv").write_text("an earlier run\n")
+    assert main(["track", *inputs, "--log", str(tmp_path / "old.csv")]) == 1
+    assert "--overwrite to replace it" in capsys.readouterr().err
+    assert (tmp_path / "old.csv").read_text() == "an earlier run\n"
+    for extra, said in ((["--igtl-in", "127.0.0.1:1", "--replay", str(root / "navigation")], "give one"),
+                        (["--igtl-rate", "-5"], "--igtl-rate must be 0")):
+        assert main(["track", *inputs, "--log", str(tmp_path / "y.csv"), *extra]) == 1
+        assert said in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["track", *inputs, "--log", str(tmp_path / "y.csv"), "--igtl-port", "70000"])
+    assert "70000 is not a TCP port" in capsys.readouterr().err
+    # a registration made with another model (the same mesh moved 3 mm) is refused
+    import dataclasses
+
+    from modeling.mesh import Mesh
+    from modeling.model import write_model
+
+    model = nav["model"]
+    moved = dataclasses.replace(model, mesh=Mesh(model.mesh.vertices + [3.0, 0.0, 0.0], model.mesh.faces))
+    write_model(moved, tmp_path / "other_model")
+    assert main(["track", str(tmp_path / "other_model"), *inputs[1:], "--log", str(tmp_path / "y.csv")]) == 1
+    assert "was not made with the model" in capsys.readouterr().err
+    assert not (tmp_path / "y.csv").exists()
     status = main(["track", str(nav["model_dir"]), str(root / "registration"), str(root / "navigation"),
                    "--log", str(tmp_path / "x.csv")])
     assert status == 1
