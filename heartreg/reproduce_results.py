@@ -13,7 +13,6 @@ from typing import Sequence
 import numpy as np
 
 from hrcore.errors import HeartregError
-from registration.phase_estimate import wrap_phase
 
 #: |phi_R* - truth| within this counts as "near the image phase" (cycles).
 TOL_PHASE_R = 0.05
