@@ -49,15 +49,18 @@ def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = Fa
 
 def phase_report_extra(volume, study_dir) -> dict:
     """Series identity and the volume's notes for ``phases.json``, without the study
-    folder's path (a folder name can identify a patient: the notes name files by
-    their names alone, and a path in a reader's message loses the study's root); not
-    the series' description, free text that can name the patient too."""
+    folder's path nor its files' names (either can identify a patient: a file is
+    "a file" in the notes written, :mod:`hrcore.redact`); not the series'
+    description, free text that can name the patient too."""
+    from hrcore.redact import file_namer
+
     root = str(Path(study_dir).resolve())
+    unnamed = file_namer(study_dir)  # file names can name the patient too: "a file"
     notes = []
     for note in volume.notes:
         for prefix in (root + os.sep, str(study_dir).rstrip(os.sep) + os.sep):
             note = note.replace(prefix, "")
-        notes.append(note)
+        notes.append(unnamed(note))
     return {
         "series_instance_uid": volume.series.series_instance_uid,
         "volume_notes": notes,

@@ -134,6 +134,20 @@ def _redact(text: str, pairs) -> str:
     return text
 
 
+def _without_file_names(case: Case):
+    """A function dropping the names of the case's input files from a text (they can name the patient)."""
+    from hrcore.redact import file_namer
+
+    namers = [file_namer(p) for role, p in case.inputs.items() if p and role != "session"]
+
+    def clean(text: str) -> str:
+        for namer in namers:
+            text = namer(text)
+        return text
+
+    return clean
+
+
 def case_key(case: Case) -> str:
     """The case's key: SHA-256 (hex) of its inputs' contents, its command lines and heartreg's version.
 
@@ -192,6 +206,9 @@ def _values(case_dir: Path) -> dict:
             "delta_static_mean_mm": reg.get("delta_static_mean_mm"),
             "n_points": reg.get("n_points"),
             "n_excluded": len(reg.get("exclusions") or []),
+            "trust": (reg.get("trust") or {}).get("level"),
+            "trust_reasons": "; ".join(str(r.get("code", r)) if isinstance(r, dict) else str(r)
+                                       for r in (reg.get("trust") or {}).get("reasons", [])) or None,
         })
     return {k: v for k, v in values.items() if v is not None}
 
@@ -309,7 +326,8 @@ def run_case(case: Case, out_dir: str) -> CaseRecord:
             raise CaseError(f"{final.name} in the output folder was not written by heartreg batch; "
                             "move it away or choose another output folder")
     except Exception as exc:  # noqa: BLE001 - every failure becomes the case's record
-        return CaseRecord(case=case.name, status="failed", error=f"{step}: {_redact(_error_line(exc), pairs)}",
+        return CaseRecord(case=case.name, status="failed",
+                          error=f"{step}: {_without_file_names(case)(_redact(_error_line(exc), pairs))}",
                           times_s={"total": time.perf_counter() - t_start})
 
     _remove_leftovers(out, case.name)
@@ -324,7 +342,8 @@ def run_case(case: Case, out_dir: str) -> CaseRecord:
         step = "record"
         _thumbnail(staging)
         times["total"] = time.perf_counter() - t_start
-        notes = list(dict.fromkeys(_redact(" ".join(n.split()), pairs) for n in notes))
+        unnamed = _without_file_names(case)
+        notes = list(dict.fromkeys(unnamed(_redact(" ".join(n.split()), pairs)) for n in notes))
         record = CaseRecord(case=case.name, status="done", key=key, values=_values(staging), times_s=times,
                             notes=tuple(notes))
         write_text_atomic(staging / CASE_FILE, json.dumps({
@@ -340,6 +359,6 @@ def run_case(case: Case, out_dir: str) -> CaseRecord:
     except Exception as exc:  # noqa: BLE001 - every failure becomes the case's record
         times["total"] = time.perf_counter() - t_start
         return CaseRecord(case=case.name, status="failed", key=key, times_s=times,
-                          error=f"{step}: {_redact(_error_line(exc), pairs)}")
+                          error=f"{step}: {_without_file_names(case)(_redact(_error_line(exc), pairs))}")
     finally:
         shutil.rmtree(staging, ignore_errors=True)

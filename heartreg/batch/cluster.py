@@ -82,6 +82,47 @@ def _dashboard_link(client) -> str:
         return ""
 
 
+#: Most local workers per core: more only wait for each other (and each holds a case's memory).
+MAX_WORKERS_PER_CORE = 4
+
+
+def _probe_scheduler(address: str, timeout_s: float) -> None:
+    """Refuse, in one line, an address that is malformed or where no Dask scheduler answers.
+
+    A Dask scheduler writes its handshake (a frame count, 8 bytes little-endian) as soon as a
+    connection opens; another service (an HTTP server) waits for a request, and ``distributed.Client``
+    then waits past its own timeout, forever.  Only ``tcp://`` addresses are probed.
+    """
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme != "tcp":
+            return
+        host, port = parse_host_port(location)
+    except ValueError as exc:
+        raise ClusterError(f"--scheduler {address!r} is not a scheduler address ({exc}): give tcp://HOST:PORT") from None
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s) as conn:
+            conn.settimeout(timeout_s)
+            head = b""
+            while len(head) < 8:
+                chunk = conn.recv(8 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+    except socket.timeout:
+        head = b""
+    except OSError as exc:
+        raise ClusterError(f"cannot reach the Dask scheduler at {address} ({exc}); "
+                           "check --scheduler and that the scheduler is running") from None
+    if len(head) < 8 or int.from_bytes(head, "little") > 1000:
+        raise ClusterError(f"{address} answers, but not as a Dask scheduler (no handshake within {timeout_s:g} s): "
+                           "check --scheduler (the scheduler's port, 8786 by default, not its dashboard's)")
+
+
 @contextlib.contextmanager
 def open_client(*, workers: int | None = None, scheduler: str | None = None,
                 memory_limit: str = DEFAULT_MEMORY_LIMIT, log: Callable[[str], None] | None = None):
@@ -108,9 +149,10 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
     say = log or (lambda msg: None)
     cluster = None
     if scheduler:
+        _probe_scheduler(scheduler, min(CONNECT_TIMEOUT_S, 10))
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, ValueError) as exc:
             raise ClusterError(f"cannot reach the Dask scheduler at {scheduler} ({exc}); "
                                "check --scheduler and that the scheduler is running") from None
         n = len(client.scheduler_info().get("workers", {}))
@@ -119,6 +161,9 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
         n = default_workers() if workers is None else int(workers)
         if n < 1:
             raise ClusterError(f"--workers must be at least 1, got {n}")
+        if n > MAX_WORKERS_PER_CORE * default_workers():
+            raise ClusterError(f"--workers {n} on {default_workers()} core(s): at most {MAX_WORKERS_PER_CORE} per core "
+                               "(more only wait for each other); for more, start a cluster and give --scheduler")
         try:  # the scheduler's http server (the dashboard's, with bokeh) on a free loopback port
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, memory_limit=memory_limit,
                                    host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)

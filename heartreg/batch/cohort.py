@@ -227,6 +227,16 @@ def _check_parse(argv: dict, inputs: dict, where: str) -> None:
             raise CohortError(f"{where}: heartreg {command}: {exc}") from None
 
 
+def is_batch_output(folder) -> bool:
+    """Whether ``folder`` holds an earlier ``heartreg batch`` output (its ``summary.csv``, whose
+    header starts ``case,status``): not a study, and an output folder a batch may go on in."""
+    try:
+        with (Path(folder) / "summary.csv").open(encoding="utf-8") as f:
+            return f.readline().startswith("case,status,")
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
 def read_cohort(path) -> tuple[Case, ...]:
     """Read a cohort: a CSV file (one row per case) or a folder of study folders.
 
@@ -237,7 +247,7 @@ def read_cohort(path) -> tuple[Case, ...]:
         ``case``, ``session``, ``mask`` and ``options`` (optional; see the
         module docstring), paths relative to the file's folder; or a folder
         whose every subfolder is one study (phases and model, named by the
-        subfolder).
+        subfolder; a batch's output folder inside it is not one).
 
     Returns
     -------
@@ -254,7 +264,9 @@ def read_cohort(path) -> tuple[Case, ...]:
     path = Path(path)
     table = _command_actions()
     if path.is_dir():
-        folders = sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith("."))
+        # not a batch's output folder put inside the cohort's (it is no study)
+        folders = sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")
+                         and not is_batch_output(p))
         if not folders:
             raise CohortError(f"cohort folder {path} holds no study folders; give a folder of study folders or a CSV")
         cases = [_make_case(p.name, p.name, "", "", "", base=path, where=f"cohort folder {path}", table=table)

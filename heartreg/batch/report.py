@@ -36,7 +36,7 @@ COLUMNS = (
     ("axis_z_p", ""),
     ("axis_z_s", ""),
     ("n_fiducials", "skin fiducials found"),
-    ("phi_r", "respiration phase phi_R* (eq. 10)"),
+    ("phi_r", "respiration phase phi_R* (register's estimator)"),
     ("rms_mm", "RMS point-to-surface error at phi_R*, mm"),
     ("fre_mm", "fiducial registration error, mm"),
     ("translation_from_t0_mm", "final registration's distance from the fiducial seed T0, mm"),
@@ -44,6 +44,8 @@ COLUMNS = (
     ("delta_static_mean_mm", "mean delta between static and spatiotemporal registration, mm"),
     ("n_points", "registered attachment points"),
     ("n_excluded", "excluded attachment points"),
+    ("trust", "how far to trust the registration: ok, caution or poor (registration.json)"),
+    ("trust_reasons", "why not ok: the reasons' codes"),
     ("time_phases_s", "wall time of heartreg phases, s"),
     ("time_model_s", "of heartreg model, s"),
     ("time_register_s", "of heartreg register, s"),
@@ -124,6 +126,8 @@ def index_html(records, path, *, out_dir) -> Path:
             f'<td class="num">{_fmt(v.get("phi_r"), ".2f")}</td>'
             f'<td class="num">{_fmt(v.get("rms_mm"), ".3f")}</td>'
             f'<td class="num">{_fmt(v.get("fre_mm"), ".2f")}</td>'
+            f'<td>{html.escape(str(v.get("trust", "")))}'
+            f'{"<br>" + html.escape(v["trust_reasons"]) if v.get("trust_reasons") else ""}</td>'
             f'<td class="num">{_fmt(r.times_s.get("total"), ".1f")}</td>'
             f"<td>{detail}</td></tr>"
         )
@@ -135,7 +139,7 @@ def index_html(records, path, *, out_dir) -> Path:
 Every number is in <a href="summary.csv">summary.csv</a>; each case's outputs are in its folder.</p>
 <table>
 <tr><th></th><th>case</th><th>status</th><th>phi_C*</th><th>heart volume (mL)</th><th>heart frame Euler XYZ (deg)</th>
-<th>phi_R*</th><th>RMS (mm)</th><th>FRE (mm)</th><th>time (s)</th><th>error / notes</th></tr>
+<th>phi_R*</th><th>RMS (mm)</th><th>FRE (mm)</th><th>trust</th><th>time (s)</th><th>error / notes</th></tr>
 {chr(10).join(rows)}
 </table>
 </body></html>

@@ -29,7 +29,7 @@ from heartreg.batch.cluster import (
     open_client,
     run_tasks,
 )
-from heartreg.batch.cohort import Case, CohortError, read_cohort, select_part
+from heartreg.batch.cohort import Case, CohortError, is_batch_output, read_cohort, select_part
 from heartreg.batch.report import index_html, summary_csv
 from imaging.files import write_text_atomic
 
@@ -83,7 +83,26 @@ def _check_out(out: Path, cases) -> Path:
             if out in p.parents:
                 raise CohortError(f"case {case.name}'s {role} {p} is inside the output folder {out}; "
                                   "choose an output folder outside the cohort's folders")
-    return check_out_dir(out, what="batch output folder")
+    check_out_dir(out, what="batch output folder", create=False)
+    if out.is_dir() and any(out.iterdir()) and not _earlier_run(out):
+        raise CohortError(f"the output folder {out} holds files that are not an earlier batch's; "
+                          "choose a new or empty folder (a batch goes on only in its own output folder)")
+    return out
+
+
+def _earlier_run(out: Path) -> bool:
+    """Whether ``out`` holds only what a batch writes: its summary and index, failure records,
+    staging folders and finished cases (a run killed before its first summary has only these)."""
+    for entry in out.iterdir():
+        if entry.name.startswith(".") or entry.name == FAILED_DIR:
+            continue
+        if entry.name in ("summary.csv", "index.html"):
+            if is_batch_output(out):
+                continue
+            return False
+        if not (entry.is_dir() and read_case_record(entry) is not None):
+            return False
+    return True
 
 
 def _record_of(name: str, result) -> CaseRecord:
@@ -157,6 +176,8 @@ def run_batch(
     ClusterError
         The cluster cannot be started or the scheduler reached.
     """
+    from heartreg.pipeline import check_out_dir
+
     t0 = time.perf_counter()
     say = log or (lambda msg: None)
     cases = tuple(cohort) if not isinstance(cohort, (str, os.PathLike)) else read_cohort(cohort)
@@ -174,8 +195,11 @@ def run_batch(
         return f"{counts['done']} done, {counts['failed']} failed"
 
     try:
-        if mine:
+        if not mine:
+            check_out_dir(out, what="batch output folder")
+        else:
             with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit, log=say) as client:
+                check_out_dir(out, what="batch output folder")  # made once the cluster is up: a refusal writes nothing
                 for name, result in run_tasks(client, run_case, mine, names=[c.name for c in mine],
                                               args=(str(out),), progress=progress, desc="batch",
                                               on_result=postfix):
@@ -188,8 +212,10 @@ def run_batch(
         raise
     finally:
         records = tuple(now.get(c.name) or _on_disk(out, c.name) for c in cases)
-        paths = {"summary": summary_csv(records, out / "summary.csv"),
-                 "index": index_html(records, out / "index.html", out_dir=out)}
+        paths = {}
+        if out.is_dir():
+            paths = {"summary": summary_csv(records, out / "summary.csv"),
+                     "index": index_html(records, out / "index.html", out_dir=out)}
     ran = tuple(name for name, r in now.items() if not r.reused)
     return BatchResult(out_dir=out, records=records, ran=ran, paths=paths,
                        timings_s={"total": time.perf_counter() - t0}, interrupted=interrupted)

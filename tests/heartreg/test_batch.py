@@ -196,6 +196,9 @@ def test_summary_and_index_hold_the_outputs_numbers_and_no_input_path(batch):
     reg = json.loads((out / "whole" / "registration" / "registration.json").read_text())
     assert float(rows["whole"]["phi_r"]) == pytest.approx(reg["respiration_phase"], abs=1e-12)
     assert float(rows["whole"]["rms_mm"]) == pytest.approx(reg["rms_mm"], rel=1e-9)
+    # the registration's trust is in the summary (it was only inside each case's folder)
+    assert rows["whole"]["trust"] == reg["trust"]["level"]
+    assert rows["whole"]["trust_reasons"] == "; ".join(r["code"] for r in reg["trust"]["reasons"])
     assert rows["faces8k"]["phi_r"] == "" and rows["broken"]["status"] == "failed"
     page = (out / "index.html").read_text()
     assert page.count("data:image/png;base64,") == 3  # one picture per done case
@@ -259,6 +262,37 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, sample_case, capsys, mon
     assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:9", "-q"]) == 1
     err = capsys.readouterr().err
     assert "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()  # a refusal at start writes nothing (it wrote summary.csv before)
+
+
+def test_a_service_that_is_no_scheduler_is_one_line_not_a_hang(tmp_path, sample_case, capsys):
+    """An HTTP server (a dashboard's port given for the scheduler's) accepts and waits for a request: Dask's
+    client waited forever, past its own timeout; a malformed address gave a traceback (session 16's sweep)."""
+    import socket
+    import threading
+
+    case_dir, _ = sample_case
+    cohort = _write_cohort(tmp_path / "in", case_dir, ROWS[1:2])
+    quiet = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+    thread = threading.Thread(target=lambda: accepted.append(quiet.accept()), daemon=True)
+    thread.start()
+    try:
+        t0 = time.monotonic()
+        address = f"tcp://127.0.0.1:{quiet.getsockname()[1]}"
+        assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--scheduler", address, "-q"]) == 1
+        assert time.monotonic() - t0 < 30
+        err = capsys.readouterr().err
+        assert "answers, but not as a Dask scheduler" in err and "Traceback" not in err
+    finally:
+        quiet.close()
+    for address in ("not-an-address", "tcp://127.0.0.1"):
+        assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--scheduler", address, "-q"]) == 1
+        err = capsys.readouterr().err
+        assert "give tcp://HOST:PORT" in err and "Traceback" not in err
+    assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--workers", "1000", "-q"]) == 1
+    assert "at most 4 per core" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 # ------------------------------------------------------------------ cohort (no cluster)
@@ -308,6 +342,33 @@ def test_cohort_names_and_parts(tmp_path, sample_case):
     assert parts == [("a", "c", "e"), ("b", "d")]
     with pytest.raises(CohortError, match=r"--part-id must be in 0..1 for --num-parts 2, got 2"):
         select_part(list("abc"), 2, 2)
+
+
+def test_a_folder_of_other_files_is_no_output_folder(tmp_path, sample_case):
+    """A user's own summary.csv and index.html were replaced by a batch's (session 16's sweep): a non-empty
+    output folder must be an earlier batch's."""
+    case_dir, _ = sample_case
+    cohort = _write_cohort(tmp_path / "in", case_dir, [("a", "broken", "", "")])
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "summary.csv").write_text("my,data\n")
+    (out / "index.html").write_text("<p>mine\n")
+    with pytest.raises(CohortError, match="holds files that are not an earlier batch's"):
+        run_batch(cohort, out, workers=1, progress=False)
+    assert (out / "summary.csv").read_text() == "my,data\n" and (out / "index.html").read_text() == "<p>mine\n"
+
+
+def test_an_output_folder_inside_a_cohort_folder_is_not_a_case(tmp_path, batch):
+    """``heartreg batch COHORT_DIR -o COHORT_DIR/out`` ran once, then its output folder was read as a study."""
+    from heartreg.batch.cohort import is_batch_output
+
+    _, _, out, _, _, _ = batch
+    assert is_batch_output(out)
+    folder = tmp_path / "cohort"
+    (folder / "study1").mkdir(parents=True)
+    (folder / "out").mkdir()
+    (folder / "out" / "summary.csv").write_text((out / "summary.csv").read_text())
+    assert [c.name for c in read_cohort(folder)] == ["study1"]
 
 
 def test_an_output_folder_inside_an_input_is_refused(tmp_path, sample_case):
