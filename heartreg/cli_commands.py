@@ -319,7 +319,7 @@ def _cmd_track(args) -> int:
     from registration.session import read_session
 
     from heartreg.igtl import igtl_client_chunks
-    from heartreg.track import load_tracker, print_summary, run_track, session_chunks
+    from heartreg.track import load_tracker, run_track, session_chunks
 
     if args.speed is not None and not args.speed > 0:
         raise UsageError(f"--speed must be positive (1 = real time), got {args.speed}")
@@ -360,10 +360,26 @@ def _cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    print_summary(summary, args.log)
+    _print_track_summary(summary, args.log)
     for why, n in skipped.items():
         print(f"  skipped           {n} sample(s) from --igtl-in: {why}")
     return (143 if summary.terminated else 130) if summary.interrupted else 0
+
+
+def _print_track_summary(summary, csv_path, *, file=sys.stdout) -> None:
+    """``heartreg track``'s summary lines (a :class:`heartreg.track.TrackSummary`)."""
+    s = summary
+    rate = s.n_samples / s.wall_s if s.wall_s > 0 else float("nan")
+    print(f"tracked {s.n_samples} samples ({s.n_placed} placed on the map) in {s.wall_s:.2f} s "
+          f"({rate:.0f} samples/s){' - interrupted' if s.interrupted else ''}", file=file)
+    print(f"  log               {csv_path}", file=file)
+    if s.n_sent == 0 and s.models_sent == 0:
+        print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
+        print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
+        return
+    print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
+          f"model sent {s.models_sent} time(s)", file=file)
+    print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
 
 
 def _check_log(args) -> None:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import tempfile
 import time
 from collections.abc import Iterable, Iterator
@@ -486,19 +485,3 @@ def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):
         sink.send(float(rows.time_s[i]), T_ras_from_heart @ rows.T_heart_from_robot[i], _status_text(rows, i))
         sent[i] = True
     return rows, sent
-
-
-def print_summary(summary: TrackSummary, csv_path, *, file=sys.stdout) -> None:
-    """The CLI's summary lines."""
-    s = summary
-    rate = s.n_samples / s.wall_s if s.wall_s > 0 else float("nan")
-    print(f"tracked {s.n_samples} samples ({s.n_placed} placed on the map) in {s.wall_s:.2f} s "
-          f"({rate:.0f} samples/s){' - interrupted' if s.interrupted else ''}", file=file)
-    print(f"  log               {csv_path}", file=file)
-    if s.n_sent == 0 and s.models_sent == 0:
-        print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
-        print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
-        return
-    print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
-          f"model sent {s.models_sent} time(s)", file=file)
-    print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
