@@ -269,6 +269,14 @@ def read_cohort(path) -> tuple[Case, ...]:
                          and not is_batch_output(p))
         if not folders:
             raise CohortError(f"cohort folder {path} holds no study folders; give a folder of study folders or a CSV")
+        bad = [p.name for p in folders if not _NAME.match(p.name)]
+        if bad:  # all of them at once, not one per run
+            raise CohortError(
+                f"cohort folder {path}: {len(bad)} folder name(s) cannot name a case "
+                f"({', '.join(map(repr, bad[:5]))}{', ...' if len(bad) > 5 else ''}): a case name starts with a letter "
+                "or digit and holds only letters, digits, '.', '_' and '-'; rename them, or list the cases in a "
+                "cohort CSV whose 'case' column names them"
+            )
         cases = [_make_case(p.name, p.name, "", "", "", base=path, where=f"cohort folder {path}", table=table)
                  for p in folders]
     elif path.is_file():

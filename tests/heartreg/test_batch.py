@@ -338,6 +338,11 @@ def test_cohort_names_and_parts(tmp_path, sample_case):
         (folder / name).mkdir(parents=True)
     cases = read_cohort(folder)
     assert [c.name for c in cases] == ["s1", "s2"] and not any(c.has_session for c in cases)
+    # folders that cannot name a case are all named at once (one per run before session 16)
+    for name in ("case two", "J\u00f6rg"):
+        (folder / name).mkdir()
+    with pytest.raises(CohortError, match=r"2 folder name\(s\) cannot name a case \('J\u00f6rg', 'case two'\).*'case' column"):
+        read_cohort(folder)
     parts = [select_part(list("abcde"), 2, i) for i in (0, 1)]
     assert parts == [("a", "c", "e"), ("b", "d")]
     with pytest.raises(CohortError, match=r"--part-id must be in 0..1 for --num-parts 2, got 2"):
