@@ -401,7 +401,10 @@ def run_track(
     csv_path = Path(csv_path)
     if csv_path.exists() and csv_path.is_dir():
         raise TrackError(f"--log {csv_path} is a folder; give a file name")
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
     own_sink = False
     if sink is None and igtl_port is not None:
         if model is None:
@@ -416,7 +419,12 @@ def run_track(
     if sink is not None and T_ras_from_heart is None:
         raise TrackError("OpenIGTLink needs the model (its frame)")
     limiter = RateLimiter(igtl_rate_hz)
-    fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.stem}-", suffix=".csv", dir=csv_path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.stem}-", suffix=".csv", dir=csv_path.parent)
+    except OSError as exc:
+        if own_sink:
+            sink.close()
+        raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
     n = placed = sent_total = 0
     interrupted = False
     t_wall0 = time.perf_counter()

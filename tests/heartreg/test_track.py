@@ -369,6 +369,9 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
                         (["--igtl-rate", "-5"], "--igtl-rate must be 0")):
         assert main(["track", *inputs, "--log", str(tmp_path / "y.csv"), *extra]) == 1
         assert said in capsys.readouterr().err
+    (tmp_path / "afile").write_text("x")  # a log below a file: one line, not a bare "File exists"
+    assert main(["track", *inputs, "--log", str(tmp_path / "afile" / "x.csv")]) == 1
+    assert "cannot write there" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["track", *inputs, "--log", str(tmp_path / "y.csv"), "--igtl-port", "70000"])
     assert "70000 is not a TCP port" in capsys.readouterr().err
