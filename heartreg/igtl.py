@@ -68,6 +68,11 @@ class IgtlSink:
                 if signal.getsignal(s) is not h:
                     signal.signal(s, h)
         self.port = int(self._server.server_address[1])
+        # pyigtl serves one client at a time: the next one's handler starts as soon as the last one's ends, too
+        # soon for a change of ``connected`` to be seen; a count of handlers tells each new connection
+        self._server.connections = 0
+        self._server.RequestHandlerClass = _counting_handler(pyigtl)
+        self._seen = 0
         faces = np.asarray(faces, dtype=np.uint32)
         polys = np.concatenate([np.full((faces.shape[0], 1), 3, np.uint32), faces], axis=1).ravel()
         self._model = pyigtl.PolyDataMessage(points=np.asarray(vertices_ras, dtype=np.float32),
@@ -88,9 +93,11 @@ class IgtlSink:
     def poll(self) -> bool:
         """Send the model on a new connection; True while a client is connected."""
         now = self.connected
-        if now and not self._was_connected:
+        count = self._server.connections
+        if now and (not self._was_connected or count != self._seen):
             self._server.send_message(self._model, wait=False)
             self.models_sent += 1
+            self._seen = count
         self._was_connected = now
         return now
 
@@ -124,6 +131,18 @@ class IgtlSink:
         self._server.communication_thread_stop_requested = True
         self._server.shutdown()
         self._server.server_close()
+
+
+def _counting_handler(pyigtl):
+    """pyigtl's request handler, counting the connections it serves on its server."""
+    from pyigtl.comm import TCPRequestHandler
+
+    class _Counting(TCPRequestHandler):
+        def handle(self):
+            self.server.connections += 1
+            super().handle()
+
+    return _Counting
 
 
 def unpack_polydata(content: bytes):

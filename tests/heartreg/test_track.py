@@ -400,3 +400,30 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
         write_navigation(tmp_path)
     with pytest.raises(PhantomError, match="speed_mm_s must be positive"):
         write_navigation(nav["case"], out_dir=tmp_path, speed_mm_s=0.0)
+
+
+def test_a_client_that_connects_while_another_is_served_gets_the_model():
+    """pyigtl serves one client at a time; the next one's handler starts the moment the last one's ends, too
+    soon for ``connected`` to change between two polls: before session 16 the second client never got the
+    heart model (Slicer showed the robot on no heart)."""
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+    sink = IgtlSink(0, vertices, faces)
+    first, _ = lossless_client("127.0.0.1", sink.port)
+    second, got = lossless_client("127.0.0.1", sink.port)
+    try:
+        end = time.monotonic() + 5
+        while sink.models_sent < 1 and time.monotonic() < end:
+            sink.poll()
+            time.sleep(0.01)
+        time.sleep(0.3)
+        first.stop()
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not any(m.message_type == "POLYDATA" for m in list(got)):
+            if sink.poll():  # the stream goes on: a send finds the first client gone
+                sink.send(time.monotonic(), np.eye(4), "{}")
+            time.sleep(0.01)
+        assert any(m.message_type == "POLYDATA" for m in list(got)) and sink.models_sent == 2
+    finally:
+        second.stop()
+        sink.close()
