@@ -82,6 +82,25 @@ def _dashboard_link(client) -> str:
         return ""
 
 
+#: Least memory (bytes) a local worker may be given: a sample-size case peaks near 0.4 GB, a full-size one 0.8 GB.
+MIN_MEMORY_LIMIT = 512 * 2**20
+
+
+def _check_memory_limit(memory_limit) -> None:
+    """Refuse a per-worker memory limit no case fits in (Dask then failed with a closed stream)."""
+    from dask.utils import parse_bytes
+
+    if isinstance(memory_limit, str) and memory_limit.strip().lower() in ("auto", "0", "none", ""):
+        return
+    try:
+        n_bytes = parse_bytes(memory_limit) if isinstance(memory_limit, str) else int(memory_limit)
+    except (ValueError, TypeError):
+        raise ClusterError(f"--memory-limit {memory_limit!r} is not an amount of memory (e.g. 4GB, or auto)") from None
+    if 0 < n_bytes < MIN_MEMORY_LIMIT:
+        raise ClusterError(f"--memory-limit {memory_limit} per worker is less than a case needs "
+                           f"({MIN_MEMORY_LIMIT // 2**20} MB and up: a full-size case peaks near 0.8 GB)")
+
+
 #: Most local workers per core: more only wait for each other (and each holds a case's memory).
 MAX_WORKERS_PER_CORE = 4
 
@@ -164,6 +183,7 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
         if n > MAX_WORKERS_PER_CORE * default_workers():
             raise ClusterError(f"--workers {n} on {default_workers()} core(s): at most {MAX_WORKERS_PER_CORE} per core "
                                "(more only wait for each other); for more, start a cluster and give --scheduler")
+        _check_memory_limit(memory_limit)
         try:  # the scheduler's http server (the dashboard's, with bokeh) on a free loopback port
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, memory_limit=memory_limit,
                                    host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)

@@ -292,6 +292,9 @@ def test_a_service_that_is_no_scheduler_is_one_line_not_a_hang(tmp_path, sample_
         assert "give tcp://HOST:PORT" in err and "Traceback" not in err
     assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--workers", "1000", "-q"]) == 1
     assert "at most 4 per core" in capsys.readouterr().err
+    assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--workers", "1", "--memory-limit", "1MB",
+                 "-q"]) == 1
+    assert "less than a case needs" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 
