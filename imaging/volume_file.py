@@ -22,6 +22,7 @@ import numpy as np
 
 from hrcore.geometry import apply_to_points
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
+from imaging.files import gzip_damage
 from imaging.grouping import StudyWarning
 from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume
 
@@ -107,6 +108,9 @@ def read_nifti_volume(path) -> Volume:
     path = Path(path)
     if not path.is_file():
         raise SeriesError(f"NIfTI file {path} does not exist")
+    damage = gzip_damage(path) if str(path).lower().endswith(".gz") else None
+    if damage:
+        raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
     try:
         img = nib.load(str(path))
         data = np.asarray(img.dataobj)

@@ -16,6 +16,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from hrcore.memory import release_free_memory
 from modeling.coarse import mask_box
@@ -79,6 +80,25 @@ class ModelBuild:
 
 #: the share of an external label that may lie outside the CT before a note says so.
 OUTSIDE_NOTE_FRACTION = 0.05
+
+
+#: A given mask's pieces apart from its largest are said when they hold this much (ml) or more.
+MIN_PIECES_ML = 1.0
+
+
+def _other_pieces(mask, T) -> str:
+    """What a mask holds besides its largest connected piece (26-connected), in words; "" if nothing.
+    The surface keeps the largest piece only (:func:`modeling.surface.mask_to_mesh`)."""
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3, 3), bool))
+    if n < 2:
+        return ""
+    sizes = np.bincount(labels.ravel())[1:]
+    voxel_ml = abs(float(np.linalg.det(T[:3, :3]))) / 1000.0
+    rest = float(sizes.sum() - sizes.max()) * voxel_ml
+    if rest < MIN_PIECES_ML:  # specks of a segmentation's edge
+        return ""
+    return (f"the mask holds {n} separate pieces, {rest:.1f} ml of it outside the largest ({sizes.max() * voxel_ml:.0f} "
+            "ml), which is left out")
 
 
 def _label_ml(label_map, label) -> float:
@@ -280,6 +300,11 @@ def build_heart_model(
             f"{HEART_ML[1]:.0f} ml; " + ("it is meshed as given: check --label or the label map" if mask_path is not None
                                          else "check the model (a CT without contrast? give --mask or a seed point)")
         )
+    if mask_path is not None:
+        pieces = _other_pieces(mask, T)
+        if pieces:
+            fallback(f"{mask_source}: {pieces}; the largest is meshed (a heart is one piece: check the mask for a "
+                     "missing slice, or remove what is not heart)")
     cut = _cut_by_field_of_view(mask, T)
     if cut:
         fallback(f"the heart is cut by the CT's field of view ({cut}): the model ends flat there and misses what "

@@ -17,6 +17,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
+from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, read_nrrd
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
@@ -117,6 +118,9 @@ class LabelMap:
 def _read_nifti(path: Path) -> LabelMap:
     import nibabel as nib
 
+    damage = gzip_damage(path) if str(path).lower().endswith(".gz") else None
+    if damage:
+        raise LabelMapError(f"NIfTI label map {path} is damaged ({damage}): copy it again from its source")
     try:
         img = nib.load(str(path))
         data = np.asarray(img.dataobj)
@@ -128,6 +132,8 @@ def _read_nifti(path: Path) -> LabelMap:
         raise LabelMapError(f"label map {path} must be 3-D, got shape {data.shape}")
     T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=float)
     names = _caret_label_names(img)
+    if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
+        data = np.where(np.isfinite(data), data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
     return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), names)
 
 

@@ -207,3 +207,26 @@ def test_slicer_segmentation_edge_cases(tmp_path):
     unnamed = read_label_map(_seg_nrrd(tmp_path / "unnamed.seg.nrrd", layers, []))
     with pytest.raises(LabelMapError, match="2 overlapping layers and no segment names"):
         mask_on_grid(unnamed, shape, T, label=1)
+
+
+def test_a_damaged_gzip_and_nan_voxels(tmp_path):
+    """Session 16's sweep: 64 zeroed bytes inside a heart mask's .nii.gz were read by nibabel without a word
+    (a third of the heart lost); a NaN background became label -2147483648."""
+    import nibabel as nib
+
+    T, shape = _source_T()
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T  # the NIfTI affine of the LPS grid
+    data = _ball_labels(T, shape).transpose(2, 1, 0).astype(np.float32)
+    good = tmp_path / "ball.nii.gz"
+    nib.save(nib.Nifti1Image(data, ras), str(good))
+    _check(read_label_map(good))
+    raw = bytearray(good.read_bytes())
+    raw[len(raw) // 2:len(raw) // 2 + 64] = bytes(64)
+    (tmp_path / "damaged.nii.gz").write_bytes(bytes(raw))
+    with pytest.raises(LabelMapError, match=r"damaged.nii.gz is damaged \(.*\): copy it again"):
+        read_label_map(tmp_path / "damaged.nii.gz")
+    nan_background = np.where(data > 0, data, np.nan).astype(np.float32)
+    nib.save(nib.Nifti1Image(nan_background, ras), str(tmp_path / "nan.nii.gz"))
+    label_map = read_label_map(tmp_path / "nan.nii.gz")
+    assert set(np.unique(label_map.labels)) == {0, 3}
+    _check(label_map)
