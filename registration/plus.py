@@ -89,13 +89,18 @@ def _header_text(path: Path) -> tuple[str, bool]:
         raise PlusFileError(f"PLUS sequence file {path} does not exist") from None
     except OSError as exc:
         raise PlusFileError(f"cannot read {path}: {exc}") from None
+    if raw.startswith(b"\xef\xbb\xbf"):  # a UTF-8 byte-order mark
+        raw = raw[3:]
     nrrd = raw.startswith(b"NRRD")
     if nrrd:
-        end = raw.find(b"\n\n")  # a blank line ends a NRRD header
-        end = len(raw) if end < 0 else end
+        blank = re.search(rb"\r?\n\r?\n", raw)  # a blank line ends a NRRD header (LF or CRLF)
+        end = len(raw) if blank is None else blank.start()
     else:
         at = raw.find(b"ElementDataFile")  # the last MetaImage header line
-        end = len(raw) if at < 0 else raw.find(b"\n", at)
+        if at < 0:
+            raise PlusFileError(f"{path}: no ElementDataFile line, the MetaImage header's last: the file is cut "
+                                "short (copy it again) or is not a PLUS sequence file")
+        end = raw.find(b"\n", at)
         end = len(raw) if end < 0 else end
     try:
         return raw[:end].decode("utf-8"), nrrd

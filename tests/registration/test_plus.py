@@ -127,10 +127,30 @@ def test_bad_plus_files(tmp_path):
                  "Seq_Frame0001_Timestamp = 2.0\nElementDataFile = LOCAL\n")
     with pytest.raises(PlusFileError, match="frame 1 has no XToYTransform"):
         read_plus_sequence(f)
+    # cut short before its last line (a copy that stopped): said, not blamed on the clock (session 16's sweep)
+    f.write_text(f"Seq_Frame0000_Timestamp = 1.0\nSeq_Frame0000_XToYTransform = {eye}\nSeq_Frame0001_Timest")
+    with pytest.raises(PlusFileError, match="no ElementDataFile line, the MetaImage header's last: the file is cut short"):
+        read_plus_sequence(f)
     with pytest.raises(PlusFileError, match="ends in"):
         read_plus_sequence(tmp_path / "a.csv")
     with pytest.raises(PlusFileError, match="does not exist"):
         read_plus_sequence(tmp_path / "none.seq.mha")
+
+
+def test_nrrd_with_crlf_lines_a_bom_and_pixels(tmp_path):
+    """A .seq.nrrd written on Windows (CRLF header, a blank CRLF line, then binary pixels) was "not text"; one
+    with a UTF-8 byte-order mark was read as MetaImage ("no Seq_Frame####_Timestamp")."""
+    eye = "1 0 0 5 0 1 0 6 0 0 1 7 0 0 0 1"
+    header = ["NRRD0004", "type: uint8", "dimension: 3", "sizes: 2 2 2", "encoding: raw",
+              "Seq_Frame0000_Timestamp:=10.0", f"Seq_Frame0000_XToYTransform:={eye}",
+              "Seq_Frame0001_Timestamp:=10.01", f"Seq_Frame0001_XToYTransform:={eye}"]
+    pixels = bytes([0xff, 0xfe, 0x80, 0x81, 0x00, 0xc3, 0x28, 0xa0])  # not UTF-8
+    for name, raw in (("crlf.seq.nrrd", "\r\n".join(header).encode() + b"\r\n\r\n" + pixels),
+                      ("bom.seq.nrrd", b"\xef\xbb\xbf" + "\n".join(header).encode() + b"\n\n" + pixels)):
+        (tmp_path / name).write_bytes(raw)
+        seq = read_plus_sequence(tmp_path / name)
+        assert seq.time_s.tolist() == [10.0, 10.01]
+        assert seq.transform("XToY")[:, :3, 3].tolist() == [[5.0, 6.0, 7.0]] * 2
 
 
 def test_session_names_missing_plus_parts(tmp_path):
