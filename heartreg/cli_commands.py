@@ -309,7 +309,7 @@ def _cmd_register(args) -> int:
     print(f"  trust             {result.trust.summary()}" + ("; see the notes" if result.trust.reasons else ""))
     print(f"  exclusions        {len(result.exclusions)}"
           + "".join(f"\n    point {i}: {why}" for i, why in result.exclusions))
-    for note in list(session.notes) + list(result.notes) + list(paths["notes"]):
+    for note in list(result.notes) + list(paths["notes"]):
         print(f"  note              {note}")
     print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()))
     return 0

@@ -190,7 +190,7 @@ def register_session(
     options = dict(icp_options or {})
     options.pop("T_init", None)
     timings: dict[str, float] = {}
-    notes: list[str] = []
+    notes: list[str] = list(session.notes)  # what reading the session dropped (invalid PLUS poses), kept with the result
     t_start = time.perf_counter()
 
     # ---- fiducials first: a mismatch is a hard error, so fail before the slow work

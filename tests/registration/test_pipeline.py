@@ -353,6 +353,15 @@ def _ecg_to_noise(path: Path, seed: int = 0):
         writer.writerows({**row, "ecg_mv": f"{v:.4f}"} for row, v in zip(rows, noise))
 
 
+def test_the_session_notes_stay_with_the_result(case):
+    """What reading the session dropped (a PLUS recording's invalid poses) is in registration.json's notes; it
+    was printed only (session 16's PLUS sweep)."""
+    note = "point 3: 3000 of 3000 samples dropped, the tracker marked the pose invalid in track.igs.nrrd"
+    session = dataclasses.replace(case["session"], notes=(note,))
+    result = register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False)
+    assert result.notes[0] == note
+
+
 def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     session_dir = tmp_path / "session"
     shutil.copytree(case["phantom"] / "session", session_dir)
