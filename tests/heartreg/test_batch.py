@@ -265,12 +265,13 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, sample_case, capsys, mon
     assert not (tmp_path / "out").exists()  # a refusal at start writes nothing (it wrote summary.csv before)
 
 
-def test_a_service_that_is_no_scheduler_is_one_line_not_a_hang(tmp_path, sample_case, capsys):
+def test_a_service_that_is_no_scheduler_is_one_line_not_a_hang(tmp_path, sample_case, capsys, monkeypatch):
     """An HTTP server (a dashboard's port given for the scheduler's) accepts and waits for a request: Dask's
     client waited forever, past its own timeout; a malformed address gave a traceback (session 16's sweep)."""
     import socket
     import threading
 
+    monkeypatch.setattr("heartreg.batch.cluster.CONNECT_TIMEOUT_S", 2)  # the handshake awaited 2 s, not 10
     case_dir, _ = sample_case
     cohort = _write_cohort(tmp_path / "in", case_dir, ROWS[1:2])
     quiet = socket.create_server(("127.0.0.1", 0))
@@ -283,7 +284,7 @@ def test_a_service_that_is_no_scheduler_is_one_line_not_a_hang(tmp_path, sample_
         assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--scheduler", address, "-q"]) == 1
         assert time.monotonic() - t0 < 30
         err = capsys.readouterr().err
-        assert "answers, but not as a Dask scheduler" in err and "Traceback" not in err
+        assert "answers, but not as a Dask scheduler (no handshake within 2 s)" in err and "Traceback" not in err
     finally:
         quiet.close()
     for address in ("not-an-address", "tcp://127.0.0.1"):
