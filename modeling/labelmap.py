@@ -53,6 +53,8 @@ class LabelMap:
     source: str
     names: dict
     segments: dict = field(default_factory=dict)
+    #: a NIfTI header without orientation (qform_code and sform_code 0): placed where nibabel guesses
+    unoriented: bool = False
 
     def select(self, label=None) -> tuple[np.ndarray, str]:
         """The voxels of one label, ``[k, j, i]`` bool, and how it is called in messages.
@@ -134,7 +136,9 @@ def _read_nifti(path: Path) -> LabelMap:
     names = _caret_label_names(img)
     if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
         data = np.where(np.isfinite(data), data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
-    return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), names)
+    unoriented = int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
+    return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), names,
+                    unoriented=unoriented)
 
 
 def _caret_label_names(img) -> dict:
@@ -238,6 +242,12 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     return LabelMap(labels, T, str(path), names)
 
 
+def _no_overlap(label, label_map) -> LabelMapError:
+    why = ("its header has no orientation (qform_code and sform_code 0), so it cannot be placed: write it with the "
+           "CT's affine" if label_map.unoriented else "was it made on another study?")
+    return LabelMapError(f"{label} of {label_map.source} does not overlap the CT volume; {why}")
+
+
 def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int | None = None) -> np.ndarray:
     """Resample one label of ``label_map`` onto a volume grid (nearest neighbour).
 
@@ -276,10 +286,7 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     box_hi = np.clip(np.ceil(ijk.max(axis=0)).astype(int) + 1, 0, np.array(shape[::-1]))
     mask = np.zeros(shape, bool)
     if np.any(box_hi <= box_lo):
-        raise LabelMapError(
-            f"{label} of {label_map.source} does not overlap the CT volume; "
-            "was it made on another study?"
-        )
+        raise _no_overlap(label, label_map)
     ii, jj, kk = np.meshgrid(*(np.arange(a, b) for a, b in zip(box_lo, box_hi)), indexing="ij")
     pts = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(float)
     T_src_from_vol = np.linalg.inv(label_map.T_patient_from_voxel) @ T_vol
@@ -288,8 +295,5 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     sub = values.reshape(ii.shape).astype(bool).transpose(2, 1, 0)  # (k, j, i)
     mask[box_lo[2] : box_hi[2], box_lo[1] : box_hi[1], box_lo[0] : box_hi[0]] = sub
     if not mask.any():
-        raise LabelMapError(
-            f"{label} of {label_map.source} does not overlap the CT volume; "
-            "was it made on another study?"
-        )
+        raise _no_overlap(label, label_map)
     return mask

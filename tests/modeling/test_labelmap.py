@@ -230,3 +230,19 @@ def test_a_damaged_gzip_and_nan_voxels(tmp_path):
     label_map = read_label_map(tmp_path / "nan.nii.gz")
     assert set(np.unique(label_map.labels)) == {0, 3}
     _check(label_map)
+
+
+def test_a_label_map_without_orientation_says_so(tmp_path):
+    """qform_code and sform_code 0: when it lands off the CT, the error says why (it asked 'another study?')."""
+    import nibabel as nib
+
+    T, shape = _source_T()
+    img = nib.Nifti1Image(_ball_labels(T, shape).transpose(2, 1, 0), np.diag([-1.0, -1.0, 1.0, 1.0]) @ T)
+    img.set_qform(None, code=0)
+    img.set_sform(None, code=0)
+    nib.save(img, str(tmp_path / "unoriented.nii.gz"))
+    label_map = read_label_map(tmp_path / "unoriented.nii.gz")
+    far = np.eye(4)
+    far[:3, 3] = 500.0
+    with pytest.raises(LabelMapError, match=r"does not overlap the CT volume; its header has no orientation"):
+        mask_on_grid(label_map, (10, 10, 10), far)
