@@ -472,13 +472,17 @@ def _cmd_batch(args) -> int:
     from heartreg.batch import run_batch
 
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr))
-    result = run_batch(
-        args.cohort, args.out_dir, workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit,
-        num_parts=args.num_parts, part_id=args.part_id, progress=not args.quiet, log=log,
-    )
-    mine = len(result.ran)
-    print(f"batch of {len(result.records)} case(s) in {result.out_dir}: {result.count('done')} done "
-          f"({mine} run now), {result.count('failed')} failed, {result.count('not run')} not run")
+    try:
+        result = run_batch(
+            args.cohort, args.out_dir, workers=args.workers, scheduler=args.scheduler, memory_limit=args.memory_limit,
+            num_parts=args.num_parts, part_id=args.part_id, progress=not args.quiet, log=log,
+        )
+    except KeyboardInterrupt as exc:  # not "nothing was written": the finished cases stay, and the summary
+        print("heartreg batch: interrupted; the cases finished are kept in the output folder and its summary.csv: "
+              "run the same command again to go on", file=sys.stderr)
+        return 143 if type(exc).__name__ == "Terminated" else 130
+    print(f"batch of {len(result.records)} case(s) in {result.out_dir}: {result.count('done')} done, "
+          f"{result.count('failed')} failed, {result.count('not run')} not run ({len(result.ran)} run now)")
     for r in result.records:
         if r.status == "failed":
             print(f"  {r.case}: {r.error}")
