@@ -134,13 +134,34 @@ class IgtlSink:
 
 
 def _counting_handler(pyigtl):
-    """pyigtl's request handler, counting the connections it serves on its server."""
+    """A request handler for pyigtl's server that counts the connections it serves and lets a client go
+    quietly: pyigtl's own prints two tracebacks on stderr whenever a client leaves (a reset, a broken pipe),
+    in the middle of a live session's output."""
+    import logging
+
     from pyigtl.comm import TCPRequestHandler
+
+    log = logging.getLogger(__name__)
 
     class _Counting(TCPRequestHandler):
         def handle(self):
-            self.server.connections += 1
-            super().handle()
+            server = self.server
+            server.connections += 1
+            server._connected = True
+            self.request.settimeout(0.01)
+            try:
+                while not server.communication_thread_stop_requested:
+                    while server._receive_message_from_socket(self.request):
+                        if server.communication_thread_stop_requested:
+                            break
+                    while server._send_queued_message_from_socket(self.request):
+                        pass
+            except OSError as exc:  # the client left
+                log.info("OpenIGTLink client gone (%s)", exc)
+            except Exception as exc:  # noqa: BLE001 - a peer's garbage must not stop the server
+                log.warning("OpenIGTLink connection dropped: %s", exc)
+            finally:
+                server._communication_error_occurred()
 
     return _Counting
 
