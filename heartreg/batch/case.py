@@ -26,6 +26,7 @@ import contextlib
 import hashlib
 import io
 import json
+import re
 import os
 import shutil
 import tempfile
@@ -134,6 +135,10 @@ def _redact(text: str, pairs) -> str:
     return text
 
 
+#: A DICOM UID (dotted digits, at least five parts).
+_UID = re.compile(r"(?<![\w.])\d+(?:\.\d+){4,}(?![\w.])")
+
+
 def _without_file_names(case: Case):
     """A function dropping the names of the case's input files from a text (they can name the patient)."""
     from hrcore.redact import file_namer
@@ -143,7 +148,7 @@ def _without_file_names(case: Case):
     def clean(text: str) -> str:
         for namer in namers:
             text = namer(text)
-        return text
+        return _UID.sub("<uid>", text)  # a series' UID is header data: summary.csv holds none
 
     return clean
 

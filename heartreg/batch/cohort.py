@@ -265,7 +265,8 @@ def read_cohort(path) -> tuple[Case, ...]:
     table = _command_actions()
     if path.is_dir():
         # not a batch's output folder put inside the cohort's (it is no study)
-        folders = sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")
+        # a symbolic link counts even when broken: a study moved away is a case that fails, not one that vanishes
+        folders = sorted(p for p in path.iterdir() if (p.is_dir() or p.is_symlink()) and not p.name.startswith(".")
                          and not is_batch_output(p))
         if not folders:
             raise CohortError(f"cohort folder {path} holds no study folders; give a folder of study folders or a CSV")

@@ -342,6 +342,10 @@ def test_cohort_names_and_parts(tmp_path, sample_case):
         (folder / name).mkdir(parents=True)
     cases = read_cohort(folder)
     assert [c.name for c in cases] == ["s1", "s2"] and not any(c.has_session for c in cases)
+    # a broken link to a study is a case (that will fail), not one that vanishes without a line
+    (folder / "s3").symlink_to(tmp_path / "moved_away")
+    assert [c.name for c in read_cohort(folder)] == ["s1", "s2", "s3"]
+    (folder / "s3").unlink()
     # folders that cannot name a case are all named at once (one per run before session 16)
     for name in ("case two", "J\u00f6rg"):
         (folder / name).mkdir()
@@ -351,6 +355,22 @@ def test_cohort_names_and_parts(tmp_path, sample_case):
     assert parts == [("a", "c", "e"), ("b", "d")]
     with pytest.raises(CohortError, match=r"--part-id must be in 0..1 for --num-parts 2, got 2"):
         select_part(list("abc"), 2, 2)
+
+
+def test_notes_written_name_no_file_and_no_uid(tmp_path):
+    """A case's notes go into case.json, summary.csv and index.html: no file name of its study (a file can be
+    named after the patient) and no series UID (header data)."""
+    from heartreg.batch.case import _without_file_names
+    from heartreg.batch.cohort import Case
+
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "SMITHERS_WAYLON.CT.0005.dcm").write_text("x")
+    case = Case(name="a", study=str(study), session="", argv={c: () for c in ("phases", "model", "register")},
+                inputs={"study": str(study)})
+    clean = _without_file_names(case)
+    assert clean("series [0] 1.2.826.0.1.3680043.8.498.1: skipped <study>/SMITHERS_WAYLON.CT.0005.dcm") == \
+        "series [0] <uid>: skipped <study>/a file"
 
 
 def test_a_folder_of_other_files_is_no_output_folder(tmp_path, sample_case):
