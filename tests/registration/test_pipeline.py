@@ -353,15 +353,6 @@ def _ecg_to_noise(path: Path, seed: int = 0):
         writer.writerows({**row, "ecg_mv": f"{v:.4f}"} for row, v in zip(rows, noise))
 
 
-def test_the_session_notes_stay_with_the_result(case):
-    """What reading the session dropped (a PLUS recording's invalid poses) is in registration.json's notes; it
-    was printed only (session 16's PLUS sweep)."""
-    note = "point 3: 3000 of 3000 samples dropped, the tracker marked the pose invalid in track.igs.nrrd"
-    session = dataclasses.replace(case["session"], notes=(note,))
-    result = register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False)
-    assert result.notes[0] == note
-
-
 def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     session_dir = tmp_path / "session"
     shutil.copytree(case["phantom"] / "session", session_dir)
@@ -369,8 +360,12 @@ def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     _truncate(session_dir / "points" / "point_001.csv", 12.0)  # at most 2 breaths of 5 s
     # an ECG lead that records noise only: its ~110 "beats" per minute were used before session 16
     _ecg_to_noise(session_dir / "points" / "point_002.csv")
-    session = read_session(session_dir)
+    # what reading the session dropped (a PLUS recording's invalid poses) stays in the result's notes
+    # (registration.json, the report); it was printed only (session 16's PLUS sweep)
+    dropped = "point 3: 3000 of 3000 samples dropped, the tracker marked the pose invalid in track.igs.nrrd"
+    session = dataclasses.replace(read_session(session_dir), notes=(dropped,))
     result = register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False, min_breaths=4)
+    assert result.notes[0] == dropped
     reasons = dict(result.exclusions)
     assert set(reasons) == {0, 1, 2}
     assert "shorter than min_duration_s" in reasons[0]
