@@ -363,7 +363,15 @@ def _cmd_track(args) -> int:
     _print_track_summary(summary, args.log)
     for why, n in skipped.items():
         print(f"  skipped           {n} sample(s) from --igtl-in: {why}")
-    return (143 if summary.terminated else 130) if summary.interrupted else 0
+    return _interrupted_status(summary.interrupted_by) if summary.interrupted else 0
+
+
+def _interrupted_status(kind) -> int:
+    """The exit status of a command that kept its output through an interruption: 143 for SIGTERM, 130 for
+    Ctrl-C, as :func:`heartreg.cli.main` gives when it handles one."""
+    from heartreg.cli import Terminated
+
+    return 143 if issubclass(kind, Terminated) else 130
 
 
 def _print_track_summary(summary, csv_path, *, file=sys.stdout) -> None:
@@ -480,7 +488,7 @@ def _cmd_batch(args) -> int:
     except KeyboardInterrupt as exc:  # not "nothing was written": the finished cases stay, and the summary
         print("heartreg batch: interrupted; the cases finished are kept in the output folder and its summary.csv: "
               "run the same command again to go on", file=sys.stderr)
-        return 143 if type(exc).__name__ == "Terminated" else 130
+        return _interrupted_status(type(exc))
     print(f"batch of {len(result.records)} case(s) in {result.out_dir}: {result.count('done')} done, "
           f"{result.count('failed')} failed, {result.count('not run')} not run ({len(result.ran)} run now)")
     for r in result.records:

@@ -257,7 +257,8 @@ def load_tracker(model_dir, registration_dir, session_dir):
 
     model = read_model(model_dir)
     reg = read_registration(registration_dir)
-    _check_same_model(model, reg, model_dir, registration_dir)
+    surface = SurfaceIndex(model.mesh.vertices, model.mesh.faces)
+    _check_same_model(model, surface, reg, model_dir, registration_dir)
     session = read_session(session_dir)
     ids = [int(i) for i in reg.point_ids]
     parameters = reg.parameters
@@ -276,24 +277,23 @@ def load_tracker(model_dir, registration_dir, session_dir):
                 f"{session_dir}: point {pid} fits with residual {m.residual_rms_3d_mm:.6f} mm, the "
                 f"registration's was {want:.6f} mm: give the session the registration was made from"
             )
-    localiser = Localiser(models, reg.T_heart_from_probe, reg.cardiac_phase, reg.respiration_phase,
-                          SurfaceIndex(model.mesh.vertices, model.mesh.faces))
+    localiser = Localiser(models, reg.T_heart_from_probe, reg.cardiac_phase, reg.respiration_phase, surface)
     rr = 1.0 / float(np.mean([f.heart_rate_hz for f in reg.point_fits]))
     br = 1.0 / float(np.mean([f.resp_rate_hz for f in reg.point_fits]))
     return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
 
 
-def _check_same_model(model, reg, model_dir, registration_dir) -> None:
+def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
     """Refuse a registration made to another model: its points, placed by its transform, must lie on this
-    model's surface as they lay on the registration's (the same RMS distance; another heart puts them mm off)."""
-    from registration.closest import SurfaceIndex, closest_points
+    model's surface (its ``SurfaceIndex``) as they lay on the registration's (the same RMS distance; another
+    heart puts them mm off)."""
+    from registration.closest import closest_points
 
     why = None
     if model.mesh.n_faces != reg.n_faces:
         why = f"it was registered to a mesh of {reg.n_faces} faces, the model has {model.mesh.n_faces}"
     else:
-        d = closest_points(SurfaceIndex(model.mesh.vertices, model.mesh.faces),
-                           apply_to_points(reg.T_heart_from_probe, reg.points_probe_mm)).distances_mm
+        d = closest_points(surface, apply_to_points(reg.T_heart_from_probe, reg.points_probe_mm)).distances_mm
         rms = float(np.sqrt(np.mean(d**2)))
         if not np.isclose(rms, reg.rms_mm, rtol=1e-3, atol=1e-3):
             why = f"its points lie {rms:.3f} mm (RMS) from this model's surface, {reg.rms_mm:.3f} mm from its own"
@@ -349,8 +349,8 @@ class TrackSummary:
     wall_s: float
     r_peak_latency_ms: tuple
     interrupted: bool
-    #: the interruption was a termination request (SIGTERM), not Ctrl-C
-    terminated: bool = False
+    #: what interrupted the stream: KeyboardInterrupt (Ctrl-C) or a subclass of it (the CLI's SIGTERM)
+    interrupted_by: type | None = None
 
 
 def run_track(
@@ -426,7 +426,7 @@ def run_track(
             sink.close()
         raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
     n = placed = sent_total = 0
-    interrupted = False
+    interrupted_by = None
     t_wall0 = time.perf_counter()
     try:
         with os.fdopen(fd, "w", newline="") as fh:
@@ -457,7 +457,7 @@ def run_track(
                         if progress is not None:
                             progress(rows)
             except KeyboardInterrupt as exc:
-                interrupted = type(exc).__name__  # KeyboardInterrupt, or the CLI's Terminated (SIGTERM)
+                interrupted_by = type(exc)
         if sink is not None:
             sink.flush()
         os.chmod(tmp, 0o666 & ~_umask())
@@ -472,7 +472,7 @@ def run_track(
         n_samples=n, n_placed=placed, n_sent=sent_total, n_dropped=limiter.dropped,
         models_sent=0 if sink is None else sink.models_sent, wall_s=time.perf_counter() - t_wall0,
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
-        interrupted=bool(interrupted), terminated=interrupted == "Terminated",
+        interrupted=interrupted_by is not None, interrupted_by=interrupted_by,
     )
 
 
