@@ -329,7 +329,11 @@ def _cmd_track(args) -> int:
         raise UsageError("--igtl-in and --replay are two sources of the stream: give one")
     if not args.idle_timeout > 0:
         raise UsageError(f"--idle-timeout must be positive (s), got {args.idle_timeout}")
-    _check_log(args)
+    from hrcore.output import check_output_path
+
+    # the log never lies inside an input (it replaced registration.json), nor replaces a file without --overwrite
+    check_output_path(args.log, inputs=(args.model_dir, args.registration_dir, args.session_dir, args.replay),
+                      what="--log", overwrite=args.overwrite, folder=False)
     tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
     skipped: dict[str, int] = {}
     if args.igtl_in is not None:
@@ -388,17 +392,6 @@ def _print_track_summary(summary, csv_path, *, file=sys.stdout) -> None:
     print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
           f"model sent {s.models_sent} time(s)", file=file)
     print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
-
-
-def _check_log(args) -> None:
-    """--log must not overwrite an input, nor an earlier log unless --overwrite says so."""
-    log = args.log.resolve()
-    for name, folder in (("MODEL_DIR", args.model_dir), ("REGISTRATION_DIR", args.registration_dir),
-                         ("SESSION_DIR", args.session_dir), ("--replay", args.replay)):
-        if folder is not None and log.is_relative_to(folder.resolve()):
-            raise UsageError(f"--log {args.log} lies inside {name} {folder}: write the log outside the input folders")
-    if log.exists() and not log.is_dir() and not args.overwrite:
-        raise UsageError(f"--log {args.log} exists: give another file name, or --overwrite to replace it")
 
 
 def _cmd_evaluate_temporal(args) -> int:

@@ -120,6 +120,8 @@ def check_output_path(
         if out.exists() and not overwrite:
             raise OutputError(f"{what} {out} exists; choose another name or pass --overwrite")
     parent = _existing_parent(_resolved(out))
+    if not parent.is_dir():
+        raise OutputError(f"{what} {out}: {parent} is a file, not a folder; choose another output path")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{what} {out}: folder {parent} is not writable; choose another output path")
     return out
