@@ -39,6 +39,7 @@ __all__ = [
     "clean_stale_staging",
     "os_error_message",
     "staged_output",
+    "study_folder",
 ]
 
 _MARK = "heartreg"
@@ -127,14 +128,19 @@ def check_output_path(
     return out
 
 
+def study_folder(path) -> Path:
+    """The folder a study path stands for: a DICOMDIR file is the index of the files beside it, its folder;
+    any other path is itself."""
+    path = Path(path)
+    return path.parent if path.name.upper() == "DICOMDIR" and path.is_file() else path
+
+
 def _check_inputs(out: Path, inputs: Iterable, what: str, *, contains: bool = True) -> None:
     target = _resolved(out)
     for inp in inputs:
         if inp is None:
             continue
-        source = _resolved(inp)
-        if source.name.upper() == "DICOMDIR" and source.is_file():  # the study is the folder it indexes
-            source = source.parent
+        source = study_folder(_resolved(inp))
         if target == source:
             raise OutputError(f"{what} {out} is the input {inp}; choose another output path")
         if target.is_relative_to(source):

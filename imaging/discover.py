@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrcore.output import study_folder
 from imaging.dicom_file import _read_header
 from imaging.dicom_values import (
     _as_float,
@@ -348,8 +349,7 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
     root = Path(path)
     if not root.exists():
         raise FileNotFoundError(f"study path {str(root)!r} does not exist")
-    if root.is_file() and root.name.upper() == "DICOMDIR":  # the index of the files beside it: read those
-        root = root.parent
+    root = study_folder(root)  # a DICOMDIR file: the files beside it
     files = list(_iter_files(root))
     frames: list[_Frame] = []
     others: list[_Other] = []
