@@ -92,6 +92,7 @@ def _cmd_phases(args) -> int:
     from hrcore.output import check_output_path
 
     from heartreg.pipeline import phase_report_extra
+    from imaging.phase_io import JSON_FILE as PHASES_JSON
     from imaging.volume_file import is_volume_file
 
     if is_volume_file(args.study_dir):
@@ -102,7 +103,7 @@ def _cmd_phases(args) -> int:
     if args.out_dir is None:
         raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")
     inputs = (args.study_dir, args.qrs)
-    check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite, earlier=("phases.json",))
+    check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite, earlier=(PHASES_JSON,))
     volume, report = _open_study(args)
     extra = phase_report_extra(volume, args.study_dir)
     paths = write_phase_report(report, args.out_dir, extra=extra, overwrite=args.overwrite, inputs=inputs)

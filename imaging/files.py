@@ -58,7 +58,8 @@ def write_text_atomic(path, text: str) -> None:
 
 
 def gzip_damage(path) -> str | None:
-    """Why a gzip-compressed file is damaged (its CRC or length check fails, it ends early), or None.
+    """Why a gzip-compressed (``.gz``) file is damaged (its CRC or length check fails, it ends early), or None
+    (also for a file of another kind).
 
     nibabel (and SimpleITK) hand on what a damaged ``.nii.gz`` decompresses to without checking its
     CRC: 64 zeroed bytes inside a heart mask made it a third smaller, silently.  Python's gzip
@@ -67,6 +68,8 @@ def gzip_damage(path) -> str | None:
     import gzip
     import zlib
 
+    if not str(path).lower().endswith(".gz"):
+        return None
     try:
         with gzip.open(path, "rb") as f:
             while f.read(1 << 22):

@@ -171,6 +171,11 @@ def _missing_geometry(f: _Frame) -> tuple[str, ...]:
                                           ("PixelSpacing", f.pixel_spacing)) if value is None)
 
 
+def _missing_geometry_text(frames) -> str:
+    """What the frames lack of :func:`_missing_geometry`, each attribute once: ``"A/B"``."""
+    return "/".join(dict.fromkeys(t for f in frames for t in _missing_geometry(f)))
+
+
 def _summarise(
     frames: list[_Frame], subset: str, reason: str, kind: str | None = None
 ) -> tuple[SeriesSummary, tuple[_Frame, ...]]:
@@ -181,7 +186,7 @@ def _summarise(
             kind, reason = "localizer", reason or "ImageType says LOCALIZER"
         elif any(_missing_geometry(f) for f in frames):
             kind = "unusable"
-            reason = reason or "no " + "/".join(dict.fromkeys(t for f in frames for t in _missing_geometry(f)))
+            reason = reason or "no " + _missing_geometry_text(frames)
         elif _has_duplicates(frames):
             kind = "unusable"
             reason = (
@@ -225,7 +230,7 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
         if unplaced and len(unplaced) < len(frames):  # the rest can still be a volume: leave these out, by name
             message = (
                 f"series {uid}: {len(unplaced)} image(s) without "
-                f"{'/'.join(dict.fromkeys(t for f in unplaced for t in _missing_geometry(f)))} left out: "
+                f"{_missing_geometry_text(unplaced)} left out: "
                 f"{_files_text([f.path for f in unplaced], 4, names=True)}"
             )
             notes.append(message)

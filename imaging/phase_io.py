@@ -16,6 +16,9 @@ from imaging.phase import MOTION_FREE_WINDOW, PhaseReport, SlicePhase
 
 __all__ = ["PhaseFileError", "write_phase_report", "read_phase_report", "plot_phases"]
 
+#: The file that marks a folder as a phase report (``--overwrite`` replaces such a folder only).
+JSON_FILE = "phases.json"
+
 #: Columns of ``phases.csv``, in order.
 CSV_COLUMNS = ("slice_index", "position_mm", "time_s", "cardiac_phase", "volume_k")
 
@@ -109,12 +112,12 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     True
     """
     out_dir = Path(out_dir)
-    with staged_output(out_dir, inputs=inputs, overwrite=overwrite, earlier=("phases.json",)) as stage:
+    with staged_output(out_dir, inputs=inputs, overwrite=overwrite, earlier=(JSON_FILE,)) as stage:
         write_text_atomic(stage / "phases.csv", _csv_text(report))
         payload = report.to_dict()
         if extra:
             payload.update(extra)
-        write_text_atomic(stage / "phases.json", json.dumps(payload, indent=1) + "\n")
+        write_text_atomic(stage / JSON_FILE, json.dumps(payload, indent=1) + "\n")
         plot_phases(report, stage / "phases.png")
     return {name: out_dir / f"phases.{name}" for name in ("csv", "json", "png")}
 
@@ -152,7 +155,7 @@ def read_phase_report(out_dir) -> PhaseReport:
     True
     """
     out_dir = Path(out_dir)
-    json_path, csv_path = out_dir / "phases.json", out_dir / "phases.csv"
+    json_path, csv_path = out_dir / JSON_FILE, out_dir / "phases.csv"
     for path in (json_path, csv_path):
         if not path.is_file():
             raise PhaseFileError(f"{path} not found: give the output folder of heartreg phases")

@@ -108,7 +108,7 @@ def read_nifti_volume(path) -> Volume:
     path = Path(path)
     if not path.is_file():
         raise SeriesError(f"NIfTI file {path} does not exist")
-    damage = gzip_damage(path) if str(path).lower().endswith(".gz") else None
+    damage = gzip_damage(path)
     if damage:
         raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
     try:

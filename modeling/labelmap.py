@@ -120,7 +120,7 @@ class LabelMap:
 def _read_nifti(path: Path) -> LabelMap:
     import nibabel as nib
 
-    damage = gzip_damage(path) if str(path).lower().endswith(".gz") else None
+    damage = gzip_damage(path)
     if damage:
         raise LabelMapError(f"NIfTI label map {path} is damaged ({damage}): copy it again from its source")
     try:

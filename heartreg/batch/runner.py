@@ -93,11 +93,12 @@ def _check_out(out: Path, cases) -> Path:
 def _earlier_run(out: Path) -> bool:
     """Whether ``out`` holds only what a batch writes: its summary and index, failure records,
     staging folders and finished cases (a run killed before its first summary has only these)."""
+    ours = is_batch_output(out)  # its summary.csv is a batch's
     for entry in out.iterdir():
         if entry.name.startswith(".") or entry.name == FAILED_DIR:
             continue
         if entry.name in ("summary.csv", "index.html"):
-            if is_batch_output(out):
+            if ours:
                 continue
             return False
         if not (entry.is_dir() and read_case_record(entry) is not None):
