@@ -202,6 +202,7 @@ def _values(case_dir: Path) -> dict:
             "n_fiducials": len(model.get("fiducials_patient_mm") or []),
         })
     if reg:
+        trust = reg.get("trust") or {}  # registration.json's Trust.to_dict()
         values.update({
             "phi_r": reg.get("respiration_phase"),
             "rms_mm": reg.get("rms_mm"),
@@ -211,9 +212,8 @@ def _values(case_dir: Path) -> dict:
             "delta_static_mean_mm": reg.get("delta_static_mean_mm"),
             "n_points": reg.get("n_points"),
             "n_excluded": len(reg.get("exclusions") or []),
-            "trust": (reg.get("trust") or {}).get("level"),
-            "trust_reasons": "; ".join(str(r.get("code", r)) if isinstance(r, dict) else str(r)
-                                       for r in (reg.get("trust") or {}).get("reasons", [])) or None,
+            "trust": trust.get("level"),
+            "trust_reasons": "; ".join(r["code"] for r in trust.get("reasons", [])) or None,
         })
     return {k: v for k, v in values.items() if v is not None}
 
