@@ -409,13 +409,16 @@ def test_a_client_that_connects_while_another_is_served_gets_the_model(capfd):
     vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
     sink = IgtlSink(0, vertices, faces)
-    first, _ = lossless_client("127.0.0.1", sink.port)
-    second, got = lossless_client("127.0.0.1", sink.port)
+    first, got_first = lossless_client("127.0.0.1", sink.port)
+    second = None
     try:
         end = time.monotonic() + 5
-        while sink.models_sent < 1 and time.monotonic() < end:
+        while not any(m.message_type == "POLYDATA" for m in list(got_first)) and time.monotonic() < end:
             sink.poll()
             time.sleep(0.01)
+        # the second connects once the first is served (each client connects from its own thread: made together,
+        # either may come first)
+        second, got = lossless_client("127.0.0.1", sink.port)
         time.sleep(0.3)
         first.stop()
         end = time.monotonic() + 10
@@ -425,6 +428,8 @@ def test_a_client_that_connects_while_another_is_served_gets_the_model(capfd):
             time.sleep(0.01)
         assert any(m.message_type == "POLYDATA" for m in list(got)) and sink.models_sent == 2
     finally:
-        second.stop()
+        if second is not None:
+            second.stop()
+        first.stop()
         sink.close()
     assert "Traceback" not in capfd.readouterr().err  # the first client left quietly (pyigtl printed two)
