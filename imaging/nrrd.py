@@ -29,6 +29,9 @@ _TYPES = {
     "ushort": "u2", "unsigned short": "u2", "uint16": "u2", "uint16_t": "u2",
     "int": "i4", "int32": "i4", "int32_t": "i4", "signed int": "i4",
     "uint": "u4", "unsigned int": "u4", "uint32": "u4", "uint32_t": "u4",
+    "longlong": "i8", "long long": "i8", "long long int": "i8", "signed long long": "i8",
+    "signed long long int": "i8", "int64": "i8", "int64_t": "i8",
+    "ulonglong": "u8", "unsigned long long": "u8", "unsigned long long int": "u8", "uint64": "u8", "uint64_t": "u8",
     "float": "f4", "double": "f8",
 }
 #: LPS from each anatomical space NRRD names (its long name and its short one).
@@ -87,6 +90,9 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
         raise NrrdError(f"NRRD file {path} has a detached data file; save it as a single .nrrd")
     if blank is None:
         raise NrrdError(f"{path} is not an NRRD file with an attached header (no empty line ends its header)")
+    if fields.get("type", "").lower() not in _TYPES:
+        raise NrrdError(f"NRRD file {path}: voxel type {fields.get('type', '(none)')!r} is not read; save it as an "
+                        "integer or float type")
     try:
         sizes = [int(v) for v in fields["sizes"].split()]
         dtype = np.dtype(_TYPES[fields["type"].lower()])

@@ -26,7 +26,7 @@ from imaging.files import gzip_damage
 from imaging.grouping import StudyWarning
 from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume
 
-__all__ = ["is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
+__all__ = ["nifti_lps_affine", "is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
            "read_volume_file"]
 
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -67,6 +67,31 @@ def _uid(digest: str, what: str) -> str:
     """A deterministic DICOM UID from the file's content (2.25 root, UUID-sized)."""
     value = int(hashlib.sha256((what + digest).encode()).hexdigest()[:32], 16)
     return f"2.25.{value}"
+
+
+def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
+    """The LPS affine of a nibabel NIfTI image, and why it cannot be trusted ('' when it can).
+
+    nibabel's affine is the sform whenever ``sform_code`` is set; ITK, and so
+    3D Slicer, take the qform when both are set (unless the sform is scanner
+    coordinates).  Where both are set and place the volume's corners more than
+    half its smallest voxel apart, the file means two things and no choice is
+    safe: that is said instead.
+    """
+    header = img.header
+    T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64)
+    if int(header["sform_code"]) > 0 and int(header["qform_code"]) > 0:
+        shape = np.asarray(img.shape[:3], float)
+        corners = np.stack(np.meshgrid(*[[0.0, n - 1] for n in shape], indexing="ij"), -1).reshape(-1, 3)
+        apart = np.linalg.norm(apply_to_points(img.get_sform(), corners) - apply_to_points(img.get_qform(), corners),
+                               axis=1).max()
+        voxel = float(np.min(header.get_zooms()[:3]))
+        if apart > 0.5 * voxel:
+            return T, (f"its sform and qform place the volume up to {apart:.1f} mm apart (sform_code "
+                       f"{int(header['sform_code'])}, qform_code {int(header['qform_code'])}): nibabel reads the "
+                       "sform, ITK and 3D Slicer the qform; write the file with one orientation (e.g. nibabel's "
+                       "img.set_qform(img.get_sform()))")
+    return T, ""
 
 
 def read_nifti_volume(path) -> Volume:
@@ -120,6 +145,9 @@ def read_nifti_volume(path) -> Volume:
         data = data[..., 0]
     if data.ndim != 3:
         raise SeriesError(f"NIfTI file {path} must hold a 3-D volume, got shape {data.shape}")
+    T, conflict = nifti_lps_affine(img)
+    if conflict:
+        raise SeriesError(f"NIfTI file {path}: {conflict}")
     note = "affine taken as RAS (NIfTI convention) and converted to LPS"
     if int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0:
         # nibabel then gives the pixel sizes on a diagonal: the orientation is a guess
@@ -129,7 +157,7 @@ def read_nifti_volume(path) -> Volume:
         # not the file's name: batch writes warnings into its records, and a name can name the patient
         warnings.warn(f"NIfTI input: {note}; write the file with its orientation (an sform or qform)",
                       StudyWarning, stacklevel=2)
-    return _volume(data, _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), path, "NIfTI", note)
+    return _volume(data, T, path, "NIfTI", note)
 
 
 def read_nrrd_volume(path) -> Volume:

@@ -18,11 +18,10 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.files import gzip_damage
-from imaging.nrrd import NrrdError, read_nrrd
+from imaging.volume_file import nifti_lps_affine
+from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
-
-_LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 class LabelMapError(HeartregError, ValueError):
@@ -132,7 +131,9 @@ def _read_nifti(path: Path) -> LabelMap:
         data = data[..., 0]
     if data.ndim != 3:
         raise LabelMapError(f"label map {path} must be 3-D, got shape {data.shape}")
-    T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=float)
+    T, conflict = nifti_lps_affine(img)
+    if conflict:
+        raise LabelMapError(f"NIfTI label map {path}: {conflict}")
     names = _caret_label_names(img)
     if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
         data = np.where(np.isfinite(data), data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
@@ -228,7 +229,7 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     name = path.name.lower()
     if name.endswith((".nii", ".nii.gz")):
         return _read_nifti(path)
-    if name.endswith(".nrrd"):
+    if is_nrrd_path(name):  # a detached .nhdr is refused by the reader, by name
         return _read_nrrd(path)
     from imaging.seg import read_dicom_seg
 

@@ -190,3 +190,22 @@ def test_nrrd_variants_and_refusals(tmp_path):
         (tmp_path / f"{name}.nrrd").write_bytes(content)
         with pytest.raises(SeriesError, match=message):
             read_nrrd_volume(tmp_path / f"{name}.nrrd")
+
+
+def test_a_nifti_whose_sform_and_qform_disagree_is_refused(tmp_path):
+    """nibabel reads the sform, ITK and 3D Slicer the qform: a file whose two orientations differ is placed
+    differently by each, so it is refused with what to do (session 17's sweep: 30 mm apart, used silently)."""
+    import nibabel as nib
+
+    from imaging.volume import SeriesError
+
+    affine = np.diag([0.7, 0.8, 2.0, 1.0])
+    image = nib.Nifti1Image(np.zeros((4, 5, 6), np.int16), affine)
+    image.set_qform(affine, code=1)
+    rotated = affine.copy()
+    rotated[:3, :3] = affine[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    image.set_sform(rotated, code=1)
+    path = tmp_path / "two.nii.gz"
+    nib.save(image, str(path))
+    with pytest.raises(SeriesError, match=r"two.nii.gz: its sform and qform place the volume up to .* mm apart"):
+        read_nifti_volume(path)

@@ -246,3 +246,38 @@ def test_a_label_map_without_orientation_says_so(tmp_path):
     far[:3, 3] = 500.0
     with pytest.raises(LabelMapError, match=r"does not overlap the CT volume; its header has no orientation"):
         mask_on_grid(label_map, (10, 10, 10), far)
+
+
+def test_header_conflicts_and_other_nrrd_forms(tmp_path):
+    """Found by session 17's sweep: a NIfTI whose sform and qform disagree was placed by its sform (nibabel),
+    30 mm from where 3D Slicer (ITK: the qform) shows it, without a word; a detached ``.nhdr`` was 'not a DICOM
+    file'; an int64 NRRD (a standard type) was blamed on its geometry."""
+    import nibabel as nib
+
+    T, shape = _source_T()
+    labels = _ball_labels(T, shape)
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T
+    img = nib.Nifti1Image(labels.transpose(2, 1, 0), ras)
+    img.set_qform(ras, code=1)
+    moved = ras.copy()
+    moved[2, 3] += 30.0
+    img.set_sform(moved, code=2)
+    nib.save(img, str(tmp_path / "two.nii.gz"))
+    with pytest.raises(LabelMapError, match=r"two.nii.gz: its sform and qform place the volume up to 30.0 mm apart "
+                                            r"\(sform_code 2, qform_code 1\).* write the file with one orientation"):
+        read_label_map(tmp_path / "two.nii.gz")
+    img.set_sform(ras, code=2)  # both set and agreeing: read
+    nib.save(img, str(tmp_path / "agree.nii.gz"))
+    _check(read_label_map(tmp_path / "agree.nii.gz"))
+    dirs = " ".join("(" + ",".join(f"{v:.6f}" for v in T[:3, c]) + ")" for c in range(3))
+    header = (f"NRRD0004\ntype: {{}}\ndimension: 3\nspace: left-posterior-superior\n"
+              f"sizes: {shape[2]} {shape[1]} {shape[0]}\nspace directions: {dirs}\nencoding: raw\n"
+              f"space origin: ({T[0, 3]:.6f},{T[1, 3]:.6f},{T[2, 3]:.6f})\n")
+    (tmp_path / "ball64.nrrd").write_bytes(header.format("int64").encode() + b"\n" + labels.astype("<i8").tobytes())
+    _check(read_label_map(tmp_path / "ball64.nrrd"))
+    (tmp_path / "ball.nhdr").write_text(header.format("uint8") + "data file: ball.raw\n")
+    with pytest.raises(LabelMapError, match=r"ball.nhdr has a detached data file; save it as a single .nrrd"):
+        read_label_map(tmp_path / "ball.nhdr")
+    (tmp_path / "odd.nrrd").write_bytes(header.format("block").encode() + b"\n" + labels.tobytes())
+    with pytest.raises(LabelMapError, match=r"odd.nrrd: voxel type 'block' is not read"):
+        read_label_map(tmp_path / "odd.nrrd")
