@@ -141,7 +141,7 @@ def _model_options(args):
 
             points = read_markups(args.seed).points_lps_mm
             if len(points) == 0:
-                raise UsageError(f"--seed: the markups file {args.seed} holds no point")
+                raise UsageError(f"--seed: the markups file {args.seed} holds no placed point")
             seed = [float(x) for x in points[0]]
         else:
             seed = list(args.seed)

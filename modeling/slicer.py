@@ -177,8 +177,16 @@ def write_markups(
     return path
 
 
+#: ``positionStatus`` of a markups control point that is not placed (the schema's others: ``defined``).
+UNPLACED = ("undefined", "preview")
+
+
 def read_markups(path) -> Markups:
     """Read the first fiducial list of a ``.mrk.json`` file (LPS or RAS) as LPS.
+
+    Only placed points are read: a control point whose ``positionStatus`` is
+    ``undefined`` or ``preview`` (listed in Slicer but not yet placed, or being
+    placed) is left out.
 
     Raises
     ------
@@ -206,6 +214,8 @@ def read_markups(path) -> Markups:
         raise SlicerFileError(f"{path}: coordinateUnits {units!r}; heartreg reads millimetres only")
     labels, descriptions, pts = [], [], []
     for k, cp in enumerate(m.get("controlPoints") or []):
+        if isinstance(cp, dict) and cp.get("positionStatus") in UNPLACED:
+            continue
         pos = cp.get("position") if isinstance(cp, dict) else None
         if not (isinstance(pos, list) and len(pos) == 3 and all(
             isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in pos

@@ -131,6 +131,12 @@ def test_ras_markups_and_slicers_example_transform(tmp_path):
     f = tmp_path / "ras.mrk.json"
     f.write_text(json.dumps(doc))
     np.testing.assert_array_equal(read_markups(f).points_lps_mm, [[-1.0, -2.0, 3.0]])
+    # points listed but not placed (positionStatus undefined or preview, with or without a position) are not read
+    doc["markups"][0]["controlPoints"] = [{"label": "u", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"},
+                                          {"label": "p", "positionStatus": "preview"},
+                                          {"label": "a", "position": [1.0, 2.0, 3.0], "positionStatus": "defined"}]
+    f.write_text(json.dumps(doc))
+    assert read_markups(f).labels == ("a",)
     # Slicer's example: a 30 deg rotation about x; its to-parent is the stored matrix's inverse
     T = read_itk_transform(EXAMPLE_TFM)
     c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
