@@ -18,6 +18,8 @@ __all__ = ["PhaseFileError", "write_phase_report", "read_phase_report", "plot_ph
 
 #: The file that marks a folder as a phase report (``--overwrite`` replaces such a folder only).
 JSON_FILE = "phases.json"
+#: ``format`` and ``format_version`` of phases.json (docs/formats.md), as model.json and registration.json name theirs.
+FORMAT, FORMAT_VERSION = "heartreg-phases", 1
 
 #: Columns of ``phases.csv``, in order.
 CSV_COLUMNS = ("slice_index", "position_mm", "time_s", "cardiac_phase", "volume_k")
@@ -114,7 +116,7 @@ def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = Non
     out_dir = Path(out_dir)
     with staged_output(out_dir, inputs=inputs, overwrite=overwrite, earlier=(JSON_FILE,)) as stage:
         write_text_atomic(stage / "phases.csv", _csv_text(report))
-        payload = report.to_dict()
+        payload = {"format": FORMAT, "format_version": FORMAT_VERSION, **report.to_dict()}
         if extra:
             payload.update(extra)
         write_text_atomic(stage / JSON_FILE, json.dumps(payload, indent=1) + "\n")
@@ -161,6 +163,10 @@ def read_phase_report(out_dir) -> PhaseReport:
             raise PhaseFileError(f"{path} not found: give the output folder of heartreg phases")
     try:
         meta = json.loads(json_path.read_text(encoding="utf-8"))
+        # (files of heartreg before session 17 have neither field)
+        fmt = (meta.get("format", FORMAT), meta.get("format_version", FORMAT_VERSION))
+        if fmt != (FORMAT, FORMAT_VERSION):
+            raise ValueError(f"it is {fmt[0]!r} version {fmt[1]!r}, not {FORMAT!r} version {FORMAT_VERSION}")
         report_fields = dict(
             volume_cardiac_phase=float(meta["volume_cardiac_phase"]),
             circular_mean_phase=float(meta["circular_mean_phase"]),
@@ -172,7 +178,7 @@ def read_phase_report(out_dir) -> PhaseReport:
             notes=tuple(str(n) for n in meta["notes"]),
         )
         n_slices = int(meta["n_slices"])
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise PhaseFileError(f"{json_path}: not a phases.json of heartreg ({type(exc).__name__}: {exc})") from None
     slices = _read_slices(csv_path)
     if len(slices) != n_slices:

@@ -193,6 +193,15 @@ def test_phase_report_round_trip_and_bad_files(tmp_path):
     assert back.slices[0] == report.slices[0] and np.isnan(back.slices[1].time_s)
     assert back.to_dict() == report.to_dict()
     _check_reads_back(tmp_path / "a", tmp_path / "b")
+    meta = json.loads((tmp_path / "a" / "phases.json").read_text())
+    assert (meta["format"], meta["format_version"]) == ("heartreg-phases", 1)  # as model.json and registration.json
+    for key, value in (("format", "heartreg-model"), ("format_version", 2)):
+        (tmp_path / "b" / "phases.json").write_text(json.dumps({**meta, key: value}))
+        with pytest.raises(PhaseFileError, match="not a phases.json of heartreg .* not 'heartreg-phases' version 1"):
+            read_phase_report(tmp_path / "b")
+    del meta["format"], meta["format_version"]  # a file written before session 17
+    (tmp_path / "b" / "phases.json").write_text(json.dumps(meta))
+    assert read_phase_report(tmp_path / "b").to_dict() == report.to_dict()
     with pytest.raises(PhaseFileError, match="phases.json not found"):
         read_phase_report(tmp_path / "none")
     csv = tmp_path / "a" / "phases.csv"
