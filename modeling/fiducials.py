@@ -180,18 +180,19 @@ def _centre_over_skin(hu, dense_kji, spacing_kji, floor_hu) -> np.ndarray:
     grid_uv = np.indices(values.shape[:2]).reshape(2, -1).T * spacing[others]
     height = (design(grid_uv) @ coef).reshape(values.shape[:2])
     depth = (np.arange(values.shape[-1]) - height[..., None]) * spacing[a]  # mm past the skin, towards the air
-    # the background at each depth: the ring's median within a fifth of a voxel of it
+    # the background at each of the staple's depths (to a twentieth of a voxel): the ring's median within a fifth
+    # of a voxel of it
     ring_c, staple_c = columns(ring), columns(staple)
     d_ring, v_ring = depth[ring_c], values[ring_c]
     order = np.argsort(d_ring)
     d_ring, v_ring = d_ring[order], v_ring[order]
-    half = 0.2 * spacing[a]
-    d_staple = depth[staple_c]
-    left = np.searchsorted(d_ring, d_staple - half)
-    right = np.searchsorted(d_ring, d_staple + half)
-    background = np.array([np.median(v_ring[p:q]) if q - p >= 3 else np.nan for p, q in zip(left, right)])
-    if np.isnan(background).any():
+    at_depth, which = np.unique(np.round(depth[staple_c] / (0.05 * spacing[a])), return_inverse=True)
+    at_depth = at_depth * 0.05 * spacing[a]
+    left = np.searchsorted(d_ring, at_depth - 0.2 * spacing[a])
+    right = np.searchsorted(d_ring, at_depth + 0.2 * spacing[a])
+    if np.any(right - left < 3):  # a depth of the staple's the ring does not reach
         return np.full(3, np.nan)
+    background = np.array([np.median(v_ring[p:q]) for p, q in zip(left, right)])[which.ravel()]
     excess = np.clip(values[staple_c] - background, 0.0, None)
     if excess.sum() <= 0:
         return np.full(3, np.nan)
