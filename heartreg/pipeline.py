@@ -25,6 +25,8 @@ __all__ = ["PARTS", "PipelineResult", "check_out_dir", "open_study", "phase_repo
 
 #: what a run writes into OUT_DIR (anything else there is left alone).
 PARTS = ("phases", "model", "registration", "report.html")
+#: ... and the files that mark an earlier pipeline's output (``--overwrite`` replaces nothing else).
+EARLIER = ("phases/phases.json", "model/model.json", "registration/registration.json")
 
 
 def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = False, create: bool = True) -> Path:
@@ -173,7 +175,7 @@ def run_pipeline(
     # everything is written into a staging folder and moved into place at the end
     # (one rename when OUT_DIR is new): a failure or a signal leaves OUT_DIR as it was
     with staged_output(
-        out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS,
+        out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS, earlier=EARLIER,
     ) as staging:
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")

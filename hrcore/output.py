@@ -306,17 +306,22 @@ def _holds_only(folder: Path, parts) -> bool:
     return all(entry.name in parts for entry in os.scandir(folder))
 
 
-def _check_parts(out: Path, parts, inputs, what: str, overwrite: bool) -> None:
+def _check_parts(out: Path, parts, inputs, what: str, overwrite: bool, earlier) -> None:
     if out.exists() and not out.is_dir():
         raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
     _check_inputs(out, inputs, what, contains=False)  # inputs beside the parts are fine
     for name in parts:
         target = out / name
         _check_inputs(target, inputs, what)
-        if overwrite or not target.exists():
+        if not target.exists() or (target.is_dir() and not any(target.iterdir())):
             continue
-        if not target.is_dir() or any(target.iterdir()):
+        if not overwrite:
             raise OutputError(f"{what} {out} already holds {name}; choose another folder or pass --overwrite")
+        if earlier and not any((out / mark).is_file() for mark in earlier):
+            raise OutputError(
+                f"{what} {out} holds {name} but no {' or '.join(earlier)}: --overwrite replaces an earlier output "
+                "only, not a folder of other files; choose another folder"
+            )
     parent = _existing_parent(_resolved(out) / "x")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{what} {out}: folder {parent} is not writable; choose another output path")
@@ -340,7 +345,11 @@ def staged_output(
     out : str or Path
         Target folder (or file, with ``folder=False``).
     inputs, what, overwrite, folder, earlier
-        As for :func:`check_output_path` (called first).
+        As for :func:`check_output_path` (called first).  With ``parts``,
+        ``earlier`` names the files (paths inside ``out``) that mark ``out``
+        as an earlier output of the command: without one of them an existing
+        part is not replaced, even with ``overwrite`` (a user's own
+        ``model/`` folder is not the pipeline's).
     parts : iterable of str, optional
         Names of the entries this output owns inside an ``out`` folder that
         may hold other things (the pipeline's ``phases/``, ``model/``, ...).
@@ -392,7 +401,7 @@ def staged_output(
     parts = tuple(parts) if parts is not None else None
     whole = parts is None or not out.exists() or (out.is_dir() and _holds_only(out, parts))
     if parts is not None:
-        _check_parts(out, parts, inputs, what, overwrite)
+        _check_parts(out, parts, inputs, what, overwrite, tuple(earlier))
         if whole:
             _check_inputs(out, inputs, what)
     else:

@@ -136,7 +136,8 @@ def make_phantom(
         )
     # staged beside (or, when out_dir holds other things, inside) out_dir and renamed
     # into place at the end: a failure, a signal or kill -9 leaves out_dir as it was
-    with staged_output(out_dir, parts=_OUTPUTS, overwrite=True, what="phantom folder") as staging:
+    with staged_output(out_dir, parts=_OUTPUTS, overwrite=True, earlier=("truth.json",),
+                       what="phantom folder") as staging:
         ct_truth = write_ct_study(staging, config, size=size, seed=int(seed), progress=progress)
         truth = {
             "format": "heartreg-phantom-truth",

@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from hrcore.output import OutputError
+
 from heartreg.cli import main
 from heartreg.phantom import PhantomError, make_phantom
 from heartreg.phantom.heart import T_from_euler_xyz_deg
@@ -102,3 +104,9 @@ def test_existing_outputs_are_refused_then_replaced(tmp_path):
         make_phantom(tmp_path, seed=1, session=False)
     truth = make_phantom(tmp_path, seed=2, session=False, overwrite=True)
     assert json.loads((tmp_path / "truth.json").read_text())["seed"] == 2 == truth["seed"]
+    # a folder of the user's that only shares a name with an output is no earlier phantom (it was deleted)
+    (tmp_path / "mine" / "session").mkdir(parents=True)
+    (tmp_path / "mine" / "session" / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="mine holds session but no truth.json: --overwrite replaces an earlier"):
+        make_phantom(tmp_path / "mine", seed=1, session=False, overwrite=True)
+    assert (tmp_path / "mine" / "session" / "notes.txt").read_text() == "mine"

@@ -115,6 +115,16 @@ def test_parts_replace_only_their_entries(tmp_path):
         (stage / "model" / "new").write_text("new")
         (stage / "report.html").write_text("<p>")
     assert _listing(tmp_path) == ["run", "run/keep.txt", "run/model", "run/model/new", "run/report.html"]
+    # a part of the user's own (session 17: `pipeline -o FOLDER --overwrite` deleted FOLDER/model/mine.txt) is not
+    # replaced: the files that mark an earlier output must be there
+    (out / "model" / "new").rename(out / "model" / "mine.txt")
+    for other in ("run", "run/report.html"):
+        with pytest.raises(OutputError, match=r"run holds model but no model/model.json: --overwrite replaces an "
+                                              r"earlier output only"):
+            with staged_output(tmp_path / other if other == "run" else out, parts=("model", "report.html"),
+                               overwrite=True, earlier=("model/model.json",)):
+                pass
+    assert (out / "model" / "mine.txt").is_file()
 
 
 def test_stale_staging_of_dead_processes_is_removed_and_moved_aside_output_restored(tmp_path):
