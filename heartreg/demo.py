@@ -134,8 +134,7 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     """
     from heartreg.phantom import make_config, make_phantom, write_session
     from heartreg.pipeline import run_pipeline
-
-    from heartreg.pipeline import check_out_dir
+    from hrcore.output import check_output_path, staged_output
 
     if sample_dir is not None:  # checked before anything is created
         sample = Path(sample_dir)
@@ -144,18 +143,16 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
                 f"--sample {sample} is not a phantom case (needs ct/ and truth.json, "
                 "as 'heartreg phantom OUT --no-session' writes)"
             )
-    out_path = Path(out_dir)
-    if out_path.is_dir() and any(out_path.iterdir()) and not (out_path / "demo.json").exists() \
-            and not (out_path / "session_case").exists():
-        raise UsageError(f"demo folder {out_path} holds other files; choose an empty folder or an earlier demo's")
-    out_dir = check_out_dir(out_dir, what="demo folder")
+    out_dir = Path(out_dir)
+    own_sample = sample_dir is None and not (SAMPLE_DIR / "truth.json").exists()
     if sample_dir is None:
-        sample = SAMPLE_DIR
-        if not (sample / "truth.json").exists():
-            sample = out_dir / "sample"
-            if not (sample / "truth.json").exists():
-                print(f"bundled sample not found; writing it with the phantom into {sample}", file=sys.stderr)
-                make_phantom(sample, preset="wood2018-trial1", seed=0, session=False, progress=progress)
+        sample = out_dir / "sample" if own_sample else SAMPLE_DIR
+    # an earlier demo's folder or a new one, never the sample's (nothing is written before this check)
+    check_output_path(out_dir, inputs=() if own_sample else (sample,), what="demo folder", overwrite=True,
+                      earlier=("demo.json", "session_case/recipe.json", "sample/truth.json"))
+    if own_sample and not (sample / "truth.json").exists():
+        print(f"bundled sample not found; writing it with the phantom into {sample}", file=sys.stderr)
+        make_phantom(sample, preset="wood2018-trial1", seed=0, session=False, progress=progress)
     truth = json.loads((sample / "truth.json").read_text())
     session_root = out_dir / "session_case"
     recipe = {"preset": truth["preset"], "seed": int(truth["seed"])}
@@ -165,8 +162,11 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     ):
         if progress:
             print("writing the intra-operative session with the phantom (same preset and seed)", file=sys.stderr)
-        write_session(session_root, make_config(truth["preset"]), seed=int(truth["seed"]), progress=progress)
-        write_text_atomic(marker, json.dumps(recipe) + "\n")
+        # staged whole: an interrupt leaves the earlier session or none
+        with staged_output(session_root, overwrite=True, earlier=("recipe.json", "session/session.json"),
+                           what="demo session folder") as stage:
+            write_session(stage, make_config(truth["preset"]), seed=int(truth["seed"]), progress=progress)
+            write_text_atomic(stage / "recipe.json", json.dumps(recipe) + "\n")
 
     made = []  # the rows the report shows, made once (the true surface's sampling takes seconds)
 

@@ -70,7 +70,7 @@ KILL_POINTS = {
 EARLIER = {
     "model": ["model.json", "earlier_marker"],
     "register": ["registration.json", "earlier_marker"],
-    "pipeline": ["phases/earlier_marker", "model/earlier_marker", "registration/earlier_marker"],
+    "pipeline": ["phases/phases.json", "model/model.json", "registration/registration.json"],
 }
 
 
