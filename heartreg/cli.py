@@ -161,11 +161,24 @@ def _main(argv: list[str] | None) -> int:
     warnings.formatwarning = _one_line_warning
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
-    from hrcore.output import refusal_line
+    from hrcore.output import defer_interrupt, raise_deferred_interrupt, refusal_line
 
+    unraisable = sys.unraisablehook
+
+    def keep_interrupts(args):  # a signal that lands in a garbage collector's callback is not lost
+        if isinstance(args.exc_value, KeyboardInterrupt):
+            defer_interrupt(args.exc_value)
+        else:
+            unraisable(args)
+
+    defer_interrupt(None)
+    if in_main:
+        sys.unraisablehook = keep_interrupts
     try:
         try:
-            return args.func(args)
+            status = args.func(args)
+            raise_deferred_interrupt()
+            return status
         except Exception as exc:
             interrupt = _interruption(exc)
             if interrupt is not None:  # to main's handler: 130 or 143, no traceback
@@ -195,6 +208,7 @@ def _main(argv: list[str] | None) -> int:
         warnings.formatwarning = format_warning
         if in_main:
             signal.signal(signal.SIGTERM, previous)
+            sys.unraisablehook = unraisable
 
 
 if __name__ == "__main__":  # pragma: no cover

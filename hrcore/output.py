@@ -234,6 +234,23 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
+#: An interrupt (Ctrl-C, or SIGTERM turned into an exception) that Python could not raise where it arrived: in a
+#: garbage collector's callback it is printed as "Exception ignored" and dropped.  The command line keeps it here
+#: (:func:`defer_interrupt`); no output is committed while it waits, and the command raises it at the end.
+_deferred: list = []
+
+
+def defer_interrupt(exc: BaseException | None) -> None:
+    """Keep an interrupt that could not be raised (``None`` forgets one)."""
+    _deferred[:] = [] if exc is None else [exc]
+
+
+def raise_deferred_interrupt() -> None:
+    """Raise the interrupt :func:`defer_interrupt` kept, if any."""
+    if _deferred:
+        raise _deferred.pop()
+
+
 def _commit(stage: Path, out: Path) -> None:
     """Make ``stage`` visible as ``out`` in one step; remove what ``out`` held."""
     if not os.path.lexists(out):
@@ -424,6 +441,7 @@ def staged_output(
         if folder or parts is not None:
             os.mkdir(stage)
         yield stage
+        raise_deferred_interrupt()
         if whole:
             _commit(stage, absolute)
         else:
