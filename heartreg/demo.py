@@ -134,6 +134,8 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     """
     from heartreg.phantom import make_config, make_phantom, write_session
     from heartreg.pipeline import run_pipeline
+    from heartreg.phantom.config import PRESETS
+    from hrcore.errors import read_json_object
     from hrcore.output import check_output_path, staged_output
 
     if sample_dir is not None:  # checked before anything is created
@@ -153,7 +155,11 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     if own_sample and not (sample / "truth.json").exists():
         print(f"bundled sample not found; writing it with the phantom into {sample}", file=sys.stderr)
         make_phantom(sample, preset="wood2018-trial1", seed=0, session=False, progress=progress)
-    truth = json.loads((sample / "truth.json").read_text())
+    truth = read_json_object(sample / "truth.json", keys=("preset", "seed"), what="phantom truth", error=UsageError,
+                             fix="give a case that 'heartreg phantom OUT --no-session' wrote")
+    if truth["preset"] not in PRESETS or isinstance(truth["seed"], bool) or not isinstance(truth["seed"], int):
+        raise UsageError(f"{sample / 'truth.json'} names preset {truth['preset']!r} and seed {truth['seed']!r}: not a "
+                         "phantom case; give a case that 'heartreg phantom OUT --no-session' wrote")
     session_root = out_dir / "session_case"
     recipe = {"preset": truth["preset"], "seed": int(truth["seed"])}
     marker = session_root / "recipe.json"

@@ -49,6 +49,7 @@ from heartreg.reproduce_results import (
     TrialResult,
     _summary,
 )
+from hrcore.errors import read_json_object
 from hrcore.output import staged_output
 from imaging.phase_io import read_phase_report
 from modeling.model import read_model
@@ -127,7 +128,8 @@ def _existing_case(case_dir: Path, preset: str, size: str, seed: int, n_points):
     """
     truth_path = case_dir / "truth.json"
     if truth_path.exists():
-        truth = json.loads(truth_path.read_text())
+        truth = read_json_object(truth_path, what="phantom truth", error=ReproduceError,
+                                 fix="delete that case folder and run again")
         want = {"preset": preset, "size": size, "seed": seed}
         have = {k: truth.get(k) for k in want}
         if n_points is not None:
@@ -328,15 +330,20 @@ def _load_trial(k, trial_dir, *, size, seed, n_points) -> TrialResult:
             f"no finished run of trial {k} in {trial_dir} (trial.json or case/truth.json missing); "
             "run the reproduction without report_only (--report-only) first"
         )
-    truth = json.loads(truth_path.read_text())
+    again = "run the reproduction again without report_only (--report-only)"
+    truth = read_json_object(truth_path, what="phantom truth", error=ReproduceError, fix=again)
     want = {"preset": f"wood2018-trial{k}", "size": size, "seed": seed}
     have = {key: truth.get(key) for key in want}
     if n_points is not None:
         want["n_points"], have["n_points"] = n_points, truth.get("config", {}).get("n_points")
     if have != want:
         raise ReproduceError(f"{trial_dir} holds a run of {have}, not {want}")
-    saved = json.loads(trial_json.read_text())
-    extra = {key: saved["row"][key] for key in ("case_reused", "time_phantom_s", "time_pipeline_s")}
+    saved = read_json_object(trial_json, keys=("row", "truth_rows", "timings_s"), what="trial record",
+                             error=ReproduceError, fix=again)
+    try:
+        extra = {key: saved["row"][key] for key in ("case_reused", "time_phantom_s", "time_pipeline_s")}
+    except (KeyError, TypeError):
+        raise ReproduceError(f"{trial_json}: its row lacks the trial's times; {again}") from None
     return _trial_result(k, trial_dir, truth, saved["truth_rows"], extra, saved["timings_s"])
 
 

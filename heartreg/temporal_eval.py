@@ -35,6 +35,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from hrcore.errors import UsageError, read_json_object
 from hrcore.figlayout import fixed_margins
 from hrcore.geometry import apply_to_points
 from imaging.files import write_text_atomic
@@ -323,14 +324,25 @@ def evaluate(
         from registration.options import RegistrationOptions
 
         harmonics = dataclasses.astuple(RegistrationOptions(harmonics=harmonics).harmonics)
+    seeds = [int(s) for s in seeds]
+    if not seeds or min(seeds) < 1:
+        raise UsageError(f"seeds must be 1 or more (--seeds N runs seeds 1..N), got {seeds}")
+    if workers is not None and int(workers) < 0:
+        raise UsageError(f"workers must be 0 (in this process) or more (--workers), got {workers}")
     out = Path(out_dir)
-    (out / "cases").mkdir(parents=True, exist_ok=True)
-    todo = []
+    todo, have = [], {}
     for preset in presets:
         for seed in seeds:
             path = out / "cases" / f"{preset}_s{seed}.json"
-            if not path.exists():
+            if path.exists():
+                have[path] = read_json_object(path, keys=("preset", "seed", "estimates"), what="case record",
+                                              fix="delete it and run again (that case runs anew)")
+                if have[path].get("size", size) != size:
+                    raise UsageError(f"{out} holds cases of size {have[path]['size']!r}, not {size!r} (--size): "
+                                     "choose another output folder for another size")
+            else:
                 todo.append((preset, int(seed), true_phase(preset, int(seed)), size, harmonics))
+    (out / "cases").mkdir(parents=True, exist_ok=True)
     failed = {}
     if run and todo:
         if workers == 0 and scheduler is None:
@@ -357,7 +369,9 @@ def evaluate(
         for seed in seeds:
             path = out / "cases" / f"{preset}_s{seed}.json"
             if path.exists():
-                cases.append(json.loads(path.read_text()))
+                cases.append(have.get(path) or read_json_object(
+                    path, keys=("preset", "seed", "estimates"), what="case record",
+                    fix="delete it and run again (that case runs anew)"))
     if not cases:
         return {"summary": {}, "cases": [], "paths": {}, "table": "", "failed": failed}
     summary = summarize(cases)

@@ -129,3 +129,22 @@ def test_report_is_one_file_and_its_3d_view_renders_in_chromium(demo, tmp_path):
     # the registered points' green #22a35a, discs of 10 px: at least a few points face the camera
     point_px = int(np.count_nonzero((g > 130) & (g - r > 80) & (g - b > 30)))
     assert point_px > 5 * 50, point_px
+
+
+def test_a_sample_or_output_in_the_way_is_refused_before_anything_is_written(tmp_path, capsys):
+    """Session 17's sweep: `demo -o SAMPLE/ct/x --sample SAMPLE` wrote 56 MB of session into the input, then
+    refused; a damaged truth.json was a traceback (status 70) that left an empty output folder."""
+    import shutil
+
+    sample = tmp_path / "sample"
+    shutil.copytree(SAMPLE_DIR, sample)
+    before = sorted(p.relative_to(sample).as_posix() for p in sample.rglob("*"))
+    for out in (sample / "ct" / "x", sample / "x"):
+        assert main(["demo", "-o", str(out), "--sample", str(sample), "-q"]) == 1
+        assert "lies inside the input" in capsys.readouterr().err
+    assert sorted(p.relative_to(sample).as_posix() for p in sample.rglob("*")) == before
+    (sample / "truth.json").write_text("{}")
+    assert main(["demo", "-o", str(tmp_path / "d"), "--sample", str(sample), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "truth.json lacks 'preset', 'seed': not a phantom truth" in err and "Traceback" not in err
+    assert not (tmp_path / "d").exists()

@@ -206,6 +206,20 @@ def test_report_only_redraws_the_same_tables_from_the_run_files(repro):
         assert (out / name).read_bytes() == data, name
 
 
+def test_report_only_on_damaged_run_files_is_one_line(repro, tmp_path):
+    """Session 17's sweep: a truncated trial.json or truth.json was a traceback (KeyError, JSONDecodeError)."""
+    import shutil
+
+    out = tmp_path / "copy"
+    shutil.copytree(repro[0], out)
+    trial = out / f"trial{TRIALS[0]}"
+    for path, text, message in ((trial / "trial.json", '{"row": {}}', "trial.json lacks 'truth_rows', 'timings_s'"),
+                                (trial / "case" / "truth.json", "{bad", "truth.json is not a readable phantom truth")):
+        path.write_text(text)
+        with pytest.raises(ReproduceError, match=message):
+            reproduce(out, size="sample", trials=TRIALS, n_points=N_POINTS, phase_step=STEP, rerun=False)
+
+
 def test_report_only_without_a_run_says_so_and_creates_nothing(tmp_path):
     with pytest.raises(ReproduceError, match="no finished run of trial 2"):
         reproduce(tmp_path / "out", size="sample", trials=[2], rerun=False)

@@ -5,6 +5,7 @@ the truth with the grid's bounds scaled to one case."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -77,3 +78,26 @@ def test_bad_harmonics_are_refused_before_any_case_runs(tmp_path, capsys):
                  "--harmonics", "0", "4", "2", "1"]) != 0
     assert "--harmonics" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_bad_seeds_workers_and_case_records_are_one_line(tmp_path, capsys, grid_slice):
+    """Session 17's sweep: --seeds 0 made OUT and said 'no case yet'; --workers -1 said 'at least 1' though 0
+    runs in process; a damaged case record was a traceback; cases of another --size were labelled with it."""
+    out = tmp_path / "out"
+    for flags, message in ((["--seeds", "0"], "seeds must be 1 or more"),
+                           (["--seeds", "1", "--workers", "-1"], "workers must be 0 .* or more")):
+        assert main(["evaluate-temporal", "-o", str(out), "--trials", "1", *flags, "-q"]) == 1
+        err = capsys.readouterr().err
+        assert re.search(message, err) and "Traceback" not in err and not out.exists()
+    (out / "cases").mkdir(parents=True)
+    case = next(p for p in (grid_slice[0] / "cases").glob("*.json"))
+    preset, seed = case.stem.rsplit("_s", 1)
+    trial = preset.replace("wood2018-trial", "")
+    (out / "cases" / case.name).write_bytes(case.read_bytes())
+    argv = ["evaluate-temporal", "-o", str(out), "--trials", trial, "--seeds", seed, "--report-only", "-q"]
+    assert main([*argv, "--size", "full"]) == 1
+    assert "holds cases of size 'sample', not 'full'" in capsys.readouterr().err
+    (out / "cases" / case.name).write_text("{bad")
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert f"{case.name} is not a readable case record" in err and "Traceback" not in err
