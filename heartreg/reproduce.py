@@ -447,6 +447,15 @@ def reproduce(
         raise ReproduceError(f"trials must be distinct numbers among 1..6 (Table 1), got {trials}")
     if size not in SIZES:
         raise ReproduceError(f"size must be one of {sorted(SIZES)}, got {size!r}")
+    # the rest the trials check too, on the workers: here, before any work, as one line
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ReproduceError(f"seed must be a non-negative integer (--seed), got {seed!r}")
+    if n_points is not None and (isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer))
+                                 or n_points < 1):
+        raise ReproduceError(f"n_points must be a positive integer (--points), got {n_points!r}")
+    from registration.pipeline import sweep_phases
+
+    sweep_phases(phase_step)  # a UsageError naming --step
     say = log if log is not None else (lambda msg: None)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

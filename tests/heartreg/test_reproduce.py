@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import numpy as np
 import pytest
@@ -218,6 +219,15 @@ def test_report_only_on_damaged_run_files_is_one_line(repro, tmp_path):
         path.write_text(text)
         with pytest.raises(ReproduceError, match=message):
             reproduce(out, size="sample", trials=TRIALS, n_points=N_POINTS, phase_step=STEP, rerun=False)
+
+
+@pytest.mark.parametrize("flags, message", [(["--step", "0"], "step \\(--step\\) must be in"),
+                                           (["--points", "0"], "--points"), (["--seed=-1"], "--seed")])
+def test_bad_options_are_refused_before_any_work(tmp_path, capsys, flags, message):
+    """Session 17's sweep: --step 0 ran a trial for 30 s, then failed inside a Dask task with its traceback."""
+    assert main(["reproduce", "-o", str(tmp_path / "out"), "--size", "sample", "--trials", "1", *flags, "-q"]) == 1
+    err = capsys.readouterr().err
+    assert re.search(message, err) and "Traceback" not in err and not (tmp_path / "out").exists()
 
 
 def test_report_only_without_a_run_says_so_and_creates_nothing(tmp_path):
