@@ -18,8 +18,9 @@ from hrcore.errors import UsageError
 def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
-    if args.navigation and args.no_session:
-        raise UsageError("--navigation needs the session: drop --no-session")
+    for flag in ("navigation", "plus"):
+        if getattr(args, flag) and args.no_session:
+            raise UsageError(f"--{flag} needs the session: drop --no-session")
     overrides = {}
     if args.points is not None:
         overrides["n_points"] = args.points

@@ -40,7 +40,7 @@ import numpy as np
 
 from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT
 from heartreg.demo import pose_error
-from heartreg.phantom.config import PAPER_TABLE1
+from heartreg.phantom.config import MAX_POINTS, PAPER_TABLE1
 from heartreg.reproduce_results import (
     COLUMNS,
     PAPER,
@@ -451,8 +451,8 @@ def reproduce(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ReproduceError(f"seed must be a non-negative integer (--seed), got {seed!r}")
     if n_points is not None and (isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer))
-                                 or n_points < 1):
-        raise ReproduceError(f"n_points must be a positive integer (--points), got {n_points!r}")
+                                 or not 3 <= n_points <= MAX_POINTS):
+        raise ReproduceError(f"n_points must be an integer within 3..{MAX_POINTS} (--points), got {n_points!r}")
     from registration.pipeline import sweep_phases
 
     sweep_phases(phase_step)  # a UsageError naming --step

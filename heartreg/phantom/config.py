@@ -140,6 +140,10 @@ class Anatomy:
             raise ValueError(f"fov_mm must be within 100..500 mm, got {self.fov_mm!r}")
 
 
+#: Bounds of a session's points and of the chest wall's breathing excursion (mm).
+MAX_POINTS = 1000
+MAX_CHEST_WALL_MM = 30.0
+
 SIZES: dict[str, CTGeometry] = {
     # 128 x 128 x 72 int16 = 2.4 MB: small enough to commit.
     "sample": CTGeometry(n_rows=128, n_cols=128, pixel_mm=1.95, slice_mm=2.5, n_slices=72),
@@ -186,8 +190,9 @@ class PhantomConfig:
 
     def __post_init__(self):
         _check_positive("n_points", self.n_points)
-        if self.n_points < 3:
-            raise ValueError(f"n_points must be at least 3 (a rigid registration needs 3 points), got {self.n_points}")
+        if not 3 <= self.n_points <= MAX_POINTS:
+            raise ValueError(f"n_points must be within 3..{MAX_POINTS} (a rigid registration needs 3 points; each "
+                             f"point is its own recording, ~0.5 MB), got {self.n_points}")
         _check_positive("heart_rate_hz", self.heart_rate_hz)
         _check_positive("resp_rate_hz", self.resp_rate_hz)
         _check_positive("session_duration_s", self.session_duration_s)
@@ -202,7 +207,10 @@ class PhantomConfig:
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise ValueError(f"{name} must be a phase in [0, 1), got {value}")
-        if self.chest_wall_ap_mm < 0 or self.fiducial_trace_breaths < 0:
+        if not 0 <= self.chest_wall_ap_mm <= MAX_CHEST_WALL_MM:
+            raise ValueError(f"chest_wall_ap_mm must be within 0..{MAX_CHEST_WALL_MM:g} mm (the sternum's breathing "
+                             f"excursion: a few mm to about 10), got {self.chest_wall_ap_mm}")
+        if self.fiducial_trace_breaths < 0:
             raise ValueError(
                 "chest_wall_ap_mm and fiducial_trace_breaths must be >= 0, got "
                 f"{self.chest_wall_ap_mm} and {self.fiducial_trace_breaths}"

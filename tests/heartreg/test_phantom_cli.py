@@ -88,6 +88,13 @@ def test_bad_arguments_are_clear_errors(tmp_path, capsys):
     assert "seed must be a non-negative integer" in capsys.readouterr().err
     assert main(["phantom", str(tmp_path / "x"), "--points", "0"]) == 1
     assert "n_points must be positive" in capsys.readouterr().err
+    # session 17's sweep: --points 100000 ran for minutes towards ~55 GB; --chest-wall-mm 1e6 was accepted;
+    # --plus --no-session wrote no PLUS session without a word
+    for flags, message in ((["--points", "100000"], "n_points must be within 3..1000"),
+                           (["--chest-wall-mm", "1e6"], "chest_wall_ap_mm must be within 0..30 mm"),
+                           (["--plus", "--no-session"], "--plus needs the session")):
+        assert main(["phantom", str(tmp_path / "x"), *flags, "-q"]) == 1
+        assert message in capsys.readouterr().err and not (tmp_path / "x").exists()
     with pytest.raises(PhantomError, match="heart_rate_hz must be within"):
         make_phantom(tmp_path / "y", heart_rate_hz=9.0)
     with pytest.raises(PhantomError, match="unknown preset"):
