@@ -162,7 +162,7 @@ def run_pipeline(
     from modeling.ct_overlay import ct_panels, render_ct_png
     from modeling.slice_phases import SlicePhases
     from registration import read_session
-    from registration.pipeline import register_session
+    from registration.pipeline import register_session, sweep_phases
     from registration.report import write_registration
 
     from heartreg.report_html import write_html_report
@@ -170,6 +170,8 @@ def run_pipeline(
     from hrcore.output import staged_output
 
     out_dir = Path(out_dir)
+    if registration_options is not None:
+        sweep_phases(registration_options.phase_step)  # --step refused now, not after the phases and the model
     timings = {}
     log = (lambda msg: print(msg, file=sys.stderr)) if progress else (lambda msg: None)
     # everything is written into a staging folder and moved into place at the end

@@ -79,6 +79,10 @@ def test_cli_pipeline_bad_session(tmp_path, capsys):
     assert main(["pipeline", str(SAMPLE_DIR / "ct"), str(tmp_path / "nope"), "-o", str(tmp_path / "o"), "-q"]) == 1
     err = capsys.readouterr().err
     assert "session" in err and "Traceback" not in err
+    # a bad --step is refused before anything is read (before session 17: after the phases and the model, 6-9 s)
+    assert main(["pipeline", str(SAMPLE_DIR / "ct"), str(tmp_path / "nope"), "-o", str(tmp_path / "o"), "-q",
+                 "--step", "0"]) == 1
+    assert "step (--step) must be in" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
 def test_cli_pipeline_failure_leaves_no_partial_outputs(demo, tmp_path, capsys):
