@@ -38,6 +38,7 @@ import numpy as np
 from hrcore.errors import UsageError, read_json_object
 from hrcore.figlayout import fixed_margins
 from hrcore.geometry import apply_to_points
+from hrcore.output import staged_output
 from imaging.files import write_text_atomic
 from registration.phase_estimate import wrap_phase
 
@@ -376,11 +377,8 @@ def evaluate(
         return {"summary": {}, "cases": [], "paths": {}, "table": "", "failed": failed}
     summary = summarize(cases)
     table = _table(summary, len(cases), size)
-    paths = {"md": out / "temporal_eval.md", "json": out / "temporal_eval.json",
-             "csv": out / "temporal_eval.csv", "png": out / "temporal_eval.png"}
-    write_text_atomic(paths["md"], table)
-    write_text_atomic(paths["json"], json.dumps({"summary": summary, "criteria": CRITERIA, "cases": cases},
-                                                indent=1) + "\n")
+    names = {"md": "temporal_eval.md", "json": "temporal_eval.json", "csv": "temporal_eval.csv",
+             "png": "temporal_eval.png"}
     header = ["preset", "seed", "phase_true", "T0_mm", "estimator", "phase", "phase_error", "interval_low",
               "interval_high", "interval_width", "covered", "decided", "transform_mm", "transform_deg",
               "transform_90_mm", "phase_ok", "transform_ok"]
@@ -390,8 +388,14 @@ def evaluate(
             row = {**c, **r}
             lines.append(",".join(str(int(v)) if isinstance(v, bool) else
                                   (f"{v:.6g}" if isinstance(v, float) else str(v)) for v in (row[h] for h in header)))
-    write_text_atomic(paths["csv"], "\n".join(lines) + "\n")
-    _figure(cases, paths["png"])
+    # the four written first, then each moved into place (a failure while writing them leaves the earlier four)
+    with staged_output(out, parts=tuple(names.values()), overwrite=True, what="evaluation folder") as stage:
+        write_text_atomic(stage / names["md"], table)
+        write_text_atomic(stage / names["json"], json.dumps({"summary": summary, "criteria": CRITERIA,
+                                                             "cases": cases}, indent=1) + "\n")
+        write_text_atomic(stage / names["csv"], "\n".join(lines) + "\n")
+        _figure(cases, stage / names["png"])
+    paths = {key: out / name for key, name in names.items()}
     return {"summary": summary, "cases": cases, "paths": paths, "table": table, "failed": failed}
 
 
