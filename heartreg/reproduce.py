@@ -40,7 +40,7 @@ import numpy as np
 
 from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT
 from heartreg.demo import pose_error
-from heartreg.phantom.config import MAX_POINTS, PAPER_TABLE1
+from heartreg.phantom.config import PAPER_TABLE1
 from heartreg.reproduce_results import (
     COLUMNS,
     PAPER,
@@ -48,6 +48,7 @@ from heartreg.reproduce_results import (
     ReproduceError,
     TrialResult,
     _summary,
+    check_request,
 )
 from hrcore.errors import read_json_object
 from hrcore.output import staged_output
@@ -435,27 +436,10 @@ def reproduce(
         Unknown or repeated trials, a different phantom case in the way, or
         (``rerun=False``) no earlier run to read.
     """
-    from heartreg.phantom.config import SIZES
     from heartreg.reproduce_figures import figure_data, plot_figures
     from heartreg.reproduce_report import csv_text, markdown, page_html
 
-    trials = [int(k) for k in trials]
-    if not trials:
-        raise ReproduceError("trials must name at least one of 1..6")
-    bad = [k for k in trials if k not in PAPER_TABLE1]
-    if bad or len(set(trials)) != len(trials):
-        raise ReproduceError(f"trials must be distinct numbers among 1..6 (Table 1), got {trials}")
-    if size not in SIZES:
-        raise ReproduceError(f"size must be one of {sorted(SIZES)}, got {size!r}")
-    # the rest the trials check too, on the workers: here, before any work, as one line
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ReproduceError(f"seed must be a non-negative integer (--seed), got {seed!r}")
-    if n_points is not None and (isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer))
-                                 or not 3 <= n_points <= MAX_POINTS):
-        raise ReproduceError(f"n_points must be an integer within 3..{MAX_POINTS} (--points), got {n_points!r}")
-    from registration.pipeline import sweep_phases
-
-    sweep_phases(phase_step)  # a UsageError naming --step
+    trials = check_request(trials, size=size, seed=seed, n_points=n_points, phase_step=phase_step)
     say = log if log is not None else (lambda msg: None)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

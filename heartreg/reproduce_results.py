@@ -34,6 +34,35 @@ class ReproduceError(HeartregError, ValueError):
     """The reproduction cannot run as asked (bad trial list, a foreign case in the way)."""
 
 
+def check_request(trials, *, size, seed, n_points, phase_step) -> list[int]:
+    """The trials asked for, as a list, once the request is checked (the trials check it again on their workers:
+    here it is one line before any work).
+
+    Raises
+    ------
+    ReproduceError, UsageError
+        Unknown or repeated trials, an unknown size, a negative seed, a point count or a phase step (``--step``)
+        out of range.
+    """
+    from heartreg.phantom.config import MAX_POINTS, PAPER_TABLE1, SIZES
+    from registration.pipeline import sweep_phases
+
+    trials = [int(k) for k in trials]
+    if not trials:
+        raise ReproduceError("trials must name at least one of 1..6")
+    if any(k not in PAPER_TABLE1 for k in trials) or len(set(trials)) != len(trials):
+        raise ReproduceError(f"trials must be distinct numbers among 1..6 (Table 1), got {trials}")
+    if size not in SIZES:
+        raise ReproduceError(f"size must be one of {sorted(SIZES)}, got {size!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ReproduceError(f"seed must be a non-negative integer (--seed), got {seed!r}")
+    if n_points is not None and (isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer))
+                                 or not 3 <= n_points <= MAX_POINTS):
+        raise ReproduceError(f"n_points must be an integer within 3..{MAX_POINTS} (--points), got {n_points!r}")
+    sweep_phases(phase_step)  # a UsageError naming --step
+    return trials
+
+
 @dataclass(frozen=True, eq=False)
 class TrialResult:
     """One trial's results: its table row and the curves behind the figures.

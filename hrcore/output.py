@@ -424,6 +424,7 @@ def staged_output(
     else:
         check_output_path(out, inputs=inputs, what=what, overwrite=overwrite, folder=folder, earlier=earlier)
     absolute = Path(os.path.abspath(out))
+    new = not os.path.lexists(absolute) or (absolute.is_dir() and not any(absolute.iterdir()))
     home = absolute.parent if whole else absolute
     created = []
     probe = home
@@ -442,6 +443,10 @@ def staged_output(
             os.mkdir(stage)
         yield stage
         raise_deferred_interrupt()
+        if new and not overwrite and os.path.lexists(absolute) and not (
+                absolute.is_dir() and not any(absolute.iterdir())):
+            raise OutputError(f"{what} {out} was written by another run meanwhile; nothing of this run was kept "
+                              "(run again with --overwrite to replace it)")
         if whole:
             _commit(stage, absolute)
         else:

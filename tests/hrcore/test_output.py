@@ -259,3 +259,17 @@ def test_an_interrupt_python_could_not_raise_stops_the_commit(tmp_path, monkeypa
     monkeypatch.setattr(generate, "write_ct_study", write_ct_study)
     assert main(["phantom", str(out), "--size", "sample", "--no-session", "-q"]) == 143
     assert _listing(tmp_path) == []
+
+
+def test_an_output_another_run_wrote_meanwhile_is_not_replaced_without_overwrite(tmp_path):
+    """Two runs to the same new -o (session 17's sweep): the second to finish replaced the first, both status 0."""
+    out = tmp_path / "out"
+    with pytest.raises(OutputError, match="out was written by another run meanwhile; nothing of this run was kept"):
+        with staged_output(out) as stage:
+            (stage / "mine.txt").write_text("second")
+            with staged_output(out) as other:  # the other run, finished first
+                (other / "theirs.txt").write_text("first")
+    assert _listing(tmp_path) == ["out", "out/theirs.txt"]
+    with staged_output(out, overwrite=True, earlier=("theirs.txt",)) as stage:
+        (stage / "mine.txt").write_text("again")
+    assert _listing(tmp_path) == ["out", "out/mine.txt"]
