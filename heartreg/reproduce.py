@@ -30,6 +30,7 @@ path is partly cancelled by a wrong respiration phase, so the empirical metric
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import dataclass
@@ -49,9 +50,11 @@ from heartreg.reproduce_results import (
     TrialResult,
     _summary,
     check_request,
+    miss_reason,
+    path_axis,
 )
 from hrcore.errors import read_json_object
-from hrcore.output import staged_output
+from hrcore.output import clean_stale_staging, staged_output
 from imaging.phase_io import read_phase_report
 from modeling.model import read_model
 from registration.phase_estimate import wrap_phase
@@ -146,27 +149,6 @@ def _existing_case(case_dir: Path, preset: str, size: str, seed: int, n_points):
     return None
 
 
-def _path_axis(locus_mm):
-    """Main axis (unit (3,)) and peak-to-peak extent (mm) of a (m, 3) locus."""
-    centred = locus_mm - locus_mm.mean(axis=0)
-    _, _, vt = np.linalg.svd(centred, full_matrices=False)
-    axis = vt[0]
-    along = centred @ axis
-    return axis, float(along.max() - along.min())
-
-
-def _miss_reason(row) -> str:
-    if row["phi_r_within"]:
-        return ""
-    share = row["t0_error_along_path"]
-    head = (f"phi_R* = {row['phi_r']:.2f} vs truth {row['phi_r_truth']:.2f}: "
-            f"{100 * share:.0f} % of the {row['t0_error_mm']:.1f} mm fiducial (T0) error lies along "
-            f"the respiratory path ({row['resp_path_mm']:.1f} mm peak to peak)")
-    if share >= 0.5:
-        return head + ", so a wrong respiration phase cancels part of it and eq. 10 is drawn away"
-    return head + "; the error is mostly across the path, so this check does not explain the miss"
-
-
 def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
     """The table row of one trial from the pipeline's files (``files`` from :func:`_read_run`)."""
     from heartreg.phantom.config import PAPER_IMAGE_PHASE
@@ -186,7 +168,7 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
     # T0's error at the sweep's pivot, heart frame: the quantity eq. 10 measures
     t0_vec, t0_mm, t0_deg = pose_error(T["T0"], T_true, centroid_probe)
     locus = sweep.correction_translation_mm
-    axis, path_mm = _path_axis(locus)
+    axis, path_mm = path_axis(locus)
     along = float(abs(t0_vec @ axis) / t0_mm) if t0_mm > 0 else 0.0
 
     by_name = {r[0]: r for r in truth_rows}
@@ -235,7 +217,7 @@ def _trial_row(trial: int, files: dict, truth: dict, truth_rows: list) -> dict:
         "static_error_mm": static_mm,
         "static_error_deg": static_deg,
     }
-    row["miss_reason"] = _miss_reason(row)
+    row["miss_reason"] = miss_reason(row)
     return row
 
 
@@ -364,17 +346,30 @@ def _run_trials(trials, out: Path, *, size, seed, n_points, phase_step, workers,
     for k in trials:  # a foreign case in the way is refused before any cluster starts
         _existing_case(out / f"trial{k}" / "case", f"wood2018-trial{k}", size, seed, n_points)
     results = {}
-    with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit, log=say) as client:
-        for n, (name, value) in enumerate(run_tasks(
-                client, _trial_task, trials, names=[f"trial{k}" for k in trials],
-                args=(str(out.resolve()), size, seed, n_points, phase_step), progress=progress, desc="trials"), 1):
-            k = int(name.removeprefix("trial"))
-            if isinstance(value, TaskFailure):
-                raise ReproduceError(f"trial {k} failed: {value.error}")
-            result, lines = value
-            for line in lines:
-                say(f"[trial {k}, {n}/{len(trials)} done] {line}")
-            results[k] = result
+    folders = [out / f"trial{k}" for k in trials] + [out]
+    new = [f for f in folders if not f.exists()]
+    try:
+        with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit, log=say) as client:
+            for n, (name, value) in enumerate(run_tasks(
+                    client, _trial_task, trials, names=[f"trial{k}" for k in trials],
+                    args=(str(out.resolve()), size, seed, n_points, phase_step), progress=progress,
+                    desc="trials"), 1):
+                k = int(name.removeprefix("trial"))
+                if isinstance(value, TaskFailure):
+                    raise ReproduceError(f"trial {k} failed: {value.error}")
+                result, lines = value
+                for line in lines:
+                    say(f"[trial {k}, {n}/{len(trials)} done] {line}")
+                results[k] = result
+    except BaseException:
+        # the workers are gone (an interrupt stops them mid-write): their staging folders are those of killed
+        # processes, removed now rather than by the next run, and so are the folders this run made for them
+        for folder in folders:
+            clean_stale_staging(folder)
+        for folder in new:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # if empty
+        raise
     return [results[k] for k in trials]
 
 

@@ -205,3 +205,25 @@ def _summary(trials: Sequence[TrialResult]) -> dict:
         "mean_icp_weak_long_axis": mean("icp_weak_long_axis"),
         "final_icp_unconverged": [r["trial"] for r in rows if not r["icp_converged"]],
     }
+
+
+def path_axis(locus_mm):
+    """Main axis (unit (3,)) and peak-to-peak extent (mm) of a (m, 3) locus."""
+    centred = locus_mm - locus_mm.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    axis = vt[0]
+    along = centred @ axis
+    return axis, float(along.max() - along.min())
+
+
+def miss_reason(row) -> str:
+    """Why eq. 10 missed the image phase in a trial's row ('' when it did not)."""
+    if row["phi_r_within"]:
+        return ""
+    share = row["t0_error_along_path"]
+    head = (f"phi_R* = {row['phi_r']:.2f} vs truth {row['phi_r_truth']:.2f}: "
+            f"{100 * share:.0f} % of the {row['t0_error_mm']:.1f} mm fiducial (T0) error lies along "
+            f"the respiratory path ({row['resp_path_mm']:.1f} mm peak to peak)")
+    if share >= 0.5:
+        return head + ", so a wrong respiration phase cancels part of it and eq. 10 is drawn away"
+    return head + "; the error is mostly across the path, so this check does not explain the miss"
