@@ -249,3 +249,31 @@ def test_outputs_are_staged_with_the_one_output_contract(repro):
                                          "reproduction.md"])
     for k in TRIALS:
         assert sorted(p.name for p in (out / f"trial{k}").iterdir()) == ["case", "run", "trial.json"]
+
+
+def test_an_interrupt_leaves_no_staging_of_its_stopped_workers(tmp_path, monkeypatch):
+    """Session 17's sweep: Ctrl-C during the trials left the workers' staging folders (``.case.heartreg-...tmp``)
+    and new empty trial folders; they are removed when the interrupt reaches the driver (checked by hand too:
+    SIGINT at 14 s, nothing left but trial 1's finished phantom case)."""
+    import contextlib
+    import subprocess
+    import sys
+
+    import heartreg.batch.cluster as cluster
+    from heartreg.reproduce import _run_trials
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    out = tmp_path / "out"
+
+    def run_tasks(client, fn, items, **kw):  # a worker started trial 1's case, then the user pressed Ctrl-C
+        (out / "trial1" / f".case.heartreg-{dead.pid}-abcd1234.tmp" / "ct").mkdir(parents=True)
+        raise KeyboardInterrupt
+        yield
+
+    monkeypatch.setattr(cluster, "open_client", lambda **kw: contextlib.nullcontext(None))
+    monkeypatch.setattr(cluster, "run_tasks", run_tasks)
+    with pytest.raises(KeyboardInterrupt):
+        _run_trials([1, 2], out, size="sample", seed=0, n_points=None, phase_step=0.02, workers=1, scheduler=None,
+                    memory_limit=None, progress=False, say=lambda m: None)
+    assert not out.exists()
