@@ -25,7 +25,10 @@ voxel volume, ~ staple volume x (metal HU - floor).  So:
    the staple is fitted (a quadratic height field through the -500 HU crossings
    of the voxel columns clear of it), the CT's profile across that surface gives
    each voxel's background without the staple, and the centre is the centroid
-   of the HU above that background.
+   of the HU above that background over the staple's dense voxels and those
+   next to them across its thickness (along the voxel axis nearest the skin's
+   normal): beside a staple lies what touches it (an ECG lead, a skin fold),
+   which would count as metal above the air.
 
 Order (docs/CONTRACTS.md): a grid of ``n_rows`` rows, superior to inferior;
 within a row patient right to left (increasing LPS x).
@@ -143,9 +146,8 @@ def _centre_over_skin(hu, dense_kji, spacing_kji, floor_hu) -> np.ndarray:
     sub = np.asarray(hu[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.float64)
     core = np.zeros(sub.shape, bool)
     core[tuple((dense_kji - lo).T)] = True
-    # the staple's voxels: its dense ones and their neighbours within reach; the ring around them is background
-    staple = ndimage.binary_dilation(core, structure=np.ones(tuple(2 * reach + 1), bool))
-    ring = ~staple & (sub <= floor_hu)
+    # the background is read round the staple's dense voxels and their neighbours within reach
+    ring = ~ndimage.binary_dilation(core, structure=np.ones(tuple(2 * reach + 1), bool)) & (sub <= floor_hu)
     air = sub < SKIN_SURFACE_HU
     if not (air & ring).any() or not (~air & ring).any():
         return np.full(3, np.nan)
@@ -154,6 +156,11 @@ def _centre_over_skin(hu, dense_kji, spacing_kji, floor_hu) -> np.ndarray:
     normal = where[(air & ring).ravel()].mean(axis=0) - where[(~air & ring).ravel()].mean(axis=0)
     a = int(np.argmax(np.abs(normal)))
     flip = normal[a] < 0
+    # the staple's partial volume lies across its thickness, along the skin's normal: its voxels are the dense
+    # ones and those within reach of them along that axis (beside it lies what touches it: a lead, a fold)
+    across = np.ones(3, int)
+    across[a] = 2 * reach[a] + 1
+    staple = ndimage.binary_dilation(core, structure=np.ones(tuple(across), bool))
 
     def columns(x):  # the axis ``a`` last, running from the body to the air
         x = np.moveaxis(x, a, -1)
