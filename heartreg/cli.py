@@ -161,7 +161,7 @@ def _main(argv: list[str] | None) -> int:
     warnings.formatwarning = _one_line_warning
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
-    from hrcore.output import defer_interrupt, raise_deferred_interrupt, refusal_line
+    from hrcore.output import defer_interrupt, raise_deferred_interrupt, refusal_line, take_deferred_interrupt
 
     unraisable = sys.unraisablehook
 
@@ -171,8 +171,8 @@ def _main(argv: list[str] | None) -> int:
         else:
             unraisable(args)
 
-    defer_interrupt(None)
     if in_main:
+        defer_interrupt(None)
         sys.unraisablehook = keep_interrupts
     try:
         try:
@@ -180,7 +180,7 @@ def _main(argv: list[str] | None) -> int:
             raise_deferred_interrupt()
             return status
         except Exception as exc:
-            interrupt = _interruption(exc)
+            interrupt = _interruption(exc) or (take_deferred_interrupt() if in_main else None)
             if interrupt is not None:  # to main's handler: 130 or 143, no traceback
                 raise interrupt from None
             raise
@@ -209,6 +209,7 @@ def _main(argv: list[str] | None) -> int:
         if in_main:
             signal.signal(signal.SIGTERM, previous)
             sys.unraisablehook = unraisable
+            defer_interrupt(None)  # nothing kept past this command
 
 
 if __name__ == "__main__":  # pragma: no cover

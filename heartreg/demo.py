@@ -149,6 +149,8 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     own_sample = sample_dir is None and not (SAMPLE_DIR / "truth.json").exists()
     if sample_dir is None:
         sample = out_dir / "sample" if own_sample else SAMPLE_DIR
+    # the sample a demo without the bundled one wrote into its folder, given back as --sample, is that demo's
+    own_sample = own_sample or sample.resolve() == (out_dir / "sample").resolve()
     # an earlier demo's folder or a new one, never the sample's (nothing is written before this check)
     check_output_path(out_dir, inputs=() if own_sample else (sample,), what="demo folder", overwrite=True,
                       earlier=("demo.json", "session_case/recipe.json", "sample/truth.json"))

@@ -245,10 +245,16 @@ def defer_interrupt(exc: BaseException | None) -> None:
     _deferred[:] = [] if exc is None else [exc]
 
 
+def take_deferred_interrupt() -> BaseException | None:
+    """The interrupt :func:`defer_interrupt` kept, forgotten here (None if there is none)."""
+    return _deferred.pop() if _deferred else None
+
+
 def raise_deferred_interrupt() -> None:
     """Raise the interrupt :func:`defer_interrupt` kept, if any."""
-    if _deferred:
-        raise _deferred.pop()
+    exc = take_deferred_interrupt()
+    if exc is not None:
+        raise exc
 
 
 def _commit(stage: Path, out: Path) -> None:

@@ -273,3 +273,26 @@ def test_an_output_another_run_wrote_meanwhile_is_not_replaced_without_overwrite
     with staged_output(out, overwrite=True, earlier=("theirs.txt",)) as stage:
         (stage / "mine.txt").write_text("again")
     assert _listing(tmp_path) == ["out", "out/mine.txt"]
+
+
+def test_an_interrupt_kept_during_a_command_that_then_refuses_is_still_the_status(monkeypatch, tmp_path):
+    """Session 17's review: a kept Ctrl-C was lost when the command then failed (status 1, not 130) and stayed
+    kept after main() returned: the next staged write of the process raised it."""
+    import heartreg.cli_parser as cli_parser
+    from heartreg.cli import main
+    from hrcore.errors import UsageError
+
+    class Dropped:
+        def __del__(self):
+            raise KeyboardInterrupt
+
+    def phases_that_refuses(args):
+        obj = Dropped()
+        del obj
+        raise UsageError("a refusal after the interrupt")
+
+    monkeypatch.setattr(cli_parser, "_cmd_phases", phases_that_refuses)
+    assert main(["phases", str(tmp_path / "study"), "-o", str(tmp_path / "o")]) == 130
+    with staged_output(tmp_path / "later") as stage:
+        (stage / "a.txt").write_text("x")
+    assert (tmp_path / "later" / "a.txt").is_file()
