@@ -146,11 +146,10 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
                 "as 'heartreg phantom OUT --no-session' writes)"
             )
     out_dir = Path(out_dir)
-    own_sample = sample_dir is None and not (SAMPLE_DIR / "truth.json").exists()
-    if sample_dir is None:
-        sample = out_dir / "sample" if own_sample else SAMPLE_DIR
-    # the sample a demo without the bundled one wrote into its folder, given back as --sample, is that demo's
-    own_sample = own_sample or sample.resolve() == (out_dir / "sample").resolve()
+    if sample_dir is None:  # the bundled sample, else one the demo writes into its folder
+        sample = SAMPLE_DIR if (SAMPLE_DIR / "truth.json").exists() else out_dir / "sample"
+    # the demo's own sample (also when given back as --sample) is part of its output, not an input
+    own_sample = sample.resolve() == (out_dir / "sample").resolve()
     # an earlier demo's folder or a new one, never the sample's (nothing is written before this check)
     check_output_path(out_dir, inputs=() if own_sample else (sample,), what="demo folder", overwrite=True,
                       earlier=("demo.json", "session_case/recipe.json", "sample/truth.json"))

@@ -336,8 +336,7 @@ def evaluate(
         for seed in seeds:
             path = out / "cases" / f"{preset}_s{seed}.json"
             if path.exists():
-                have[path] = read_json_object(path, keys=("preset", "seed", "estimates"), what="case record",
-                                              fix="delete it and run again (that case runs anew)")
+                have[path] = _read_case(path)
                 if have[path].get("size", size) != size:
                     raise UsageError(f"{out} holds cases of size {have[path]['size']!r}, not {size!r} (--size): "
                                      "choose another output folder for another size")
@@ -370,9 +369,7 @@ def evaluate(
         for seed in seeds:
             path = out / "cases" / f"{preset}_s{seed}.json"
             if path.exists():
-                cases.append(have.get(path) or read_json_object(
-                    path, keys=("preset", "seed", "estimates"), what="case record",
-                    fix="delete it and run again (that case runs anew)"))
+                cases.append(have.get(path) or _read_case(path))
     if not cases:
         return {"summary": {}, "cases": [], "paths": {}, "table": "", "failed": failed}
     summary = summarize(cases)
@@ -397,6 +394,12 @@ def evaluate(
         _figure(cases, stage / names["png"])
     paths = {key: out / name for key, name in names.items()}
     return {"summary": summary, "cases": cases, "paths": paths, "table": table, "failed": failed}
+
+
+def _read_case(path: Path) -> dict:
+    """One case's record in ``OUT/cases/``; one line naming it when it is damaged."""
+    return read_json_object(path, keys=("preset", "seed", "estimates"), what="case record",
+                            fix="delete it and run again (that case runs anew)")
 
 
 def _case_line(case: dict) -> str:

@@ -324,6 +324,11 @@ def _named_in_out(filename, stage: Path, out: Path) -> str:
 
 
 # ------------------------------------------------------------------ staging
+def _missing_or_empty(path: Path) -> bool:
+    """True when nothing is at ``path`` but, at most, an empty folder."""
+    return not os.path.lexists(path) or (path.is_dir() and not any(os.scandir(path)))
+
+
 def _holds_only(folder: Path, parts) -> bool:
     """True when ``folder`` holds nothing but entries named in ``parts``."""
     return all(entry.name in parts for entry in os.scandir(folder))
@@ -430,7 +435,7 @@ def staged_output(
     else:
         check_output_path(out, inputs=inputs, what=what, overwrite=overwrite, folder=folder, earlier=earlier)
     absolute = Path(os.path.abspath(out))
-    new = not os.path.lexists(absolute) or (absolute.is_dir() and not any(absolute.iterdir()))
+    new = _missing_or_empty(absolute)
     home = absolute.parent if whole else absolute
     created = []
     probe = home
@@ -449,8 +454,7 @@ def staged_output(
             os.mkdir(stage)
         yield stage
         raise_deferred_interrupt()
-        if new and not overwrite and os.path.lexists(absolute) and not (
-                absolute.is_dir() and not any(absolute.iterdir())):
+        if new and not overwrite and not _missing_or_empty(absolute):
             raise OutputError(f"{what} {out} was written by another run meanwhile; nothing of this run was kept "
                               "(run again with --overwrite to replace it)")
         if whole:

@@ -18,8 +18,8 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.files import gzip_damage
-from imaging.volume_file import nifti_lps_affine
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
+from imaging.volume_file import nifti_lps_affine
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
 

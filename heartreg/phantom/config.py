@@ -211,10 +211,7 @@ class PhantomConfig:
             raise ValueError(f"chest_wall_ap_mm must be within 0..{MAX_CHEST_WALL_MM:g} mm (the sternum's breathing "
                              f"excursion: a few mm to about 10), got {self.chest_wall_ap_mm}")
         if self.fiducial_trace_breaths < 0:
-            raise ValueError(
-                "chest_wall_ap_mm and fiducial_trace_breaths must be >= 0, got "
-                f"{self.chest_wall_ap_mm} and {self.fiducial_trace_breaths}"
-            )
+            raise ValueError(f"fiducial_trace_breaths must be >= 0, got {self.fiducial_trace_breaths}")
         if self.session_duration_s * self.resp_rate_hz < 2.0:
             raise ValueError(
                 "session_duration_s must cover at least two breaths "
