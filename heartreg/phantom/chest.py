@@ -89,6 +89,14 @@ class _Tube:
         return self.points_mm.min(axis=0) - pad, self.points_mm.max(axis=0) + pad
 
 
+def dome_z_mm(dome_top_mm: float, x_mm, y_mm):
+    """Diaphragm height z (mm) at (x, y): a tilted paraboloid, right side higher,
+    its vertex (before the tilt) at ``dome_top_mm``."""
+    x = np.asarray(x_mm, dtype=float)
+    y = np.asarray(y_mm, dtype=float)
+    return dome_top_mm - (x**2 + y**2) / (2.0 * DOME_RADIUS_MM) - DOME_TILT * x
+
+
 @dataclass(frozen=True)
 class ChestModel:
     """Everything the renderer needs that depends on the heart's placement.
@@ -128,10 +136,8 @@ class ChestModel:
     markers: bool = True
 
     def dome_z_mm(self, x_mm, y_mm):
-        """Diaphragm height z (mm) at (x, y): a tilted paraboloid, right side higher."""
-        x = np.asarray(x_mm, dtype=float)
-        y = np.asarray(y_mm, dtype=float)
-        return self.dome_top_mm - (x**2 + y**2) / (2.0 * DOME_RADIUS_MM) - DOME_TILT * x
+        """Diaphragm height z (mm) at (x, y): :func:`dome_z_mm` of this chest's dome."""
+        return dome_z_mm(self.dome_top_mm, x_mm, y_mm)
 
     def vessel_distance_mm(self, points_mm) -> np.ndarray:
         """Distance (mm) of patient points to the lumen of the contrast vessels

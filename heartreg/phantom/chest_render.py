@@ -11,7 +11,9 @@ plane).
 
 from __future__ import annotations
 
+import functools
 from numbers import Real
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -24,6 +26,7 @@ from heartreg.phantom.chest import (
     ChestModel,
     _tube_distance,
     build_chest,
+    dome_z_mm,
 )
 from heartreg.phantom.geometry import apply
 from heartreg.phantom.heart import AnalyticHeart
@@ -71,6 +74,47 @@ def _ramp(sd, edge_mm):
 def _paint(img, sd, hu, edge_mm):
     w = _ramp(sd, edge_mm)
     img += w * (hu - img)
+
+
+def _blend(img, w, hu):
+    """:func:`_paint` with the occupancy ``w`` computed already."""
+    img += w * (hu - img)
+
+
+@functools.lru_cache(maxsize=2)
+def _plane_fields(xs_bytes: bytes, ys_bytes: bytes, edge_mm: float, dome_top_mm: float) -> SimpleNamespace:
+    """What :func:`render_slice` paints the same on every axial plane of one grid.
+
+    The body wall, lungs, mediastinum and spine are prisms along z (ribs,
+    sternum, liver and discs change with z); their signed distances and
+    occupancies are computed once per grid (a study's slices share it), the
+    same numbers the per-slice arithmetic gave.
+    """
+    xs, ys = np.frombuffer(xs_bytes), np.frombuffer(ys_bytes)
+    X, Y = np.meshgrid(xs, ys)
+    a, b = BODY_SEMI_LR_MM, BODY_SEMI_AP_MM
+    cavity = _ellipse_sd(X, Y, a - CAVITY_INSET_MM, b - CAVITY_INSET_MM)
+    vertebra = _circle_sd(X, Y, *VERTEBRA_CENTRE_MM, VERTEBRA_RADIUS_MM)
+    slope2 = (X / DOME_RADIUS_MM + DOME_TILT) ** 2 + (Y / DOME_RADIUS_MM) ** 2
+    return SimpleNamespace(
+        shape=X.shape,
+        Y=Y,
+        cavity=cavity,
+        rib_shell=np.maximum(_ellipse_sd(X, Y, a - RIB_OUTER_INSET_MM, b - RIB_OUTER_INSET_MM), -cavity),
+        rib_gap=RIB_MIDLINE_GAP_MM - np.abs(X),
+        sternum=_ellipse_sd(X - STERNUM_CENTRE_MM[0], Y - STERNUM_CENTRE_MM[1], *STERNUM_SEMI_MM),
+        dome_z=dome_z_mm(dome_top_mm, X, Y),
+        dome_norm=np.sqrt(1.0 + slope2),
+        vertebra=vertebra,
+        w_body=_ramp(_ellipse_sd(X, Y, a, b), edge_mm),
+        w_muscle=_ramp(_ellipse_sd(X, Y, a - FAT_LAYER_MM, b - FAT_LAYER_MM), edge_mm),
+        w_lung=_ramp(cavity, edge_mm),
+        w_mediastinum=_ramp(np.maximum(cavity, np.abs(X) - MEDIASTINUM_HALF_WIDTH_MM), edge_mm),
+        w_vertebra=_ramp(vertebra, edge_mm),
+        w_cancellous=_ramp(vertebra + CORTEX_MM, edge_mm),
+        w_arch=_ramp(_circle_sd(X, Y, *CANAL_CENTRE_MM, ARCH_RADIUS_MM), edge_mm),
+        w_canal=_ramp(_circle_sd(X, Y, *CANAL_CENTRE_MM, CANAL_RADIUS_MM), edge_mm),
+    )
 
 
 def _ellipse_sd(x, y, a, b):
@@ -172,44 +216,34 @@ def render_slice(
         raise ValueError(f"edge_mm must be positive, got {edge_mm!r}")
     z = float(z_mm)
 
-    X, Y = np.meshgrid(xs, ys)
-    img = np.full(X.shape, HU["air"])
-    a, b = BODY_SEMI_LR_MM, BODY_SEMI_AP_MM
+    plane = _plane_fields(xs.tobytes(), ys.tobytes(), float(edge_mm), float(chest.dome_top_mm))
+    img = np.full(plane.shape, HU["air"])
 
     # body wall: fat, muscle, ribs
-    _paint(img, _ellipse_sd(X, Y, a, b), HU["fat"], edge_mm)
-    _paint(img, _ellipse_sd(X, Y, a - FAT_LAYER_MM, b - FAT_LAYER_MM), HU["muscle"], edge_mm)
-    cavity = _ellipse_sd(X, Y, a - CAVITY_INSET_MM, b - CAVITY_INSET_MM)
-    rib_shell = np.maximum(_ellipse_sd(X, Y, a - RIB_OUTER_INSET_MM, b - RIB_OUTER_INSET_MM), -cavity)
-    q = (z - RIB_SLOPE * Y) / RIB_PITCH_MM
+    _blend(img, plane.w_body, HU["fat"])
+    _blend(img, plane.w_muscle, HU["muscle"])
+    q = (z - RIB_SLOPE * plane.Y) / RIB_PITCH_MM
     band = (np.abs(q - np.round(q)) * RIB_PITCH_MM - RIB_HALF_HEIGHT_MM) / np.sqrt(1.0 + RIB_SLOPE**2)
-    ribs = np.maximum(np.maximum(rib_shell, band), RIB_MIDLINE_GAP_MM - np.abs(X))
+    ribs = np.maximum(np.maximum(plane.rib_shell, band), plane.rib_gap)
     _paint(img, ribs, HU["bone"], edge_mm)
     if STERNUM_Z_MM[0] <= z <= STERNUM_Z_MM[1]:
-        sd = _ellipse_sd(X - STERNUM_CENTRE_MM[0], Y - STERNUM_CENTRE_MM[1], *STERNUM_SEMI_MM)
-        _paint(img, np.maximum(sd, STERNUM_Z_MM[0] - z), HU["sternum"], edge_mm)
+        _paint(img, np.maximum(plane.sternum, STERNUM_Z_MM[0] - z), HU["sternum"], edge_mm)
 
     # thoracic cavity: lungs, mediastinum, liver below the dome
-    _paint(img, cavity, HU["lung"], edge_mm)
-    _paint(img, np.maximum(cavity, np.abs(X) - MEDIASTINUM_HALF_WIDTH_MM), HU["fat"], edge_mm)
-    zd = chest.dome_z_mm(X, Y)
-    slope2 = (X / DOME_RADIUS_MM + DOME_TILT) ** 2 + (Y / DOME_RADIUS_MM) ** 2
-    below = (z - zd) / np.sqrt(1.0 + slope2)
-    _paint(img, np.maximum(cavity, below), HU["liver"], edge_mm)
+    _blend(img, plane.w_lung, HU["lung"])
+    _blend(img, plane.w_mediastinum, HU["fat"])
+    below = (z - plane.dome_z) / plane.dome_norm
+    _paint(img, np.maximum(plane.cavity, below), HU["liver"], edge_mm)
 
     # spine: vertebral body (cortex, cancellous, discs), neural arch, canal
-    vx, vy = VERTEBRA_CENTRE_MM
-    vb = _circle_sd(X, Y, vx, vy, VERTEBRA_RADIUS_MM)
-    _paint(img, vb, HU["bone"], edge_mm)
-    _paint(img, vb + CORTEX_MM, HU["cancellous"], edge_mm)
+    _blend(img, plane.w_vertebra, HU["bone"])
+    _blend(img, plane.w_cancellous, HU["cancellous"])
     qd = z / DISC_PITCH_MM
     disc = abs(qd - round(qd)) * DISC_PITCH_MM - DISC_HALF_MM
     if disc < edge_mm:
-        _paint(img, np.maximum(vb, disc), HU["disc"], edge_mm)
-    cx, cy = CANAL_CENTRE_MM
-    canal = _circle_sd(X, Y, cx, cy, CANAL_RADIUS_MM)
-    _paint(img, _circle_sd(X, Y, cx, cy, ARCH_RADIUS_MM), HU["arch"], edge_mm)
-    _paint(img, canal, HU["csf"], edge_mm)
+        _paint(img, np.maximum(plane.vertebra, disc), HU["disc"], edge_mm)
+    _blend(img, plane.w_arch, HU["arch"])
+    _blend(img, plane.w_canal, HU["csf"])
 
     # mediastinal contents: fat around vessels, oesophagus, trachea
     tubes = dict()
