@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from heartreg.reproduce_results import TrialResult, _mean_curve
-from hrcore.figlayout import fixed_margins
+from hrcore.figlayout import PNG_OPTIONS, fixed_margins, subplots
 
 __all__ = ["figure_data", "plot_figures"]
 
@@ -123,7 +123,7 @@ def _colours(n):
 
 
 def _save(fig, path: Path) -> Path:
-    fig.savefig(path, format="png")  # into the caller's staging folder (hrcore.output)
+    fig.savefig(path, format="png", pil_kwargs=PNG_OPTIONS)  # into the caller's staging folder (hrcore.output)
     return path
 
 
@@ -154,7 +154,7 @@ def plot_figures(figs: dict, out: Path) -> dict:
     # Fig. 2
     panels = figs["fig2"]["panels"]
     fig = Figure(figsize=(11, 4.4), dpi=_DPI)
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    axes = subplots(fig, 1, len(panels), squeeze=False)[0]
     fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55, top_in=0.6, wspace_in=0.8)
     for ax, panel in zip(axes, panels):
         _draw_curves(ax, panel, colours)
@@ -166,7 +166,7 @@ def plot_figures(figs: dict, out: Path) -> dict:
     # Fig. 6: 2 x 3
     panels = figs["fig6"]["panels"]
     fig = Figure(figsize=(13, 7.2), dpi=_DPI)
-    axes = fig.subplots(2, 3)
+    axes = subplots(fig, 2, 3)
     fixed_margins(fig, left_in=0.6, right_in=0.15, bottom_in=0.85, top_in=0.62, wspace_in=0.75, hspace_in=0.72)
     for ax, panel in zip(axes.ravel(), panels):
         _draw_curves(ax, panel, colours)
@@ -181,7 +181,7 @@ def plot_figures(figs: dict, out: Path) -> dict:
     # Fig. 7
     panels = figs["fig7"]["panels"]
     fig = Figure(figsize=(11, 4.6), dpi=_DPI)
-    axes = fig.subplots(1, 2)
+    axes = subplots(fig, 1, 2)
     fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55, top_in=0.6, wspace_in=0.8)
     for ax, panel in zip(axes, panels):
         _draw_curves(ax, panel, colours)
@@ -199,7 +199,7 @@ def plot_figures(figs: dict, out: Path) -> dict:
     # Fig. 9
     (panel,) = figs["fig9"]["panels"]
     fig = Figure(figsize=(7.5, 4.6), dpi=_DPI)
-    ax = fig.subplots()
+    ax = subplots(fig, )
     fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.45, top_in=0.35)
     trial_series = [s for s in panel["series"] if s["kind"] == "trial"]
     for k, s in enumerate(trial_series):
@@ -226,7 +226,7 @@ def plot_figures(figs: dict, out: Path) -> dict:
     ncols = min(3, len(panels))
     nrows = -(-len(panels) // ncols)
     fig = Figure(figsize=(4.2 * ncols, 3.4 * nrows + 0.6), dpi=_DPI)
-    axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
+    axes = np.atleast_1d(subplots(fig, nrows, ncols, squeeze=False)).ravel()
     fixed_margins(fig, left_in=0.6, right_in=0.15, bottom_in=0.5, top_in=0.6, wspace_in=0.7, hspace_in=0.75)
     for k, (ax, panel) in enumerate(zip(axes, panels)):
         data, mean, window = panel["series"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
-from hrcore.figlayout import fixed_margins
+from hrcore.figlayout import PNG_OPTIONS, fixed_margins, subplots
 from hrcore.output import staged_output
 from imaging.files import atomic_path, write_text_atomic
 from imaging.phase import MOTION_FREE_WINDOW, PhaseReport, SlicePhase
@@ -53,7 +53,7 @@ def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per sl
     phases = report.phases
     index = np.arange(len(phases))
     fig = Figure(figsize=(7.5, 4.0), dpi=120)
-    ax = fig.subplots()
+    ax = subplots(fig, )
     lo, hi = MOTION_FREE_WINDOW
     ax.axhspan(lo, hi, color="tab:green", alpha=0.15, label=f"motion-free window {lo}-{hi}")
     ax.plot(index, phases, ".", ms=4, color="tab:blue", label="slice phase")
@@ -69,7 +69,7 @@ def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per sl
     ax.legend(loc="lower right", fontsize=8)
     fixed_margins(fig, left_in=0.65, right_in=0.15, bottom_in=0.5, top_in=0.5)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format="png", pil_kwargs=PNG_OPTIONS)
 
 
 def write_phase_report(report: PhaseReport, out_dir, *, extra: dict | None = None, overwrite: bool = False,

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
-from hrcore.figlayout import fixed_margins
+from hrcore.figlayout import fixed_margins, subplots
 from imaging.files import atomic_path
 from modeling.mesh import MeshError
 from modeling.model import HeartModel
@@ -325,7 +325,7 @@ def compose_figure(panels, *, size, titles, handles, suptitle, orientation=None,
     longest = max(len(h.get_label()) for h in handles)
     ncol = max(1, min(len(handles), 3, int(width / (7.2 * pt * longest + 70))))
     fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    axes = subplots(fig, 1, len(panels), squeeze=False)[0]
     # fixed room (inches, text at the scale pt plus matplotlib's unscaled pads): the
     # suptitle (at 98 % of the height) and titles above; the legend's rows and the
     # orientation labels below; a colorbar takes its own share of the panels' room

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hrcore.figlayout import fixed_margins
+from hrcore.figlayout import PNG_OPTIONS, fixed_margins, subplots
 from imaging.files import atomic_path
 from registration.result import RegistrationResult
 
@@ -40,7 +40,7 @@ def _figure(ncols, width=11.0, height=4.2, top_in=0.6):
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
     fig = Figure(figsize=(width, height), dpi=_DPI)
-    axes = fig.subplots(1, ncols, squeeze=False)[0]
+    axes = subplots(fig, 1, ncols, squeeze=False)[0]
     # fixed room (no layout engine: it cost half of writing the figures) for tick and axis labels
     fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55, top_in=top_in, wspace_in=0.8)
     return fig, axes
@@ -48,7 +48,7 @@ def _figure(ncols, width=11.0, height=4.2, top_in=0.6):
 
 def _save(fig, path: Path) -> Path:
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format="png", pil_kwargs=PNG_OPTIONS)
     return path
 
 
