@@ -72,12 +72,11 @@ def _ramp(sd, edge_mm):
 
 
 def _paint(img, sd, hu, edge_mm):
-    w = _ramp(sd, edge_mm)
-    img += w * (hu - img)
+    _blend(img, _ramp(sd, edge_mm), hu)
 
 
 def _blend(img, w, hu):
-    """:func:`_paint` with the occupancy ``w`` computed already."""
+    """Blend ``hu`` into ``img`` with occupancy ``w`` (:func:`_ramp`)."""
     img += w * (hu - img)
 
 
@@ -96,8 +95,7 @@ def _plane_fields(xs_bytes: bytes, ys_bytes: bytes, edge_mm: float, dome_top_mm:
     cavity = _ellipse_sd(X, Y, a - CAVITY_INSET_MM, b - CAVITY_INSET_MM)
     vertebra = _circle_sd(X, Y, *VERTEBRA_CENTRE_MM, VERTEBRA_RADIUS_MM)
     slope2 = (X / DOME_RADIUS_MM + DOME_TILT) ** 2 + (Y / DOME_RADIUS_MM) ** 2
-    return SimpleNamespace(
-        shape=X.shape,
+    fields = dict(
         Y=Y,
         cavity=cavity,
         rib_shell=np.maximum(_ellipse_sd(X, Y, a - RIB_OUTER_INSET_MM, b - RIB_OUTER_INSET_MM), -cavity),
@@ -115,6 +113,9 @@ def _plane_fields(xs_bytes: bytes, ys_bytes: bytes, edge_mm: float, dome_top_mm:
         w_arch=_ramp(_circle_sd(X, Y, *CANAL_CENTRE_MM, ARCH_RADIUS_MM), edge_mm),
         w_canal=_ramp(_circle_sd(X, Y, *CANAL_CENTRE_MM, CANAL_RADIUS_MM), edge_mm),
     )
+    for value in fields.values():  # shared by every call on this grid
+        value.setflags(write=False)
+    return SimpleNamespace(shape=X.shape, **fields)
 
 
 def _ellipse_sd(x, y, a, b):
