@@ -110,7 +110,10 @@ def overlap(mask, reference, spacing_kji) -> dict:
     def surface(m):
         return m & ~ndimage.binary_erosion(m)
 
-    a, b = surface(mask), surface(reference)
+    # the distances between the two surfaces lie within their joint box (a voxel of margin): the same numbers
+    box = ndimage.find_objects((mask | reference).astype(np.uint8))
+    box = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in box[0]) if box else ()
+    a, b = surface(mask[box]), surface(reference[box])
     d_ab = ndimage.distance_transform_edt(~b, sampling=spacing_kji)[a]
     d_ba = ndimage.distance_transform_edt(~a, sampling=spacing_kji)[b]
     d = np.concatenate([d_ab, d_ba])
