@@ -49,6 +49,7 @@ from heartreg.phantom.config import Anatomy
 from heartreg.phantom.geometry import apply
 from heartreg.phantom.great_vessels import Stent, Vessel, descending_stent, great_vessels
 from heartreg.phantom.heart import AnalyticHeart
+from heartreg.phantom.sdf import _polyline_distance
 
 __all__ = ["HU", "ChestModel", "build_chest"]
 
@@ -257,10 +258,4 @@ def build_chest(heart: AnalyticHeart, *, anatomy: Anatomy | None = None, phase_c
 
 def _tube_distance(points, tube: _Tube):
     """Distance (mm) of (n, 3) points to a tube's wall, negative inside."""
-    d = np.full(points.shape[:-1], np.inf)
-    for a, b in zip(tube.points_mm[:-1], tube.points_mm[1:]):
-        ab = b - a
-        t = np.clip(((points - a) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
-        closest = a + t[..., None] * ab
-        d = np.minimum(d, np.linalg.norm(points - closest, axis=-1))
-    return d - tube.radius_mm
+    return _polyline_distance(points, tube.points_mm, tube.radius_mm)

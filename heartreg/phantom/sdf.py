@@ -56,12 +56,13 @@ def _smax(a, b, k):
 
 def _polyline_distance(p, points, radius):
     """Distance (mm, negative inside) to a tube of constant radius around a polyline."""
-    d = np.full(p.shape[:-1], np.inf)
+    d2 = np.full(p.shape[:-1], np.inf)
     for a, b in pairwise(points):
         ab = b - a
         t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
-        d = np.minimum(d, np.linalg.norm(p - (a + t[..., None] * ab), axis=-1))
-    return d - radius
+        r = p - (a + t[..., None] * ab)
+        d2 = np.minimum(d2, np.einsum("...i,...i->...", r, r))
+    return np.sqrt(d2) - radius
 
 
 def _lumen_beyond_valve(p, points, radius, valve, normal):
