@@ -111,7 +111,6 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path):
     out = tmp_path / "outputs"
     ct, session = folder / "ct", folder / "session"
     assert main(["phases", str(ct), "-o", str(out / "phases"), "-q"]) == 0
-    assert main(["model", str(ct), "-o", str(out / "model"), "-q"]) == 0
     assert main(["phases", str(ct), "--qrs", str(folder / f"{FOLDER}_qrs.csv"), "-o", str(out / "phases_qrs"),
                  "-q"]) == 0
     # given the folder above the patient's: the duplicate's note names neither the file nor its folders (a file
@@ -121,9 +120,10 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path):
     assert "duplicate image(s) (same SOPInstanceUID) ignored: a file" in written and "IM0001.dcm" not in written
     mask = _patient_mask(ct, folder / f"{FOLDER}_heart.nii.gz")
     assert main(["model", str(ct), "--mask", str(mask), "-o", str(out / "model_mask"), "-q"]) == 0
-    assert main(["register", str(out / "model"), str(session), "-o", str(out / "register"), "-q",
-                 "--step", "0.05", "--no-view"]) == 0
+    # the pipeline writes what the model command does (the same writers); register reads its model folder
     assert main(["pipeline", str(ct), str(session), "-o", str(out / "pipeline"), "-q", "--step", "0.05"]) == 0
+    assert main(["register", str(out / "pipeline" / "model"), str(session), "-o", str(out / "register"), "-q",
+                 "--step", "0.05", "--no-view"]) == 0
     # the study was timed by its ECG waveform, the second run by the R-peak file; each named by what it is
     assert '"source": "ECG waveform (' in (out / "phases" / "phases.json").read_text()
     assert '"source": "R-peak file given with --qrs (R-peak times)' in (out / "phases_qrs" / "phases.json").read_text()
