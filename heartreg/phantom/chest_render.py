@@ -80,7 +80,7 @@ def _blend(img, w, hu):
     img += w * (hu - img)
 
 
-@functools.lru_cache(maxsize=2)
+@functools.lru_cache(maxsize=1)  # one study at a time: ~35 MB at 512 x 512
 def _plane_fields(xs_bytes: bytes, ys_bytes: bytes, edge_mm: float, dome_top_mm: float) -> SimpleNamespace:
     """What :func:`render_slice` paints the same on every axial plane of one grid.
 
