@@ -199,7 +199,7 @@ def plot_figures(figs: dict, out: Path) -> dict:
     # Fig. 9
     (panel,) = figs["fig9"]["panels"]
     fig = Figure(figsize=(7.5, 4.6), dpi=_DPI)
-    ax = subplots(fig, )
+    ax = subplots(fig)
     fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.45, top_in=0.35)
     trial_series = [s for s in panel["series"] if s["kind"] == "trial"]
     for k, s in enumerate(trial_series):

@@ -53,7 +53,7 @@ def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per sl
     phases = report.phases
     index = np.arange(len(phases))
     fig = Figure(figsize=(7.5, 4.0), dpi=120)
-    ax = subplots(fig, )
+    ax = subplots(fig)
     lo, hi = MOTION_FREE_WINDOW
     ax.axhspan(lo, hi, color="tab:green", alpha=0.15, label=f"motion-free window {lo}-{hi}")
     ax.plot(index, phases, ".", ms=4, color="tab:blue", label="slice phase")

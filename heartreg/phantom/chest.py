@@ -136,10 +136,6 @@ class ChestModel:
     stent: Stent | None = None
     markers: bool = True
 
-    def dome_z_mm(self, x_mm, y_mm):
-        """Diaphragm height z (mm) at (x, y): :func:`dome_z_mm` of this chest's dome."""
-        return dome_z_mm(self.dome_top_mm, x_mm, y_mm)
-
     def vessel_distance_mm(self, points_mm) -> np.ndarray:
         """Distance (mm) of patient points to the lumen of the contrast vessels
         (negative inside).  Tests use it to skip the heart base where they join.

@@ -360,13 +360,12 @@ class AnalyticHeart:
         """
         u = np.asarray(u, dtype=float)
         v = np.clip(np.asarray(v, dtype=float), 2 * step, 1 - 2 * step)
-        u, v = np.broadcast_arrays(u, v)
-        # the point and its four neighbours in one call: the waveforms are evaluated once
-        uu = np.stack([u, u + step, u - step, u, u]).reshape(5, -1)
-        vv = np.stack([v, v, v, v + step, v - step]).reshape(5, -1)
-        phases = [np.broadcast_to(ph, u.shape).reshape(-1) for ph in (phase_c, phase_r)]
-        ref = self.reference_points(uu.ravel(), vv.ravel()).reshape(5, -1, 3)
-        q = self.move(ref, *phases).reshape((5,) + u.shape + (3,))
+        u, v, phase_c, phase_r = np.broadcast_arrays(u, v, phase_c, phase_r)
+        # the point and its four neighbours moved in one call (the waveforms evaluated once), each
+        # placed on the reference surface on its own (the chambers' rays are cast one set at a time)
+        ref = np.stack([self.reference_points(a.ravel(), b.ravel())
+                        for a, b in ((u, v), (u + step, v), (u - step, v), (u, v + step), (u, v - step))])
+        q = self.move(ref, phase_c.ravel(), phase_r.ravel()).reshape((5,) + u.shape + (3,))
         p, du, dv = q[0], q[1] - q[2], q[3] - q[4]
         n = np.cross(du, dv)  # u around +z, v towards the base: outward
         n /= np.linalg.norm(n, axis=-1, keepdims=True)

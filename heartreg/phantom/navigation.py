@@ -43,7 +43,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from heartreg import __version__
-from heartreg.phantom.config import PhantomConfig
+from heartreg.phantom.config import config_from_dict
 from heartreg.phantom.generate import PhantomError
 from heartreg.phantom.geometry import apply, poses
 from heartreg.phantom.heart import respiratory_waveform
@@ -209,16 +209,7 @@ def write_navigation(
             raise PhantomError(f"{name} must be positive, got {value!r}")
     if not (0 <= rest_s < duration_s) or pause_s < 0:
         raise PhantomError(f"rest_s must be in [0, duration_s) and pause_s >= 0, got {rest_s!r}, {pause_s!r}")
-    cfg = dict(truth["config"])
-    from heartreg.phantom.config import HeartMotion, HeartShape, NoiseModel
-
-    cfg["heart"] = HeartShape(**cfg["heart"])
-    cfg["motion"] = HeartMotion(**cfg["motion"])
-    cfg["noise"] = NoiseModel(**cfg["noise"])
-    cfg["euler_xyz_deg"] = tuple(cfg["euler_xyz_deg"])
-    for key in ("heart_origin_mm", "fiducial_shift_mm", "fiducial_shift_deg"):
-        cfg[key] = tuple(cfg[key])
-    config = PhantomConfig(**cfg)
+    config = config_from_dict(truth["config"])  # the anatomy too (a tight field of view, a stent, chambers)
     seed = int(truth["seed"] if seed is None else seed)
     out = case if out_dir is None else Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

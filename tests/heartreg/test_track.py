@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -400,6 +401,23 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
         write_navigation(tmp_path)
     with pytest.raises(PhantomError, match="speed_mm_s must be positive"):
         write_navigation(nav["case"], out_dir=tmp_path, speed_mm_s=0.0)
+
+
+def test_navigation_of_a_case_with_its_own_anatomy(nav, tmp_path):
+    """A case made with ``--fov-mm 140 --stent`` (its truth.json holds the anatomy) gets its navigation:
+    before session 18 ``heartreg phantom --fov-mm 140 --stent --navigation`` ended in a traceback (the
+    navigation rebuilt the case's configuration by hand and left the anatomy a dict).  The field of view and
+    the stent do not move the heart: the same samples as the case without them."""
+    import json
+
+    truth = json.loads((nav["case"] / "truth.json").read_text())
+    truth["config"]["anatomy"] = {"heart": "spheroid", "fov_mm": 140.0, "markers": True, "stent": True}
+    (tmp_path / "truth.json").write_text(json.dumps(truth))
+    write_navigation(tmp_path)
+    written = [p.relative_to(nav["root"]) for p in sorted((nav["root"] / "navigation").rglob("*")) if p.is_file()]
+    assert written
+    for name in [Path("navigation_truth.csv"), *written]:
+        assert (tmp_path / name).read_bytes() == (nav["root"] / name).read_bytes(), name
 
 
 def test_a_client_that_connects_while_another_is_served_gets_the_model(capfd):
