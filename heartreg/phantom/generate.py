@@ -24,7 +24,7 @@ import numpy as np
 from heartreg import __version__
 from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, Anatomy, config_from_dict, make_config
 from heartreg.phantom.ct import write_ct_study
-from heartreg.phantom.layout import T_patient_from_probe, make_heart
+from heartreg.phantom.layout import T_patient_from_probe, fiducials_patient_mm, make_heart
 from heartreg.phantom.plus import write_plus_session
 from heartreg.phantom.session import write_session
 from hrcore.errors import HeartregError
@@ -52,6 +52,18 @@ def _jsonable(value):
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
+
+
+#: room (mm) between a staple's centre and the edge of the field of view: measured on the default preset
+#: (staples 83.8 mm in front of the heart's centre), at 170 mm (1.2 mm of room) the model found 6 of 9
+#: staples, at 172 mm (2.2 mm) all 9; twice that, for the skin around a staple that its localisation reads.
+STAPLE_ROOM_MM = 4.0
+
+
+def _fov_showing_staples(config) -> float:
+    """Narrowest tight field of view (mm, centred on the heart as ``pixel_grid`` centres it) holding every staple."""
+    centre = np.round(np.asarray(config.heart_origin_mm[:2], float), 1)
+    return float(2 * (np.abs(fiducials_patient_mm()[:, :2] - centre).max() + STAPLE_ROOM_MM))
 
 
 def make_phantom(
@@ -123,6 +135,12 @@ def make_phantom(
         raise PhantomError(
             "a case without skin markers has no fiducials for the session to touch; "
             "pass session=False (--no-session) with markers=False (--no-markers)"
+        )
+    if session and config.anatomy.fov_mm is not None and config.anatomy.fov_mm < _fov_showing_staples(config):
+        raise PhantomError(
+            f"a {config.anatomy.fov_mm:g} mm field of view centred on the heart leaves skin staples out of the CT, "
+            f"so the session would touch fiducials the model cannot find; give --fov-mm "
+            f"{np.ceil(_fov_showing_staples(config)):g} or more, or pass --no-session"
         )
 
     out_dir = Path(out_dir)

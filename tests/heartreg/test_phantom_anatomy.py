@@ -444,7 +444,13 @@ def test_no_markers_needs_no_session_and_bad_fov(tmp_path, capsys):
         make_phantom(tmp_path / "c", fov_mm=50.0, session=False)
     with pytest.raises(PhantomError, match="anatomy heart must be one of spheroid, chambers"):
         make_phantom(tmp_path / "d", anatomy="cube", session=False)
-    assert not any((tmp_path / n).exists() and any((tmp_path / n).iterdir()) for n in "abcd")
+    # a field of view that leaves staples out, with a session to touch them (the model found 6 of 9 at 170 mm):
+    # refused before anything is written, naming the narrowest that shows them all
+    assert main(["phantom", str(tmp_path / "e"), "--fov-mm", "170"]) != 0
+    assert "leaves skin staples out of the CT" in capsys.readouterr().err
+    with pytest.raises(PhantomError, match=r"give --fov-mm 176 or more, or pass --no-session"):
+        make_phantom(tmp_path / "e", fov_mm=175.0)
+    assert not any((tmp_path / n).exists() and any((tmp_path / n).iterdir()) for n in "abcde")
 
 
 def test_paper_presets_are_unchanged():

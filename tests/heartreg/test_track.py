@@ -404,14 +404,14 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
 
 
 def test_navigation_of_a_case_with_its_own_anatomy(nav, tmp_path):
-    """A case made with ``--fov-mm 140 --stent`` (its truth.json holds the anatomy) gets its navigation:
-    before session 18 ``heartreg phantom --fov-mm 140 --stent --navigation`` ended in a traceback (the
+    """A case made with ``--fov-mm 200 --stent`` (its truth.json holds the anatomy) gets its navigation:
+    before session 18 ``heartreg phantom --fov-mm 200 --stent --navigation`` ended in a traceback (the
     navigation rebuilt the case's configuration by hand and left the anatomy a dict).  The field of view and
     the stent do not move the heart: the same samples as the case without them."""
     import json
 
     truth = json.loads((nav["case"] / "truth.json").read_text())
-    truth["config"]["anatomy"] = {"heart": "spheroid", "fov_mm": 140.0, "markers": True, "stent": True}
+    truth["config"]["anatomy"] = {"heart": "spheroid", "fov_mm": 200.0, "markers": True, "stent": True}
     (tmp_path / "truth.json").write_text(json.dumps(truth))
     write_navigation(tmp_path)
     written = [p.relative_to(nav["root"]) for p in sorted((nav["root"] / "navigation").rglob("*")) if p.is_file()]
