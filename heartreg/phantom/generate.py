@@ -104,7 +104,8 @@ def make_phantom(
         The heart: the paper's analytic spheroid or four chambers with great
         vessels (default: the preset's; ``human`` has chambers).
     fov_mm : float, optional
-        A tight CT field of view (mm, square, centred on the heart).
+        A tight CT field of view (mm, square, centred on the heart); with a session it
+        must show every skin staple (:data:`STAPLE_ROOM_MM` beyond each centre).
     markers : bool, optional
         Draw the 9 skin staples (default: the preset's, True).  Without them
         there is nothing to touch in surgery: pass ``session=False``.
