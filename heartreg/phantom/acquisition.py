@@ -99,6 +99,12 @@ def _pixel_centres(n: int, pixel_mm: float, centre_mm: float = 0.0) -> np.ndarra
     return np.round(centre_mm - 0.5 * n * pixel_mm + (np.arange(n) + 0.5) * pixel_mm, 4)
 
 
+def fov_centre_mm(config: PhantomConfig) -> tuple[float, float]:
+    """Patient (x, y) mm at the centre of a tight field of view: the heart's origin rounded to 0.1 mm."""
+    cx, cy = (round(float(c), 1) for c in config.heart_origin_mm[:2])
+    return cx, cy
+
+
 def pixel_grid(config: PhantomConfig, geometry: CTGeometry):
     """Pixel centres of the CT's axial grid (patient x of the columns, y of the rows).
 
@@ -117,7 +123,7 @@ def pixel_grid(config: PhantomConfig, geometry: CTGeometry):
         return (_pixel_centres(geometry.n_cols, geometry.pixel_mm),
                 _pixel_centres(geometry.n_rows, geometry.pixel_mm), geometry.pixel_mm)
     pixel = round(float(fov) / geometry.n_cols, 6)
-    cx, cy = (round(float(c), 1) for c in config.heart_origin_mm[:2])
+    cx, cy = fov_centre_mm(config)
     return _pixel_centres(geometry.n_cols, pixel, cx), _pixel_centres(geometry.n_rows, pixel, cy), pixel
 
 

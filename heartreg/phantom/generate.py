@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from heartreg import __version__
+from heartreg.phantom.acquisition import fov_centre_mm
 from heartreg.phantom.config import PAPER_IMAGE_PHASE, SIZES, Anatomy, config_from_dict, make_config
 from heartreg.phantom.ct import write_ct_study
 from heartreg.phantom.layout import T_patient_from_probe, fiducials_patient_mm, make_heart
@@ -61,9 +62,8 @@ STAPLE_ROOM_MM = 4.0
 
 
 def _fov_showing_staples(config) -> float:
-    """Narrowest tight field of view (mm, centred on the heart as ``pixel_grid`` centres it) holding every staple."""
-    centre = np.round(np.asarray(config.heart_origin_mm[:2], float), 1)
-    return float(2 * (np.abs(fiducials_patient_mm()[:, :2] - centre).max() + STAPLE_ROOM_MM))
+    """Narrowest tight field of view (mm, centred where ``pixel_grid`` centres it) holding every staple."""
+    return float(2 * (np.abs(fiducials_patient_mm()[:, :2] - fov_centre_mm(config)).max() + STAPLE_ROOM_MM))
 
 
 def make_phantom(
@@ -137,12 +137,14 @@ def make_phantom(
             "a case without skin markers has no fiducials for the session to touch; "
             "pass session=False (--no-session) with markers=False (--no-markers)"
         )
-    if session and config.anatomy.fov_mm is not None and config.anatomy.fov_mm < _fov_showing_staples(config):
-        raise PhantomError(
-            f"a {config.anatomy.fov_mm:g} mm field of view centred on the heart leaves skin staples out of the CT, "
-            f"so the session would touch fiducials the model cannot find; give --fov-mm "
-            f"{np.ceil(_fov_showing_staples(config)):g} or more, or pass --no-session"
-        )
+    if session and config.anatomy.fov_mm is not None:
+        narrowest = _fov_showing_staples(config)
+        if config.anatomy.fov_mm < narrowest:
+            raise PhantomError(
+                f"a {config.anatomy.fov_mm:g} mm field of view centred on the heart leaves skin staples out of the "
+                f"CT, so the session would touch fiducials the model cannot find; give --fov-mm "
+                f"{np.ceil(narrowest):g} or more, or pass --no-session"
+            )
 
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
