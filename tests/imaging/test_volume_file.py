@@ -37,6 +37,16 @@ def test_voxels_land_where_nibabel_puts_them(tmp_path, ras_diag):
     assert read_nifti_volume(tmp_path / "ct.nii.gz").series == volume.series
 
 
+def test_a_volume_edited_anywhere_is_another_series(tmp_path):
+    """Every voxel counts for the identity (it once hashed the first MiB only: edited CTs shared their UIDs)."""
+    data = np.full((256, 256, 24), 40, np.int16)  # 3 MiB
+    first = read_nifti_volume(_save(tmp_path / "a.nii.gz", data, np.eye(4))).series
+    data[100, 100, -1] = 3000  # one voxel in the last slice
+    edited = read_nifti_volume(_save(tmp_path / "b.nii.gz", data, np.eye(4))).series
+    for key in ("series_instance_uid", "study_instance_uid", "frame_of_reference_uid"):
+        assert getattr(first, key) != getattr(edited, key), key
+
+
 def test_bad_files(tmp_path):
     assert is_nifti_path("a/b.NII.GZ") and not is_nifti_path("a/b.nrrd")
     with pytest.raises(SeriesError, match="does not exist"):
