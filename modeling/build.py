@@ -130,14 +130,21 @@ _SIDES = (("patient's left", "patient's right"), ("posterior", "anterior"), ("su
 
 
 def _cut_by_field_of_view(mask, T) -> str:
-    """Where the mask lies on the volume's faces: '' if nowhere (more than FOV_CUT_MM2), else the patient sides."""
+    """Where the mask lies on the volume's faces: '' if nowhere (more than FOV_CUT_MM2), else the patient sides.
+
+    A face's area is the larger of the mask's outermost layer and the one inside it: the segmentation's
+    openings may thin the heart's last layer away at the edge (pyradiomics' lung1, 5 mm slices: 0 voxels on
+    the edge, 17 cm² one slice in), and the model then ends flat one voxel short of it.
+    """
     spacing = np.linalg.norm(T[:3, :3], axis=0)  # i, j, k
     cuts = []
     for col in range(3):  # voxel axis i, j, k = array axis 2, 1, 0
         axis = 2 - col
         face_mm2 = float(np.prod(np.delete(spacing, col)))
+        layers = min(2, mask.shape[axis])
         for end, sign in ((0, -1.0), (-1, 1.0)):
-            area = float(np.count_nonzero(np.take(mask, end, axis=axis))) * face_mm2
+            at = range(layers) if end == 0 else range(-1, -layers - 1, -1)
+            area = max(float(np.count_nonzero(np.take(mask, i, axis=axis))) for i in at) * face_mm2
             if area > FOV_CUT_MM2:
                 outward = sign * T[:3, col] / spacing[col]  # LPS
                 d = int(np.argmax(np.abs(outward)))
