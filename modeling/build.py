@@ -152,6 +152,17 @@ def _cut_by_field_of_view(mask, T) -> str:
     return "; ".join(cuts)
 
 
+def _volume_cause(mask_ml, seg_params, mask, T) -> str:
+    """The likeliest reason an automatic mask is not heart-sized, for the warning's hint."""
+    if mask_ml > HEART_ML[1]:
+        return "tissue beyond the heart taken in: the liver, the great vessels"
+    if _cut_by_field_of_view(mask, T):
+        return "a heart cut by the field of view"
+    if seg_params.get("contrast") is False:
+        return "a CT without contrast"
+    return "chambers parted by noise or metal artefacts"
+
+
 def _along(hint, long_axis) -> bool:
     """Whether a direction towards the base lies along the long axis enough to sign it (BASE_HINT_MIN_COSINE)."""
     return hint is not None and abs(float(hint @ long_axis)) >= BASE_HINT_MIN_COSINE
@@ -305,7 +316,8 @@ def build_heart_model(
         fallback(
             f"{mask_source}: the mask holds {mask_ml:.0f} ml, outside a heart's usual {HEART_ML[0]:.0f}-"
             f"{HEART_ML[1]:.0f} ml; " + ("it is meshed as given: check --label or the label map" if mask_path is not None
-                                         else "check the model (a CT without contrast? give --mask or a seed point)")
+                                         else f"check the model ({_volume_cause(mask_ml, seg_params, mask, T)}? "
+                                              "give --mask or a seed point)")
         )
     if mask_path is not None:
         pieces = _other_pieces(mask, T)

@@ -186,7 +186,7 @@ def test_a_heart_cut_one_slice_short_of_the_edge_is_warned(lung1):
     """The scan ends below the heart's lower wall; the mask stops one 5 mm slice short of the edge
     (0 voxels on it, 17 cm² one slice in) and the model ends flat there: warned as cut by the field of view
     (it was not: only the edge layer counted)."""
-    from modeling.build import _cut_by_field_of_view
+    from modeling.build import _cut_by_field_of_view, _volume_cause
     from imaging.volume_file import read_volume_file
 
     seg, _ = lung1
@@ -195,6 +195,10 @@ def test_a_heart_cut_one_slice_short_of_the_edge_is_warned(lung1):
     assert _cut_by_field_of_view(seg.mask, T).startswith("inferior side, 17 cm²")
     two_short = np.concatenate([np.zeros_like(seg.mask[:1]), seg.mask])  # a slice more below: rounded off inside
     assert _cut_by_field_of_view(two_short, T) == ""
+    # the small volume's hint names the likeliest cause
+    assert _volume_cause(seg.volume_ml, seg.parameters, seg.mask, T) == "a heart cut by the field of view"
+    assert _volume_cause(seg.volume_ml, seg.parameters, two_short, T) == "a CT without contrast"
+    assert _volume_cause(seg.volume_ml, {"contrast": True}, two_short, T).startswith("chambers parted by noise")
 
 
 @pytest.mark.xfail(strict=True, reason="known limit without contrast: fat planes around the aortic root and in the "
