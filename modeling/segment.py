@@ -383,6 +383,13 @@ def segment_heart(
         kji = np.floor(ijk[::-1] / step + 0.5 / step).astype(int)
         if np.any(kji < 0) or np.any(kji >= np.array(coarse.shape)):
             raise SegmentationError(f"seed point {seed_mm.tolist()} mm (--seed) lies outside the volume; give one in the heart")
+        if pool is None and blood_floor_hu < coarse[tuple(kji)] < blood_hu[1]:
+            # the point lies in contrast blood where no pool holds a chamber's ball (artefacts parting the
+            # chambers): the blood connected to it is the pool, not bone in a CT without contrast
+            pool_hu = float(blood_hu[0] if coarse[tuple(kji)] > blood_hu[0] else blood_floor_hu)
+            labels, _ = ndimage.label((coarse > pool_hu) & (coarse < blood_hu[1]))
+            pool = labels == labels[tuple(kji)]
+            notes.append(f"blood pool: the contrast blood around the given point (above {pool_hu:.0f} HU)")
         contrast = pool is not None
         if not contrast:  # as unseeded
             tissue = soft_tissue_between_lungs(tissue)
