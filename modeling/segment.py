@@ -56,7 +56,7 @@ from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import block_mean_max, block_transform, coarse_step, fill_holes, label_maximum, largest_component
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
-from modeling.seed import blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
+from modeling.seed import NOISE_HU, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
@@ -277,7 +277,8 @@ def segment_heart(
     margin_mm : float
         How far past the opened core the full-resolution boundary is kept.
     smooth_mm : float
-        Gaussian sigma applied on the coarse grid before thresholding.
+        Gaussian sigma applied on the coarse grid before thresholding; more
+        on a noisy CT (:data:`modeling.seed.NOISE_HU`).
     coarse_mm : float
         Grid spacing of the coarse grid (block means) on which the seed, the
         region and the opening are found; the boundary is then taken at full
@@ -327,10 +328,9 @@ def segment_heart(
 
     # ---- coarse grid (~coarse_mm): block means, which also average the noise
     step = coarse_step(spacing_kji, coarse_mm)
-    coarse, _ = block_mean_max(hu, step)
+    raw, _ = block_mean_max(hu, step)
     cspacing = spacing_kji * step
-    if smooth_mm > 0:
-        coarse = ndimage.gaussian_filter(coarse, sigma=smooth_mm / cspacing)
+    coarse = ndimage.gaussian_filter(raw, sigma=smooth_mm / cspacing) if smooth_mm > 0 else raw
     if (problem := not_hounsfield(coarse, hu)) is not None:
         raise SegmentationError(problem)
     tissue = (coarse > hu_low) & (coarse < hu_high)
@@ -354,6 +354,14 @@ def segment_heart(
         return tissue
 
     pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
+    noise = None if pool is None or smooth_mm <= 0 else blood_noise_hu(raw, pool, cspacing)
+    if noise is not None and noise > NOISE_HU:  # a noisy CT: smoothed more, as much as its noise is above NOISE_HU
+        smoothing = smooth_mm * float(np.sqrt(noise / NOISE_HU))
+        coarse = ndimage.gaussian_filter(raw, sigma=smoothing / cspacing)
+        tissue = (coarse > hu_low) & (coarse < hu_high)
+        pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
+        notes.append(f"noisy CT (the blood's noise {noise:.0f} HU, above {NOISE_HU:.0f}): the coarse grid "
+                     f"smoothed over {smoothing:.2f} mm instead of {smooth_mm:.2f}")
     if seed_patient_mm is None:
         if pool is not None:
             seed_mask = pool

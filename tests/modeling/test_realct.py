@@ -687,22 +687,26 @@ def test_a_trim_reading_chamber_walls_is_refused(realct, heart_less_artery, tmp_
     assert -model.frame.axes_patient[:, 2] @ APEX_LAI_LPS > 0.8
 
 
-def test_noise(realct, heart_less_artery):
-    """The real CT with white noise of 50 HU standard deviation added (a low-dose scan's): the same heart.
+@pytest.mark.parametrize("sd_hu", [50.0, 100.0])
+def test_noise(realct, heart_less_artery, sd_hu):
+    """The real CT with white noise of 50 or 100 HU standard deviation added (low-dose scans'): the same heart.
 
     Noise above the blood pool's upper bound (650 HU) left speckled holes in the pool, the left atrium's
     inscribed radius fell from 24 mm to 16-18, and the vessel trace took its lobes at the field of view's edge
-    for vessels leaving it: with this draw 426 ml were left (with 40 HU of noise, another draw: 29 lobes, 368
-    ml of "lumen", 469 ml, Dice 0.760 against the whole reference; session 15's robustness sweep).  The
-    pool's cavities are now blood: measured 606 ml, Dice 0.877, MSD 3.2 mm against the reference less its
-    pulmonary artery (707 ml and 0.898 without the noise; the rest of the loss is the noise at the surface's
-    0 HU edge).
+    for vessels leaving it: with this draw at 50 HU 426 ml were left (with 40 HU of noise, another draw: 29 lobes,
+    368 ml of "lumen", 469 ml, Dice 0.760 against the whole reference; session 15's robustness sweep).  The
+    pool's cavities are now blood (session 15: 606 ml, Dice 0.877, MSD 3.2 mm against the reference less its
+    pulmonary artery at 50 HU), and the coarse grid is smoothed more as the blood's noise rises above 40 HU
+    (session 19; a helper's sweep had the model collapse from 60 HU on: 70 HU 357 ml, 100 HU 145 ml).
+    Measured: 50 HU 704 ml, Dice 0.898, MSD 2.6 mm; 100 HU 727 ml, 0.890, 2.7 mm (the CT as read: 707 ml, 0.898,
+    2.7 mm); the noise read from the blood 64 and 108 HU.
     """
     volume, _, _ = realct
-    noise = np.random.default_rng(1).normal(0.0, 50.0, volume.shape)
+    noise = np.random.default_rng(1).normal(0.0, sd_hu, volume.shape)
     seg = segment_heart(np.rint(volume.hu + noise).astype(np.int16), volume.T_patient_from_voxel)
     m = overlap(seg.mask, heart_less_artery, SPACING)
-    assert 560.0 <= seg.volume_ml <= 800.0 and m["dice"] >= 0.85 and m["msd_mm"] <= 3.5, (seg.volume_ml, m)
+    assert 620.0 <= seg.volume_ml <= 800.0 and m["dice"] >= 0.87 and m["msd_mm"] <= 3.0, (seg.volume_ml, m)
+    assert any(n.startswith("noisy CT (the blood's noise") for n in seg.notes)
 
 
 def test_a_mask_in_two_pieces_is_said(realct, tmp_path):
