@@ -158,6 +158,17 @@ def route_options(text: str, where: str, table=None) -> dict[str, list[str]]:
     return routed
 
 
+def _names_a_file(action, raw: str) -> bool:
+    """Whether an option's value is a path: options of type Path, and those whose value may be one
+    (``model --seed``: X,Y,Z or a markups file)."""
+    if action.type is Path:
+        return True
+    try:
+        return isinstance(action.type(raw), Path) if callable(action.type) else False
+    except (TypeError, ValueError, argparse.ArgumentTypeError):
+        return False  # a bad value: the command's own parser says so (_check_parse)
+
+
 def _absolute_paths(argv: list[str], actions: dict, base: Path) -> tuple[list[str], dict[str, str]]:
     """``argv`` with the values of path options made absolute (relative to ``base``), and those paths."""
     out, paths = [], {}
@@ -166,8 +177,8 @@ def _absolute_paths(argv: list[str], actions: dict, base: Path) -> tuple[list[st
         token = argv[i]
         flag, eq, value = token.partition("=") if token.startswith("--") else (token, "", "")
         action = actions.get(flag)
-        if action is not None and action.type is Path:
-            raw = value if eq else argv[i + 1]
+        raw = value if eq else (argv[i + 1] if i + 1 < len(argv) else "")
+        if action is not None and action.nargs is None and _names_a_file(action, raw):
             path = str((base / raw).resolve()) if raw else raw
             paths[flag] = path
             out.append(f"{flag}={path}" if eq else flag)

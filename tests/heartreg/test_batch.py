@@ -314,6 +314,23 @@ def test_options_go_to_the_commands_that_have_them(tmp_path, sample_case):
     assert case.inputs["phases --qrs"] == qrs and case.session == str((case_dir / "session").resolve())
 
 
+def test_a_seed_file_is_an_input_like_the_others(tmp_path, sample_case):
+    """``--seed POINT.mrk.json`` (a value that may be a point or a file) was kept verbatim: not resolved against
+    the cohort's folder, not in the case's key (a moved point reused the old case), and its absolute path, with
+    whatever folder names it held, written into case.json.  Points stay as they are."""
+    from heartreg.batch.case import _placeholders, _redact
+
+    case_dir, _ = sample_case
+    cohort = _write_cohort(tmp_path / "in", case_dir, [
+        ("a", "case/ct", "", "--seed seed.mrk.json"), ("b", "case/ct", "", "--seed=-12.5,40,-100"),
+    ])
+    a, b = read_cohort(cohort)
+    seed = str((tmp_path / "in" / "seed.mrk.json").resolve())
+    assert a.argv["model"] == ("--seed", seed) and a.inputs["model --seed"] == seed
+    assert [_redact(x, _placeholders(a)) for x in a.argv["model"]] == ["--seed", "<model --seed>"]
+    assert b.argv["model"] == ("--seed=-12.5,40,-100",) and "model --seed" not in b.inputs
+
+
 @pytest.mark.parametrize(("options", "match"), [
     ("--facs 9000", r"line 2: '--facs' is not an option of heartreg phases, model, register"),
     ("-o elsewhere", r"line 2: option -o is set by the batch itself"),
