@@ -76,15 +76,23 @@ def _open_study(args):
     )
 
 
-def _print_series(study_dir) -> int:
+def _listed(args) -> bool:
+    """``--list-series``: list the study's series (True: the command is done); otherwise -o is required."""
     from imaging import list_series
+    from imaging.volume_file import is_volume_file
 
-    for s in list_series(study_dir):
-        print(
-            f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  "
-            f"{s.orientation:<8} {s.description!r}  {s.kind}{(' - ' + s.reason) if s.reason else ''}"
-        )
-    return 0
+    if args.list_series:
+        if is_volume_file(args.study_dir):
+            raise UsageError(f"{args.study_dir} is a volume file, one series: --list-series lists a DICOM folder's")
+        for s in list_series(args.study_dir):
+            print(
+                f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  "
+                f"{s.orientation:<8} {s.description!r}  {s.kind}{(' - ' + s.reason) if s.reason else ''}"
+            )
+        return True
+    if args.out_dir is None:
+        raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")
+    return False
 
 
 def _cmd_phases(args) -> int:
@@ -99,10 +107,8 @@ def _cmd_phases(args) -> int:
     if is_volume_file(args.study_dir):
         raise UsageError(f"{args.study_dir} is a volume file: phases reads a DICOM study (its slice times and "
                          "ECG); a NIfTI or NRRD volume has no slice clock: give the DICOM folder")
-    if args.list_series:
-        return _print_series(args.study_dir)
-    if args.out_dir is None:
-        raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")
+    if _listed(args):
+        return 0
     inputs = (args.study_dir, args.qrs)
     check_output_path(args.out_dir, inputs=inputs, what="-o", overwrite=args.overwrite, earlier=(PHASES_JSON,))
     volume, report = _open_study(args)
@@ -203,8 +209,8 @@ def _cmd_model(args) -> int:
     from modeling.ct_overlay import ct_panels, render_ct_png
     from modeling.model import JSON_FILE as MODEL_JSON
 
-    if args.list_series:
-        return _print_series(args.study_dir)
+    if _listed(args):
+        return 0
     from hrcore.memory import release_free_memory
     from hrcore.output import check_output_path, staged_output
 
@@ -417,6 +423,8 @@ def _cmd_evaluate_temporal(args) -> int:
 def _cmd_pipeline(args) -> int:
     from heartreg.pipeline import run_pipeline
 
+    if _listed(args):
+        return 0
     run = run_pipeline(
         args.study_dir, args.session_dir, args.out_dir, series=args.series, qrs=args.qrs, mask=args.mask,
         label=args.label, model_options=_model_options(args), registration_options=_registration_options(args),

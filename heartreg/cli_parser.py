@@ -192,7 +192,7 @@ def _build_parser() -> argparse.ArgumentParser:
                                      "frame")
     _add_study_options(p, "folder holding the DICOM study (searched recursively), or a NIfTI (.nii, .nii.gz) or "
                           "NRRD (.nrrd) CT volume")
-    p.add_argument("-o", "--out-dir", type=Path, required=True, help="model folder to write")
+    p.add_argument("-o", "--out-dir", type=Path, default=None, help="model folder to write")
     _add_model_options(p)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing model folder (one holding model.json)")
@@ -201,7 +201,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("pipeline", help="study + session -> phases, model, registration, report.html")
     _add_study_options(p)
     p.add_argument("session_dir", type=Path, help="intra-operative session folder (docs/formats.md)")
-    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder")
+    p.add_argument("-o", "--out-dir", type=Path, default=None, help="output folder")
     _add_model_options(p)
     _add_registration_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in OUT_DIR")

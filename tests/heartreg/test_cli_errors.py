@@ -63,3 +63,23 @@ def test_a_broken_pipe_elsewhere_is_still_an_error(monkeypatch, tmp_path, capsys
     status = _run_phases_raising(monkeypatch, tmp_path, BrokenPipeError(32, "Broken pipe"))
     assert status == 1
     assert capsys.readouterr().err.startswith("heartreg phases: error: ")
+
+
+def test_list_series_needs_no_output_folder(tmp_path, capsys):
+    """``model --list-series`` demanded -o (``phases`` did not), and ``pipeline --list-series`` ran the whole
+    pipeline; a volume file has one series, said so instead of 'no DICOM images found'."""
+    from pathlib import Path
+
+    import nibabel as nib
+    import numpy as np
+
+    study = str(Path(__file__).resolve().parents[2] / "sample_dicom" / "ct")
+    for argv in (["model", study, "--list-series"], ["pipeline", study, str(tmp_path / "no-session"), "--list-series"]):
+        assert cli.main(argv) == 0
+        assert "[0] " in capsys.readouterr().out
+    assert cli.main(["model", study]) == 1
+    assert "give an output folder with -o OUT_DIR (or --list-series)" in capsys.readouterr().err
+    nib.save(nib.Nifti1Image(np.zeros((4, 4, 4), np.int16), np.eye(4)), str(tmp_path / "ct.nii.gz"))
+    assert cli.main(["model", str(tmp_path / "ct.nii.gz"), "--list-series"]) == 1
+    assert "is a volume file, one series: --list-series lists a DICOM folder's" in capsys.readouterr().err
+    assert not (tmp_path / "no-session").exists()
