@@ -34,6 +34,9 @@ __all__ = ["AUTO", "MIN_HEART_ML", "ModelBuild", "ModelOptions", "ModelingWarnin
 
 #: A CT spanning less than this (mm) along any of its axes cannot hold a heart (an adult's is 100-150 mm long).
 MIN_SPAN_MM = 40.0
+#: Voxels longer than this (mm) along any axis cannot outline a heart: slicerio's CTChest4 (10 mm slices) still
+#: gives a coarse model; two images 62 mm apart gave a "watertight" model of one slab.
+MAX_VOXEL_MM = 12.5
 
 #: Whole-heart volumes (ml) of adults; an automatic segmentation outside this range is flagged.
 HEART_ML = (250.0, 1500.0)
@@ -272,6 +275,13 @@ def build_heart_model(
         raise SegmentationError(
             f"the CT spans only {span_mm.min():.0f} mm along {axis} ({' x '.join(map(str, volume.hu.shape))} voxels); "
             f"a heart model needs a 3-D CT of the whole heart (at least {MIN_SPAN_MM:.0f} mm each way)"
+        )
+    voxel_mm = np.linalg.norm(T[:3, :3], axis=0)
+    if voxel_mm.max() > MAX_VOXEL_MM:
+        axis = ("columns", "rows", "slices")[int(np.argmax(voxel_mm))]
+        raise SegmentationError(
+            f"the CT's {axis} lie {voxel_mm.max():.1f} mm apart ({' x '.join(map(str, volume.hu.shape))} voxels); "
+            f"a heart model needs them at most {MAX_VOXEL_MM:g} mm apart: give a CT reconstructed on thinner slices"
         )
     timings: dict[str, float] = {}
     notes: list[str] = []

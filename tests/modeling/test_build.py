@@ -332,6 +332,18 @@ def test_a_single_slice_is_no_heart_ct(tmp_path, capsys):
     assert not (tmp_path / "model").exists()
 
 
+def test_slices_too_far_apart_are_no_heart_ct(tmp_path, capsys):
+    """Two images 62.5 mm apart gave a "watertight" model of one slab, with warnings only: now one line."""
+    import nibabel as nib
+
+    hu = np.full((128, 128, 2), 40, np.int16)
+    nib.save(nib.Nifti1Image(hu, np.diag([1.9, 1.9, 62.5, 1.0])), str(tmp_path / "two.nii.gz"))
+    assert main(["model", str(tmp_path / "two.nii.gz"), "-o", str(tmp_path / "model"), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the CT's slices lie 62.5 mm apart (2 x 128 x 128 voxels)" in err[0], err
+    assert not (tmp_path / "model").exists()
+
+
 def test_an_mr_volume_is_no_ct(tmp_path, capsys):
     """TotalSegmentator's example MR (NIfTI, values -47 to 833, fetched by tests/data/fetch_real_cts.py), passed
     where a CT is expected: one line saying it is no CT in HU.  Before, the automatic segmentation read its
