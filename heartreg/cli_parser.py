@@ -65,6 +65,14 @@ def _seed_arg(value: str):
     return tuple(_finite(x) for x in parts)
 
 
+def _floor_hu_arg(value: str) -> float:
+    """``--fiducial-floor-hu``: between soft tissue (100 HU) and metal (3000 HU)."""
+    number = _finite(value)
+    if not 100.0 <= number <= 3000.0:
+        raise argparse.ArgumentTypeError(f"{value} HU is not between soft tissue (100) and metal (3000)")
+    return number
+
+
 def _series_arg(value: str):
     """``--series``: an index from ``--list-series`` or a SeriesInstanceUID."""
     return int(value) if value.isdigit() else value
@@ -98,7 +106,8 @@ def _add_model_options(p) -> None:
                    help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
     p.add_argument("--fiducials", type=int, default=None,
                    help="skin fiducials expected, insisted on (default: those found on the skin; 0: none)")
-    p.add_argument("--fiducial-floor-hu", type=_finite, default=None, help="HU above which fiducial excess density counts")
+    p.add_argument("--fiducial-floor-hu", type=_floor_hu_arg, default=None,
+                   help="HU above which fiducial excess density counts (100-3000)")
     p.add_argument("--keep-vessels", action="store_true",
                    help="keep the great-vessel stubs (do not trim them off the base)")
     p.add_argument("--trim-vessels", action="store_true",

@@ -83,3 +83,14 @@ def test_list_series_needs_no_output_folder(tmp_path, capsys):
     assert cli.main(["model", str(tmp_path / "ct.nii.gz"), "--list-series"]) == 1
     assert "is a volume file, one series: --list-series lists a DICOM folder's" in capsys.readouterr().err
     assert not (tmp_path / "no-session").exists()
+
+
+@pytest.mark.parametrize("value", ["-1e9", "50", "1e5"])
+def test_a_fiducial_floor_outside_tissue_and_metal_is_refused(tmp_path, capsys, value):
+    """--fiducial-floor-hu=-1e9 was taken: every voxel 'dense', no marker found, exit 0."""
+    with pytest.raises(SystemExit) as info:
+        cli.main(["model", "STUDY", "-o", str(tmp_path / "m"), f"--fiducial-floor-hu={value}"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"heartreg model: error: argument --fiducial-floor-hu: {value} HU is not between soft tissue "
+                   "(100) and metal (3000) (see heartreg model --help)"]
