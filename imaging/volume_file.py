@@ -130,7 +130,8 @@ def read_nifti_volume(path) -> Volume:
 
     path = Path(path)
     if not path.is_file():
-        raise SeriesError(f"NIfTI file {path} does not exist")
+        raise SeriesError(f"NIfTI file {path} does not exist" if not path.is_dir() else
+                          f"{path} is a folder named like a NIfTI file: rename it if it holds a DICOM study")
     damage = gzip_damage(path)
     if damage:
         raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
@@ -182,7 +183,8 @@ def read_nrrd_volume(path) -> Volume:
     """
     path = Path(path)
     if not path.is_file():
-        raise SeriesError(f"NRRD file {path} does not exist")
+        raise SeriesError(f"NRRD file {path} does not exist" if not path.is_dir() else
+                          f"{path} is a folder named like a NRRD file: rename it if it holds a DICOM study")
     try:
         data_kji, T, fields = read_nrrd(path)
     except NrrdError as exc:

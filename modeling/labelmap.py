@@ -135,11 +135,17 @@ def _read_nifti(path: Path) -> LabelMap:
     if conflict:
         raise LabelMapError(f"NIfTI label map {path}: {conflict}")
     names = _caret_label_names(img)
-    if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
-        data = np.where(np.isfinite(data), data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
+    if np.issubdtype(data.dtype, np.floating):
+        finite = np.isfinite(data)
+        if not finite.any():
+            raise LabelMapError(f"label map {path} holds no number (NaN or infinite everywhere)")
+        data = np.where(finite, data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
+    labels = np.round(data).astype(np.int32)
+    if not labels.any() and np.any(data):
+        raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
+                            f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
     unoriented = int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
-    return LabelMap(np.ascontiguousarray(np.round(data).astype(np.int32).transpose(2, 1, 0)), T, str(path), names,
-                    unoriented=unoriented)
+    return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
 
 
 def _caret_label_names(img) -> dict:

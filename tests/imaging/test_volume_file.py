@@ -51,6 +51,9 @@ def test_bad_files(tmp_path):
     assert is_nifti_path("a/b.NII.GZ") and not is_nifti_path("a/b.nrrd")
     with pytest.raises(SeriesError, match="does not exist"):
         read_nifti_volume(tmp_path / "none.nii.gz")
+    (tmp_path / "study.nii.gz").mkdir()  # was "does not exist"
+    with pytest.raises(SeriesError, match=r"study.nii.gz is a folder named like a NIfTI file: rename it if it holds"):
+        read_nifti_volume(tmp_path / "study.nii.gz")
     with pytest.raises(SeriesError, match="3-D volume"):
         read_nifti_volume(_save(tmp_path / "4d.nii.gz", np.zeros((3, 3, 3, 2), np.int16), np.eye(4)))
     sheared = np.eye(4)

@@ -230,6 +230,14 @@ def test_a_damaged_gzip_and_nan_voxels(tmp_path):
     label_map = read_label_map(tmp_path / "nan.nii.gz")
     assert set(np.unique(label_map.labels)) == {0, 3}
     _check(label_map)
+    # all NaN, and a map whose values all round to 0, were "empty (all zero)"
+    nib.save(nib.Nifti1Image(np.full_like(data, np.nan), ras), str(tmp_path / "all_nan.nii.gz"))
+    with pytest.raises(LabelMapError, match=r"all_nan.nii.gz holds no number \(NaN or infinite everywhere\)"):
+        read_label_map(tmp_path / "all_nan.nii.gz")
+    nib.save(nib.Nifti1Image(np.where(data > 0, 0.4, 0.0).astype(np.float32), ras), str(tmp_path / "p.nii.gz"))
+    with pytest.raises(LabelMapError, match=r"p.nii.gz holds no whole-number label: its values \(0 to 0.4\) "
+                                            r"round to 0 \(a probability map\? threshold it at 0.5 first\)"):
+        read_label_map(tmp_path / "p.nii.gz")
 
 
 def test_a_label_map_without_orientation_says_so(tmp_path):
