@@ -411,9 +411,9 @@ def _cmd_evaluate_temporal(args) -> int:
                       harmonics=args.harmonics, run=not args.report_only, workers=args.workers, scheduler=args.scheduler,
                       memory_limit=args.memory_limit, progress=not args.quiet, say=say)
     for name, error in result["failed"].items():
-        print(f"  {name} failed: {error}")
+        print(f"  {name} failed: {error}", file=sys.stderr)
     if not result["cases"]:
-        print(f"no case in {args.out_dir}/cases yet")
+        print(f"heartreg evaluate-temporal: error: no case in {args.out_dir}/cases: every case failed", file=sys.stderr)
         return 1
     print(result["table"], end="")
     print(f"written to {args.out_dir} (temporal_eval.md, .csv, .json, .png)")

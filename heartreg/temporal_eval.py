@@ -331,6 +331,13 @@ def evaluate(
     if workers is not None and int(workers) < 0:
         raise UsageError(f"workers must be 0 (in this process) or more (--workers), got {workers}")
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out} exists and is not a folder; choose an output folder (-o)")
+    if out.is_dir() and any(out.iterdir()) and not ((out / "cases").is_dir() or (out / "temporal_eval.json").is_file()):
+        raise UsageError(f"{out} holds other files, not an evaluation (no cases/ folder): choose a new or empty "
+                         "output folder (-o)")
+    if not run and not (out / "cases").is_dir():
+        raise UsageError(f"no case in {out / 'cases'} yet: run without --report-only first")
     todo, have = [], {}
     for preset in presets:
         for seed in seeds:
@@ -342,28 +349,20 @@ def evaluate(
                                      "choose another output folder for another size")
             else:
                 todo.append((preset, int(seed), true_phase(preset, int(seed)), size, harmonics))
-    (out / "cases").mkdir(parents=True, exist_ok=True)
     failed = {}
-    if run and todo:
-        if workers == 0 and scheduler is None:
-            for k, args in enumerate(todo, 1):
-                t = time.perf_counter()
-                case = _run_and_save(out, *args)
-                say(f"[{k}/{len(todo)}] {_case_line(case)} ({time.perf_counter() - t:.0f} s)")
-        else:
-            from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT, TaskFailure, open_client, run_tasks
-
-            with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit or DEFAULT_MEMORY_LIMIT,
-                             log=say) as client:
-                names = [f"{a[0]}_s{a[1]}" for a in todo]
-                for k, (name, value) in enumerate(run_tasks(client, _case_task, todo, names=names,
-                                                            args=(str(out.resolve()),), progress=progress,
-                                                            desc="temporal cases"), 1):
-                    if isinstance(value, TaskFailure):
-                        failed[name] = value.error
-                        say(f"[{k}/{len(todo)}] {name} FAILED: {value.error}")
-                    else:
-                        say(f"[{k}/{len(todo)}] {_case_line(value)}")
+    created = [p for p in (out, out / "cases") if not p.exists()]
+    try:
+        if run and todo:
+            _run_cases(out, todo, failed, workers=workers, scheduler=scheduler, memory_limit=memory_limit,
+                       progress=progress, say=say)
+    finally:
+        # a case's work folder left by a worker stopped mid-case (Ctrl-C kills it before its own clean-up)
+        for stale in out.glob(".temporal-case-*"):
+            shutil.rmtree(stale, ignore_errors=True)
+        # a run that wrote no case (refused, interrupted) leaves no empty folder behind
+        for folder in reversed(created):
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
     cases = []
     for preset in presets:
         for seed in seeds:
@@ -394,6 +393,31 @@ def evaluate(
         _figure(cases, stage / names["png"])
     paths = {key: out / name for key, name in names.items()}
     return {"summary": summary, "cases": cases, "paths": paths, "table": table, "failed": failed}
+
+
+def _run_cases(out: Path, todo, failed: dict, *, workers, scheduler, memory_limit, progress, say) -> None:
+    """Run the cases ``todo`` into ``out/cases`` (here, or on Dask workers); ``failed`` gets each failure."""
+    if workers == 0 and scheduler is None:
+        (out / "cases").mkdir(parents=True, exist_ok=True)
+        for k, args in enumerate(todo, 1):
+            t = time.perf_counter()
+            case = _run_and_save(out, *args)
+            say(f"[{k}/{len(todo)}] {_case_line(case)} ({time.perf_counter() - t:.0f} s)")
+        return
+    from heartreg.batch.cluster import DEFAULT_MEMORY_LIMIT, TaskFailure, open_client, run_tasks
+
+    with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit or DEFAULT_MEMORY_LIMIT,
+                     log=say) as client:
+        (out / "cases").mkdir(parents=True, exist_ok=True)
+        names = [f"{a[0]}_s{a[1]}" for a in todo]
+        for k, (name, value) in enumerate(run_tasks(client, _case_task, todo, names=names,
+                                                    args=(str(out.resolve()),), progress=progress,
+                                                    desc="temporal cases"), 1):
+            if isinstance(value, TaskFailure):
+                failed[name] = value.error
+                say(f"[{k}/{len(todo)}] {name} FAILED: {value.error}")
+            else:
+                say(f"[{k}/{len(todo)}] {_case_line(value)}")
 
 
 def _read_case(path: Path) -> dict:

@@ -70,7 +70,7 @@ def test_the_grid_runs_on_the_batch_machinery_and_records_a_failed_case(tmp_path
     assert list(result["failed"]) == ["no-such-preset_s1"]
     assert "unknown preset" in result["failed"]["no-such-preset_s1"]
     assert any("FAILED" in m for m in messages) and not result["cases"]
-    assert not list((tmp_path / "cases").iterdir())
+    assert list(tmp_path.iterdir()) == []  # no work folder, no empty cases/
 
 
 def test_bad_harmonics_are_refused_before_any_case_runs(tmp_path, capsys):
@@ -101,3 +101,23 @@ def test_bad_seeds_workers_and_case_records_are_one_line(tmp_path, capsys, grid_
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert f"{case.name} is not a readable case record" in err and "Traceback" not in err
+
+
+def test_an_output_folder_of_other_files_or_no_cases_is_refused(tmp_path, capsys):
+    """A session-19 hunt: -o pointed at a DICOM study folder made a cases/ folder inside it; a foreign folder
+    took the results beside its files; --report-only on a new folder left an empty cases/ and said so on stdout;
+    a memory limit that cannot be read left an empty OUT/cases."""
+    foreign = tmp_path / "study"
+    foreign.mkdir()
+    (foreign / "IM0001.dcm").write_bytes(b"not ours")
+    argv = ["evaluate-temporal", "--trials", "4", "--seeds", "1", "-q"]
+    assert main([*argv, "-o", str(foreign)]) == 1
+    assert "holds other files, not an evaluation (no cases/ folder)" in capsys.readouterr().err
+    assert [p.name for p in foreign.iterdir()] == ["IM0001.dcm"]
+    new = tmp_path / "new"
+    assert main([*argv, "-o", str(new), "--report-only"]) == 1
+    captured = capsys.readouterr()
+    assert "no case in" in captured.err and "run without --report-only first" in captured.err and not captured.out
+    assert main([*argv, "-o", str(new), "--workers", "1", "--memory-limit", "abc"]) == 1
+    assert capsys.readouterr().err.count("\n") == 1
+    assert not new.exists()
