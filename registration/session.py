@@ -105,6 +105,15 @@ def read_session(
     if not 0 < quaternion_tol < 1:
         raise ValueError(f"quaternion_tol must be in (0, 1), got {quaternion_tol!r}")
     folder = _find_folder(Path(path))
+    try:
+        return _read_folder(folder, min_duration_s, quaternion_tol)
+    except SessionError as exc:  # a file's error names it within the folder: which session it is in, too
+        if str(folder) in str(exc):
+            raise
+        raise type(exc)(f"session {folder}: {exc}") from None
+
+
+def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> Session:
     meta = _read_meta(folder)
     rate_hz = float(meta["sample_rate_hz"])
 

@@ -341,8 +341,11 @@ def test_columns_are_found_by_name_not_position(copy, phantom):
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
 def test_non_finite_values(copy, value):
     _edit_cell(copy / "points/point_004.csv", 11, "robot_x_mm", value)
-    with pytest.raises(SessionError, match=r"points/point_004.csv: column 'robot_x_mm', row 11 \(line 12\).*not finite"):
+    with pytest.raises(SessionError, match=r"points/point_004.csv: column 'robot_x_mm', row 11 \(line 12\).*not finite"
+                       ) as info:
         read_session(copy)
+    # which session: the file's path is within it (track --replay reads a second session)
+    assert str(info.value).startswith(f"session {copy}: points/point_004.csv")
 
 
 def test_unparseable_value(copy):
