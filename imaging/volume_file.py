@@ -92,6 +92,34 @@ def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
     return T, ""
 
 
+def load_nifti(path):
+    """``(image, voxels, header fixes)`` of a NIfTI file through nibabel, its repairs caught, not printed.
+
+    nibabel mends some headers as it loads them and says so on stderr through
+    its own logger (``pixdim[1,2,3] should be non-zero; setting 0 dims to
+    1``): the fixes come back instead, for the caller to judge.  Raises
+    whatever nibabel raises for a file it cannot read.
+    """
+    import logging
+
+    import nibabel as nib
+
+    fixes = []
+
+    class _Catch(logging.Handler):
+        def emit(self, record):
+            fixes.append(record.getMessage())
+
+    logger = logging.getLogger("nibabel.global")
+    catch, kept = _Catch(), logger.handlers[:]
+    logger.handlers[:] = [catch]
+    try:
+        img = nib.load(str(path))
+        return img, np.asarray(img.dataobj), fixes
+    finally:
+        logger.handlers[:] = kept
+
+
 def read_nifti_volume(path) -> Volume:
     """Read a 3-D NIfTI CT volume as an :class:`imaging.Volume` in LPS.
 
@@ -126,8 +154,6 @@ def read_nifti_volume(path) -> Volume:
     >>> volume.hu.shape, volume.spacing_mm.tolist()
     ((6, 5, 4), [0.5, 0.5, 2.0])
     """
-    import nibabel as nib
-
     path = Path(path)
     if not path.is_file():
         raise SeriesError(f"NIfTI file {path} does not exist" if not path.is_dir() else
@@ -136,10 +162,13 @@ def read_nifti_volume(path) -> Volume:
     if damage:
         raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
     try:
-        img = nib.load(str(path))
-        data = np.asarray(img.dataobj)
+        img, data, fixes = load_nifti(path)
     except Exception as exc:  # noqa: BLE001 - nibabel raises many types for bad files
         raise SeriesError(f"cannot read NIfTI file {path}: {exc}") from None
+    unoriented = int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
+    if unoriented and any("pixdim" in fix for fix in fixes):  # its voxels would be 1 mm for want of any size
+        raise SeriesError(f"NIfTI file {path} gives its voxels no size (pixdim 0) and no orientation (no qform or "
+                          "sform): write the file with its voxel size and orientation")
     if data.ndim == 4 and data.shape[3] == 1:
         data = data[..., 0]
     if data.ndim != 3:
@@ -148,7 +177,7 @@ def read_nifti_volume(path) -> Volume:
     if conflict:
         raise SeriesError(f"NIfTI file {path}: {conflict}")
     note = "affine taken as RAS (NIfTI convention) and converted to LPS"
-    if int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0:
+    if unoriented:
         # nibabel then gives the pixel sizes on a diagonal: the orientation is a guess
         note = ("no orientation in the header (qform_code and sform_code 0): the voxel axes placed as nibabel "
                 "places an unoriented file (x flipped, centred on the volume), so left-right and front-back may "

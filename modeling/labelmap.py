@@ -19,7 +19,7 @@ from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
-from imaging.volume_file import nifti_lps_affine
+from imaging.volume_file import load_nifti, nifti_lps_affine
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
 
@@ -117,14 +117,11 @@ class LabelMap:
 
 
 def _read_nifti(path: Path) -> LabelMap:
-    import nibabel as nib
-
     damage = gzip_damage(path)
     if damage:
         raise LabelMapError(f"NIfTI label map {path} is damaged ({damage}): copy it again from its source")
     try:
-        img = nib.load(str(path))
-        data = np.asarray(img.dataobj)
+        img, data, _ = load_nifti(path)  # nibabel's mends of the header not printed
     except Exception as exc:  # nibabel raises many types for bad files
         raise LabelMapError(f"cannot read NIfTI label map {path}: {exc}") from None
     if data.ndim == 4 and data.shape[3] == 1:

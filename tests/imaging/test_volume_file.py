@@ -222,3 +222,22 @@ def test_a_nifti_whose_sform_and_qform_disagree_is_refused(tmp_path):
     nib.save(image, str(path))
     with pytest.raises(SeriesError, match=r"two.nii.gz: its sform and qform place the volume up to .* mm apart"):
         read_nifti_volume(path)
+
+
+def test_a_nifti_without_voxel_size_or_orientation_is_refused_in_one_line(tmp_path, capsys):
+    """pixdim 0 and no qform/sform: nibabel printed its own line and set 1 mm voxels, the model then failed
+    for want of a heart.  With an orientation the affine holds the size: read, and nibabel's line not printed."""
+    import nibabel as nib
+
+    img = nib.Nifti1Image(np.full((8, 8, 8), 40, np.int16), None)
+    img.header["pixdim"][1:4] = 0.0
+    img.header.set_qform(None, code=0)
+    img.header.set_sform(None, code=0)
+    path = tmp_path / "zero.nii"
+    nib.save(img, str(path))
+    raw = bytearray(path.read_bytes())
+    raw[80:92] = np.zeros(3, "<f4").tobytes()  # pixdim[1..3] (nibabel mends them on save)
+    path.write_bytes(bytes(raw))
+    with pytest.raises(SeriesError, match=r"zero.nii gives its voxels no size \(pixdim 0\) and no orientation"):
+        read_nifti_volume(path)
+    assert capsys.readouterr().err == ""
