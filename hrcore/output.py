@@ -272,8 +272,21 @@ def _commit(stage: Path, out: Path) -> None:
 
 
 # ------------------------------------------------------------------ messages
+def root_os_error(exc: BaseException) -> BaseException:
+    """The OS error behind ``exc``: a library that re-raises an OS error as a new one with its traceback in the
+    message (pydicom's writer: "With tag (7FE0,0010) got exception: [Errno 28] ...") keeps the errno in the
+    first; ``exc`` itself when none is found."""
+    seen = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno is not None:
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return exc
+
+
 def os_error_message(exc: OSError, *, what: str = "") -> str:
     """One line for an OS error: the file, the reason in words, what to do."""
+    exc = root_os_error(exc)
     name = exc.filename or what or "a file"
     reason = exc.strerror or str(exc) or type(exc).__name__
     hint = {
@@ -290,7 +303,7 @@ def os_error_message(exc: OSError, *, what: str = "") -> str:
 def refusal_line(exc: BaseException) -> str | None:
     """The one line a command prints for a refusal (a :class:`HeartregError` or an
     OS error, translated); None for anything else, which is a bug."""
-    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
+    if isinstance(exc, OSError) and getattr(root_os_error(exc), "strerror", None):
         return os_error_message(exc)
     if isinstance(exc, (HeartregError, OSError)):
         return " ".join(str(exc).split()) or type(exc).__name__
@@ -467,6 +480,7 @@ def staged_output(
     except OSError as exc:
         written = _size_bytes(stage) if os.path.lexists(stage) else 0
         _cleanup(stage, created)
+        exc = root_os_error(exc)
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
             free = shutil.disk_usage(_existing_parent(absolute)).free
             raise OutputError(

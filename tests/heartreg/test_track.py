@@ -348,6 +348,22 @@ def test_rate_limiter_and_ctrl_c(nav, loaded, tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["cut.csv"]  # no temporary file left
 
 
+def test_a_full_disk_names_the_log(nav, loaded, tmp_path, monkeypatch):
+    """A write to the open log has no file name: the error said 'a file: No space left on device'."""
+    import errno
+
+    import heartreg.track as track
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(track, "_csv_lines", full)
+    chunks = session_chunks(read_session(nav["root"] / "navigation"), chunk=500)
+    with pytest.raises(track.TrackError, match=r"^--log .*full.csv: No space left on device; free disk space"):
+        run_track(loaded(), chunks, tmp_path / "full.csv")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
     root = nav["root"]
     (tmp_path / "empty").mkdir()

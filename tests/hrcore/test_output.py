@@ -11,7 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from hrcore.output import OutputError, check_output_path, clean_stale_staging, os_error_message, staged_output
+from hrcore.output import (
+    OutputError, check_output_path, clean_stale_staging, os_error_message, refusal_line, staged_output,
+)
 
 
 def _listing(root):
@@ -152,6 +154,24 @@ def test_disk_full_is_one_line_naming_the_file_and_nothing_is_kept(tmp_path):
     assert "\n" not in msg and "heart.stl" in msg and "2.0 MB written" in msg and "free space" in msg
     assert "Errno" not in msg
     assert _listing(tmp_path) == []
+
+
+def test_disk_full_rewrapped_by_a_library_is_still_disk_full(tmp_path):
+    """pydicom's writer re-raises an OS error as a new one, errno-less, its traceback in the message: the
+    phantom on a full disk printed that flattened traceback as its one line."""
+    out = tmp_path / "out"
+    with pytest.raises(OutputError) as info, staged_output(out) as stage:
+        (stage / "IM0001.dcm").write_bytes(b"\0" * 1000)
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError as exc:
+            raise OSError(f"With tag (7FE0,0010) got exception: {exc}\nTraceback (most recent call last): ...")
+    msg = str(info.value)
+    assert msg.startswith(f"disk full writing {out}: ") and "Traceback" not in msg and "\n" not in msg
+    assert _listing(tmp_path) == []
+    wrapped = OSError("With tag (7FE0,0010) got exception: ...")
+    wrapped.__context__ = OSError(errno.ENOSPC, "No space left on device")
+    assert refusal_line(wrapped) == "a file: No space left on device; free disk space or choose an output on another disk"
 
 
 def test_os_error_message_is_one_line_with_a_hint():
