@@ -66,6 +66,33 @@ def _preload(dask_worker=None) -> None:
         importlib.import_module(module)
 
 
+#: A -W option: no warning from multiprocessing's resource tracker about semaphores left by stopped workers.
+_TRACKER_QUIET = "ignore:resource_tracker:UserWarning"
+
+
+@contextlib.contextmanager
+def _children_ignore_sigint():
+    """Processes started meanwhile ignore SIGINT (an ignored signal stays ignored through exec, and Python
+    keeps it so): a terminal's Ctrl-C reaches the whole process group, and each local worker's own
+    KeyboardInterrupt and lost heartbeats printed tracebacks over the command's one line; the command stops
+    its workers itself.  Ctrl-C during the start is lost (a second or two)."""
+    import signal
+    import threading
+
+    # multiprocessing's resource tracker, a process started with this interpreter's -W options, warned at exit
+    # of the semaphores of workers stopped mid-task ("2 leaked semaphore objects"): nothing for the user to do
+    if _TRACKER_QUIET not in sys.warnoptions:
+        sys.warnoptions.append(_TRACKER_QUIET)
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _dashboard_link(client) -> str:
     """The dashboard's address when the scheduler serves its pages (they need bokeh), else ``""``."""
     import urllib.request
@@ -185,8 +212,9 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
                                "(more only wait for each other); for more, start a cluster and give --scheduler")
         _check_memory_limit(memory_limit)
         try:  # the scheduler's http server (the dashboard's, with bokeh) on a free loopback port
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, memory_limit=memory_limit,
-                                   host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
+            with _children_ignore_sigint():
+                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, memory_limit=memory_limit,
+                                       host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
         except ValueError as exc:
             raise ClusterError(f"cannot start {n} local worker(s) with memory limit {memory_limit!r}: {exc}") from None
         client = Client(cluster, set_as_default=False)

@@ -12,6 +12,7 @@ only the rest, and every output must be the bytes the single commands write
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -151,6 +152,32 @@ def test_a_killed_batch_leaves_only_whole_cases_and_the_restart_runs_only_the_re
     assert all(by_name[n].reused for n in before)
     # the staging folders of the cases the kill interrupted are gone
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_ctrl_c_in_a_terminal_is_one_line(sample_case, tmp_path):
+    """A terminal's Ctrl-C reaches the whole process group: each local worker printed its own KeyboardInterrupt
+    and lost heartbeats (70 lines, 3 tracebacks), and the resource tracker two lines of leaked semaphores.  The
+    workers now ignore SIGINT (the command stops them) and the tracker's warning is off."""
+    case_dir, _ = sample_case
+    cohort = _write_cohort(tmp_path / "in", case_dir, [("faces8k", "case/ct", "", "--faces 8000 --fiducials 0")])
+    out = tmp_path / "out"
+    child = subprocess.Popen(
+        [sys.executable, "-m", "heartreg.cli", "batch", str(cohort), "-o", str(out), "--workers", "1", "-q"],
+        env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + KILL_WAIT_S
+        while child.poll() is None and time.monotonic() < deadline and not (
+                out.is_dir() and any(p.name.startswith(".") for p in out.iterdir())):  # a case under way
+            time.sleep(0.05)
+        os.killpg(child.pid, signal.SIGINT)
+        _, err = child.communicate(timeout=120)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(child.pid, signal.SIGKILL)
+    assert child.returncode == 130, err
+    assert err.splitlines() == ["heartreg batch: interrupted; the cases finished are kept in the output folder and "
+                                "its summary.csv: run the same command again to go on"], err
 
 
 def test_three_done_one_failed_with_its_message(batch):
