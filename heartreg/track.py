@@ -463,10 +463,9 @@ def run_track(
             sink.flush()
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, csv_path)
-    except OSError as exc:
-        if exc.filename is None and exc.errno in _DISK_ERRNOS:  # a write to the open log: name it
-            raise TrackError(f"--log {csv_path}: {exc.strerror}; free disk space or give a log on another disk"
-                             ) from None
+    except OSError as exc:  # a write to the open log (a disk's error, not the OpenIGTLink socket's): name it
+        if exc.filename is None and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO):
+            raise TrackError(f"--log {csv_path}: {exc.strerror}; free disk space or give a log on another disk") from None
         raise
     finally:
         if os.path.exists(tmp):
@@ -480,10 +479,6 @@ def run_track(
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
         interrupted=interrupted_by is not None, interrupted_by=interrupted_by,
     )
-
-
-#: OS errors of a write to a disk (not of the OpenIGTLink socket, which the loop writes too).
-_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS)
 
 
 def _umask() -> int:

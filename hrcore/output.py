@@ -273,15 +273,12 @@ def _commit(stage: Path, out: Path) -> None:
 
 # ------------------------------------------------------------------ messages
 def root_os_error(exc: BaseException) -> BaseException:
-    """The OS error behind ``exc``: a library that re-raises an OS error as a new one with its traceback in the
-    message (pydicom's writer: "With tag (7FE0,0010) got exception: [Errno 28] ...") keeps the errno in the
-    first; ``exc`` itself when none is found."""
+    """The OS error behind ``exc`` (``exc`` when none): a library may re-raise one errno-less, its traceback in
+    the message (pydicom's writer: "With tag (7FE0,0010) got exception: [Errno 28] ...")."""
     seen = exc
-    while seen is not None:
-        if isinstance(seen, OSError) and seen.errno is not None:
-            return seen
+    while seen is not None and not (isinstance(seen, OSError) and seen.errno is not None):
         seen = seen.__cause__ or seen.__context__
-    return exc
+    return exc if seen is None else seen
 
 
 def os_error_message(exc: OSError, *, what: str = "") -> str:

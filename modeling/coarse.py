@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = [
     "coarse_step", "block_mean_max", "block_transform", "centroid", "fill_holes", "label_maximum",
-    "largest_component", "mask_box", "sample_ct",
+    "largest_component", "mask_box", "sample_ct", "thin_metal", "without_thin_metal",
 ]
 
 
@@ -230,3 +230,30 @@ def largest_component(mask) -> np.ndarray:
         sizes += np.bincount(plane.ravel(), minlength=n + 1)
     sizes[0] = 0
     return labels == int(np.argmax(sizes))
+
+
+def thin_metal(values, floor_hu: float, within=None) -> np.ndarray:
+    """Voxels at or above ``floor_hu`` in structures less than three voxels thick: metal's bright streaks, a
+    wire, a stent's struts (bone and dense contrast are thicker); only ``within`` a mask when given."""
+    from scipy import ndimage
+
+    bright = np.asarray(values) >= floor_hu
+    if not (bright if within is None else bright & within).any():
+        return np.zeros_like(bright)
+    thin = bright & ~ndimage.binary_opening(bright, structure=np.ones((3, 3, 3), bool))  # the whole structure's
+    return thin if within is None else thin & within
+
+
+def without_thin_metal(values, floor_hu: float) -> np.ndarray:
+    """``values`` with :func:`thin_metal` replaced by their surroundings' level (a grey opening over 3 voxels).
+
+    Lines of metal across the heart, above any tissue's HU, are neither tissue nor blood: one voxel thick in
+    a few slices they parted the chambers, and no ball of the heart's size fitted between them (the real CT
+    with three 3000 HU lines in each of five slices: 415 ml of 711, no warning; every 9 mm: 207 ml).
+    """
+    from scipy import ndimage
+
+    thin = thin_metal(values, floor_hu)
+    if not thin.any():
+        return values
+    return np.where(thin, ndimage.grey_opening(values, size=(3, 3, 3)), values)

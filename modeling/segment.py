@@ -53,7 +53,8 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import block_mean_max, block_transform, coarse_step, fill_holes, label_maximum, largest_component
+from modeling.coarse import (block_mean_max, block_transform, coarse_step, fill_holes, label_maximum,
+                             largest_component, thin_metal, without_thin_metal)
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
 from modeling.seed import NOISE_HU, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
@@ -329,6 +330,7 @@ def segment_heart(
     # ---- coarse grid (~coarse_mm): block means, which also average the noise
     step = coarse_step(spacing_kji, coarse_mm)
     raw, _ = block_mean_max(hu, step)
+    raw = without_thin_metal(raw, hu_high)  # metal's streaks part nothing
     cspacing = spacing_kji * step
     coarse = ndimage.gaussian_filter(raw, sigma=smooth_mm / cspacing) if smooth_mm > 0 else raw
     if (problem := not_hounsfield(coarse, hu)) is not None:
@@ -474,6 +476,7 @@ def segment_heart(
     near_full = near[nbox][np.ix_(*idx)]
     sub = hu[full_box]
     heart = near_full & (sub > hu_low) & (sub < (hu_high if contrast else soft_hu[1]))
+    heart |= thin_metal(sub, hu_high, within=near_full)  # metal's streaks through the heart are no gap in it
     heart = largest_component(fill_holes(heart))
 
     mask = np.zeros(hu.shape, bool)
