@@ -238,9 +238,12 @@ def thin_metal(values, floor_hu: float, within=None) -> np.ndarray:
     from scipy import ndimage
 
     bright = np.asarray(values) >= floor_hu
+    thin = np.zeros_like(bright)
     if not (bright if within is None else bright & within).any():
-        return np.zeros_like(bright)
-    thin = bright & ~ndimage.binary_opening(bright, structure=np.ones((3, 3, 3), bool))  # the whole structure's
+        return thin
+    box = mask_box(bright, pad=2)  # the bright voxels' box (a few staples, or the skeleton)
+    # opened whole, not only within: a bone reaching into ``within`` is no thinner there
+    thin[box] = bright[box] & ~ndimage.binary_opening(bright[box], structure=np.ones((3, 3, 3), bool))
     return thin if within is None else thin & within
 
 
@@ -256,4 +259,7 @@ def without_thin_metal(values, floor_hu: float) -> np.ndarray:
     thin = thin_metal(values, floor_hu)
     if not thin.any():
         return values
-    return np.where(thin, ndimage.grey_opening(values, size=(3, 3, 3)), values)
+    box = mask_box(thin, pad=2)  # the opening reaches 2 voxels
+    out = np.array(values, copy=True)
+    out[box] = np.where(thin[box], ndimage.grey_opening(out[box], size=(3, 3, 3)), out[box])
+    return out
