@@ -150,17 +150,24 @@ def _main(argv: list[str] | None) -> int:
     import threading
     import warnings
 
-    parser = _build_parser()
-    for p in _all_parsers(parser):
-        _usage_error_in_one_line(p)
-    args = parser.parse_args(argv)
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None  # before the parser's imports (~1 s)
+    try:
+        parser = _build_parser()
+        for p in _all_parsers(parser):
+            _usage_error_in_one_line(p)
+        args = parser.parse_args(argv)
+    except BaseException:  # SIGTERM while importing, or a usage error's exit
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
+        raise
     if args.command is None:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
         parser.print_help(sys.stderr)
         return EXIT_USAGE
     format_warning = warnings.formatwarning
     warnings.formatwarning = _one_line_warning
-    in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
     from hrcore.output import defer_interrupt, raise_deferred_interrupt, refusal_line, take_deferred_interrupt
 
     unraisable = sys.unraisablehook

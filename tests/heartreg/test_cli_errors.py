@@ -94,3 +94,23 @@ def test_a_fiducial_floor_outside_tissue_and_metal_is_refused(tmp_path, capsys, 
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"heartreg model: error: argument --fiducial-floor-hu: {value} HU is not between soft tissue "
                    "(100) and metal (3000) (see heartreg model --help)"]
+
+
+def test_sigterm_while_the_command_line_is_read_is_143(monkeypatch, capsys):
+    """The parser's build imports the library (~1 s): SIGTERM then killed the process (-15) without a word,
+    the handler was installed after it."""
+    import os
+    import signal
+
+    built = cli_parser._build_parser
+
+    def build_then_terminated():
+        parser = built()
+        os.kill(os.getpid(), signal.SIGTERM)
+        return parser
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(cli, "_build_parser", build_then_terminated)
+    assert cli.main(["model", "STUDY", "-o", "OUT"]) == 143
+    assert capsys.readouterr().err == "heartreg: terminated (SIGTERM); nothing was written\n"
+    assert signal.getsignal(signal.SIGTERM) == before
