@@ -326,9 +326,30 @@ def decimate(mesh: Mesh, target_faces: int) -> Mesh:
     verts, faces = _decimate(np.asarray(mesh.vertices), np.asarray(mesh.faces), int(target_faces))
     out = Mesh(verts, faces)
     check = check_mesh(out)
-    if not check.ok:
-        raise MeshError(f"decimation to {target_faces} faces broke the surface ({check}); raise target_faces")
+    if not check.ok:  # a pinched handle: collapse the edges again, keeping the topology
+        out = _decimate_keeping_topology(mesh, int(target_faces))
+        if not check_mesh(out).ok:
+            raise MeshError(f"decimation to {target_faces} faces broke the surface ({check}); raise target_faces")
     return out
+
+
+def _decimate_keeping_topology(mesh: Mesh, target_faces: int) -> Mesh:
+    """pymeshlab's quadric edge collapse with the topology preserved: no handle pinched.
+
+    fast-simplification collapses edges across a handle's neck and leaves the surface wound both ways there:
+    a mask of fine voxels resolves tunnels between its parts (shared/realct upsampled to 0.36 x 0.30 x
+    0.56 mm: 42 handles; to 20000 and 40000 faces broken, 80000 kept).  This keeps them, in ~3 s for 200k faces:
+    20000 faces, closed, the volume within 0.1 %.  Only where the fast decimation breaks.
+    """
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(mesh.vertices, np.float64),
+                               face_matrix=np.asarray(mesh.faces).astype(np.int32)))
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preservetopology=True,
+                                                preservenormal=True, qualitythr=0.3)
+    m = ms.current_mesh()
+    return Mesh(np.asarray(m.vertex_matrix(), np.float64), np.asarray(m.face_matrix(), np.int64))
 
 
 def _largest_component(verts: np.ndarray, faces: np.ndarray):
