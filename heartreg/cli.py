@@ -136,8 +136,11 @@ def run() -> None:
     instead of the status (1 in 45 interrupts during ``register``'s write).
     """
     import os
+    import signal
 
     status = main()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # done, outputs whole: a signal now would only change the status
+        signal.signal(sig, signal.SIG_IGN)
     if status in (130, 143):
         sys.stdout.flush()
         sys.stderr.flush()

@@ -114,3 +114,24 @@ def test_sigterm_while_the_command_line_is_read_is_143(monkeypatch, capsys):
     assert cli.main(["model", "STUDY", "-o", "OUT"]) == 143
     assert capsys.readouterr().err == "heartreg: terminated (SIGTERM); nothing was written\n"
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_a_signal_after_the_command_is_done_changes_nothing(monkeypatch):
+    """SIGINT just after the summary was printed ended the process by the signal (-2), the outputs whole:
+    once main has returned, run ignores SIGINT and SIGTERM while the interpreter exits."""
+    import signal
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    seen = {}
+
+    def exit_(status):
+        seen.update({s: signal.getsignal(s) for s in before}, status=status)
+
+    monkeypatch.setattr(cli, "main", lambda: 0)
+    monkeypatch.setattr(cli.sys, "exit", exit_)
+    try:
+        cli.run()
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+    assert seen == {signal.SIGINT: signal.SIG_IGN, signal.SIGTERM: signal.SIG_IGN, "status": 0}
