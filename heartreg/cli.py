@@ -151,22 +151,24 @@ def run() -> None:
 def _main(argv: list[str] | None) -> int:
     import signal
     import threading
-    import warnings
 
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None  # before the parser's imports (~1 s)
     try:
-        parser = _build_parser()
-        for p in _all_parsers(parser):
-            _usage_error_in_one_line(p)
-        args = parser.parse_args(argv)
-    except BaseException:  # SIGTERM while importing, or a usage error's exit
+        return _parse_and_run(argv, in_main)
+    finally:
         if in_main:
             signal.signal(signal.SIGTERM, previous)
-        raise
+
+
+def _parse_and_run(argv: list[str] | None, in_main: bool) -> int:
+    import warnings
+
+    parser = _build_parser()
+    for p in _all_parsers(parser):
+        _usage_error_in_one_line(p)
+    args = parser.parse_args(argv)
     if args.command is None:
-        if in_main:
-            signal.signal(signal.SIGTERM, previous)
         parser.print_help(sys.stderr)
         return EXIT_USAGE
     format_warning = warnings.formatwarning
@@ -217,7 +219,6 @@ def _main(argv: list[str] | None) -> int:
     finally:
         warnings.formatwarning = format_warning
         if in_main:
-            signal.signal(signal.SIGTERM, previous)
             sys.unraisablehook = unraisable
             defer_interrupt(None)  # nothing kept past this command
 

@@ -396,9 +396,10 @@ def evaluate(
 
 
 def _run_cases(out: Path, todo, failed: dict, *, workers, scheduler, memory_limit, progress, say) -> None:
-    """Run the cases ``todo`` into ``out/cases`` (here, or on Dask workers); ``failed`` gets each failure."""
+    """Run the cases ``todo`` into ``out/cases`` (here, or on Dask workers); ``failed`` gets each failure.
+    The folders it makes and leaves empty (a cluster that would not start) :func:`evaluate` removes."""
+    (out / "cases").mkdir(parents=True, exist_ok=True)
     if workers == 0 and scheduler is None:
-        (out / "cases").mkdir(parents=True, exist_ok=True)
         for k, args in enumerate(todo, 1):
             t = time.perf_counter()
             case = _run_and_save(out, *args)
@@ -408,7 +409,6 @@ def _run_cases(out: Path, todo, failed: dict, *, workers, scheduler, memory_limi
 
     with open_client(workers=workers, scheduler=scheduler, memory_limit=memory_limit or DEFAULT_MEMORY_LIMIT,
                      log=say) as client:
-        (out / "cases").mkdir(parents=True, exist_ok=True)
         names = [f"{a[0]}_s{a[1]}" for a in todo]
         for k, (name, value) in enumerate(run_tasks(client, _case_task, todo, names=names,
                                                     args=(str(out.resolve()),), progress=progress,

@@ -92,6 +92,13 @@ def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
     return T, ""
 
 
+def _check_is_file(path: Path, kind: str) -> None:
+    """Refuse a missing volume file, or a folder named like one, in one line."""
+    if not path.is_file():
+        raise SeriesError(f"{kind} file {path} does not exist" if not path.is_dir() else
+                          f"{path} is a folder named like a {kind} file: rename it if it holds a DICOM study")
+
+
 def load_nifti(path):
     """``(image, voxels, header fixes)`` of a NIfTI file through nibabel, its repairs caught, not printed.
 
@@ -155,9 +162,7 @@ def read_nifti_volume(path) -> Volume:
     ((6, 5, 4), [0.5, 0.5, 2.0])
     """
     path = Path(path)
-    if not path.is_file():
-        raise SeriesError(f"NIfTI file {path} does not exist" if not path.is_dir() else
-                          f"{path} is a folder named like a NIfTI file: rename it if it holds a DICOM study")
+    _check_is_file(path, "NIfTI")
     damage = gzip_damage(path)
     if damage:
         raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
@@ -211,9 +216,7 @@ def read_nrrd_volume(path) -> Volume:
     ((34, 128, 128), [3.05, 3.05, 10.0])
     """
     path = Path(path)
-    if not path.is_file():
-        raise SeriesError(f"NRRD file {path} does not exist" if not path.is_dir() else
-                          f"{path} is a folder named like a NRRD file: rename it if it holds a DICOM study")
+    _check_is_file(path, "NRRD")
     try:
         data_kji, T, fields = read_nrrd(path)
     except NrrdError as exc:

@@ -335,7 +335,6 @@ def segment_heart(
     coarse = ndimage.gaussian_filter(raw, sigma=smooth_mm / cspacing) if smooth_mm > 0 else raw
     if (problem := not_hounsfield(coarse, hu)) is not None:
         raise SegmentationError(problem)
-    tissue = (coarse > hu_low) & (coarse < hu_high)
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
@@ -360,10 +359,10 @@ def segment_heart(
     if noise is not None and noise > NOISE_HU:  # a noisy CT: smoothed more, as much as its noise is above NOISE_HU
         smoothing = smooth_mm * float(np.sqrt(noise / NOISE_HU))
         coarse = ndimage.gaussian_filter(raw, sigma=smoothing / cspacing)
-        tissue = (coarse > hu_low) & (coarse < hu_high)
         pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
         notes.append(f"noisy CT (the blood's noise {noise:.0f} HU, above {NOISE_HU:.0f}): the coarse grid "
                      f"smoothed over {smoothing:.2f} mm instead of {smooth_mm:.2f}")
+    tissue = (coarse > hu_low) & (coarse < hu_high)
     if seed_patient_mm is None:
         if pool is not None:
             seed_mask = pool
