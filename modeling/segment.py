@@ -38,9 +38,10 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
 6. *remove the great vessels' lumen down to their valves* (contrast CT only):
    the blood pool's lobes traced from where they leave
    (:mod:`modeling.greatvessels`), with their walls outside the heart's body,
-   are taken out of the heart -- the aortic root the opening keeps, the
-   vessels' mouths; the lumen cut at its valve inside the body (the aortic
-   root's well) goes on to the mesh steps (:attr:`HeartSegmentation.vessel_lumen`).
+   are taken out (the aortic root the opening keeps, the vessels' mouths; not
+   the outflow tract in muscle below the pulmonary valve); the lumen cut at
+   its valve inside the body (the aortic root's well) goes on to the mesh
+   steps (:attr:`HeartSegmentation.vessel_lumen`).
 """
 
 from __future__ import annotations
@@ -457,7 +458,7 @@ def segment_heart(
     if trace_vessels and contrast and pool is not None:
         body = np.pad(core if heart_body is None else heart_body,  # the heart body on the whole grid
                       [(b.start, n - b.stop) for b, n in zip(box, coarse.shape)])
-        vessels = trace_great_vessels(pool, cspacing, heart=body)
+        vessels = trace_great_vessels(pool, cspacing, heart=body, hu=coarse)
         near &= ~vessels.territory[box]
         notes.append(vessels.note)
         if (vessels.lumen & body).any():  # cut at its valve (the aortic root's well), not at the body's edge

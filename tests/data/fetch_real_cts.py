@@ -22,6 +22,9 @@ PyTorch), only the files below are taken:
     a PET/CT's abdomen, 512 x 512, 2 mm, JPEG 2000, SOPInstanceUID and
     SeriesInstanceUID blanked) and ``ts_dicom_seg.nii.gz``, a segmentation on
     its grid written by another reader (its affine, for the geometry);
+  - ``ts_pulmonary/``: TotalSegmentator's pulmonary valve annulus and
+    sinotubular junction on ``shared/realct`` (its ``pulmonary_report``,
+    made from the same CT): the pulmonary valve's level on a real heart;
   - ``ts_mr.nii.gz``: a small MR volume, what a user may pass by mistake.
 
 Run by ``make test`` before pytest (``python tests/data/fetch_real_cts.py``);
@@ -89,6 +92,11 @@ SOURCES = (
                          "62e48a2b3768c089f34567514bbd04f11457459e59d8a3cd9155b14fe71c826b"),
             "ts_dicom_seg.nii.gz": ("tests/reference_files/example_seg_dicom.nii.gz",
                                     "98af7f6536c316ff9084054f20956cd3e28af376b81d582d269fbea2744878fc"),
+            "ts_pulmonary/annulus.nii.gz": ("tests/reference_files/pulmonary_report/models/pul_annulus.nii.gz",
+                                            "2f180c0b2967dc9baabfa3fa29723fa5c354ba67388e7c98815829e8841368ac"),
+            "ts_pulmonary/sinotubular_junction.nii.gz": (
+                "tests/reference_files/pulmonary_report/models/pul_sinotubular_junction.nii.gz",
+                "d7c5c438e59830e7cfca7b2cd61415dd52012969e46ec992609a2d7d20235fe3"),
             "ts_mr.nii.gz": ("tests/reference_files/example_mr_sm.nii.gz",
                              "209b46efaff595dd54a9332872e17a722b62654bbb68dbd89acd5090701bbd4f"),
         },

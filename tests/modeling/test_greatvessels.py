@@ -95,6 +95,49 @@ def test_vessels_leaving_the_heart_inside_the_field_of_view():
     assert not trace_great_vessels(pool, SPACING, heart=body, leave_mm=120.0).lumen.any()
 
 
+def _outflow_and_trunk():
+    """A ventricle (radius 25 mm) in a heart body (45 mm) opening with no valve narrowing into a trunk that
+    widens from 12 mm where it leaves the chamber to 14 mm at its sinus (35 mm past the body's edge), then
+    narrows to 12 mm at a bifurcation into two branches (9 mm) ending inside the volume.  The heart body's
+    edge crosses the trunk 20 mm below the sinus: one watershed lobe, open to the chamber, reaches from the
+    chamber through the body's edge to the sinus, as on ``shared/realct``.
+
+    Returns the pool, the heart body, each voxel's position (k, j, i) in mm and its distance from the trunk's axis.
+    """
+    k, j, i = _grid((114, 60, 160))
+    centre = (60.0, 45.0, 120.0)
+    chamber, body = _ball(k, j, i, centre, 25.0), _ball(k, j, i, centre, 45.0)
+    across = np.hypot(j - centre[1], i - centre[2])
+    radius = np.where(k < 140.0, 12.0 + 2.0 * (k - 85.0) / 55.0, 14.0 - 2.0 * (k - 140.0) / 10.0)
+    trunk = (across <= np.maximum(radius, 12.0)) & (k >= centre[0]) & (k <= 150.0)
+    branches = (np.hypot(k - 150.0, j - centre[1]) <= 9.0) & (np.abs(i - centre[2]) <= 90.0)
+    return chamber | trunk | branches, body, (k, j, i), across
+
+
+def test_an_outflow_tract_is_heart_up_to_where_fat_surrounds_the_vessel():
+    """Step 7: the outflow rises past the heart body in a sleeve of muscle (5 mm thick, 12 mm past the
+    body), then runs on in fat, as the right ventricle's infundibulum and the pulmonary trunk above its
+    valve.  Given the CT, the sleeved stretch stays chamber and the tube in fat is vessel; where the
+    trunk's surroundings do not change (all fat, or all tissue) it is vessel from the body's edge, as
+    without the CT (session 20: on ``shared/realct`` the outflow tract was cut 17 mm below
+    TotalSegmentator's pulmonary annulus)."""
+    pool, body, (k, j, i), across = _outflow_and_trunk()
+    fat = np.where(pool, 350.0, -100.0)
+    fat[body & ~pool] = 40.0  # myocardium
+    sleeved = fat.copy()
+    sleeved[(across <= 17.0) & (k < 117.0) & ~pool] = 40.0
+    tract = pool & ~body & (k < 114.0)
+    trunk = pool & (across <= 13.0) & (k > 120.0) & (k < 140.0)
+    assert trace_great_vessels(pool, SPACING, heart=body).lumen[tract].mean() > 0.95  # without the CT
+    found = trace_great_vessels(pool, SPACING, heart=body, hu=sleeved)
+    assert tract.any() and found.lumen[tract].mean() < 0.05
+    assert found.lumen[trunk].mean() > 0.95
+    assert not (found.territory & tract).any()
+    for hu in (fat, np.where(pool, 350.0, 40.0)):
+        found = trace_great_vessels(pool, SPACING, heart=body, hu=hu)
+        assert found.lumen[tract].mean() > 0.95 and found.lumen[trunk].mean() > 0.95
+
+
 def test_an_appendage_is_no_vessel():
     """A blind pouch off the chamber (an atrial appendage: 9 mm in radius, reaching 40 mm beyond the heart
     body, ending inside the volume) is chamber, not a vessel leaving the heart; the branching vessel beside

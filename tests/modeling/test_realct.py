@@ -200,6 +200,7 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
+from hrcore.geometry import apply_to_points
 from imaging import load_study
 from imaging.volume_file import read_nifti_volume
 from modeling import read_model
@@ -209,6 +210,8 @@ from modeling.labelmap import LabelMapError, mask_on_grid, read_label_map
 from modeling.mesh import check_mesh
 from modeling.segment import SegmentationError, segment_heart
 from modeling.vessels import APEX_LAI_LPS, base_direction
+
+from tests.data.fetch_real_cts import paths as real_cts
 
 from .realct import REALCT, mesh_to_mask, overlap, principal_axis, write_ct_series
 
@@ -394,6 +397,38 @@ def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model, art
     mesh = model.mesh_patient()
     inside_ml = (artery & mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)).sum() * np.prod(SPACING) / 1000
     assert inside_ml <= 2.0, inside_ml
+
+
+PULMONARY_VALVE = {name: real_cts()[f"ts_pulmonary/{name}.nii.gz"] for name in ("annulus", "sinotubular_junction")}
+
+
+@pytest.mark.skipif(not all(p.is_file() for p in PULMONARY_VALVE.values()),
+                    reason="TotalSegmentator's pulmonary landmarks were not fetched (offline)")
+def test_the_outflow_tract_reaches_the_pulmonary_valve(realct, auto_model):
+    """The pulmonary trunk is cut at its valve, not at the heart body's edge below it.
+
+    TotalSegmentator's pulmonary report (made from this CT) marks the valve's annulus and the sinotubular
+    junction.  Along the annulus's normal through its centre (towards the junction), the model's top lies
+    2.2 mm below the annulus (TotalSegmentator starts its pulmonary artery 1.5-4.8 mm below it); 17.2 mm
+    below before session 20, when the trunk's lobe was cut where it left the heart body, through the
+    right ventricle's infundibulum (``modeling.greatvessels``, step 7).
+    """
+    volume = realct[0]
+    T = volume.T_patient_from_voxel
+    model = read_model(auto_model[2])
+    mesh = model.mesh_patient()
+    mask = mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, T)
+    landmark = {name: mask_on_grid(read_label_map(path), volume.shape, T) for name, path in PULMONARY_VALVE.items()}
+    points = apply_to_points(T, np.argwhere(landmark["annulus"])[:, ::-1].astype(float))
+    centre = points.mean(axis=0)
+    normal = np.linalg.svd(points - centre)[2][2]
+    junction = apply_to_points(T, np.argwhere(landmark["sinotubular_junction"])[:, ::-1].astype(float)).mean(axis=0)
+    normal *= np.sign((junction - centre) @ normal)
+    along = np.arange(-30.0, 10.0, 0.25)
+    kji = np.rint(apply_to_points(np.linalg.inv(T), centre + along[:, None] * normal)[:, ::-1]).astype(int)
+    top = along[mask[tuple(kji.T)]].max()
+    assert -6.0 <= top <= 3.0, top
+    assert (mask & landmark["sinotubular_junction"]).sum() <= 0.1 * landmark["sinotubular_junction"].sum()
 
 
 def test_fiducials_insisted_on(realct):
