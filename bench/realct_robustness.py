@@ -6,7 +6,7 @@ model's mesh is scored on the CT's own grid against TotalSegmentator's heart
 less its pulmonary artery (which heartreg cuts at the valve), as
 ``tests/modeling/test_realct.py`` does.  Cases: the CT as read; stored with
 its axes in another order; resampled (linear) to 0.7 x 0.7 x 2.5 mm, 1.5 x
-1.5 x 2.5 mm and 3 mm slices; white noise of 20, 40, 50, 70 and 100 HU
+1.5 x 2.5 mm, 3 mm slices, 1 mm and 2 mm isotropic; white noise of 20, 40, 50, 70 and 100 HU
 standard deviation, and 60 HU correlated over ~1.5 mm (a Gaussian of one
 voxel); the blood within 12 mm of the heart dimmed 25 % and 50 % of the way
 to 40 HU; cropped 2 cm at the top.  A measurement, not a test: it prints a
@@ -70,6 +70,8 @@ def _cases(hu, T, reference):
     yield "0.7 x 0.7 x 2.5 mm (linear)", *_resampled(hu, T, (2.5, 0.7, 0.7))
     yield "1.5 x 1.5 x 2.5 mm (linear)", *_resampled(hu, T, (2.5, 1.5, 1.5))
     yield "3 mm slices (linear)", *_resampled(hu, T, (3.0, 1.5, 1.5))
+    yield "1 mm isotropic (linear)", *_resampled(hu, T, (1.0, 1.0, 1.0))
+    yield "2 mm isotropic (linear)", *_resampled(hu, T, (2.0, 2.0, 2.0))
     for sd in (20.0, 40.0, 50.0, 70.0, 100.0):
         yield f"white noise {sd:.0f} HU", hu + rng.normal(0.0, sd, hu.shape), T
     from scipy import ndimage

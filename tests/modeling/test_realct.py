@@ -806,3 +806,35 @@ def test_a_seed_in_contrast_blood_finds_its_pool(tmp_path):
     seg = segment_heart(volume.hu, volume.T_patient_from_voxel, seed_patient_mm=seed)
     assert "blood pool: the contrast blood around the given point (above 200 HU)" in seg.notes
     assert seg.parameters["contrast"] is True and seg.volume_ml >= 200.0, seg.volume_ml
+
+
+@pytest.mark.xfail(strict=True, reason="known limit (session 20): the segmentation holds at this CT's own 1.5 mm "
+                   "voxels, not when the same CT is resampled to 1 mm (measured 830 ml, Dice 0.845 against the "
+                   "reference less its pulmonary artery, 17 ml of the artery kept; see the test's docstring)")
+def test_the_same_ct_at_finer_voxels(realct, artery, heart_less_artery):
+    """The CT resampled (linear) to 1 mm isotropic voxels, as a sub-millimetre CTA would reach the
+    segmentation, should give the same heart.  It does not: the coarse grid is then ~2 mm of block means of
+    the interpolated CT, thin fat planes between the heart, the ascending aorta and the pulmonary trunk blur
+    into the tissue range, and the heart body (the ball opening) covers the ascending aorta (86 % inside
+    against 3 %) and the pulmonary trunk's root (58 % against 11 %), so the vessel trace does not enter them.
+    Measured at 1.0 / 0.75 mm and 1.0 x 0.5 x 0.5 mm: Dice 0.845 / 0.862 / 0.837, 17 / 10 / 20 ml of
+    pulmonary artery kept; at 2 mm isotropic 0.857 with a leak at the posterior edge (the stent graft in the
+    descending aorta, thin at 2 mm, taken as thin metal: without that step 0.880).  Tried: a coarse block at
+    least half fat is no tissue (1 mm: 0.864, 3 ml of artery; as read 0.901 -> 0.906) broke the CT without
+    contrast (Dice 0.87 -> 0.47); not kept."""
+    from scipy import ndimage
+
+    volume = realct[0]
+    T = volume.T_patient_from_voxel
+    fine = ndimage.zoom(volume.hu.astype(np.float32), 1.5, order=1)
+    T_fine = T.copy()
+    T_fine[:3, :3] *= ((np.array(volume.shape) - 1) / (np.array(fine.shape) - 1))[::-1]  # the same corners
+    seg = segment_heart(np.rint(fine), T_fine)
+    # back on the CT's grid: the fine voxel nearest each CT voxel's centre
+    centres = np.indices(volume.shape).reshape(3, -1)[::-1].T.astype(float)
+    at = apply_to_points(np.linalg.inv(T_fine) @ T, centres)[:, ::-1]
+    kji = np.clip(np.rint(at).astype(int), 0, np.array(fine.shape) - 1)
+    mask = seg.mask[tuple(kji.T)].reshape(volume.shape)
+    m = overlap(mask, heart_less_artery, SPACING)
+    artery_ml = (mask & artery).sum() * np.prod(SPACING) / 1000.0
+    assert m["dice"] >= 0.88 and artery_ml <= 2.0, (m, artery_ml)
