@@ -64,8 +64,10 @@ MIN_RATE_HZ = 50.0
 #: Below this 99.9th-percentile absolute value of the QRS-band signal (mV) the
 #: record is called flat.
 MIN_QRS_BAND_MV = 0.02
-#: Samples at the record's extreme value in a row that make a clipped (saturated) R.
-MIN_CLIPPED_RUN = 3
+#: Time (s) at the record's extreme value in a row that makes a clipped (saturated) R: 3 samples at
+#: MIT-BIH's 360 Hz.  As a count of samples, a pacemaker's 2 ms spike clipped at the rail was a "clipped R"
+#: from 1500 Hz on, and every R-peak moved onto the spike 50 ms before it (median error 49 ms).
+MIN_CLIPPED_RUN_S = 0.008
 #: Half-width (s) of the window in which a beat's QRS-band peak is taken for its contrast.
 CONTRAST_HALF_WIDTH_S = 0.060
 #: Below this QRS contrast (:attr:`RPeaks.qrs_contrast`) the record holds no QRS
@@ -315,7 +317,8 @@ def detect_r_peaks(
     idx, amp, keep = _dedupe(idx, amp, refractory)
     side = sign[inside][keep]
     delta = _parabolic(side * light[idx - 1], side * light[idx], side * light[idx + 1])
-    times = start + (_unclipped(x, idx + delta, side, int(round(REFINE_HALF_WIDTH_S * rate)))) / rate
+    times = start + _unclipped(x, idx + delta, side, int(round(REFINE_HALF_WIDTH_S * rate)),
+                               max(3, int(round(MIN_CLIPPED_RUN_S * rate)))) / rate
     for arr in (times, idx, amp):
         arr.setflags(write=False)
     dominant = 1 if np.count_nonzero(side > 0) >= np.count_nonzero(side < 0) else -1
@@ -329,10 +332,10 @@ def detect_r_peaks(
                   qrs_contrast=contrast)
 
 
-def _unclipped(x: np.ndarray, at: np.ndarray, side: np.ndarray, reach: int) -> np.ndarray:
+def _unclipped(x: np.ndarray, at: np.ndarray, side: np.ndarray, reach: int, min_run: int) -> np.ndarray:
     """R-peak positions (samples) with the beats whose R the amplifier clipped put mid-plateau.
 
-    A saturated R is a run of at least :data:`MIN_CLIPPED_RUN` samples at the
+    A saturated R is a run of at least ``min_run`` samples (:data:`MIN_CLIPPED_RUN_S`) at the
     record's extreme value; the filtered signal's maximum wanders over such a
     plateau (up to 40 ms from the R on MIT-BIH 119 clipped at 1.5 mV, a fifth of
     its beats), its middle is the best estimate.  ``at`` within ``reach``
@@ -344,7 +347,7 @@ def _unclipped(x: np.ndarray, at: np.ndarray, side: np.ndarray, reach: int) -> n
         breaks = np.flatnonzero(np.diff(at_rail) > 1)
         starts = at_rail[np.concatenate([[0], breaks + 1])]
         stops = at_rail[np.concatenate([breaks, [at_rail.size - 1]])] + 1
-        long = stops - starts >= MIN_CLIPPED_RUN
+        long = stops - starts >= min_run
         starts, stops = starts[long], stops[long]
         if starts.size == 0:
             continue
