@@ -41,19 +41,23 @@ where a lobe lies tells vessels apart too:
 6. a vessel lobe open to a chamber's lobe (a saddle as in step 3) runs on
    into that chamber with no valve between, and only its part outside the
    body is vessel: the pulmonary valve leaves no saddle in the blood, and the
-   trunk's lobe reaches down into the right ventricle's outflow tract (a lobe
-   wholly inside the body is the chamber's then, and the next lobe opens
-   into it);
+   trunk's lobe reaches down into the right ventricle's outflow tract.  Such
+   a lobe mostly inside the body is the chamber's, and the vessel lobe past
+   it, outside the body, opens into it in turn (once: the lobes of the aortic
+   root's well, inside the body, never do);
 7. given the CT, the part of such a lobe past the body is vessel only where
    fat surrounds it: the outflow tract (the right ventricle's infundibulum)
    rises past the body in a sleeve of muscle, the pulmonary trunk above its
    valve lies in fat.  Along the lobe's axis (its core, the voxels deeper than
-   0.8 of its radius: a tube's core is long and thin) the fraction of fat 1-4
-   mm around the lumen is fitted by one step; where it rises (by 0.1 or
-   more) is the valve.  On ``shared/realct``, along the axis, 0.14-0.25 up to
-   12 mm past the body, 0.27 at 14 mm, 0.31-0.41 beyond: the cut 2 mm below
-   TotalSegmentator's pulmonary annulus (its pulmonary artery starts 1.5-4.8 mm
-   below it), 17 mm below before.
+   0.8 of its widest: a tube's core is long and thin) the fraction of fat 1-4
+   mm around the lumen, in 1.5 mm bins, is fitted by one step; where it
+   rises by 0.1 or more from at most 0.25 (a muscle sleeve), within 25 mm of
+   the body (an infundibulum's length), is the valve.  On ``shared/realct``,
+   along the axis, 0.14-0.25 up to 12 mm past the body, 0.27 at 14 mm,
+   0.31-0.41 beyond: the cut 2 mm below TotalSegmentator's pulmonary annulus
+   (its pulmonary artery starts 1.5-4.8 mm below it), 17 mm below before.
+   Noise (0.3-0.35 fat everywhere with 20 HU or more added) or thick slices
+   (the fat blurred away) show no sleeve: the lobe is cut at the body's edge.
 """
 
 from __future__ import annotations
@@ -121,11 +125,15 @@ def _saddles(lobes, distance, n):
     return {divmod(int(k), n + 1): float(w) for k, w in zip(unique, widest)}
 
 
+#: Step 7's profile along a tube: bins of this length (mm), whatever the voxels.
+PROFILE_BIN_MM = 1.5
+
+
 def _step_up(count, fat):
     """Where a profile of fat fractions steps up: (bin, fraction before, fraction after), or None.
 
-    One step fitted by least weighted squared error (weights: the voxels in
-    each bin), at least three bins before it and two after.
+    One step fitted by least weighted squared error (weights: the shell's voxels in each bin), at least
+    three bins before it and two after.
     """
     frac = fat / np.maximum(count, 1.0)
     best = None
@@ -141,20 +149,24 @@ def _step_up(count, fat):
     return None if best is None else best[1:]
 
 
-def _outflow_tracts(tube, mouths, distance, pool, hu, spacing, *, ring_mm, fat_hu, min_rise, sleeve_fat):
+def _outflow_tracts(tube, mouths, distance, pool, hu, spacing, *, ring_mm, fat_hu, min_rise, sleeve_fat, max_mm):
     """The stretch of each vessel tube from its mouth that is still its chamber's outflow tract.
 
     ``tube`` holds the lumen of vessel lobes open to a chamber (no narrowing
     between), past the heart body; ``mouths`` the part of it touching the
-    chamber's blood.  Along each tube's principal axis from its mouth, the
-    fraction of fat (below ``fat_hu``) ``ring_mm`` around the lumen, among the
-    voxels nearer the tube than any other blood, is fitted by one step
+    chamber's blood.  Along each tube's axis (its core's, the voxels deeper
+    than 0.8 of its widest: a tube's core is long and thin) from its mouth,
+    the fraction of fat (below ``fat_hu``) ``ring_mm`` around the lumen, among
+    the voxels nearer the tube than any other blood, is fitted by one step
     (:func:`_step_up`).  Where it rises by at least ``min_rise`` from at most
-    ``sleeve_fat`` the lumen before the step has a muscle wall (the right
-    ventricle's infundibulum) and is the chamber's; after it the vessel lies
-    in fat (the pulmonary trunk above its valve).  Where no such sleeve shows
-    (a noisy CT: fat and muscle are not told apart voxel by voxel) the lobe is
-    vessel from the body's edge, as without the CT.
+    ``sleeve_fat``, within ``max_mm`` of the mouth, the lumen before the step
+    has a muscle wall (the right ventricle's infundibulum) and is the
+    chamber's; after it the vessel lies in fat (the pulmonary trunk above its
+    valve).  Where no such sleeve shows (a noisy CT: fat and muscle are not
+    told apart voxel by voxel) the lobe is vessel from the body's edge, as
+    without the CT; so where the rise comes farther out than an infundibulum
+    reaches (slices of 4.5 mm blur the fat around the trunk into the
+    tissue range up to its bifurcation, 58 mm out).
 
     Returns
     -------
@@ -166,7 +178,6 @@ def _outflow_tracts(tube, mouths, distance, pool, hu, spacing, *, ring_mm, fat_h
     lengths = []
     labels, _ = ndimage.label(tube)
     margin = [int(np.ceil(2.0 * ring_mm[1] / s)) + 1 for s in spacing]
-    step = float(np.max(spacing))
     for label, found in enumerate(ndimage.find_objects(labels), start=1):
         box = tuple(slice(max(f.start - m, 0), min(f.stop + m, size))
                     for f, m, size in zip(found, margin, tube.shape))
@@ -174,24 +185,29 @@ def _outflow_tracts(tube, mouths, distance, pool, hu, spacing, *, ring_mm, fat_h
         mouth = lumen & mouths[box]
         if not mouth.any():
             continue
-        to_lumen = distance_mm(~lumen, spacing)
-        ring = (to_lumen > ring_mm[0]) & (to_lumen <= ring_mm[1]) & ~pool[box]
-        ring &= to_lumen < distance_mm(~(pool[box] & ~lumen), spacing)
-        grid = np.indices(lumen.shape).reshape(3, -1).T * spacing
-        core = grid[(lumen & (distance[box] >= 0.8 * distance[box][lumen].max())).ravel()]
+        core = np.argwhere(lumen & (distance[box] >= 0.8 * distance[box][lumen].max())) * spacing
         _, spread, axes = np.linalg.svd(core - core.mean(axis=0), full_matrices=False)
-        if spread.size < 2 or spread[0] < 2.0 * spread[1]:  # no tube: a lobe as wide as long
-            continue
         axis = axes[0]
-        along = (grid @ axis).reshape(lumen.shape)
+        if np.ptp(core @ axis) < 3 * PROFILE_BIN_MM or spread[0] < 2.0 * spread[1:].max(initial=0.0):
+            continue  # no tube: a core as wide as long, or a few voxels
+        k, j, i = np.ogrid[tuple(slice(0, n) for n in lumen.shape)]
+        along = k * (spacing[0] * axis[0]) + j * (spacing[1] * axis[1]) + i * (spacing[2] * axis[2])
         if along[mouth].mean() > along[lumen].mean():
             along = -along
         along -= along[mouth].min()
-        bins = np.floor(np.maximum(along[ring], 0.0) / step).astype(np.int64)
+        to_lumen = distance_mm(~lumen, spacing)
+        ring = (to_lumen > ring_mm[0]) & (to_lumen <= ring_mm[1]) & ~pool[box] & (along >= 0.0)
+        ring &= to_lumen < distance_mm(~(pool[box] & ~lumen), spacing)
+        ring &= np.isfinite(hu[box])
+        bins = (along[ring] // PROFILE_BIN_MM).astype(np.int64)
         found_step = _step_up(np.bincount(bins).astype(float), np.bincount(bins, weights=hu[box][ring] < fat_hu))
-        if found_step is not None and found_step[1] <= sleeve_fat and found_step[2] - found_step[1] >= min_rise:
-            outflow[box] |= lumen & (along < found_step[0] * step)
-            lengths.append(found_step[0] * step)
+        if found_step is None:
+            continue
+        split, before, after = found_step
+        length_mm = split * PROFILE_BIN_MM
+        if before <= sleeve_fat and after - before >= min_rise and length_mm <= max_mm:
+            outflow[box] |= lumen & (along < length_mm)
+            lengths.append(length_mm)
     return outflow, lengths
 
 
@@ -213,6 +229,7 @@ def trace_great_vessels(
     fat_hu: float = -30.0,
     min_fat_rise: float = 0.1,
     sleeve_fat: float = 0.25,
+    max_outflow_mm: float = 25.0,
 ) -> GreatVessels:
     """Find the great vessels' lumen in a contrast blood pool.
 
@@ -285,6 +302,10 @@ def trace_great_vessels(
         most fat a muscle sleeve below it holds (``shared/realct``: 0.20
         below, 0.36 above; with 70 or 100 HU of white noise added 0.35 / 0.34
         below, a rise found 38-40 mm up the trunk, which kept 10 ml of it).
+    max_outflow_mm : float
+        Step 7: an outflow tract reaches at most this far past the body (the
+        right ventricle's infundibulum is 15-20 mm long; ``shared/realct``:
+        15 mm).
 
     Returns
     -------
@@ -330,6 +351,8 @@ def trace_great_vessels(
     inside = np.zeros(n + 1, bool)  # lobes mostly inside the heart body
     outside = np.zeros(n + 1, bool)  # ... and mostly outside it (neither known without the body)
     heart_box = None
+    if hu is not None and np.shape(hu) != full_shape:
+        raise ValueError(f"hu must have the pool's shape {full_shape}, got {np.shape(hu)}")
     if heart is not None:
         if np.shape(heart) != full_shape:
             raise ValueError(f"heart must have the pool's shape {full_shape}, got {np.shape(heart)}")
@@ -365,27 +388,28 @@ def trace_great_vessels(
     lumen[box] = vessel[lobes]
     lengths = []
     if outside.any():  # a vessel lobe open to a chamber's runs on into it: only its part outside the body
+        chamber = inside & ~vessel
         opened = np.zeros(n + 1, bool)
-        while True:  # a lobe wholly inside the body is the chamber's now: the next lobe opens into it
-            chamber = inside & ~vessel
-            for a in np.flatnonzero(vessel & ~opened):
+        for lobes_out in (False, True):  # then, past an opened lobe wholly inside the body (the chamber's now),
+            for a in np.flatnonzero(vessel & ~opened & (outside if lobes_out else vessel)):  # the lobe out next
                 opened[a] = any(chamber[b] and width >= saddle_ratio * min(radius[a], radius[b])
                                 for b, width in neighbours[a])
             lumen[box] &= ~(opened[lobes] & heart_box)
-            gone = vessel & (np.bincount(lobes[lumen[box]], minlength=n + 1) == 0)
-            if not (gone & inside).any():
-                break
+            # gone: left without lumen, or opened and mostly inside (its stub past the body is the chamber's too)
+            gone = vessel & ((np.bincount(lobes[lumen[box]], minlength=n + 1) == 0) | (opened & inside))
+            lumen[box] &= ~gone[lobes]
+            chamber |= gone
             vessel &= ~gone
-        if hu is not None:  # ... and past the body as far as a muscle wall surrounds it (step 7)
-            tube = lumen[box] & opened[lobes]
-            outflow, lengths = _outflow_tracts(
-                tube, tube & ndimage.binary_dilation(pool & heart_box & ~lumen[box]), distance, pool,
-                np.asarray(hu, dtype=float)[box], spacing, ring_mm=ring_mm, fat_hu=fat_hu, min_rise=min_fat_rise,
-                sleeve_fat=sleeve_fat)
-            lumen[box] &= ~outflow
-        vessel &= np.bincount(lobes[lumen[box]], minlength=n + 1) > 0
         if not vessel.any():
             return GreatVessels(empty, empty, (), "great vessels: none outside the heart's body")
+        if hu is not None:  # ... and past the body as far as a muscle wall surrounds it (step 7)
+            tube = lumen[box] & opened[lobes]
+            mouths = tube & ndimage.binary_dilation(pool & heart_box & ~lumen[box])
+            outflow, lengths = _outflow_tracts(
+                tube, mouths, distance, pool, np.asarray(hu)[box], spacing, ring_mm=ring_mm, fat_hu=fat_hu,
+                min_rise=min_fat_rise, sleeve_fat=sleeve_fat, max_mm=max_outflow_mm)
+            lumen[box] &= ~outflow
+            vessel &= np.bincount(lobes[lumen[box]], minlength=n + 1) > 0
     to_lumen = distance_mm(~lumen[box], spacing)
     to_chambers = distance_mm(~(pool & ~lumen[box]), spacing)
     wall = (to_lumen < to_chambers) & (to_lumen <= wall_mm)
