@@ -47,8 +47,10 @@ REFINE_BAND_HZ = (0.5, 40.0)
 INTEGRATION_S = 0.150
 #: Half-width (s) of the window in which a detection is moved to the R maximum.
 REFINE_HALF_WIDTH_S = 0.065
-#: Seconds at the start from which the first signal and noise levels are learnt.
-LEARN_S = 8.0
+#: Seconds at the start from which the first signal and noise levels are learnt: the median of 2 s blocks'
+#: energy maxima, so that a start of noise shorter than half of it (an electrode put on late) is not
+#: learnt as the signal (8 s: ten seconds of noise first gave 14-23 false beats on each MIT-BIH record).
+LEARN_S = 60.0
 #: Half-width (s) of the window whose median is a beat's baseline.
 BASELINE_HALF_WIDTH_S = 0.25
 #: A beat's R-peak goes to the record's minor side when that side's excursion
@@ -298,9 +300,11 @@ def detect_r_peaks(
     # --- classification: initial levels from the first seconds -------------
     learn_n = min(x.size, int(LEARN_S * rate))
     block = int(2.0 * rate)
-    blocks = [energy[i : i + block].max() for i in range(0, learn_n - block + 1, block)] or [energy[:learn_n].max()]
+    starts = range(0, learn_n - block + 1, block)
+    tops = [energy[i : i + block].max() for i in starts] or [energy[:learn_n].max()]
+    means = [energy[i : i + block].mean() for i in starts] or [energy[:learn_n].mean()]
     clf = _Classifier(peaks, values, slopes, rate, refractory)
-    qrs = clf.run(float(np.median(blocks)), 0.5 * float(energy[:learn_n].mean()))
+    qrs = clf.run(float(np.median(tops)), 0.5 * float(np.median(means)))  # medians: a transient is not learnt
     if not qrs:
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
     qrs = _search_edges(clf, qrs, x.size)

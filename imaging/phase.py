@@ -238,7 +238,12 @@ def _column(volume, name) -> np.ndarray:
     )
 
 
-def _from_r_peaks(times_s, r_peaks_s, what):
+#: A slice in an R-R interval longer than this multiple of the median R-R lies where beats are missing
+#: (a lead off or in noise under the scan, found no beat) or in a pause: its phase is warned about.
+LONG_RR_RATIO = 1.8
+
+
+def _from_r_peaks(times_s, r_peaks_s, what, notes):
     phases = cardiac_phase(times_s, r_peaks_s)
     bad = ~np.isfinite(phases)
     if bad.any():
@@ -246,6 +251,18 @@ def _from_r_peaks(times_s, r_peaks_s, what):
             f"{what}: {int(bad.sum())} slice time(s) fall outside the R-peaks "
             f"({r_peaks_s[0]:.3f}..{r_peaks_s[-1]:.3f} s); not extrapolated"
         )
+    r = np.sort(np.asarray(r_peaks_s, dtype=float))
+    if r.size >= 3:
+        rr = np.diff(r)
+        median = float(np.median(rr))
+        held = rr[np.clip(np.searchsorted(r, times_s, side="right") - 1, 0, rr.size - 1)]
+        long = held > LONG_RR_RATIO * median
+        if long.any():
+            note = (f"{what}: {int(long.sum())} slice(s) lie in R-R intervals up to {held.max():.2f} s, "
+                    f"{held.max() / median:.1f} times the median {median:.2f} s: beats missing there (a lead off "
+                    "or in noise) or a pause; their phases are uncertain")
+            notes.append(note)
+            warnings.warn(note, GatingWarning, stacklevel=3)
     return phases, None
 
 
@@ -374,7 +391,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         if not has_acq:
             notes.append(f"{qrs_label}: slices lack AcquisitionTime/ContentTime, cannot align")
         else:
-            phases, why = _from_r_peaks(acq, r, qrs_label)
+            phases, why = _from_r_peaks(acq, r, qrs_label, notes)
             if phases is not None:
                 return _report(
                     volume, acq, phases, f"{qrs_label} (R-peak times)",
@@ -399,7 +416,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
             r, why = _finite_stamps(np.asarray(rpeaks_ms, dtype=float) / 1000.0, mid, notes)
             phases = None
             if r is not None:
-                phases, why = _from_r_peaks(mid, r, "GE RpeakTimeStamps")
+                phases, why = _from_r_peaks(mid, r, "GE RpeakTimeStamps", notes)
             if phases is not None:
                 clock = "GE Mid Scan Time and RpeakTimeStamps share the scan's origin"
                 times = mid
@@ -425,7 +442,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         peaks, label = _r_peaks_of_some_lead(record, label, notes)
         if peaks is None:
             continue
-        phases, why = _from_r_peaks(acq, peaks.times_s, label)
+        phases, why = _from_r_peaks(acq, peaks.times_s, label, notes)
         if phases is not None:
             return _report(
                 volume, acq, phases, f"{label} (Pan-Tompkins QRS detection)",

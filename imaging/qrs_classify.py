@@ -41,6 +41,8 @@ RELEARN_AFTER_S = 1.0
 #: pauses of 2-4 beats cut in, 17-42 P waves each were taken for beats, 1-2 with the rule; the
 #: eight records whole change by 4 beats of 116).
 SEARCH_BACK_SLOPE_RATIO = 0.2
+#: Peaks within this many seconds either side of a candidate are its neighbourhood (:meth:`_Classifier.stands_out`).
+STAND_OUT_S = 1.5
 
 
 def _median(values: list[float]) -> float:
@@ -60,7 +62,12 @@ class _Classifier:
     search-back limit: a sinus arrest, blocked beats) is no part of the regular
     rhythm the limits are learnt from: averaged in, it stretched the regular RR
     and the early-beat rule took a bigeminy's PVCs for noise for half a minute
-    (record 119 with pauses cut in: 41 beats missed, none now).
+    (record 119 with pauses cut in: 41 beats missed, none now).  Once no beat
+    came for the search-back limit, a peak is a QRS only if it stands out of
+    the peaks around it (:meth:`stands_out`), as a QRS does among T and P
+    waves and noise: with the threshold decayed, a lead gone to noise (a
+    floating electrode) gave about a beat a second, and the first noise peak
+    taken reset the signal level to the noise's.
     """
 
     def __init__(self, peaks, values, slopes, rate: float, refractory: int):
@@ -101,6 +108,9 @@ class _Classifier:
                     self._retract(qrs, rr)
                     self._accept(qrs, rr, j)
                 continue
+            if v > th1 and qrs and p - peaks[qrs[-1]] > self.limit and not self.stands_out(j, NOISE_FLOOR_RATIO):
+                self.npk = 0.125 * v + 0.875 * self.npk  # the rhythm lost: noise unless it stands out
+                continue
             if v > th1:
                 if qrs and p - peaks[qrs[-1]] < EARLY_FRACTION * self.limit / SEARCH_BACK_FACTOR and v < (
                     EARLY_ENERGY_RATIO * self.spk
@@ -121,6 +131,14 @@ class _Classifier:
                 self.npk = 0.125 * v + 0.875 * self.npk
         self.rr = rr
         return qrs
+
+    def stands_out(self, j: int, ratio: float) -> bool:
+        """Whether peak ``j`` is ``ratio`` times the median energy of the other peaks within STAND_OUT_S of it."""
+        reach = STAND_OUT_S * self.rate
+        lo = bisect_left(self.peaks, self.peaks[j] - reach)
+        hi = bisect_right(self.peaks, self.peaks[j] + reach)
+        others = self.values[lo:j] + self.values[j + 1:hi]
+        return not others or self.values[j] >= ratio * _median(others)
 
     def threshold(self, gap: float) -> float:
         """Threshold 1 a peak ``gap`` samples after the last QRS must pass.
@@ -157,7 +175,7 @@ class _Classifier:
         return True
 
     def _search_back(self, last: int, j: int) -> int | None:
-        """The largest peak in the gap (last, j) above half its threshold 1."""
+        """The largest peak in the gap (last, j) above half its threshold 1 and as steep as a QRS."""
         peaks, values = self.peaks, self.values
         lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
         best, best_v = None, 0.0

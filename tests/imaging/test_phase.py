@@ -77,6 +77,28 @@ def test_qrs_file_wins_over_metadata(sample_case):
     np.testing.assert_allclose(report.r_peaks_s, truth["r_peaks_s"], atol=1e-6)
 
 
+def test_slices_in_a_long_rr_interval_are_warned(sample_case, tmp_path):
+    """R-peaks missing under the scan (a lead off or in noise: the detector finds no beat there) make one
+    R-R interval hold slices whose phases are then uncertain: warned and noted, the phases still given
+    (review of session 20: a waveform with 8 s of noise under the slices gave phases 0.2 off, silently)."""
+    case, truth = sample_case
+    r = np.asarray(truth["r_peaks_s"], dtype=float)
+    volume = load_study(case / "ct")
+    acq = np.array([s.acquisition_time_s for s in volume.slices])
+    under = np.flatnonzero((r > acq.min()) & (r < acq.max()))
+    assert under.size >= 1
+    thinned = tmp_path / "missing.csv"
+    kept = np.delete(r, under[:2])
+    thinned.write_text("time_s\n" + "\n".join(f"{t:.6f}" for t in kept) + "\n")
+    with pytest.warns(GatingWarning, match=r"missing.csv: \d+ slice\(s\) lie in R-R intervals up to .* times the "
+                                           r"median .*beats missing there"):
+        report = compute_phase_report(volume, qrs_s=read_qrs_file(thinned), qrs_label="missing.csv")
+    assert report.source.startswith("missing.csv")
+    assert any("their phases are uncertain" in n for n in report.notes)
+    # the study's own R-peaks: no such interval, no such note
+    assert not any("uncertain" in n for n in compute_phase_report(volume).notes)
+
+
 def test_ecg_waveform_when_no_ge_tags(sample_case, tmp_path):
     case, truth = sample_case
     ct = _copy_without(case, tmp_path, private=True)
