@@ -4,7 +4,8 @@ The detector follows Pan and Tompkins (IEEE Trans Biomed Eng 1985;32:230), the
 choice of Wood et al. 2018 (section 2.2.4):
 
 1. band-pass 5-25 Hz (Butterworth, run forwards and backwards: zero phase; the
-   upper edge at most 0.8 of the Nyquist frequency);
+   upper edge at most 0.8 of the Nyquist frequency) of the ECG through a 4 ms
+   running median (pacing spikes and one-sample artefacts removed);
 2. five-point derivative, squaring, moving-window integration (150 ms,
    centred: no delay);
 3. peaks of the integrated signal at least one refractory period (200 ms)
@@ -66,6 +67,10 @@ MIN_RATE_HZ = 50.0
 #: Below this 99.9th-percentile absolute value of the QRS-band signal (mV) the
 #: record is called flat.
 MIN_QRS_BAND_MV = 0.02
+#: Detection sees the ECG through a running median this long (s; at least 3 samples): a pacemaker's spike
+#: or a one-sample artefact (1-2 ms) goes, a QRS (60-120 ms) stays.  A 5 mV one-sample spike between every two
+#: beats (asynchronous pacing) gave F1 0.43-0.73 on MIT-BIH 102, 104, 106 and 108; 0.99-1.00 now.
+SPIKE_S = 0.004
 #: Time (s) at the record's extreme value in a row that makes a clipped (saturated) R: 3 samples at
 #: MIT-BIH's 360 Hz.  As a count of samples, a pacemaker's 2 ms spike clipped at the rail was a "clipped R"
 #: from 1500 Hz on, and every R-peak moved onto the spike 50 ms before it (median error 49 ms).
@@ -271,7 +276,8 @@ def detect_r_peaks(
         raise SignalError(f"polarity must be 'auto', 1 or -1, got {polarity!r}")
 
     # --- energy of the QRS band: band-pass, derivative, square, integrate ---
-    band = _bandpass(x, QRS_BAND_HZ, rate)
+    spikes = max(3, 2 * int(round(SPIKE_S * rate / 2.0)) + 1)  # samples, odd
+    band = _bandpass(ndimage.median_filter(x, size=spikes, mode="nearest"), QRS_BAND_HZ, rate)
     if np.percentile(np.abs(band), 99.9) < MIN_QRS_BAND_MV:
         raise SignalError(
             "signal_mv is flat: no QRS-band activity above "

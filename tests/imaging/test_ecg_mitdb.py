@@ -265,3 +265,18 @@ def test_a_lead_gone_to_noise_gives_no_beats(where):
         false_beats += int((~used).sum())
         missed += int(np.isnan(errors).sum())
     assert false_beats <= (50 if where == "mid" else 20) and missed <= 5, (false_beats, missed)
+
+
+def test_pacing_spikes_between_beats_are_no_beats():
+    """A 5 mV one-sample spike halfway between every two beats (asynchronous pacing, recorded unfiltered),
+    five minutes of each record: F1 >= 0.98 on every record (measured 0.987-1.000; before session 20's 4 ms
+    running median ahead of the detection 0.43 / 0.63 / 0.63 / 0.74 on 108 / 102 / 104 / 106, neurokit2
+    0.64 on 108)."""
+    for record in RECORDS:
+        x, fs, ref = _load(record)
+        x, ref = x[: int(300 * fs)].copy(), ref[ref < 299.9]
+        for mid in 0.5 * (ref[:-1] + ref[1:]):
+            x[int(mid * fs)] += 5.0
+        used, errors = match_beats(detect_r_peaks(x, fs).times_s, ref)
+        tp = int(np.isfinite(errors).sum())
+        assert f1(tp, int((~used).sum()), ref.size - tp) >= 0.98, record
