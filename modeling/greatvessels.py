@@ -390,8 +390,9 @@ def trace_great_vessels(
     if outside.any():  # a vessel lobe open to a chamber's runs on into it: only its part outside the body
         chamber = inside & ~vessel
         opened = np.zeros(n + 1, bool)
-        for lobes_out in (False, True):  # then, past an opened lobe wholly inside the body (the chamber's now),
-            for a in np.flatnonzero(vessel & ~opened & (outside if lobes_out else vessel)):  # the lobe out next
+        for past_opened in (False, True):  # again past the lobes that went: lobes outside the body only
+            candidates = vessel & ~opened & (outside if past_opened else True)
+            for a in np.flatnonzero(candidates):
                 opened[a] = any(chamber[b] and width >= saddle_ratio * min(radius[a], radius[b])
                                 for b, width in neighbours[a])
             lumen[box] &= ~(opened[lobes] & heart_box)
