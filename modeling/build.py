@@ -155,11 +155,12 @@ def _cut_by_field_of_view(mask, T) -> str:
     return "; ".join(cuts)
 
 
-def _volume_cause(mask_ml, seg_params, mask, T) -> str:
-    """The likeliest reason an automatic mask is not heart-sized, for the warning's hint."""
+def _volume_cause(mask_ml, seg_params, cut: str) -> str:
+    """The likeliest reason an automatic mask is not heart-sized, for the warning's hint (``cut``: where the
+    field of view cuts it, :func:`_cut_by_field_of_view`)."""
     if mask_ml > HEART_ML[1]:
         return "tissue beyond the heart taken in: the liver, the great vessels"
-    if _cut_by_field_of_view(mask, T):
+    if cut:
         return "a heart cut by the field of view"
     if seg_params.get("contrast") is False:
         return "a CT without contrast"
@@ -322,11 +323,12 @@ def build_heart_model(
                 notes.append(note)
     mask_ml = _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path, notes=notes,
                                  source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+    cut = _cut_by_field_of_view(mask, T)
     if not HEART_ML[0] <= mask_ml <= HEART_ML[1]:
         fallback(
             f"{mask_source}: the mask holds {mask_ml:.0f} ml, outside a heart's usual {HEART_ML[0]:.0f}-"
             f"{HEART_ML[1]:.0f} ml; " + ("it is meshed as given: check --label or the label map" if mask_path is not None
-                                         else f"check the model ({_volume_cause(mask_ml, seg_params, mask, T)}? "
+                                         else f"check the model ({_volume_cause(mask_ml, seg_params, cut)}? "
                                               "give --mask or a seed point)")
         )
     if mask_path is not None:
@@ -334,7 +336,6 @@ def build_heart_model(
         if pieces:
             fallback(f"{mask_source}: {pieces}; the largest is meshed (a heart is one piece: check the mask for a "
                      "missing slice, or remove what is not heart)")
-    cut = _cut_by_field_of_view(mask, T)
     if cut:
         fallback(f"the heart is cut by the CT's field of view ({cut}): the model ends flat there and misses what "
                  "lies beyond; reconstruct a wider field of view if that side matters")
