@@ -251,18 +251,18 @@ def _from_r_peaks(times_s, r_peaks_s, what, notes):
             f"{what}: {int(bad.sum())} slice time(s) fall outside the R-peaks "
             f"({r_peaks_s[0]:.3f}..{r_peaks_s[-1]:.3f} s); not extrapolated"
         )
-    r = np.sort(np.asarray(r_peaks_s, dtype=float))
-    if r.size >= 3:
-        rr = np.diff(r)
-        median = float(np.median(rr))
-        held = rr[np.clip(np.searchsorted(r, times_s, side="right") - 1, 0, rr.size - 1)]
-        long = held > LONG_RR_RATIO * median
-        if long.any():
-            note = (f"{what}: {int(long.sum())} slice(s) lie in R-R intervals up to {held.max():.2f} s, "
-                    f"{held.max() / median:.1f} times the median {median:.2f} s: beats missing there (a lead off "
-                    "or in noise) or a pause; their phases are uncertain")
-            notes.append(note)
-            warnings.warn(note, GatingWarning, stacklevel=3)
+    # the R-R interval each slice lies in (cardiac_phase checked the R-peaks increase and holds every slice)
+    r = np.asarray(r_peaks_s, dtype=float)
+    rr = np.diff(r)
+    median = float(np.median(rr))
+    held = rr[np.searchsorted(r, times_s, side="right") - 1]
+    long = held > LONG_RR_RATIO * median
+    if long.any():
+        note = (f"{what}: {int(long.sum())} slice(s) lie in R-R intervals up to {held.max():.2f} s, "
+                f"{held.max() / median:.1f} times the median {median:.2f} s: beats missing there (a lead off "
+                "or in noise) or a pause; their phases are uncertain")
+        notes.append(note)
+        warnings.warn(note, GatingWarning, stacklevel=3)
     return phases, None
 
 
