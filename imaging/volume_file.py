@@ -99,6 +99,11 @@ def _check_is_file(path: Path, kind: str) -> None:
                           f"{path} is a folder named like a {kind} file: rename it if it holds a DICOM study")
 
 
+def nifti_unoriented(img) -> bool:
+    """Whether a NIfTI image has no orientation (qform_code and sform_code 0): nibabel then places it by guess."""
+    return int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
+
+
 def load_nifti(path):
     """``(image, voxels, header fixes)`` of a NIfTI file through nibabel, its repairs caught, not printed.
 
@@ -170,7 +175,7 @@ def read_nifti_volume(path) -> Volume:
         img, data, fixes = load_nifti(path)
     except Exception as exc:  # noqa: BLE001 - nibabel raises many types for bad files
         raise SeriesError(f"cannot read NIfTI file {path}: {exc}") from None
-    unoriented = int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
+    unoriented = nifti_unoriented(img)
     if unoriented and any("pixdim" in fix for fix in fixes):  # its voxels would be 1 mm for want of any size
         raise SeriesError(f"NIfTI file {path} gives its voxels no size (pixdim 0) and no orientation (no qform or "
                           "sform): write the file with its voxel size and orientation")

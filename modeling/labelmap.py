@@ -19,7 +19,7 @@ from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
-from imaging.volume_file import load_nifti, nifti_lps_affine
+from imaging.volume_file import load_nifti, nifti_lps_affine, nifti_unoriented
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
 
@@ -141,7 +141,7 @@ def _read_nifti(path: Path) -> LabelMap:
     if not labels.any() and np.any(data):
         raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
                             f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
-    unoriented = int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
+    unoriented = nifti_unoriented(img)
     return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
 
 
