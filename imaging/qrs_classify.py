@@ -81,6 +81,7 @@ class _Classifier:
         self.recent = [spk0]  # energies of the last accepted QRS complexes
         self.steep: list[float] = []  # their steepest slopes
         self.paused: list[bool] = []  # per RR interval: a pause, not the rhythm
+        self.regular: list[int] = []  # the RR intervals that are no pause, samples
         self.spk = spk0  # their median: the signal level
         self.npk = npk0
         self.limit = SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
@@ -191,14 +192,15 @@ class _Classifier:
         j = qrs.pop()
         if rr:
             rr.pop()
-            self.paused.pop()
+            if not self.paused.pop():
+                self.regular.pop()
         if len(self.recent) > 1 and self.recent[-1] == self.values[j]:
             self.recent.pop()
             self.spk = _median(self.recent)
         if self.steep and self.steep[-1] == self.slopes[j]:
             self.steep.pop()
         self.npk = 0.125 * self.values[j] + 0.875 * self.npk
-        self._update_limits(rr)
+        self._update_limits()
 
     def _accept(self, qrs, rr, j) -> None:
         if qrs:
@@ -207,21 +209,23 @@ class _Classifier:
                 self.recent = []
             rr.append(gap)
             self.paused.append(gap > self.limit)
+            if not self.paused[-1]:
+                self.regular.append(gap)
         qrs.append(j)
-        self._update_limits(rr)
+        self._update_limits()
         self.recent.append(self.values[j])
         self.steep.append(self.slopes[j])
         del self.recent[:-SPK_MEMORY], self.steep[:-SPK_MEMORY]
         self.spk = _median(self.recent)
 
-    def _update_limits(self, rr) -> None:
-        self.limit = self._rr_limit(rr)
+    def _update_limits(self) -> None:
+        self.limit = self._rr_limit()
         regular_rr = self.limit / SEARCH_BACK_FACTOR
         self.dead = max(self.refractory, min(MAX_REFRACTORY_S * self.rate, REFRACTORY_RR_FRACTION * regular_rr))
 
-    def _rr_limit(self, rr) -> float:
+    def _rr_limit(self) -> float:
         """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples; pauses left out."""
-        rr = [r for r, paused in zip(rr[-64:], self.paused[-64:]) if not paused]
+        rr = self.regular
         if len(rr) < 2:
             return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
         recent = rr[-8:]
