@@ -196,6 +196,27 @@ def _bandpass(x: np.ndarray, band_hz: tuple[float, float], rate: float) -> np.nd
     return zero_phase_filter(x, (band_hz[0], hi), "bandpass", rate)
 
 
+def _running_median(x: np.ndarray, size: int) -> np.ndarray:
+    """``ndimage.median_filter(x, size, mode="nearest")`` of a 1-D signal, ``size`` odd.
+
+    The 3-sample median (every rate below 750 Hz, :data:`SPIKE_S`) is taken as
+    ``max(min(a, b), min(max(a, b), c))`` of each sample and its neighbours: it
+    selects the same sample as the rank filter (the same values, bit for bit) at
+    a tenth of the time.  At the ends the record's first or last sample counts
+    twice ("nearest"), and the median of ``(a, a, b)`` is ``a``: they stay.
+    """
+    if size != 3:
+        return ndimage.median_filter(x, size=size, mode="nearest")
+    out = np.empty_like(x)
+    out[0], out[-1] = x[0], x[-1]
+    before, here, after = x[:-2], x[1:-1], x[2:]
+    inner = out[1:-1]
+    np.maximum(before, here, out=inner)
+    np.minimum(inner, after, out=inner)
+    np.maximum(np.minimum(before, here), inner, out=inner)
+    return out
+
+
 def _parabolic(y_m: np.ndarray, y_0: np.ndarray, y_p: np.ndarray) -> np.ndarray:
     """Offset in samples (within [-0.5, 0.5]) of the vertex of the parabola through 3 points."""
     den = y_m - 2.0 * y_0 + y_p
@@ -277,25 +298,29 @@ def detect_r_peaks(
 
     # --- energy of the QRS band: band-pass, derivative, square, integrate ---
     spikes = max(3, 2 * int(round(SPIKE_S * rate / 2.0)) + 1)  # samples, odd
-    band = _bandpass(ndimage.median_filter(x, size=spikes, mode="nearest"), QRS_BAND_HZ, rate)
-    if np.percentile(np.abs(band), 99.9) < MIN_QRS_BAND_MV:
+    band = _bandpass(_running_median(x, spikes), QRS_BAND_HZ, rate)
+    band_abs = np.abs(band)
+    if _flat(band_abs):
         raise SignalError(
             "signal_mv is flat: no QRS-band activity above "
             f"{MIN_QRS_BAND_MV:g} mV (is the lead connected, and is the signal in mV?)"
         )
     deriv = ndimage.convolve1d(band, np.array([-1.0, -2.0, 0.0, 2.0, 1.0]) * (rate / 8.0), mode="nearest")
     win = max(1, int(round(INTEGRATION_S * rate)))
-    energy = ndimage.uniform_filter1d(deriv * deriv, win, mode="constant")
+    refractory = int(round(float(refractory_s) * rate))
+    pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
+    padded = np.zeros(x.size + 2 * pad)  # the energy is written between the padding, not copied into it
+    energy = padded[pad : pad + x.size]
+    squared = np.multiply(deriv, deriv, out=band)  # into the band's memory: the band is not needed again
+    ndimage.uniform_filter1d(squared, win, mode="constant", output=energy)
     # mean over the in-record part of the window only, at both ends
     edge = min(win, energy.size // 2)
     coverage = ndimage.uniform_filter1d(np.ones(min(3 * win, energy.size)), win, mode="constant")
     energy[:edge] /= coverage[:edge]
     energy[energy.size - edge :] /= coverage[coverage.size - edge :]
-    refractory = int(round(float(refractory_s) * rate))
-    pad = max(1, refractory)  # zero padding: a maximum at the very first or last sample counts
     from scipy import signal  # on first use, as in imaging.events
 
-    peaks, _ = signal.find_peaks(np.concatenate([np.zeros(pad), energy, np.zeros(pad)]), distance=pad)
+    peaks, _ = signal.find_peaks(padded, distance=pad)
     peaks = peaks - pad
     if peaks.size == 0:
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
@@ -332,7 +357,7 @@ def detect_r_peaks(
     for arr in (times, idx, amp):
         arr.setflags(write=False)
     dominant = 1 if np.count_nonzero(side > 0) >= np.count_nonzero(side < 0) else -1
-    contrast = _qrs_contrast(np.abs(band), idx, rate)
+    contrast = _qrs_contrast(band_abs, idx, rate)  # the last use of band_abs: it is reordered
     if contrast < MIN_QRS_CONTRAST:
         raise SignalError(
             f"the ECG holds no QRS complexes that stand out of its noise (the {idx.size} peaks found are "
@@ -361,18 +386,41 @@ def _unclipped(x: np.ndarray, at: np.ndarray, side: np.ndarray, reach: int, min_
         starts, stops = starts[long], stops[long]
         if starts.size == 0:
             continue
-        for k in np.flatnonzero(side == sign):
-            near = np.flatnonzero((starts - reach <= at[k]) & (at[k] <= stops - 1 + reach))
-            if near.size:
-                j = near[np.argmin(np.abs(0.5 * (starts[near] + stops[near] - 1) - at[k]))]
-                out[k] = 0.5 * (starts[j] + stops[j] - 1)
+        # the runs within reach of a beat are consecutive (runs are disjoint, in time order): those from
+        # the first ending at most ``reach`` before it to the last starting at most ``reach`` after it
+        first = np.searchsorted(stops - 1 + reach, at, side="left")
+        after_last = np.searchsorted(starts - reach, at, side="right")
+        for k in np.flatnonzero((side == sign) & (first < after_last)):
+            near = np.arange(first[k], after_last[k])
+            j = near[np.argmin(np.abs(0.5 * (starts[near] + stops[near] - 1) - at[k]))]
+            out[k] = 0.5 * (starts[j] + stops[j] - 1)
     return out
 
 
+def _flat(band_abs: np.ndarray) -> bool:
+    """Whether the 99.9th percentile (``np.percentile``'s, linear) of the absolute QRS-band signal is below
+    :data:`MIN_QRS_BAND_MV`.
+
+    The number of samples below the bound decides it without a sort (a copy and a partial sort of the
+    record) unless the bound lies among the sorted values the percentile interpolates between; the
+    margin of one value either side covers the rounding of their position.
+    """
+    below = int(np.count_nonzero(band_abs < MIN_QRS_BAND_MV))
+    rank = int(np.floor(0.999 * (band_abs.size - 1)))  # the percentile lies between sorted values rank, rank + 1
+    if below >= rank + 3:
+        return True  # the values around rank all below the bound
+    if below <= rank - 1:
+        return False  # the values around rank all at or above it
+    return bool(np.percentile(band_abs, 99.9) < MIN_QRS_BAND_MV)
+
+
 def _qrs_contrast(band_abs: np.ndarray, idx: np.ndarray, rate: float) -> float:
-    """:attr:`RPeaks.qrs_contrast` of the beats at ``idx`` in the absolute QRS-band signal."""
-    level = float(np.median(band_abs))
+    """:attr:`RPeaks.qrs_contrast` of the beats at ``idx`` in the absolute QRS-band signal.
+
+    ``band_abs`` is reordered (its median taken in place, without a copy of the record).
+    """
     peaks = np.nanmax(_windows(band_abs, idx, max(1, int(round(CONTRAST_HALF_WIDTH_S * rate)))), axis=1)
+    level = float(np.median(band_abs, overwrite_input=True))
     return float(np.median(peaks) / level) if level > 0 else float("inf")
 
 
@@ -396,7 +444,8 @@ def _refine(light: np.ndarray, coarse: np.ndarray, rate: float, polarity):
     w = max(2, int(round(REFINE_HALF_WIDTH_S * rate)))
     seg = _windows(light, coarse, w)
     bw = int(round(BASELINE_HALF_WIDTH_S * rate))
-    base = np.median(light[np.clip(coarse[:, None] + np.arange(-bw, bw + 1), 0, light.size - 1)], axis=1)
+    around = light[np.clip(coarse[:, None] + np.arange(-bw, bw + 1), 0, light.size - 1)]
+    base = np.partition(around, bw, axis=1)[:, bw]  # the median of the 2 bw + 1 samples: the middle one
     up = np.nanmax(seg, axis=1) - base
     down = base - np.nanmin(seg, axis=1)
     if polarity == "auto":
@@ -430,13 +479,14 @@ def _refine(light: np.ndarray, coarse: np.ndarray, rate: float, polarity):
 def _dedupe(idx: np.ndarray, amp: np.ndarray, refractory: int):
     """Drop the smaller of two R-peaks closer than the refractory period; also
     return the kept positions in the input."""
-    order = np.argsort(idx, kind="stable")
-    keep = [int(order[0])]
+    order = np.argsort(idx, kind="stable").tolist()
+    at, height = idx.tolist(), amp.tolist()  # Python numbers: the loop runs over every beat
+    keep = [order[0]]
     for o in order[1:]:
-        if idx[o] - idx[keep[-1]] < refractory:
-            if amp[o] > amp[keep[-1]]:
-                keep[-1] = int(o)
+        if at[o] - at[keep[-1]] < refractory:
+            if height[o] > height[keep[-1]]:
+                keep[-1] = o
             continue
-        keep.append(int(o))
+        keep.append(o)
     keep_arr = np.asarray(keep, dtype=np.int64)
     return idx[keep_arr].copy(), amp[keep_arr].copy(), keep_arr

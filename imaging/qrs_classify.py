@@ -103,22 +103,23 @@ class _Classifier:
                         continue
                     break
                 self._accept(qrs, rr, found)
-            th1 = self.threshold(p - peaks[qrs[-1]] if qrs else 0)
-            if qrs and p - peaks[qrs[-1]] < self.dead:
+            gap = p - peaks[qrs[-1]] if qrs else 0  # samples since the last QRS
+            th1 = self.threshold(gap)
+            if qrs and gap < self.dead:
                 if v > th1 and v > values[qrs[-1]]:  # the larger of two close peaks is the QRS
                     self._retract(qrs, rr)
                     self._accept(qrs, rr, j)
                 continue
-            if v > th1 and qrs and p - peaks[qrs[-1]] > self.limit and not self.stands_out(j, NOISE_FLOOR_RATIO):
+            if v > th1 and qrs and gap > self.limit and not self.stands_out(j, NOISE_FLOOR_RATIO):
                 self.npk = 0.125 * v + 0.875 * self.npk  # the rhythm lost: noise unless it stands out
                 continue
             if v > th1:
-                if qrs and p - peaks[qrs[-1]] < EARLY_FRACTION * self.limit / SEARCH_BACK_FACTOR and v < (
+                if qrs and gap < EARLY_FRACTION * self.limit / SEARCH_BACK_FACTOR and v < (
                     EARLY_ENERGY_RATIO * self.spk
                 ):
                     self.npk = 0.125 * v + 0.875 * self.npk  # noise: too early for a weak beat
                     continue
-                if qrs and p - peaks[qrs[-1]] < t_window:
+                if qrs and gap < t_window:
                     if slopes[j] < 0.5 * slopes[qrs[-1]]:
                         self.npk = 0.125 * v + 0.875 * self.npk  # a T wave
                         continue
@@ -231,6 +232,8 @@ class _Classifier:
         recent = rr[-8:]
         avg1 = sum(recent) / len(recent)
         lo, hi = 0.92 * avg1, 1.16 * avg1
+        if lo <= min(recent) and max(recent) <= hi:
+            return SEARCH_BACK_FACTOR * avg1  # the last 8 are all regular: their average is avg1 itself
         regular = []
         for r in reversed(rr[-32:]):
             if lo <= r <= hi:
