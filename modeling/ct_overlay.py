@@ -165,11 +165,8 @@ def ct_panels(hu, T_patient_from_voxel, vertices_patient, faces) -> list[CtPanel
 def render_ct_png(panels, path, *, suptitle: str = "Heart model over its CT: the surface's outline on each plane",
                   colour: str = "#ff5050") -> Path:
     """Draw :func:`ct_panels` to a PNG (matplotlib, no OpenGL; written atomically)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure  # no pyplot: no global backend state, and its import is not needed
 
     from hrcore.figlayout import PNG_OPTIONS
     from imaging.files import atomic_path
@@ -179,32 +176,30 @@ def render_ct_png(panels, path, *, suptitle: str = "Heart model over its CT: the
         raise ValueError(f"path must end in .png, got {path.name}")
     columns = 3
     rows = -(-len(panels) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 4.2 * rows + 0.5), squeeze=False)
-    try:
-        for ax, panel in zip(axes.flat, panels):
-            ax.imshow(panel.image, cmap="gray", vmin=WINDOW_HU[0], vmax=WINDOW_HU[1], origin="lower",
-                      extent=panel.extent, interpolation="nearest")  # ~1 image pixel per screen pixel
-            ax.add_collection(LineCollection(panel.outline, colors=colour, linewidths=1.2))
-            ax.set_xlim(panel.extent[:2])
-            ax.set_ylim(panel.extent[2:])
-            ax.set_title(panel.title, fontsize=9)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            for (x, y, ha, va), letter in zip(((0.02, 0.5, "left", "center"), (0.98, 0.5, "right", "center"),
-                                               (0.5, 0.02, "center", "bottom"), (0.5, 0.98, "center", "top")),
-                                              panel.letters):
-                ax.text(x, y, letter, transform=ax.transAxes, ha=ha, va=va, color="#ffd000", fontsize=10,
-                        fontweight="bold")
-            a0, _, b0, _ = panel.extent
-            ax.plot([a0 + 5, a0 + 25], [b0 + 5, b0 + 5], color="white", linewidth=2)
-            ax.text(a0 + 15, b0 + 7, "20 mm", color="white", ha="center", va="bottom", fontsize=8)
-        for ax in axes.flat[len(panels):]:
-            ax.axis("off")
-        fig.suptitle(suptitle, fontsize=11, y=0.995)
-        fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.8 / (4.2 * rows + 0.5), wspace=0.04,
-                            hspace=0.12)  # fixed margins: tight_layout would draw the figure once more
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=90, pil_kwargs=PNG_OPTIONS)
-    finally:
-        plt.close(fig)
+    fig = Figure(figsize=(4.2 * columns, 4.2 * rows + 0.5))
+    axes = fig.subplots(rows, columns, squeeze=False)
+    for ax, panel in zip(axes.flat, panels):
+        ax.imshow(panel.image, cmap="gray", vmin=WINDOW_HU[0], vmax=WINDOW_HU[1], origin="lower",
+                  extent=panel.extent, interpolation="nearest")  # ~1 image pixel per screen pixel
+        ax.add_collection(LineCollection(panel.outline, colors=colour, linewidths=1.2))
+        ax.set_xlim(panel.extent[:2])
+        ax.set_ylim(panel.extent[2:])
+        ax.set_title(panel.title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for (x, y, ha, va), letter in zip(((0.02, 0.5, "left", "center"), (0.98, 0.5, "right", "center"),
+                                           (0.5, 0.02, "center", "bottom"), (0.5, 0.98, "center", "top")),
+                                          panel.letters):
+            ax.text(x, y, letter, transform=ax.transAxes, ha=ha, va=va, color="#ffd000", fontsize=10,
+                    fontweight="bold")
+        a0, _, b0, _ = panel.extent
+        ax.plot([a0 + 5, a0 + 25], [b0 + 5, b0 + 5], color="white", linewidth=2)
+        ax.text(a0 + 15, b0 + 7, "20 mm", color="white", ha="center", va="bottom", fontsize=8)
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    fig.suptitle(suptitle, fontsize=11, y=0.995)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.8 / (4.2 * rows + 0.5), wspace=0.04,
+                        hspace=0.12)  # fixed margins: tight_layout would draw the figure once more
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90, pil_kwargs=PNG_OPTIONS)
     return path
