@@ -201,7 +201,7 @@ def _running_median(x: np.ndarray, size: int) -> np.ndarray:
 
     The 3-sample median (every rate below 750 Hz, :data:`SPIKE_S`) is taken as
     ``max(min(a, b), min(max(a, b), c))`` of each sample and its neighbours: it
-    selects the same sample as the rank filter (the same values, bit for bit) at
+    selects the same sample as the rank filter (equal values; a zero's sign may differ) at
     a tenth of the time.  At the ends the record's first or last sample counts
     twice ("nearest"), and the median of ``(a, a, b)`` is ``a``: they stay.
     """

@@ -81,7 +81,7 @@ class _Classifier:
         self.recent = [spk0]  # energies of the last accepted QRS complexes
         self.steep: list[float] = []  # their steepest slopes
         self.paused: list[bool] = []  # per RR interval: a pause, not the rhythm
-        self.regular: list[int] = []  # the RR intervals that are no pause, samples
+        self.regular: list[int] = []  # positions in the RR list of the intervals that are no pause
         self.spk = spk0  # their median: the signal level
         self.npk = npk0
         self.limit = SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
@@ -201,7 +201,7 @@ class _Classifier:
         if self.steep and self.steep[-1] == self.slopes[j]:
             self.steep.pop()
         self.npk = 0.125 * self.values[j] + 0.875 * self.npk
-        self._update_limits()
+        self._update_limits(rr)
 
     def _accept(self, qrs, rr, j) -> None:
         if qrs:
@@ -211,22 +211,25 @@ class _Classifier:
             rr.append(gap)
             self.paused.append(gap > self.limit)
             if not self.paused[-1]:
-                self.regular.append(gap)
+                self.regular.append(len(rr) - 1)
         qrs.append(j)
-        self._update_limits()
+        self._update_limits(rr)
         self.recent.append(self.values[j])
         self.steep.append(self.slopes[j])
         del self.recent[:-SPK_MEMORY], self.steep[:-SPK_MEMORY]
         self.spk = _median(self.recent)
 
-    def _update_limits(self) -> None:
-        self.limit = self._rr_limit()
+    def _update_limits(self, rr) -> None:
+        self.limit = self._rr_limit(rr)
         regular_rr = self.limit / SEARCH_BACK_FACTOR
         self.dead = max(self.refractory, min(MAX_REFRACTORY_S * self.rate, REFRACTORY_RR_FRACTION * regular_rr))
 
-    def _rr_limit(self) -> float:
-        """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples; pauses left out."""
-        rr = self.regular
+    def _rr_limit(self, rr_all) -> float:
+        """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples: of the last 64 intervals,
+        pauses left out (a rhythm slowed for good, every interval a "pause", is relearnt from 60 bpm)."""
+        positions = self.regular
+        first = max(bisect_left(positions, len(rr_all) - 64), len(positions) - 32)
+        rr = [rr_all[i] for i in positions[first:]]
         if len(rr) < 2:
             return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
         recent = rr[-8:]
@@ -235,7 +238,7 @@ class _Classifier:
         if lo <= min(recent) and max(recent) <= hi:
             return SEARCH_BACK_FACTOR * avg1  # the last 8 are all regular: their average is avg1 itself
         regular = []
-        for r in reversed(rr[-32:]):
+        for r in reversed(rr):
             if lo <= r <= hi:
                 regular.append(r)
                 if len(regular) == 8:

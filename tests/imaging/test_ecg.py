@@ -108,6 +108,24 @@ def test_short_record_of_10_s():
     assert np.abs(err).max() <= 3e-3
 
 
+def test_a_rhythm_slowed_for_good_is_learnt_anew():
+    """Beats every 0.45 s for 20 s, then every 1.1 s (a 2:1 block, say), each with a tall T wave (0.5 of the R,
+    0.28 s after it): every slow interval is past the fast rhythm's search-back limit, a "pause" left out of the
+    regular R-R, and the limits come from the last 64 intervals only, so after 64 slow beats they are learnt anew
+    from 60 bpm.  Kept since every regular interval was (a session-21 speed-up, found by its review), the limit
+    stayed at the fast rhythm's 0.83 s and a T wave passed for a beat."""
+    rate = 250.0
+    beats = np.concatenate([0.5 + 0.45 * np.arange(44), 0.5 + 0.45 * 44 + 1.1 * np.arange(107)])
+    t = np.arange(int(140.0 * rate)) / rate
+    ecg = np.zeros_like(t)
+    for b in beats:
+        ecg += np.exp(-0.5 * ((t - b) / 0.012) ** 2) + 0.5 * np.exp(-0.5 * ((t - b - 0.28) / 0.025) ** 2)
+    found = detect_r_peaks(ecg, rate).times_s
+    tp, extra, err = match(beats, found)
+    assert tp == beats.size and extra == 0, (tp, beats.size, extra)
+    assert np.abs(err).max() <= 5e-3
+
+
 @pytest.mark.parametrize("rate_hz", [100.0, 1000.0])
 @pytest.mark.parametrize("edge_s", [0.06, 0.10])
 def test_edge_beats_are_found_when_complete(rate_hz, edge_s):
