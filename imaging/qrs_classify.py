@@ -82,6 +82,7 @@ class _Classifier:
         self.steep: list[float] = []  # their steepest slopes
         self.paused: list[bool] = []  # per RR interval: a pause, not the rhythm
         self.regular: list[int] = []  # positions in the RR list of the intervals that are no pause
+        self.regular_rr: list[int] = []  # ... and those intervals, samples
         self.spk = spk0  # their median: the signal level
         self.npk = npk0
         self.limit = SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
@@ -195,6 +196,7 @@ class _Classifier:
             rr.pop()
             if not self.paused.pop():
                 self.regular.pop()
+                self.regular_rr.pop()
         if len(self.recent) > 1 and self.recent[-1] == self.values[j]:
             self.recent.pop()
             self.spk = _median(self.recent)
@@ -212,6 +214,7 @@ class _Classifier:
             self.paused.append(gap > self.limit)
             if not self.paused[-1]:
                 self.regular.append(len(rr) - 1)
+                self.regular_rr.append(gap)
         qrs.append(j)
         self._update_limits(rr)
         self.recent.append(self.values[j])
@@ -228,17 +231,16 @@ class _Classifier:
         """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples: of the last 64 intervals,
         pauses left out (a rhythm slowed for good, every interval a "pause", is relearnt from 60 bpm)."""
         positions = self.regular
-        first = max(bisect_left(positions, len(rr_all) - 64), len(positions) - 32)
-        rr = [rr_all[i] for i in positions[first:]]
-        if len(rr) < 2:
+        first = max(bisect_left(positions, len(rr_all) - 64), len(positions) - 32)  # the last 32 of the last 64
+        if len(positions) - first < 2:
             return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
-        recent = rr[-8:]
+        recent = self.regular_rr[max(first, len(positions) - 8):]
         avg1 = sum(recent) / len(recent)
         lo, hi = 0.92 * avg1, 1.16 * avg1
         if lo <= min(recent) and max(recent) <= hi:
             return SEARCH_BACK_FACTOR * avg1  # the last 8 are all regular: their average is avg1 itself
         regular = []
-        for r in reversed(rr):
+        for r in reversed(self.regular_rr[first:]):
             if lo <= r <= hi:
                 regular.append(r)
                 if len(regular) == 8:
