@@ -43,6 +43,8 @@ RELEARN_AFTER_S = 1.0
 SEARCH_BACK_SLOPE_RATIO = 0.2
 #: Peaks within this many seconds either side of a candidate are its neighbourhood (:meth:`_Classifier.stands_out`).
 STAND_OUT_S = 1.5
+#: This many pauses in a row, as steady as a rhythm, are a slower rhythm, not pauses.
+SLOWED_BEATS = 8
 
 
 def _median(values: list[float]) -> float:
@@ -178,14 +180,17 @@ class _Classifier:
         return True
 
     def _search_back(self, last: int, j: int) -> int | None:
-        """The largest peak in the gap (last, j) above half its threshold 1 and as steep as a QRS."""
-        peaks, values = self.peaks, self.values
+        """The largest peak in the gap (last, j) above half its threshold 1 and as steep as a QRS; within the
+        T-wave window after the last QRS, not half as steep as it (a T wave, as for any peak)."""
+        peaks, values, slopes = self.peaks, self.values, self.slopes
         lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
+        t_wave_end, t_slope = peaks[last] + T_WAVE_WINDOW_S * self.rate, 0.5 * slopes[last]
         best, best_v = None, 0.0
         steep = SEARCH_BACK_SLOPE_RATIO * _median(self.steep) if self.steep else 0.0
         for k in range(last + 1, j):
-            if lo_p <= peaks[k] <= hi_p and values[k] > best_v and self.slopes[k] >= steep and (
-                    values[k] > 0.5 * self.threshold(peaks[k] - peaks[last])):
+            if lo_p <= peaks[k] <= hi_p and values[k] > best_v and slopes[k] >= steep and (
+                    values[k] > 0.5 * self.threshold(peaks[k] - peaks[last])) and not (
+                    peaks[k] < t_wave_end and slopes[k] < t_slope):
                 best, best_v = k, values[k]
         return best
 
@@ -230,6 +235,11 @@ class _Classifier:
     def _rr_limit(self, rr_all) -> float:
         """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples: of the last 64 intervals,
         pauses left out (a rhythm slowed for good, every interval a "pause", is relearnt from 60 bpm)."""
+        last = rr_all[-SLOWED_BEATS:]
+        if len(last) == SLOWED_BEATS and all(self.paused[-SLOWED_BEATS:]):
+            avg = sum(last) / len(last)
+            if 0.92 * avg <= min(last) and max(last) <= 1.16 * avg:  # as steady as a rhythm: the rhythm slowed
+                return SEARCH_BACK_FACTOR * avg
         positions = self.regular
         first = max(bisect_left(positions, len(rr_all) - 64), len(positions) - 32)  # the last 32 of the last 64
         if len(positions) - first < 2:
