@@ -233,8 +233,8 @@ class _Classifier:
         self.dead = max(self.refractory, min(MAX_REFRACTORY_S * self.rate, REFRACTORY_RR_FRACTION * regular_rr))
 
     def _rr_limit(self, rr_all) -> float:
-        """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples: of the last 64 intervals,
-        pauses left out (a rhythm slowed for good, every interval a "pause", is relearnt from 60 bpm)."""
+        """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples: of the last 64 intervals, pauses
+        left out; but :data:`SLOWED_BEATS` pauses in a row as steady as a rhythm are a slower rhythm, and theirs."""
         last = rr_all[-SLOWED_BEATS:]
         if len(last) == SLOWED_BEATS and all(self.paused[-SLOWED_BEATS:]):
             avg = sum(last) / len(last)
