@@ -53,6 +53,12 @@ def _median(values: list[float]) -> float:
     return s[m] if len(s) % 2 else 0.5 * (s[m - 1] + s[m])
 
 
+def _steady_mean(intervals: list[int]) -> float | None:
+    """Their mean if every one lies within 0.92-1.16 of it (Pan-Tompkins' regular R-R range), else None."""
+    mean = sum(intervals) / len(intervals)
+    return mean if 0.92 * mean <= min(intervals) and max(intervals) <= 1.16 * mean else None
+
+
 class _Classifier:
     """Sequential adaptive-threshold classification of energy peaks.
 
@@ -77,12 +83,12 @@ class _Classifier:
         self.values = values.tolist()
         self.slopes = slopes.tolist()
         self.rate, self.refractory = rate, refractory
+        self.t_window = T_WAVE_WINDOW_S * rate
 
     def run(self, spk0: float, npk0: float) -> list[int]:
         peaks, values, slopes = self.peaks, self.values, self.slopes
         self.recent = [spk0]  # energies of the last accepted QRS complexes
         self.steep: list[float] = []  # their steepest slopes
-        self.paused: list[bool] = []  # per RR interval: a pause, not the rhythm
         self.regular: list[int] = []  # positions in the RR list of the intervals that are no pause
         self.regular_rr: list[int] = []  # ... and those intervals, samples
         self.spk = spk0  # their median: the signal level
@@ -91,7 +97,6 @@ class _Classifier:
         self.dead = self.refractory
         qrs: list[int] = []  # indices into peaks
         rr: list[int] = []  # samples
-        t_window = T_WAVE_WINDOW_S * self.rate
         for j in range(len(peaks)):
             p, v = peaks[j], values[j]
             # search back in the gap before this peak, as often as beats are missing
@@ -122,10 +127,10 @@ class _Classifier:
                 ):
                     self.npk = 0.125 * v + 0.875 * self.npk  # noise: too early for a weak beat
                     continue
-                if qrs and gap < t_window:
-                    if slopes[j] < 0.5 * slopes[qrs[-1]]:
-                        self.npk = 0.125 * v + 0.875 * self.npk  # a T wave
-                        continue
+                if qrs and self._t_wave(j, qrs[-1]):
+                    self.npk = 0.125 * v + 0.875 * self.npk
+                    continue
+                if qrs and gap < self.t_window:
                     last = qrs[-1]
                     if slopes[last] < 0.5 * slopes[j] or (
                         values[last] < 0.5 * v and slopes[last] < 0.85 * slopes[j]
@@ -180,26 +185,27 @@ class _Classifier:
         return True
 
     def _search_back(self, last: int, j: int) -> int | None:
-        """The largest peak in the gap (last, j) above half its threshold 1 and as steep as a QRS; within the
-        T-wave window after the last QRS, not half as steep as it (a T wave, as for any peak)."""
+        """The largest peak in the gap (last, j) above half its threshold 1, as steep as a QRS and no T wave."""
         peaks, values, slopes = self.peaks, self.values, self.slopes
         lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
-        t_wave_end, t_slope = peaks[last] + T_WAVE_WINDOW_S * self.rate, 0.5 * slopes[last]
         best, best_v = None, 0.0
         steep = SEARCH_BACK_SLOPE_RATIO * _median(self.steep) if self.steep else 0.0
         for k in range(last + 1, j):
             if lo_p <= peaks[k] <= hi_p and values[k] > best_v and slopes[k] >= steep and (
-                    values[k] > 0.5 * self.threshold(peaks[k] - peaks[last])) and not (
-                    peaks[k] < t_wave_end and slopes[k] < t_slope):
+                    values[k] > 0.5 * self.threshold(peaks[k] - peaks[last])) and not self._t_wave(k, last):
                 best, best_v = k, values[k]
         return best
+
+    def _t_wave(self, k: int, last: int) -> bool:
+        """Whether peak ``k`` is a T wave after the QRS ``last``: within the T-wave window and not half as steep."""
+        return self.peaks[k] - self.peaks[last] < self.t_window and self.slopes[k] < 0.5 * self.slopes[last]
 
     def _retract(self, qrs, rr) -> None:
         """Take back the last QRS (a P or T wave, as the steeper complex after it shows)."""
         j = qrs.pop()
         if rr:
             rr.pop()
-            if not self.paused.pop():
+            if self.regular and self.regular[-1] == len(rr):  # the interval taken back was no pause
                 self.regular.pop()
                 self.regular_rr.pop()
         if len(self.recent) > 1 and self.recent[-1] == self.values[j]:
@@ -216,8 +222,7 @@ class _Classifier:
             if gap > self.limit:  # found after the level decayed: start learning it afresh
                 self.recent = []
             rr.append(gap)
-            self.paused.append(gap > self.limit)
-            if not self.paused[-1]:
+            if gap <= self.limit:  # no pause
                 self.regular.append(len(rr) - 1)
                 self.regular_rr.append(gap)
         qrs.append(j)
@@ -235,20 +240,21 @@ class _Classifier:
     def _rr_limit(self, rr_all) -> float:
         """1.66 x the regular RR average (Pan-Tompkins RR AVERAGE2), samples: of the last 64 intervals, pauses
         left out; but :data:`SLOWED_BEATS` pauses in a row as steady as a rhythm are a slower rhythm, and theirs."""
-        last = rr_all[-SLOWED_BEATS:]
-        if len(last) == SLOWED_BEATS and all(self.paused[-SLOWED_BEATS:]):
-            avg = sum(last) / len(last)
-            if 0.92 * avg <= min(last) and max(last) <= 1.16 * avg:  # as steady as a rhythm: the rhythm slowed
-                return SEARCH_BACK_FACTOR * avg
         positions = self.regular
+        last = rr_all[-SLOWED_BEATS:]
+        if len(last) == SLOWED_BEATS and (not positions or positions[-1] < len(rr_all) - SLOWED_BEATS):
+            slowed = _steady_mean(last)  # the last ones all pauses: as steady as a rhythm, the rhythm slowed
+            if slowed is not None:
+                return SEARCH_BACK_FACTOR * slowed
         first = max(bisect_left(positions, len(rr_all) - 64), len(positions) - 32)  # the last 32 of the last 64
         if len(positions) - first < 2:
             return SEARCH_BACK_FACTOR * self.rate  # 60 bpm until two intervals are known
         recent = self.regular_rr[max(first, len(positions) - 8):]
+        steady = _steady_mean(recent)
+        if steady is not None:
+            return SEARCH_BACK_FACTOR * steady  # the last 8 are all in the range: theirs is the average below
         avg1 = sum(recent) / len(recent)
         lo, hi = 0.92 * avg1, 1.16 * avg1
-        if lo <= min(recent) and max(recent) <= hi:
-            return SEARCH_BACK_FACTOR * avg1  # the last 8 are all regular: their average is avg1 itself
         regular = []
         for r in reversed(self.regular_rr[first:]):
             if lo <= r <= hi:
