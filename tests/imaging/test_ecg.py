@@ -108,19 +108,32 @@ def test_short_record_of_10_s():
     assert np.abs(err).max() <= 3e-3
 
 
+RATE_DROP_HZ = 250.0
+
+
+def rate_drop_ecg(fast_s, slow_s, *, noise_mv):
+    """(beat times, ECG) of 140 s at RATE_DROP_HZ: a beat every ``fast_s`` for 20 s, then every ``slow_s`` (the last
+    1 s before the end), each a narrow R (12 ms) with a tall narrow T wave (0.5 of it, 25 ms, 0.28 s after it),
+    under white noise of ``noise_mv`` (seed 0)."""
+    n_fast = int(20.0 / fast_s)
+    beats = np.concatenate([0.5 + fast_s * np.arange(n_fast),
+                            0.5 + fast_s * n_fast + slow_s * np.arange(int(118 / slow_s))])
+    beats = beats[beats < 139.0]
+    t = np.arange(int(140.0 * RATE_DROP_HZ)) / RATE_DROP_HZ
+    ecg = np.zeros_like(t)
+    for b in beats:
+        ecg += np.exp(-0.5 * ((t - b) / 0.012) ** 2) + 0.5 * np.exp(-0.5 * ((t - b - 0.28) / 0.025) ** 2)
+    return beats, ecg + noise_mv * np.random.default_rng(0).standard_normal(t.size)
+
+
 def test_a_rhythm_slowed_for_good_is_learnt_anew():
     """Beats every 0.45 s for 20 s, then every 1.1 s (a 2:1 block, say), each with a tall T wave (0.5 of the R,
     0.28 s after it): every slow interval is past the fast rhythm's search-back limit, a "pause" left out of the
     regular R-R, and the limits come from the last 64 intervals only, so after 64 slow beats they are learnt anew
     from 60 bpm.  Kept since every regular interval was (a session-21 speed-up, found by its review), the limit
     stayed at the fast rhythm's 0.83 s and a T wave passed for a beat."""
-    rate = 250.0
-    beats = np.concatenate([0.5 + 0.45 * np.arange(44), 0.5 + 0.45 * 44 + 1.1 * np.arange(107)])
-    t = np.arange(int(140.0 * rate)) / rate
-    ecg = np.zeros_like(t)
-    for b in beats:
-        ecg += np.exp(-0.5 * ((t - b) / 0.012) ** 2) + 0.5 * np.exp(-0.5 * ((t - b - 0.28) / 0.025) ** 2)
-    found = detect_r_peaks(ecg, rate).times_s
+    beats, ecg = rate_drop_ecg(0.45, 1.1, noise_mv=0.0)
+    found = detect_r_peaks(ecg, RATE_DROP_HZ).times_s
     tp, extra, err = match(beats, found)
     assert tp == beats.size and extra == 0, (tp, beats.size, extra)
     assert np.abs(err).max() <= 5e-3
@@ -133,17 +146,8 @@ def test_tall_t_waves_after_the_rate_drops_are_no_beats(fast_s, slow_s):
     the search-back took the T wave in it for a missed beat (72 / 36 T waves in 140 s; neurokit2 2 false, 39 / 29
     missed): it now applies the T-wave rule as every peak does, and 8 pauses in a row as steady as a rhythm are
     the slower rhythm (its limit at once, not after 64 beats)."""
-    rate = 250.0
-    n_fast = int(20.0 / fast_s)
-    beats = np.concatenate([0.5 + fast_s * np.arange(n_fast),
-                            0.5 + fast_s * n_fast + slow_s * np.arange(int(118 / slow_s))])
-    beats = beats[beats < 139.0]
-    t = np.arange(int(140.0 * rate)) / rate
-    ecg = np.zeros_like(t)
-    for b in beats:
-        ecg += np.exp(-0.5 * ((t - b) / 0.012) ** 2) + 0.5 * np.exp(-0.5 * ((t - b - 0.28) / 0.025) ** 2)
-    ecg += 0.1 * np.random.default_rng(0).standard_normal(t.size)
-    tp, extra, _ = match(beats, detect_r_peaks(ecg, rate).times_s)
+    beats, ecg = rate_drop_ecg(fast_s, slow_s, noise_mv=0.1)
+    tp, extra, _ = match(beats, detect_r_peaks(ecg, RATE_DROP_HZ).times_s)
     assert tp == beats.size and extra <= 1, (tp, beats.size, extra)
 
 
