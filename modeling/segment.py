@@ -15,9 +15,11 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    point given), and the tissue is limited to that hull and to ``soft_hu``
    (bone is not heart);
 3. *heart region*: the tissue component touching the seed; with contrast,
-   less the solid organs it touches (tissue too thick and too far from blood
-   to be a heart wall: the liver through a thick slice's blurred diaphragm),
-   parted at the dimmest layer between them by a watershed;
+   parted also at thin fat planes that partial volume lifts above ``hu_low``
+   (:mod:`modeling.planes`), and less the solid organs it touches (tissue too
+   thick and too far from blood to be a heart wall: the liver through a thick
+   slice's blurred diaphragm), parted at the dimmest layer between them by a
+   watershed;
 4. *cut the bridges*: a morphological opening with a ball of radius
    ``vessel_radius_mm`` (computed with distance transforms on a ~2 mm grid)
    removes thin bridges to the liver or chest wall and thin vessels;
@@ -55,16 +57,18 @@ from scipy import ndimage
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
 from modeling.coarse import (block_mean_max, block_transform, coarse_step, fill_holes, label_maximum,
-                             largest_component, thin_metal, without_thin_metal)
+                             largest_component, mask_box, thin_metal, without_thin_metal)
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
+from modeling.planes import fat_planes
 from modeling.seed import NOISE_HU, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
 #: Thickness (mm) of the distance shells in which a great-vessel branch's radius is followed out from the heart body.
 ROOT_SHELL_MM = 5.0
-
+#: Fat planes are looked for this far (mm) around the contrast blood pool.
+PLANE_REACH_MM = 30.0
 
 
 class SegmentationError(HeartregError, ValueError):
@@ -105,19 +109,19 @@ class HeartSegmentation:
     T_patient_from_lumen: np.ndarray | None = None
 
 
-def _spacing(T) -> np.ndarray:
-    return np.linalg.norm(T[:3, :3], axis=0)  # (i, j, k) mm
-
-
-def _heart_body(body, seed, spacing_kji, heart_radius_mm):
-    """The heart body: the part of ``body`` a ball of ``heart_radius_mm`` fits in, around the seed (None if none)."""
-    heart = opening_mm(body, spacing_kji, heart_radius_mm)
-    labels, n = ndimage.label(heart)
+def _seeded_part(mask, seed):
+    """The connected part of ``mask`` holding most of ``seed`` (the largest where none does); None if empty."""
+    labels, n = ndimage.label(mask)
     if n == 0:
         return None
     counts = ndimage.sum_labels(seed, labels, index=np.arange(1, n + 1))
     sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
     return labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
+
+
+def _heart_body(body, seed, spacing_kji, heart_radius_mm):
+    """The heart body: the part of ``body`` a ball of ``heart_radius_mm`` fits in, around the seed (None if none)."""
+    return _seeded_part(opening_mm(body, spacing_kji, heart_radius_mm), seed)
 
 
 def _thick_stretch(thick, start_mm) -> int:
@@ -324,7 +328,7 @@ def segment_heart(
     T = check_transform(T_patient_from_voxel, name="T_patient_from_voxel")
     if not hu_low < hu_high:
         raise ValueError(f"hu_low ({hu_low}) must be below hu_high ({hu_high})")
-    spacing_kji = _spacing(T)[::-1]
+    spacing_kji = np.linalg.norm(T[:3, :3], axis=0)[::-1]  # voxel size along k, j, i, mm
     voxel_ml = abs(np.linalg.det(T[:3, :3])) / 1000.0
     notes: list[str] = []
 
@@ -339,7 +343,7 @@ def segment_heart(
 
     # ---- seed: the contrast blood pool, or the soft tissue between the lungs without contrast
     contrast = True
-    height_axis = 2 - int(np.argmax(np.abs(T[2, :3]) / _spacing(T)))  # array axis along the patient's height
+    height_axis = 2 - int(np.argmax(np.abs(T[2, :3]) / spacing_kji[::-1]))  # array axis along the patient's height
     seed_between = functools.cache(lambda: mediastinal_seed(coarse, cspacing, lung_hu=lung_hu, soft_hu=soft_hu,
                                                             height_axis=height_axis))
 
@@ -412,7 +416,9 @@ def segment_heart(
         seed_mask[tuple(kji)] = True
         notes.append("seed: given point" + ("" if contrast else " (no contrast blood pool in the CT)"))
 
-    # ---- heart region: tissue connected to the seed
+    # ---- heart region: tissue connected to the seed (with contrast, parted also at fat planes blurred above hu_low)
+    if contrast and pool is not None:
+        tissue &= ~fat_planes(coarse, cspacing, hu_low=hu_low, box=mask_box(pool, np.ceil(PLANE_REACH_MM / cspacing)))
     labels, _ = ndimage.label(tissue)
     touched = np.unique(labels[seed_mask & tissue])
     touched = touched[touched > 0]
@@ -429,9 +435,8 @@ def segment_heart(
     box = ndimage.find_objects(region.astype(np.uint8))[0]
     pad = [int(np.ceil((vessel_radius_mm + margin_mm) / s)) + 2 for s in cspacing]
     box = tuple(slice(max(b.start - p, 0), min(b.stop + p, n)) for b, p, n in zip(box, pad, coarse.shape))
-    core = opening_mm(region[box], cspacing, vessel_radius_mm)
-    labels, n = ndimage.label(core)
-    if n == 0:
+    core = _seeded_part(opening_mm(region[box], cspacing, vessel_radius_mm), seed_mask[box])
+    if core is None:
         start = "the blood pool" if contrast else (
             "the soft tissue between the lungs (no blood pool was found: with contrast too weak or chambers too "
             "small, the heart's blood counts as bone and the heart is hollow)")
@@ -439,9 +444,6 @@ def segment_heart(
             f"no heart-sized region: nothing thicker than {2 * vessel_radius_mm:.0f} mm is connected to "
             f"{start}; give a point inside the heart with --seed=X,Y,Z or a heart mask with --mask"
         )
-    counts = ndimage.sum_labels(seed_mask[box], labels, index=np.arange(1, n + 1))
-    sizes = ndimage.sum_labels(core, labels, index=np.arange(1, n + 1))
-    core = labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
     heart_body = _heart_body(core, seed_mask[box], cspacing, heart_radius_mm)
     if not contrast and heart_body is not None:
         core, split_note = part_abdomen(core, heart_body, coarse[box], cspacing, T[2, 2::-1] * step)
@@ -488,13 +490,11 @@ def segment_heart(
             "give a point inside the heart with --seed=X,Y,Z or a heart mask with --mask"
         )
     parameters = dict(
-        hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), blood_floor_hu=blood_floor_hu,
-        pool_hu=pool_hu, vessel_radius_mm=vessel_radius_mm,
-        heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm, vessel_root_mm=vessel_root_mm,
-        chamber_radius_mm=chamber_radius_mm, margin_mm=margin_mm, smooth_mm=smooth_mm, coarse_mm=coarse_mm, min_volume_ml=min_volume_ml,
-        min_pool_radius_mm=min_pool_radius_mm, lung_hu=lung_hu, soft_hu=list(soft_hu), contrast=contrast,
-        trace_vessels=trace_vessels,
-        seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist(),
-    )
+        hu_low=hu_low, hu_high=hu_high, blood_hu=list(blood_hu), blood_floor_hu=blood_floor_hu, pool_hu=pool_hu,
+        vessel_radius_mm=vessel_radius_mm, heart_radius_mm=heart_radius_mm, vessel_length_mm=vessel_length_mm,
+        vessel_root_mm=vessel_root_mm, chamber_radius_mm=chamber_radius_mm, margin_mm=margin_mm, smooth_mm=smooth_mm,
+        coarse_mm=coarse_mm, min_volume_ml=min_volume_ml, min_pool_radius_mm=min_pool_radius_mm, lung_hu=lung_hu,
+        soft_hu=list(soft_hu), contrast=contrast, trace_vessels=trace_vessels,
+        seed_patient_mm=None if seed_patient_mm is None else seed_mm.tolist())
     return HeartSegmentation(mask, seed_mm, volume_ml, parameters, tuple(notes), vessel_lumen, T_lumen)
 
