@@ -266,27 +266,33 @@ def _from_r_peaks(times_s, r_peaks_s, what, notes):
     return phases, None
 
 
-def _finite_stamps(r_s: np.ndarray, times_s: np.ndarray, notes: list):
-    """GE stamps without their NaN values, when no slice needs a missing one.
+def _usable_stamps(r_s: np.ndarray, times_s: np.ndarray, notes: list):
+    """GE stamps without their NaN values (when no slice needs a missing one), in order, each once.
 
-    Returns ``(r_peaks_s, None)`` or ``(None, why)``; a note counts the NaN stamps.
+    GE scanners may write the list twice over (the stamps, then the same again with the next beat:
+    pydicom's ``dicomdirtests/98892001``).  Returns ``(r_peaks_s, None)`` or ``(None, why)``; a note
+    counts what was left out.
     """
-    nan = ~np.isfinite(r_s)
-    if not nan.any():
-        return r_s, None
     what = "GE RpeakTimeStamps (0049,xx0C)"
+    nan = ~np.isfinite(r_s)
     if nan.all():
         return None, f"{what}: all {nan.size} stamps are NaN; not used"
-    notes.append(f"{what}: {int(nan.sum())} of {nan.size} stamps are NaN and were left out")
-    index = np.flatnonzero(~nan)
-    gaps = [(r_s[a], r_s[b]) for a, b in zip(index[:-1], index[1:]) if b > a + 1]
-    inside = [t for t in times_s for lo, hi in gaps if lo <= t < hi]
-    if inside:
-        return None, (
-            f"{what}: a NaN stamp lies among the slice times ({len(inside)} slice(s) between "
-            "the stamps around it); not used"
-        )
-    return r_s[~nan], None
+    if nan.any():
+        notes.append(f"{what}: {int(nan.sum())} of {nan.size} stamps are NaN and were left out")
+        index = np.flatnonzero(~nan)
+        gaps = [(r_s[a], r_s[b]) for a, b in zip(index[:-1], index[1:]) if b > a + 1]
+        inside = [t for t in times_s for lo, hi in gaps if lo <= t < hi]
+        if inside:
+            return None, (f"{what}: a NaN stamp lies among the slice times ({len(inside)} slice(s) between "
+                          "the stamps around it); not used")
+        r_s = r_s[~nan]
+    if r_s.size >= 2 and np.all(np.diff(r_s) > 0):
+        return r_s, None
+    distinct = np.unique(r_s)
+    if distinct.size < 2:
+        return None, f"{what}: fewer than two distinct stamps ({r_s.size} given); not used"
+    notes.append(f"{what}: {r_s.size} stamps out of order or repeated, {distinct.size} distinct ones used in order")
+    return distinct, None
 
 
 def _waveform_label(k: int, n: int) -> str:
@@ -413,7 +419,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         if not np.all(np.isfinite(mid)):
             notes.append("GE RpeakTimeStamps present but some slices lack GE Mid Scan Time")
         else:
-            r, why = _finite_stamps(np.asarray(rpeaks_ms, dtype=float) / 1000.0, mid, notes)
+            r, why = _usable_stamps(np.asarray(rpeaks_ms, dtype=float) / 1000.0, mid, notes)
             phases = None
             if r is not None:
                 phases, why = _from_r_peaks(mid, r, "GE RpeakTimeStamps", notes)

@@ -68,6 +68,40 @@ def test_ge_rpeak_timestamps(sample_case):
     assert "origin" in report.clock
 
 
+def _with_ge_stamps(case_dir, tmp_path, stamps):
+    """A copy of the case's CT folder with (0049,xx0C) *RpeakTimeStamps* replaced by ``stamps(old)``."""
+    out = tmp_path / "ct"
+    out.mkdir()
+    for f in sorted((case_dir / "ct").iterdir()):
+        ds = pydicom.dcmread(f)
+        if ds.Modality == "CT":
+            element = ds.private_block(0x0049, "GEMS_CT_CARDIAC_001")[0x0C]
+            element.value = stamps(list(element.value))
+        ds.save_as(out / f.name)
+    return out
+
+
+def test_ge_stamps_written_twice_over(sample_case, tmp_path):
+    """GE scanners may write (0049,xx0C) twice over, the list and then the same again with the next beat
+    (pydicom's real ``dicomdirtests/98892001/CT2N``): the distinct stamps in order are the R-peaks, noted.
+    Before session 22 'r_peaks_s must be strictly increasing' stopped ``phases`` and ``model``."""
+    case, truth = sample_case
+    report = compute_phase_report(load_study(_with_ge_stamps(case, tmp_path, lambda r: r[:-1] + r)))
+    assert report.source.startswith("GE RpeakTimeStamps")
+    _check(report, truth)
+    assert any("out of order or repeated" in n for n in report.notes)
+
+
+def test_ge_stamps_all_alike_fall_through(sample_case, tmp_path):
+    """Stamps that time no beat (all one value, as in pydicom's real ``98892001/CT5N``) are noted and the
+    next source is used: the study's ECG waveform."""
+    case, truth = sample_case
+    report = compute_phase_report(load_study(_with_ge_stamps(case, tmp_path, lambda r: [r[0], r[0]])))
+    assert "ECG waveform" in report.source
+    _check(report, truth)
+    assert any("fewer than two distinct stamps (2 given); not used" in n for n in report.notes)
+
+
 def test_qrs_file_wins_over_metadata(sample_case):
     case, truth = sample_case
     volume = load_study(case / "ct")
