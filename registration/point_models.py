@@ -125,16 +125,16 @@ def _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins):
     try:
         phase_c, phase_r, peaks, onsets = point_phases(record)
     except SignalError as exc:
-        raise _Excluded(f"{record.file}: {exc}") from None
+        raise _Excluded(str(exc)) from None
     n_beats, n_breaths = peaks.size - 1, onsets.size - 1
     if n_beats < min_beats:
         raise _Excluded(
-            f"{record.file}: {n_beats} complete heartbeat(s) detected, fewer than "
+            f"{n_beats} complete heartbeat(s) detected, fewer than "
             f"min_beats = {min_beats}; record longer or check the ECG lead"
         )
     if n_breaths < min_breaths:
         raise _Excluded(
-            f"{record.file}: {n_breaths} complete breath(s) detected, fewer than "
+            f"{n_breaths} complete breath(s) detected, fewer than "
             f"min_breaths = {min_breaths}; record at least {min_breaths + 1} starts of expiration"
         )
     notes = []
@@ -153,7 +153,7 @@ def _fit_point(record, harmonics, min_beats, min_breaths, coverage_bins):
                 harmonics=harmonics, coverage_bins=coverage_bins,
             )
         except MotionModelError as exc:
-            raise _Excluded(f"{record.file}: {exc}") from None
+            raise _Excluded(str(exc)) from None
     for w in caught:
         if issubclass(w.category, CoverageWarning):
             notes.append(f"point {record.point_id}: {w.message}")

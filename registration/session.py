@@ -128,7 +128,7 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
             exclusions.append(
                 (
                     record.point_id,
-                    f"{record.file}: record lasts {duration:.2f} s, shorter than "
+                    f"its record lasts {duration:.2f} s, shorter than "
                     f"min_duration_s = {min_duration_s:g} s (two breaths)",
                 )
             )
@@ -140,7 +140,7 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
             exclusions.append(
                 (
                     record.point_id,
-                    f"{record.file}: its samples stop for {gap:.2f} s after t = {at:.2f} s (the tracker lost the "
+                    f"its samples stop for {gap:.2f} s after t = {at:.2f} s (the tracker lost the "
                     f"robot?), longer than {MAX_GAP_S:g} s: its motion cannot be followed across the gap",
                 )
             )

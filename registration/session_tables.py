@@ -242,7 +242,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     ok = seq.valid[PLUS_TRANSFORMS[0]][k] & seq.valid[PLUS_TRANSFORMS[1]][k]
     if not ok.all():
         notes.append(f"point {entry['id']}: {int((~ok).sum())} of {len(ok)} samples dropped, "
-                     f"the tracker marked the pose invalid in {poses_rel}")
+                     "the tracker marked the pose invalid in its PLUS sequence")  # by kind: a name may name the patient
         data, k = data[ok], k[ok]
     Tr, Tp = T_robot[k], T_probe[k]
     T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])

@@ -362,7 +362,7 @@ def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     _ecg_to_noise(session_dir / "points" / "point_002.csv")
     # what reading the session dropped (a PLUS recording's invalid poses) stays in the result's notes
     # (registration.json, the report); it was printed only (session 16's PLUS sweep)
-    dropped = "point 3: 3000 of 3000 samples dropped, the tracker marked the pose invalid in track.igs.nrrd"
+    dropped = "point 3: 3000 of 3000 samples dropped, the tracker marked the pose invalid in its PLUS sequence"
     session = dataclasses.replace(read_session(session_dir), notes=(dropped,))
     result = register_session(case["model"], session, phase_step=0.05, cardiac_sweep=False, min_breaths=4)
     assert result.notes[0] == dropped
@@ -370,7 +370,10 @@ def test_short_points_are_excluded_with_a_reason(case, tmp_path):
     assert set(reasons) == {0, 1, 2}
     assert "shorter than min_duration_s" in reasons[0]
     assert "breath" in reasons[1] and "min_breaths = 4" in reasons[1]
-    assert "point_002.csv: the ECG holds no QRS complexes that stand out of its noise" in reasons[2], reasons[2]
+    assert reasons[2].startswith("the ECG holds no QRS complexes that stand out of its noise"), reasons[2]
+    # by its point id only: a session's file names may name the patient (they reached registration.json
+    # and the report until the review of session 22)
+    assert not any("point_00" in why for why in reasons.values()), reasons
     assert result.n_points == N_POINTS - 3 and not {0, 1, 2} & set(result.point_ids)
     assert any("excluded" in note for note in result.notes)
     # too few points left is an error that says what to do

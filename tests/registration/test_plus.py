@@ -88,7 +88,7 @@ def test_session_poses_from_plus_drop_invalid_samples(tmp_path):
     # inv(ProbeToTracker) @ RobotToTracker is the fixed pose, to rounding (1e-9 mm at 300 mm)
     np.testing.assert_allclose(rec.T_probe_from_robot, np.broadcast_to(T_true, rec.T_probe_from_robot.shape),
                                atol=1e-9)
-    note = "point 0: 3 of 1500 samples dropped, the tracker marked the pose invalid in track.igs.nrrd"
+    note = "point 0: 3 of 1500 samples dropped, the tracker marked the pose invalid in its PLUS sequence"
     assert session.notes == (note,)
     assert session.pose_source == "PLUS sequence (track.igs.nrrd)"
 
