@@ -39,6 +39,13 @@ def _finite(value: str) -> float:
     return number
 
 
+def _path(value: str) -> Path:
+    """A file or folder argument: never empty (``Path("")`` is the working folder: an unset ``$OUT``)."""
+    if not value.strip():
+        raise argparse.ArgumentTypeError("is empty; give a file or folder path")
+    return Path(value)
+
+
 def _port(value: str) -> int:
     """A TCP port option: an integer 0..65535 (0: any free port)."""
     try:
@@ -94,7 +101,7 @@ def _add_model_options(p) -> None:
     """The flags of :class:`modeling.ModelOptions` (model and pipeline)."""
     from modeling.options import ModelOptions
 
-    p.add_argument("--mask", type=Path, default=None,
+    p.add_argument("--mask", type=_path, default=None,
                    help="external label map (NIfTI, NRRD or a 3D Slicer .seg.nrrd, DICOM SEG, or a TotalSegmentator "
                         "folder) instead of the automatic segmentation")
     p.add_argument("--label", type=_label_arg, default=None, help="heart label in --mask: value or name (e.g. heart; a Slicer segment's name)")
@@ -146,8 +153,8 @@ def _add_registration_options(p) -> None:
 
 
 def _add_study_options(p, study_help: str = "folder holding the DICOM study (searched recursively)") -> None:
-    p.add_argument("study_dir", type=Path, help=study_help)
-    p.add_argument("--qrs", type=Path, default=None,
+    p.add_argument("study_dir", type=_path, help=study_help)
+    p.add_argument("--qrs", type=_path, default=None,
                    help="R-peak times, CSV with column time_s (seconds after midnight, AcquisitionTime clock)")
     p.add_argument("--series", type=_series_arg, default=None,
                    help="series to use: index from --list-series or SeriesInstanceUID (default: automatic)")
@@ -167,7 +174,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("phantom", help="write a synthetic beating-heart case (CT, session, truth)")
-    p.add_argument("out_dir", type=Path, help="output folder")
+    p.add_argument("out_dir", type=_path, help="output folder")
     p.add_argument("--preset", default="default", choices=sorted(PRESETS), help="phantom settings")
     p.add_argument("--size", default="sample", choices=sorted(SIZES), help="CT grid size")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same bytes)")
@@ -192,7 +199,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("phases", help="cardiac phase of every CT slice (paper Fig. 4)")
     _add_study_options(p)
-    p.add_argument("-o", "--out-dir", type=Path, default=None, help="folder for phases.csv/json/png")
+    p.add_argument("-o", "--out-dir", type=_path, default=None, help="folder for phases.csv/json/png")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier phases output in OUT_DIR (a folder holding phases.json)")
     p.set_defaults(func=_cmd_phases)
@@ -201,7 +208,7 @@ def _build_parser() -> argparse.ArgumentParser:
                                      "frame")
     _add_study_options(p, "folder holding the DICOM study (searched recursively), or a NIfTI (.nii, .nii.gz) or "
                           "NRRD (.nrrd) CT volume")
-    p.add_argument("-o", "--out-dir", type=Path, default=None, help="model folder to write")
+    p.add_argument("-o", "--out-dir", type=_path, default=None, help="model folder to write")
     _add_model_options(p)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing model folder (one holding model.json)")
@@ -209,23 +216,23 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("pipeline", help="study + session -> phases, model, registration, report.html")
     _add_study_options(p)
-    p.add_argument("session_dir", type=Path, help="intra-operative session folder (docs/formats.md)")
-    p.add_argument("-o", "--out-dir", type=Path, default=None, help="output folder")
+    p.add_argument("session_dir", type=_path, help="intra-operative session folder (docs/formats.md)")
+    p.add_argument("-o", "--out-dir", type=_path, default=None, help="output folder")
     _add_model_options(p)
     _add_registration_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in OUT_DIR")
     p.set_defaults(func=_cmd_pipeline)
 
     p = sub.add_parser("demo", help="the whole chain on the bundled sample, recovered vs truth")
-    p.add_argument("-o", "--out-dir", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
-    p.add_argument("--sample", type=Path, default=None, help="phantom case to use instead of sample_dicom/")
+    p.add_argument("-o", "--out-dir", type=_path, default=Path("demo_out"), help="output folder (default demo_out)")
+    p.add_argument("--sample", type=_path, default=None, help="phantom case to use instead of sample_dicom/")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("register", help="register a session to a heart model in space and phase")
-    p.add_argument("model_dir", type=Path, help="heart model folder (heartreg model)")
-    p.add_argument("session_dir", type=Path, help="session folder (heartreg-session)")
-    p.add_argument("-o", "--out-dir", type=Path, required=True, help="folder for registration.json, CSVs, PNGs")
+    p.add_argument("model_dir", type=_path, help="heart model folder (heartreg model)")
+    p.add_argument("session_dir", type=_path, help="session folder (heartreg-session)")
+    p.add_argument("-o", "--out-dir", type=_path, required=True, help="folder for registration.json, CSVs, PNGs")
     _add_registration_options(p)
     p.add_argument("--cardiac-phase", type=_finite, default=None, metavar="P",
                    help="the CT's cardiac phase (0..1), needed when the model's is unknown; replaces it otherwise")
@@ -235,18 +242,18 @@ def _build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_register)
 
     p = sub.add_parser("track", help="the robot on the map, live: causal phases, CSV log, OpenIGTLink to Slicer")
-    p.add_argument("model_dir", type=Path, help="heart model folder (heartreg model)")
-    p.add_argument("registration_dir", type=Path, help="registration folder (heartreg register)")
-    p.add_argument("session_dir", type=Path,
+    p.add_argument("model_dir", type=_path, help="heart model folder (heartreg model)")
+    p.add_argument("registration_dir", type=_path, help="registration folder (heartreg register)")
+    p.add_argument("session_dir", type=_path,
                    help="the session the registration was made from (its records give the motion models)")
-    p.add_argument("--replay", type=Path, default=None,
+    p.add_argument("--replay", type=_path, default=None,
                    help="session folder to replay as the pose stream (default SESSION_DIR)")
     p.add_argument("--igtl-in", default=None, metavar="HOST:PORT",
                    help="take the stream from an OpenIGTLink server instead (docs/formats.md)")
     p.add_argument("--idle-timeout", type=_finite, default=5.0, help="--igtl-in: end after this many idle seconds")
     p.add_argument("--speed", type=_finite, default=None,
                    help="replay pacing: 1 = real time, 2 = twice as fast (default: as fast as possible)")
-    p.add_argument("--log", type=Path, required=True,
+    p.add_argument("--log", type=_path, required=True,
                    help="CSV log to write (one row per sample), outside the input folders")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --log")
     p.add_argument("--igtl-port", type=_port, default=None,
@@ -260,7 +267,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate-temporal",
                        help="phi_R* and final T of both estimators on a grid of phantom cases vs truth")
-    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (cases resume from OUT/cases)")
+    p.add_argument("-o", "--out-dir", type=_path, required=True, help="output folder (cases resume from OUT/cases)")
     p.add_argument("--seeds", type=int, default=6, help="seeds 1..N per preset (default 6)")
     p.add_argument("--trials", type=int, nargs="+", default=None, metavar="N", choices=range(1, 7),
                    help="presets wood2018-trialN to run, N in 1..6 (default all six)")
@@ -272,7 +279,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_evaluate_temporal)
 
     p = sub.add_parser("reproduce", help="the paper's experiment on the six phantom presets, beside its numbers")
-    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder (phantom cases reused)")
+    p.add_argument("-o", "--out-dir", type=_path, required=True, help="output folder (phantom cases reused)")
     p.add_argument("--size", default="full", choices=sorted(SIZES), help="phantom CT grid (default full)")
     p.add_argument("--seed", type=int, default=0, help="phantom seed of every trial")
     p.add_argument("--trials", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], metavar="N",
@@ -286,9 +293,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_reproduce)
 
     p = sub.add_parser("batch", help="a cohort of studies (CSV or folder) through phases, model, register on Dask")
-    p.add_argument("cohort", type=Path, help="cohort CSV (columns case, study, session, mask, options) or a folder "
+    p.add_argument("cohort", type=_path, help="cohort CSV (columns case, study, session, mask, options) or a folder "
                    "of study folders")
-    p.add_argument("-o", "--out-dir", type=Path, required=True, help="output folder: one folder per case, "
+    p.add_argument("-o", "--out-dir", type=_path, required=True, help="output folder: one folder per case, "
                    "summary.csv, index.html")
     _add_cluster_options(p)
     p.add_argument("--num-parts", type=int, default=1, help="split the cohort into this many parts (array jobs)")

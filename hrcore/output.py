@@ -112,8 +112,8 @@ def check_output_path(
             if not any((out / name).is_file() for name in earlier):
                 marks = " or ".join(earlier) or "file marking an earlier output"
                 raise OutputError(
-                    f"{what} {out} is not empty and holds no {marks}: --overwrite replaces an earlier output only, "
-                    "not a folder of other files; choose an empty folder or a new name"
+                    f"{what} {out} is not empty and holds no {marks}: it is no earlier output of this command, "
+                    "whose files alone are ever replaced; choose an empty folder or a new name"
                 )
     else:
         if out.is_dir():
@@ -357,8 +357,8 @@ def _check_parts(out: Path, parts, inputs, what: str, overwrite: bool, earlier) 
             raise OutputError(f"{what} {out} already holds {name}; choose another folder or pass --overwrite")
         if earlier and not any((out / mark).is_file() for mark in earlier):
             raise OutputError(
-                f"{what} {out} holds {name} but no {' or '.join(earlier)}: --overwrite replaces an earlier output "
-                "only, not a folder of other files; choose another folder"
+                f"{what} {out} holds {name} but no {' or '.join(earlier)}: it is no earlier output of this command, "
+                "whose files alone are ever replaced; choose another folder"
             )
     parent = _existing_parent(_resolved(out) / "x")
     if not os.access(parent, os.W_OK | os.X_OK):

@@ -247,7 +247,7 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
     if len(spacings) > 1:
         raise SeriesError(
             f"series {label}: PixelSpacing differs between images {sorted(spacings)}; "
-            "pass series=... to choose a consistent one"
+            "pass series=... (--series) to choose a consistent one"
         )
     dr, dc = frames[0].pixel_spacing  # row spacing (between rows), column spacing
     ipp = np.array([f.ipp for f in frames], dtype=np.float64)
@@ -274,7 +274,7 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
             raise SeriesError(
                 f"series {label}: {dup.size} pair(s) of images share a position "
                 f"(e.g. {pos[dup[0]]:.3f} mm): {_files_text(files)}; "
-                "see list_series() and pass series=..."
+                "see list_series() (--list-series) and pass series=... (--series)"
             )
         m = float(np.median(gaps))
     resample_k = False
@@ -289,7 +289,7 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
                     f"{pos[w]:.3f} and {pos[w + 1]:.3f} mm (files {frames[w].path}, "
                     f"{frames[w + 1].path}) exceeds {MAX_GAP_FACTOR:g} x the median spacing "
                     f"{m:.3f} mm; too much is missing to interpolate. Check the export is "
-                    "complete, or pass series=... for another series"
+                    "complete, or pass series=... (--series) for another series"
                 )
             resample_k = True
             n_missing = int(np.sum(np.round(gaps / m) - 1).clip(0))

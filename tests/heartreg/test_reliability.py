@@ -150,6 +150,21 @@ def test_non_finite_numbers_are_usage_errors_in_one_line(case, tmp_path, capsys,
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("where", ["-o", "--qrs", "study"])
+def test_an_empty_path_is_a_usage_error_not_the_working_folder(case, tmp_path, capsys, monkeypatch, where):
+    """``-o ''`` (an unset ``$OUT``) wrote the model into the working folder (review, session 22)."""
+    monkeypatch.chdir(tmp_path)
+    argv = {"-o": ["model", str(case["ct"]), "-o", ""],
+            "--qrs": ["model", str(case["ct"]), "-o", "m", "--qrs", ""],
+            "study": ["model", "", "-o", "m"]}[where]
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    line = _one_error_line(capsys.readouterr().err)
+    assert "is empty; give a file or folder path" in line and ("study_dir" if where == "study" else where) in line
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_pose_of_1e30_is_refused_by_register_naming_file_row_and_value(case, tmp_path, capsys):
     session = tmp_path / "session"
     shutil.copytree(case["session"], session)

@@ -65,8 +65,9 @@ def test_overwrite_replaces_an_earlier_output_only(tmp_path):
     (out / "thesis" / "ch1.tex").write_text("mine")
     (out / "notes.txt").write_text("mine")
     for earlier in ((), ("model.json",)):
-        with pytest.raises(OutputError, match=r"home is not empty and holds no .*--overwrite replaces an earlier "
-                                              r"output only, not a folder of other files; choose an empty folder"):
+        with pytest.raises(OutputError, match=r"home is not empty and holds no .*: it is no earlier output of "
+                                              r"this command, whose files alone are ever replaced; choose an empty "
+                                              r"folder"):
             with staged_output(out, overwrite=True, earlier=earlier) as stage:
                 (stage / "model.json").write_text("{}")
     assert _listing(tmp_path) == ["home", "home/notes.txt", "home/thesis", "home/thesis/ch1.tex"]
@@ -121,8 +122,8 @@ def test_parts_replace_only_their_entries(tmp_path):
     # replaced: the files that mark an earlier output must be there
     (out / "model" / "new").rename(out / "model" / "mine.txt")
     for other in ("run", "run/report.html"):
-        with pytest.raises(OutputError, match=r"run holds model but no model/model.json: --overwrite replaces an "
-                                              r"earlier output only"):
+        with pytest.raises(OutputError, match=r"run holds model but no model/model.json: it is no earlier "
+                                              r"output of this command"):
             with staged_output(tmp_path / other if other == "run" else out, parts=("model", "report.html"),
                                overwrite=True, earlier=("model/model.json",)):
                 pass
