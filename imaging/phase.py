@@ -466,10 +466,12 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     rr_ms = np.where(np.isfinite(interval) & (interval > 0), interval, 60000.0 / np.where(rate > 0, rate, np.nan))
     if np.all(np.isfinite(trigger)) and np.all(np.isfinite(rr_ms)):
         phases = np.mod(trigger / rr_ms, 1.0)
-        notes.append(
-            "TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
-            "last the nominal interval; give R-peak times (--qrs) for measured phases"
-        )
+        nominal = ("TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
+                   "last the nominal interval; give R-peak times (--qrs) for measured phases")
+        if labelled or rpeaks_ms:  # the study's own R-peak source failed: said, not only noted
+            warnings.warn(f"{nominal}; the study's own R-peak sources were not usable: {'; '.join(notes)}",
+                          GatingWarning, stacklevel=2)
+        notes.append(nominal)
         return _report(
             volume, acq if has_acq else np.full(len(acq), np.nan), phases,
             "TriggerTime / nominal RR interval", "phases relative to each slice's own trigger R-peak",

@@ -157,6 +157,23 @@ def test_trigger_time_fallback(sample_case, tmp_path):
     assert any("no GE RpeakTimeStamps" in n for n in report.notes)
 
 
+def test_nominal_phases_after_a_flat_ecg_are_warned(sample_case, tmp_path):
+    """The study's ECG waveform unusable (all zeros: a lead off) and no GE stamps: the phases fall back to
+    TriggerTime over the nominal RR interval, now warned with the waveform's reason (only noted in
+    phases.json before the review of session 22)."""
+    case, _ = sample_case
+    ct = _copy_without(case, tmp_path, private=True)
+    for f in ct.iterdir():
+        ds = pydicom.dcmread(f)
+        if ds.Modality == "ECG":
+            item = ds.WaveformSequence[0]
+            item.WaveformData = bytes(len(item.WaveformData))
+            ds.save_as(f)
+    with pytest.warns(GatingWarning, match=r"nominal phases.*own R-peak sources were not usable: .*ECG waveform: .* constant"):
+        report = compute_phase_report(load_study(ct))
+    assert report.source.startswith("TriggerTime")
+
+
 def test_no_gating_is_a_clear_error(sample_case, tmp_path):
     case, _ = sample_case
     ct = _copy_without(case, tmp_path, private=True, ecg=True, gating=True)
