@@ -46,6 +46,13 @@ def _path(value: str) -> Path:
     return Path(value)
 
 
+def _count(value: str) -> int:
+    """A count option: an integer of 1 or more."""
+    if not value.strip().isdigit() or int(value) < 1:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a whole number of 1 or more")
+    return int(value)
+
+
 def _port(value: str) -> int:
     """A TCP port option: an integer 0..65535 (0: any free port)."""
     try:
@@ -268,7 +275,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate-temporal",
                        help="phi_R* and final T of both estimators on a grid of phantom cases vs truth")
     p.add_argument("-o", "--out-dir", type=_path, required=True, help="output folder (cases resume from OUT/cases)")
-    p.add_argument("--seeds", type=int, default=6, help="seeds 1..N per preset (default 6)")
+    p.add_argument("--seeds", type=_count, default=6, help="seeds 1..N per preset (default 6)")
     p.add_argument("--trials", type=int, nargs="+", default=None, metavar="N", choices=range(1, 7),
                    help="presets wood2018-trialN to run, N in 1..6 (default all six)")
     p.add_argument("--size", default="sample", choices=sorted(SIZES), help="phantom CT grid (default sample)")

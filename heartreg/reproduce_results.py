@@ -49,9 +49,9 @@ def check_request(trials, *, size, seed, n_points, phase_step) -> list[int]:
 
     trials = [int(k) for k in trials]
     if not trials:
-        raise ReproduceError("trials must name at least one of 1..6")
+        raise ReproduceError("trials (--trials) must name at least one of 1..6")
     if any(k not in PAPER_TABLE1 for k in trials) or len(set(trials)) != len(trials):
-        raise ReproduceError(f"trials must be distinct numbers among 1..6 (Table 1), got {trials}")
+        raise ReproduceError(f"trials (--trials) must be distinct numbers among 1..6 (Table 1), got {trials}")
     if size not in SIZES:
         raise ReproduceError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:

@@ -137,7 +137,7 @@ class Anatomy:
         if self.heart not in HEART_KINDS:
             raise ValueError(f"anatomy heart must be one of {', '.join(HEART_KINDS)}, got {self.heart!r}")
         if self.fov_mm is not None and not 100.0 <= self.fov_mm <= 500.0:
-            raise ValueError(f"fov_mm must be within 100..500 mm, got {self.fov_mm!r}")
+            raise ValueError(f"fov_mm (--fov-mm) must be within 100..500 mm, got {self.fov_mm!r}")
 
 
 #: Bounds of a session's points and of the chest wall's breathing excursion (mm).
@@ -189,9 +189,9 @@ class PhantomConfig:
     anatomy: Anatomy = field(default_factory=Anatomy)
 
     def __post_init__(self):
-        _check_positive("n_points", self.n_points)
+        _check_positive("n_points (--points)", self.n_points)
         if not 3 <= self.n_points <= MAX_POINTS:
-            raise ValueError(f"n_points must be within 3..{MAX_POINTS} (a rigid registration needs 3 points; each "
+            raise ValueError(f"n_points (--points) must be within 3..{MAX_POINTS} (a rigid registration needs 3 points; each "
                              f"point is its own recording, ~0.5 MB), got {self.n_points}")
         _check_positive("heart_rate_hz", self.heart_rate_hz)
         _check_positive("resp_rate_hz", self.resp_rate_hz)
@@ -203,12 +203,12 @@ class PhantomConfig:
             )
         if not 0.05 <= self.resp_rate_hz <= 1.0:
             raise ValueError(f"resp_rate_hz must be within 0.05..1 Hz, got {self.resp_rate_hz}")
-        for name in ("gating_target_phase", "image_resp_phase"):
+        for name, flag in (("gating_target_phase", ""), ("image_resp_phase", " (--resp-phase)")):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
-                raise ValueError(f"{name} must be a phase in [0, 1), got {value}")
+                raise ValueError(f"{name}{flag} must be a phase in [0, 1), got {value}")
         if not 0 <= self.chest_wall_ap_mm <= MAX_CHEST_WALL_MM:
-            raise ValueError(f"chest_wall_ap_mm must be within 0..{MAX_CHEST_WALL_MM:g} mm (the sternum's breathing "
+            raise ValueError(f"chest_wall_ap_mm (--chest-wall-mm) must be within 0..{MAX_CHEST_WALL_MM:g} mm (the sternum's breathing "
                              f"excursion: a few mm to about 10), got {self.chest_wall_ap_mm}")
         if self.fiducial_trace_breaths < 0:
             raise ValueError(f"fiducial_trace_breaths must be >= 0, got {self.fiducial_trace_breaths}")

@@ -123,7 +123,7 @@ def make_phantom(
     if size not in SIZES:
         raise PhantomError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise PhantomError(f"seed must be a non-negative integer, got {seed!r}")
+        raise PhantomError(f"seed (--seed) must be a non-negative integer, got {seed!r}")
     try:
         config = make_config(preset, **overrides)
         choices = {"heart": anatomy, "fov_mm": fov_mm, "markers": markers, "stent": stent}

@@ -440,7 +440,7 @@ def test_no_markers_needs_no_session_and_bad_fov(tmp_path, capsys):
         make_phantom(tmp_path / "a", preset="human", markers=False)
     assert main(["phantom", str(tmp_path / "b"), "--no-markers"]) != 0
     assert "--no-session" in capsys.readouterr().err
-    with pytest.raises(PhantomError, match="fov_mm must be within 100..500 mm"):
+    with pytest.raises(PhantomError, match=r"fov_mm \(--fov-mm\) must be within 100..500 mm"):
         make_phantom(tmp_path / "c", fov_mm=50.0, session=False)
     with pytest.raises(PhantomError, match="anatomy heart must be one of spheroid, chambers"):
         make_phantom(tmp_path / "d", anatomy="cube", session=False)

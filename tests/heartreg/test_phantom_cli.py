@@ -85,13 +85,13 @@ def test_bad_cli_choices(tmp_path, argv, message, capsys):
 
 def test_bad_arguments_are_clear_errors(tmp_path, capsys):
     assert main(["phantom", str(tmp_path / "x"), "--seed", "-1"]) == 1
-    assert "seed must be a non-negative integer" in capsys.readouterr().err
+    assert "seed (--seed) must be a non-negative integer" in capsys.readouterr().err
     assert main(["phantom", str(tmp_path / "x"), "--points", "0"]) == 1
-    assert "n_points must be positive" in capsys.readouterr().err
+    assert "n_points (--points) must be positive" in capsys.readouterr().err
     # session 17's sweep: --points 100000 ran for minutes towards ~55 GB; --chest-wall-mm 1e6 was accepted;
     # --plus --no-session wrote no PLUS session without a word
-    for flags, message in ((["--points", "100000"], "n_points must be within 3..1000"),
-                           (["--chest-wall-mm", "1e6"], "chest_wall_ap_mm must be within 0..30 mm"),
+    for flags, message in ((["--points", "100000"], "n_points (--points) must be within 3..1000"),
+                           (["--chest-wall-mm", "1e6"], "chest_wall_ap_mm (--chest-wall-mm) must be within 0..30 mm"),
                            (["--plus", "--no-session"], "--plus needs the session")):
         assert main(["phantom", str(tmp_path / "x"), *flags, "-q"]) == 1
         assert message in capsys.readouterr().err and not (tmp_path / "x").exists()
@@ -114,6 +114,6 @@ def test_existing_outputs_are_refused_then_replaced(tmp_path):
     # a folder of the user's that only shares a name with an output is no earlier phantom (it was deleted)
     (tmp_path / "mine" / "session").mkdir(parents=True)
     (tmp_path / "mine" / "session" / "notes.txt").write_text("mine")
-    with pytest.raises(OutputError, match="mine holds session but no truth.json: --overwrite replaces an earlier"):
+    with pytest.raises(OutputError, match="mine holds session but no truth.json: it is no earlier output of this command"):
         make_phantom(tmp_path / "mine", seed=1, session=False, overwrite=True)
     assert (tmp_path / "mine" / "session" / "notes.txt").read_text() == "mine"
