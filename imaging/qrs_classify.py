@@ -41,6 +41,10 @@ RELEARN_AFTER_S = 1.0
 #: pauses of 2-4 beats cut in, 17-42 P waves each were taken for beats, 1-2 with the rule; the
 #: eight records whole change by 4 beats of 116).
 SEARCH_BACK_SLOPE_RATIO = 0.2
+#: A peak in the search-back's gap that stands out of its neighbours (NOISE_FLOOR_RATIO x their median) is a
+#: beat above this fraction of threshold 1, half the usual half: a wide premature beat's QRS-band energy is a
+#: tenth to a quarter of the narrow beats' (MIT-BIH 208).
+SEARCH_BACK_STANDING_OUT = 0.25
 #: Peaks within this many seconds either side of a candidate are its neighbourhood (:meth:`_Classifier.stands_out`).
 STAND_OUT_S = 1.5
 #: This many pauses in a row, as steady as a rhythm, are a slower rhythm, not pauses.
@@ -185,15 +189,18 @@ class _Classifier:
         return True
 
     def _search_back(self, last: int, j: int) -> int | None:
-        """The largest peak in the gap (last, j) above half its threshold 1, as steep as a QRS and no T wave."""
+        """The largest peak in the gap (last, j) above half its threshold 1 (a quarter when it stands out of
+        its neighbours, as a wide premature beat's low QRS-band energy does), as steep as a QRS and no T wave."""
         peaks, values, slopes = self.peaks, self.values, self.slopes
         lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
         best, best_v = None, 0.0
         steep = SEARCH_BACK_SLOPE_RATIO * _median(self.steep) if self.steep else 0.0
         for k in range(last + 1, j):
-            if lo_p <= peaks[k] <= hi_p and values[k] > best_v and slopes[k] >= steep and (
-                    values[k] > 0.5 * self.threshold(peaks[k] - peaks[last])) and not self._t_wave(k, last):
-                best, best_v = k, values[k]
+            if lo_p <= peaks[k] <= hi_p and values[k] > best_v and slopes[k] >= steep and not self._t_wave(k, last):
+                threshold = self.threshold(peaks[k] - peaks[last])
+                if values[k] > 0.5 * threshold or (
+                        values[k] > SEARCH_BACK_STANDING_OUT * threshold and self.stands_out(k, NOISE_FLOOR_RATIO)):
+                    best, best_v = k, values[k]
         return best
 
     def _t_wave(self, k: int, last: int) -> bool:
