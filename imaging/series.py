@@ -155,6 +155,14 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
                 StudyWarning,
                 stacklevel=3,
             )
+        apart = [g.summary for g in groups if g.summary.uid == best.uid and g.summary.index != best.index
+                 and g.summary.kind != "localizer"]
+        if apart:  # the same series split (another orientation, size or acquisition): its other images unused
+            warnings.warn(
+                f"series [{best.index}] {best.uid} is used without {sum(a.n_files for a in apart)} of its own "
+                "image(s) that do not stack with it: " + ", ".join(
+                    f"[{a.index}] {a.orientation or a.kind} {a.n_files} file(s)" for a in apart[:4])
+                + "; choose another part with --series (see --list-series)", StudyWarning, stacklevel=3)
         if len(ranked) > 1:
             why += (
                 f"; {len(ranked) - 1} other CT candidate(s) "

@@ -152,6 +152,20 @@ def test_non_image_series_is_listed_not_chosen(tmp_path, axial):
         load_study(axial, series=ecg[0].index)
 
 
+def test_images_of_the_series_left_out_of_its_stack_are_warned(tmp_path, axial):
+    """Eight images of the same series in another orientation (a reformat exported into the series) form a
+    part of their own; the stack used leaves them out, now with a warning (only --list-series showed them:
+    review of session 22)."""
+    for k in range(12, 20):
+        ds = pydicom.dcmread(axial / f"slice_{k:03d}.dcm")
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 0, -1]  # coronal
+        ds.save_as(axial / f"slice_{k:03d}.dcm")
+    with pytest.warns(StudyWarning, match=r"is used without 8 of its own image\(s\) that do not stack with it: "
+                                          r"\[\d\] coronal 8 file\(s\); choose another part with --series"):
+        volume = load_study(axial)
+    assert volume.hu.shape[0] == 12
+
+
 # ------------------------------------------------------------- ordering
 
 
