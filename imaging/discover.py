@@ -330,11 +330,16 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
     return frames
 
 
-def _iter_files(root: Path) -> Iterable[str]:
+def _iter_files(root: Path, unreadable: list) -> Iterable[str]:
+    """The files under ``root``, sorted; folders that cannot be listed go to ``unreadable`` with the reason."""
     if root.is_file():
         yield str(root)
         return
-    for dirpath, dirnames, filenames in os.walk(root):
+
+    def cannot_list(exc: OSError) -> None:  # os.walk passes over such a folder without a word otherwise
+        unreadable.append((exc.filename or str(root), f"folder that cannot be opened ({exc.strerror or exc})"))
+
+    for dirpath, dirnames, filenames in os.walk(root, onerror=cannot_list):
         dirnames.sort()
         for name in sorted(filenames):
             yield os.path.join(dirpath, name)
@@ -350,12 +355,12 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
     if not root.exists():
         raise FileNotFoundError(f"study path {str(root)!r} does not exist")
     root = study_folder(root)  # a DICOMDIR file: the files beside it
-    files = list(_iter_files(root))
+    broken: list[tuple[str, str]] = []
+    files = list(_iter_files(root, broken))
     frames: list[_Frame] = []
     others: list[_Other] = []
     non_dicom: list[str] = []
     dicomdir: list[str] = []
-    broken: list[tuple[str, str]] = []
     iterator = files
     if progress:
         from tqdm import tqdm

@@ -319,8 +319,9 @@ def _scan_notes(found: _Scan) -> list[str]:
         notes.append(f"{len(found.skipped_non_dicom)} non-DICOM file(s) ignored")
     if found.skipped_dicomdir:
         notes.append(f"DICOMDIR ignored: {_files_text(found.skipped_dicomdir, names=True)}")
-    for path, why in found.skipped_broken:
-        notes.append(f"skipped unreadable DICOM file {os.path.basename(path)}: {why}")
+    for path, why in found.skipped_broken:  # a folder not named at all: the name filter knows files only
+        notes.append(f"skipped a {why}" if why.startswith("folder") else
+                     f"skipped unreadable DICOM file {os.path.basename(path)}: {why}")
     return notes
 
 
@@ -329,7 +330,7 @@ def _warn_broken(found: _Scan) -> None:
         listing = "; ".join(f"{p}: {why}" for p, why in found.skipped_broken[:5])
         more = len(found.skipped_broken) - 5
         warnings.warn(
-            f"skipped {len(found.skipped_broken)} DICOM file(s) that cannot be read: {listing}"
+            f"skipped {len(found.skipped_broken)} DICOM file(s) or folder(s) that cannot be read: {listing}"
             + (f"; and {more} more" if more > 0 else ""),
             StudyWarning,
             stacklevel=3,
@@ -349,7 +350,7 @@ def _scan_groups(path, progress: bool):
     if not groups:
         detail = (
             f"{found.n_files} file(s) examined: {len(found.skipped_non_dicom)} not DICOM, "
-            f"{len(found.skipped_broken)} unreadable, {len(found.skipped_dicomdir)} DICOMDIR"
+            f"{len(found.skipped_broken)} unreadable file(s) or folder(s), {len(found.skipped_dicomdir)} DICOMDIR"
         )
         raise StudyError(
             f"no DICOM images found under {os.fspath(path)!r} ({detail}); point to the folder "

@@ -166,6 +166,31 @@ def test_images_of_the_series_left_out_of_its_stack_are_warned(tmp_path, axial):
     assert volume.hu.shape[0] == 12
 
 
+def test_a_folder_that_cannot_be_opened_is_warned_not_named_in_notes(tmp_path, axial, monkeypatch):
+    """A sub-folder of the study without read permission was passed over without a word by os.walk: the
+    volume came out short of its slices (review of session 22).  Warned, naming it; the notes that outputs
+    keep name no folder (a folder name may name the patient)."""
+    import os
+
+    hidden = axial / "SMITH_JOHN"
+    hidden.mkdir()
+    for k in range(15, 20):
+        shutil.move(str(axial / f"slice_{k:03d}.dcm"), hidden)
+    real = os.scandir
+
+    def scandir(path="."):
+        if os.fspath(path).endswith("SMITH_JOHN"):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return real(path)
+
+    monkeypatch.setattr(os, "scandir", scandir)
+    with pytest.warns(StudyWarning, match=r"SMITH_JOHN: folder that cannot be opened \(Permission denied\)"):
+        volume = load_study(axial)
+    assert volume.hu.shape[0] == 15
+    assert any("skipped a folder that cannot be opened (Permission denied)" in n for n in volume.notes)
+    assert not any("SMITH" in n for n in volume.notes)
+
+
 # ------------------------------------------------------------- ordering
 
 
