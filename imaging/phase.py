@@ -172,6 +172,9 @@ def read_qrs_file(path) -> np.ndarray:
                 )
             values = []
             for row_number, row in enumerate(reader, start=2):
+                if any(v.strip() for v in row.get(None) or ()):  # more values than the header names: "38330,986"
+                    raise GatingError(f"QRS file {path}, line {row_number}: more values than the header's columns; "
+                                      "a decimal comma? write seconds with a decimal point (38330.986)")
                 try:
                     value = float(row["time_s"])
                 except (TypeError, ValueError):

@@ -200,7 +200,9 @@ def test_qrs_outside_scan_is_not_extrapolated(sample_case, tmp_path):
 @pytest.mark.parametrize(
     "text, match",
     [("t\n1\n2\n", "time_s"), ("time_s\n1\n", "at least 2"), ("time_s\n2\n1\n", "increasing"),
-     ("time_s\nabc\n", "not a number"), (b"\xce\xff\x00binary", "not a UTF-8 text CSV")],
+     ("time_s\nabc\n", "not a number"), (b"\xce\xff\x00binary", "not a UTF-8 text CSV"),
+     # a decimal comma split each time in two, and the file was refused as 'not increasing' (review, session 22)
+     ("time_s\n38330,986044\n38331,9\n", r"line 2: more values than the header's columns; a decimal comma")],
 )
 def test_bad_qrs_file(tmp_path, text, match):
     path = tmp_path / "qrs.csv"
