@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import stat
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -366,7 +367,34 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
         from tqdm import tqdm
 
         iterator = tqdm(files, desc="reading headers", unit="file", leave=False)
-    for name in iterator:
+    # pydicom's warnings about a file's values ("Invalid value for VR IS") name no file: caught, and said once
+    # per message with the file(s) it came from
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        said = _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught)
+    for message, names in said.items():
+        more = f" and {len(names) - 1} other file(s)" if len(names) > 1 else ""
+        warnings.warn(f"{names[0]}{more}: {message}", UserWarning, stacklevel=3)
+    return _Scan(
+        frames=tuple(frames),
+        others=tuple(others),
+        n_files=len(files),
+        skipped_non_dicom=tuple(non_dicom),
+        skipped_dicomdir=tuple(dicomdir),
+        skipped_broken=tuple(broken),
+    )
+
+
+def _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught) -> dict[str, list[str]]:
+    """Read each file's header into the lists given; the warnings ``caught`` while reading, by message: their files."""
+    said: dict[str, list[str]] = {}
+    seen, previous = 0, None
+    for name in [*iterator, None]:
+        for w in caught[seen:]:  # the warnings of the file read last
+            said.setdefault(f"{w.message}", []).append(previous)
+        seen, previous = len(caught), name
+        if name is None:
+            break
         if os.path.basename(name).upper() == "DICOMDIR":
             dicomdir.append(name)
             continue
@@ -406,11 +434,4 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
             broken.append((name, str(exc)))
         except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
             broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
-    return _Scan(
-        frames=tuple(frames),
-        others=tuple(others),
-        n_files=len(files),
-        skipped_non_dicom=tuple(non_dicom),
-        skipped_dicomdir=tuple(dicomdir),
-        skipped_broken=tuple(broken),
-    )
+    return said

@@ -191,6 +191,14 @@ def test_a_folder_that_cannot_be_opened_is_warned_not_named_in_notes(tmp_path, a
     assert not any("SMITH" in n for n in volume.notes)
 
 
+def test_pydicom_warnings_name_their_file(axial):
+    """pydicom's warnings about a file's values named no file ('warning: Invalid value for VR IS: '1A'' and
+    nothing else: review of session 22); they are said once per message with the file(s) they came from."""
+    shutil.copy(get_testdata_file("badVR.dcm"), axial / "odd.dcm")
+    with pytest.warns(UserWarning, match=r"odd.dcm: Invalid value for VR IS: '1A'"):
+        assert load_study(axial).hu.shape == (20, 32, 32)
+
+
 # ------------------------------------------------------------- ordering
 
 
