@@ -55,6 +55,13 @@ class LabelMap:
     #: a NIfTI header without orientation (qform_code and sform_code 0): placed where nibabel guesses
     unoriented: bool = False
 
+    def __post_init__(self):
+        T = np.asarray(self.T_patient_from_voxel, dtype=float)
+        spacing = np.linalg.norm(T[:3, :3], axis=0)
+        if not np.all(np.isfinite(T)) or np.any(spacing < 1e-6):  # else: "made on another study?"
+            raise LabelMapError(f"label map {self.source}: degenerate affine (voxel sizes {spacing.tolist()} mm); "
+                                "write it again with its CT's geometry")
+
     def select(self, label=None) -> tuple[np.ndarray, str]:
         """The voxels of one label, ``[k, j, i]`` bool, and how it is called in messages.
 

@@ -146,6 +146,23 @@ def test_unknown_file_and_label(tmp_path):
     assert pydicom.__version__  # pydicom wrote and read the SEG above
 
 
+@pytest.mark.parametrize("edit", ["nan", "zero"])
+def test_a_degenerate_affine_is_said(tmp_path, edit):
+    """A NIfTI mask whose affine holds a NaN or zero axes was refused as 'made on another study?' (after a
+    numpy warning); the CT's reader said 'degenerate affine' (review, session 22)."""
+    import nibabel as nib
+
+    T, shape = _source_T()
+    img = nib.Nifti1Image(_ball_labels(T, shape).transpose(2, 1, 0).astype(np.uint8), np.diag([-1.0, -1.0, 1.0, 1.0]) @ T)
+    header = img.header
+    for row in ("srow_x", "srow_y", "srow_z")[: 1 if edit == "nan" else 3]:
+        header[row][:3] = np.nan if edit == "nan" else 0.0
+    header["sform_code"], header["qform_code"] = 1, 0
+    nib.save(nib.Nifti1Image(np.asarray(img.dataobj), None, header=header), str(tmp_path / "m.nii.gz"))
+    with pytest.raises(LabelMapError, match=r"m.nii.gz: degenerate affine \(voxel sizes .*\); write it again"):
+        read_label_map(tmp_path / "m.nii.gz")
+
+
 def test_slicer_segmentations_by_segment_name():
     """3D Slicer's ``.seg.nrrd`` (slicerio's samples on CTChest4): segments chosen by name, overlapping layers too."""
     from pathlib import Path
