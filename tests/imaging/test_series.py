@@ -199,6 +199,20 @@ def test_pydicom_warnings_name_their_file(axial):
         assert load_study(axial).hu.shape == (20, 32, 32)
 
 
+def test_a_series_exported_twice_over_is_read_once(axial):
+    """Every image twice, the copies with new SOPInstanceUIDs (an export run twice into one folder): each
+    position's repeats are the same image again (InstanceNumber, times), so one of each is kept, warned.
+    Before, the series was 'unusable' and no --series could load it (review of session 22)."""
+    for f in sorted(axial.glob("slice_*.dcm")):
+        ds = pydicom.dcmread(f)
+        ds.SOPInstanceUID = pydicom.uid.generate_uid()
+        ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+        ds.save_as(axial / f"copy_{f.name}")
+    with pytest.warns(StudyWarning, match=r"20 image\(s\) repeat the position of another and were ignored"):
+        volume = load_study(axial)
+    assert volume.hu.shape == (20, 32, 32)
+
+
 # ------------------------------------------------------------- ordering
 
 
