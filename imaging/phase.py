@@ -459,7 +459,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
                 peaks.times_s, notes,
             )
         notes.append(why)
-    if not labelled:
+    if not labelled and not getattr(volume, "waveform_files", ()):  # an unreadable one was noted so
         notes.append("no DICOM ECG waveform instance in the study")
 
     # 4. TriggerTime over the nominal RR interval
@@ -471,7 +471,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         phases = np.mod(trigger / rr_ms, 1.0)
         nominal = ("TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
                    "last the nominal interval; give R-peak times (--qrs) for measured phases")
-        if labelled or rpeaks_ms:  # the study's own R-peak source failed: said, not only noted
+        if labelled or rpeaks_ms or getattr(volume, "waveform_files", ()):  # its own R-peaks failed: said
             warnings.warn(f"{nominal}; the study's own R-peak sources were not usable: {'; '.join(notes)}",
                           GatingWarning, stacklevel=2)
         notes.append(nominal)

@@ -338,6 +338,12 @@ def read_ecg_waveform(path_or_dataset, *, channel=None, group: int | None = None
     try:
         data = ds.waveform_array(g)
     except Exception as exc:  # pydicom raises several types for broken waveform data
+        try:  # the commonest: data cut short
+            need = int(item.NumberOfWaveformSamples) * int(item.NumberOfWaveformChannels) * int(
+                item.WaveformBitsAllocated) // 8
+            exc = f"it holds {len(item.WaveformData)} bytes where its header's samples and channels need {need}"
+        except (AttributeError, TypeError, ValueError):
+            pass
         raise WaveformError(f"{name}: waveform data of group {g} cannot be decoded: {exc}") from None
     notes: list[str] = []
     scale, note = _to_mv(defs[c], labels[c], name)

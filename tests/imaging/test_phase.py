@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import json
 import shutil
 
@@ -172,6 +173,24 @@ def test_nominal_phases_after_a_flat_ecg_are_warned(sample_case, tmp_path):
     with pytest.warns(GatingWarning, match=r"nominal phases.*own R-peak sources were not usable: .*ECG waveform: .* constant"):
         report = compute_phase_report(load_study(ct))
     assert report.source.startswith("TriggerTime")
+
+
+def test_a_truncated_waveform_is_said_so(sample_case, tmp_path):
+    """The study's ECG waveform cut to half its bytes: said in plain words (numpy's 'cannot reshape array of size
+    2840' before), the notes no longer say there is no waveform, and the nominal phases are warned."""
+    case, _ = sample_case
+    ct = _copy_without(case, tmp_path, private=True)
+    for f in ct.iterdir():
+        ds = pydicom.dcmread(f)
+        if ds.Modality == "ECG":
+            item = ds.WaveformSequence[0]
+            item.WaveformData = item.WaveformData[: len(item.WaveformData) // 2]
+            ds.save_as(f)
+    with pytest.warns(GatingWarning, match="nominal phases"):
+        report = compute_phase_report(load_study(ct))
+    assert any(re.search(r"ECG waveform unreadable: .*holds \d+ bytes where its header's samples and channels need "
+                         r"\d+", n) for n in report.notes), report.notes
+    assert not any("no DICOM ECG waveform instance" in n for n in report.notes)
 
 
 def test_no_gating_is_a_clear_error(sample_case, tmp_path):
