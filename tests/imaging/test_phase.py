@@ -158,18 +158,23 @@ def test_trigger_time_fallback(sample_case, tmp_path):
     assert any("no GE RpeakTimeStamps" in n for n in report.notes)
 
 
-def test_nominal_phases_after_a_flat_ecg_are_warned(sample_case, tmp_path):
-    """The study's ECG waveform unusable (all zeros: a lead off) and no GE stamps: the phases fall back to
-    TriggerTime over the nominal RR interval, now warned with the waveform's reason (only noted in
-    phases.json before the review of session 22)."""
-    case, _ = sample_case
-    ct = _copy_without(case, tmp_path, private=True)
+def _with_waveform_data(case_dir, tmp_path, change):
+    """A copy of the case's CT folder without GE private tags, its ECG waveform's data replaced by ``change(data)``."""
+    ct = _copy_without(case_dir, tmp_path, private=True)
     for f in ct.iterdir():
         ds = pydicom.dcmread(f)
         if ds.Modality == "ECG":
             item = ds.WaveformSequence[0]
-            item.WaveformData = bytes(len(item.WaveformData))
+            item.WaveformData = change(item.WaveformData)
             ds.save_as(f)
+    return ct
+
+
+def test_nominal_phases_after_a_flat_ecg_are_warned(sample_case, tmp_path):
+    """The study's ECG waveform unusable (all zeros: a lead off) and no GE stamps: the phases fall back to
+    TriggerTime over the nominal RR interval, now warned with the waveform's reason (only noted in
+    phases.json before the review of session 22)."""
+    ct = _with_waveform_data(sample_case[0], tmp_path, lambda data: bytes(len(data)))
     with pytest.warns(GatingWarning, match=r"nominal phases.*own R-peak sources were not usable: .*ECG waveform: .* constant"):
         report = compute_phase_report(load_study(ct))
     assert report.source.startswith("TriggerTime")
@@ -178,14 +183,7 @@ def test_nominal_phases_after_a_flat_ecg_are_warned(sample_case, tmp_path):
 def test_a_truncated_waveform_is_said_so(sample_case, tmp_path):
     """The study's ECG waveform cut to half its bytes: said in plain words (numpy's 'cannot reshape array of size
     2840' before), the notes no longer say there is no waveform, and the nominal phases are warned."""
-    case, _ = sample_case
-    ct = _copy_without(case, tmp_path, private=True)
-    for f in ct.iterdir():
-        ds = pydicom.dcmread(f)
-        if ds.Modality == "ECG":
-            item = ds.WaveformSequence[0]
-            item.WaveformData = item.WaveformData[: len(item.WaveformData) // 2]
-            ds.save_as(f)
+    ct = _with_waveform_data(sample_case[0], tmp_path, lambda data: data[: len(data) // 2])
     with pytest.warns(GatingWarning, match="nominal phases"):
         report = compute_phase_report(load_study(ct))
     assert any(re.search(r"ECG waveform unreadable: .*holds \d+ bytes where its header's samples and channels need "
