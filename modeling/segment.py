@@ -418,10 +418,10 @@ def segment_heart(
 
     # ---- heart region: tissue connected to the seed (with contrast, parted also at fat planes blurred above hu_low)
     if contrast and pool is not None:
-        tissue &= ~fat_planes(coarse, cspacing, hu_low=hu_low, box=mask_box(pool, np.ceil(PLANE_REACH_MM / cspacing)))
+        planes = fat_planes(coarse, cspacing, hu_low=hu_low, box=mask_box(pool, np.ceil(PLANE_REACH_MM / cspacing)))
+        tissue &= ~planes | seed_mask  # a point given on one stays
     labels, _ = ndimage.label(tissue)
-    touched = np.unique(labels[seed_mask & tissue])
-    touched = touched[touched > 0]
+    touched = np.setdiff1d(labels[seed_mask & tissue], [0])
     if touched.size == 0:
         raise SegmentationError("the blood-pool seed does not touch any tissue in range")
     region = np.isin(labels, touched)
