@@ -326,7 +326,10 @@ def detect_r_peaks(
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
     values = energy[peaks]
     half = max(2, int(round(0.075 * rate)))
-    slopes = np.abs(deriv[np.clip(peaks[:, None] + np.arange(-half, half + 1), 0, deriv.size - 1)]).max(axis=1)
+    around = np.clip(peaks[:, None] + np.arange(-half, half + 1), 0, deriv.size - 1)
+    slopes = np.abs(deriv[around]).max(axis=1)
+    light = _bandpass(x, REFINE_BAND_HZ, rate)
+    heights = np.ptp(light[around], axis=1)  # peak to peak in the R-peak's band: a QRS's size, a P wave's
 
     # --- classification: initial levels from the first seconds -------------
     learn_n = min(x.size, int(LEARN_S * rate))
@@ -334,7 +337,7 @@ def detect_r_peaks(
     starts = range(0, learn_n - block + 1, block)
     tops = [energy[i : i + block].max() for i in starts] or [energy[:learn_n].max()]
     means = [energy[i : i + block].mean() for i in starts] or [energy[:learn_n].mean()]
-    clf = _Classifier(peaks, values, slopes, rate, refractory)
+    clf = _Classifier(peaks, values, slopes, heights, rate, refractory)
     qrs = clf.run(float(np.median(tops)), 0.5 * float(np.median(means)))  # medians: a transient is not learnt
     if not qrs:
         raise SignalError("no QRS complex found in signal_mv: check the lead and the units (mV)")
@@ -342,7 +345,6 @@ def detect_r_peaks(
     coarse = np.asarray([clf.peaks[j] for j in sorted(qrs)], dtype=np.int64)
 
     # --- move each detection to its R-peak ---------------------------------
-    light = _bandpass(x, REFINE_BAND_HZ, rate)
     idx, amp, sign = _refine(light, coarse, rate, polarity)
     margin = int(np.ceil(EDGE_MARGIN_S * rate))
     inside = (idx >= max(1, margin)) & (idx <= x.size - 1 - max(1, margin))

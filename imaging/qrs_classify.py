@@ -41,9 +41,10 @@ RELEARN_AFTER_S = 1.0
 #: pauses of 2-4 beats cut in, 17-42 P waves each were taken for beats, 1-2 with the rule; the
 #: eight records whole change by 4 beats of 116).
 SEARCH_BACK_SLOPE_RATIO = 0.2
-#: A peak in the search-back's gap that stands out of its neighbours (NOISE_FLOOR_RATIO x their median) is a
-#: beat above this fraction of threshold 1, half the usual half: a wide premature beat's QRS-band energy is a
-#: tenth to a quarter of the narrow beats' (MIT-BIH 208).
+#: A peak in the search-back's gap that stands out of its neighbours (NOISE_FLOOR_RATIO x their median) and is at
+#: least half as large as the last QRS complexes (peak to peak, 0.5-40 Hz: a P wave is not) is a beat above this
+#: fraction of threshold 1, half the usual half: a wide premature beat's QRS-band energy is a tenth to a quarter
+#: of the narrow beats' (MIT-BIH 208).
 SEARCH_BACK_STANDING_OUT = 0.25
 #: Peaks within this many seconds either side of a candidate are its neighbourhood (:meth:`_Classifier.stands_out`).
 STAND_OUT_S = 1.5
@@ -82,10 +83,11 @@ class _Classifier:
     taken reset the signal level to the noise's.
     """
 
-    def __init__(self, peaks, values, slopes, rate: float, refractory: int):
+    def __init__(self, peaks, values, slopes, heights, rate: float, refractory: int):
         self.peaks = peaks.tolist()
         self.values = values.tolist()
         self.slopes = slopes.tolist()
+        self.heights = heights.tolist()
         self.rate, self.refractory = rate, refractory
         self.t_window = T_WAVE_WINDOW_S * rate
 
@@ -93,6 +95,7 @@ class _Classifier:
         peaks, values, slopes = self.peaks, self.values, self.slopes
         self.recent = [spk0]  # energies of the last accepted QRS complexes
         self.steep: list[float] = []  # their steepest slopes
+        self.tall: list[float] = []  # their sizes
         self.regular: list[int] = []  # positions in the RR list of the intervals that are no pause
         self.regular_rr: list[int] = []  # ... and those intervals, samples
         self.spk = spk0  # their median: the signal level
@@ -198,8 +201,8 @@ class _Classifier:
         for k in range(last + 1, j):
             if lo_p <= peaks[k] <= hi_p and values[k] > best_v and slopes[k] >= steep and not self._t_wave(k, last):
                 threshold = self.threshold(peaks[k] - peaks[last])
-                if values[k] > 0.5 * threshold or (
-                        values[k] > SEARCH_BACK_STANDING_OUT * threshold and self.stands_out(k, NOISE_FLOOR_RATIO)):
+                if values[k] > 0.5 * threshold or (values[k] > SEARCH_BACK_STANDING_OUT * threshold and self.stands_out(
+                        k, NOISE_FLOOR_RATIO) and self.heights[k] >= 0.5 * _median(self.tall)):
                     best, best_v = k, values[k]
         return best
 
@@ -236,7 +239,8 @@ class _Classifier:
         self._update_limits(rr)
         self.recent.append(self.values[j])
         self.steep.append(self.slopes[j])
-        del self.recent[:-SPK_MEMORY], self.steep[:-SPK_MEMORY]
+        self.tall.append(self.heights[j])
+        del self.recent[:-SPK_MEMORY], self.steep[:-SPK_MEMORY], self.tall[:-SPK_MEMORY]
         self.spk = _median(self.recent)
 
     def _update_limits(self, rr) -> None:

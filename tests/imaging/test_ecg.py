@@ -156,7 +156,8 @@ def test_wide_premature_beats_before_a_pause_are_found():
     0.45 s after the last, then a 0.75 s pause) under 0.01 mV of noise.  Its QRS-band energy is a tenth of the
     narrow beats' (MIT-BIH 208's wide premature beats: a tenth to a quarter), below half of threshold 1, and
     the search-back across the pause missed them (neurokit2 finds them all).  A peak that stands out
-    of its neighbours (4 x their median energy) now passes at a quarter of threshold 1.  Wider still (a
+    of its neighbours (4 x their median energy) and is at least half as large as the QRS complexes now passes at
+    a quarter of threshold 1.  Wider still (a
     Gaussian of 45 ms: a twenty-fifth of the energy) they are missed (README, Limits)."""
     fs, t = 360.0, np.arange(int(60.0 * 360.0)) / 360.0
     ecg, beats, wide, b = np.zeros_like(t), [], [], 0.5
@@ -174,6 +175,29 @@ def test_wide_premature_beats_before_a_pause_are_found():
     ecg += 0.01 * np.random.default_rng(0).standard_normal(t.size)
     tp, extra, _ = match(np.array(beats), detect_r_peaks(ecg, fs).times_s, tol_s=0.1)
     assert len(wide) == 16 and tp == len(beats) and extra == 0, (tp, len(beats), extra)
+
+
+@pytest.mark.parametrize("p_width_s", [0.012, 0.015])
+def test_blocked_p_waves_in_pauses_are_no_beats(p_width_s):
+    """Sinus beats (R 1 mV, 10 ms) every 0.8 s, every eighth followed by a 2 s pause holding a blocked P wave
+    (0.3 mV, sharp, 0.45 s after the R) under 0.005 mV of noise: the P wave stands out of the quiet pause and
+    its QRS-band energy passes a quarter of threshold 1, so the rule for wide premature beats took all 15 (the
+    session-22 review); it is no beat, being less than half as large as the QRS complexes."""
+    fs = 360.0
+    t = np.arange(int(120 * fs)) / fs
+    ecg, beats, b = np.zeros_like(t), [], 0.5
+    for k in range(1, 200):
+        if b > 119.0:
+            break
+        ecg += 0.1 * np.exp(-0.5 * ((t - b + 0.16) / 0.025) ** 2) + np.exp(-0.5 * ((t - b) / 0.010) ** 2)
+        ecg += 0.3 * np.exp(-0.5 * ((t - b - 0.3) / 0.05) ** 2)
+        beats.append(b)
+        if k % 8 == 0:
+            ecg += 0.3 * np.exp(-0.5 * ((t - b - 0.45) / p_width_s) ** 2)
+        b += 2.0 if k % 8 == 0 else 0.8
+    ecg += 0.005 * np.random.default_rng(0).standard_normal(t.size)
+    tp, extra, _ = match(np.array(beats), detect_r_peaks(ecg, fs).times_s, tol_s=0.1)
+    assert tp == len(beats) and extra == 0, (tp, len(beats), extra)
 
 
 @pytest.mark.parametrize("rate_hz", [100.0, 1000.0])
