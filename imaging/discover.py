@@ -368,13 +368,17 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
 
         iterator = tqdm(files, desc="reading headers", unit="file", leave=False)
     # pydicom's warnings about a file's values ("Invalid value for VR IS") name no file: caught, and said once
-    # per message with the file(s) it came from
+    # per message, in their own category, with the file(s) they came from; a developer's warning
+    # (DeprecationWarning, FutureWarning) goes on as it was, under the caller's filters
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         said = _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught)
-    for message, names in said.items():
+    for (category, message), names in said.items():
+        if issubclass(category, (DeprecationWarning, PendingDeprecationWarning, FutureWarning)):
+            warnings.warn(message, category, stacklevel=2)
+            continue
         more = f" and {len(names) - 1} other file(s)" if len(names) > 1 else ""
-        warnings.warn(f"{names[0]}{more}: {message}", UserWarning, stacklevel=3)
+        warnings.warn(f"{names[0]}{more}: {message}", category, stacklevel=3)
     return _Scan(
         frames=tuple(frames),
         others=tuple(others),
@@ -385,13 +389,13 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
     )
 
 
-def _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught) -> dict[str, list[str]]:
+def _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught) -> dict[tuple[type, str], list[str]]:
     """Read each file's header into the lists given; the warnings ``caught`` while reading, by message: their files."""
-    said: dict[str, list[str]] = {}
+    said: dict[tuple[type, str], list[str]] = {}
     seen, previous = 0, None
     for name in [*iterator, None]:
         for w in caught[seen:]:  # the warnings of the file read last
-            said.setdefault(f"{w.message}", []).append(previous)
+            said.setdefault((w.category, f"{w.message}"), []).append(previous)
         seen, previous = len(caught), name
         if name is None:
             break

@@ -132,14 +132,15 @@ def _drop_stray_duplicates(frames: list[_Frame]) -> tuple[list[_Frame], list[tup
     """Drop the few images that repeat another's position, keeping the first by
     InstanceNumber; returns (kept, [(dropped file, kept file)]).  Nothing is
     dropped when many images repeat (a multi-phase series: split it instead),
-    unless each repeat is the same image again (every attribute read but its file
-    and SOPInstanceUID: a series exported twice over with new SOPInstanceUIDs)."""
+    unless each repeat is the same image again (every attribute read, and the pixel
+    data's length, but its file and SOPInstanceUID: a series exported twice over
+    with new SOPInstanceUIDs)."""
     n = _normal(frames[0].iop)
     pos = np.round(np.array([f.ipp for f in frames]) @ n / SAME_POSITION_MM).astype(np.int64)
     _, inverse, counts = np.unique(pos, return_inverse=True, return_counts=True)
     again = {}
     for f, key in zip(frames, inverse):
-        again.setdefault(int(key), set()).add(replace(f, path="", sop_instance_uid=""))
+        again.setdefault(int(key), set()).add((replace(f, path="", sop_instance_uid=""), f.pixel_length))
     if np.mean(counts[inverse] > 1) >= STRAY_REPEAT_SHARE and any(len(v) > 1 for v in again.values()):
         return frames, []
     order = sorted(range(len(frames)), key=lambda i: (frames[i].instance_number is None, frames[i].instance_number or 0, frames[i].path))
