@@ -584,7 +584,7 @@ def test_thick_voxels(realct):
     mask = np.zeros(volume.shape, bool)
     mask[: n[0], : n[1], : n[2]] = seg.mask.repeat(2, 0).repeat(2, 1).repeat(2, 2)
     m = overlap(mask, reference, SPACING)
-    assert 650 <= seg.volume_ml <= 850 and m["dice"] >= 0.85 and m["p95_mm"] <= 12.5, m
+    assert 650 <= seg.volume_ml <= 850 and m["dice"] >= 0.87 and m["p95_mm"] <= 10.0, m
 
 
 def test_no_contrast_in_a_tight_field_of_view(realct, artery):
