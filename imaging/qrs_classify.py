@@ -192,8 +192,9 @@ class _Classifier:
         return True
 
     def _search_back(self, last: int, j: int) -> int | None:
-        """The largest peak in the gap (last, j) above half its threshold 1 (a quarter when it stands out of
-        its neighbours, as a wide premature beat's low QRS-band energy does), as steep as a QRS and no T wave."""
+        """The largest peak in the gap (last, j) above half its threshold 1 (a quarter when it stands out of its
+        neighbours and is half as large as the last QRS complexes: a wide premature beat's low QRS-band energy),
+        as steep as a QRS and no T wave."""
         peaks, values, slopes = self.peaks, self.values, self.slopes
         lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
         best, best_v = None, 0.0
