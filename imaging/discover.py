@@ -370,9 +370,14 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
     # pydicom's warnings about a file's values ("Invalid value for VR IS") name no file: caught, and said once
     # per message, in their own category, with the file(s) they came from; a developer's warning
     # (DeprecationWarning, FutureWarning) goes on as it was, under the caller's filters
+    said: dict[tuple[type, str], list[str]] = {}  # (category, message): the files that raised it
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        said = _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught)
+        for name in iterator:
+            seen = len(caught)
+            _scan_file(name, frames, others, non_dicom, dicomdir, broken)
+            for w in caught[seen:]:
+                said.setdefault((w.category, f"{w.message}"), []).append(name)
     for (category, message), names in said.items():
         if issubclass(category, (DeprecationWarning, PendingDeprecationWarning, FutureWarning)):
             warnings.warn(message, category, stacklevel=2)
@@ -389,53 +394,44 @@ def _scan(path: str | os.PathLike, *, progress: bool = False) -> _Scan:
     )
 
 
-def _scan_files(iterator, frames, others, non_dicom, dicomdir, broken, caught) -> dict[tuple[type, str], list[str]]:
-    """Read each file's header into the lists given; the warnings ``caught`` while reading, by message: their files."""
-    said: dict[tuple[type, str], list[str]] = {}
-    seen, previous = 0, None
-    for name in [*iterator, None]:
-        for w in caught[seen:]:  # the warnings of the file read last
-            said.setdefault((w.category, f"{w.message}"), []).append(previous)
-        seen, previous = len(caught), name
-        if name is None:
-            break
-        if os.path.basename(name).upper() == "DICOMDIR":
-            dicomdir.append(name)
-            continue
-        try:
-            if not stat.S_ISREG(os.stat(name).st_mode):  # a named pipe would block open()
-                broken.append((name, "not a regular file (named pipe, socket or device)"))
-                continue
-            ds, why, native = _read_header(name)
-        except OSError as exc:
-            broken.append((name, f"cannot open ({exc.strerror or exc})"))
-            continue
-        if ds is None:
-            (non_dicom.append(name) if why == "not-dicom" else broken.append((name, why)))
-            continue
-        meta = getattr(ds, "file_meta", None)
-        sop_class = _str(ds, "SOPClassUID") or _meta_str(meta, "MediaStorageSOPClassUID")
-        if sop_class == _DICOMDIR_SOP_CLASS or "DirectoryRecordSequence" in ds:
-            dicomdir.append(name)
-            continue
-        has_image = int(_get(ds, "Rows", 0) or 0) > 0 and int(_get(ds, "Columns", 0) or 0) > 0
-        if not has_image:
-            others.append(
-                _Other(
-                    path=name,
-                    series_instance_uid=_str(ds, "SeriesInstanceUID"),
-                    study_instance_uid=_str(ds, "StudyInstanceUID"),
-                    series_number=_as_int(_get(ds, "SeriesNumber")),
-                    description=_str(ds, "SeriesDescription"),
-                    modality=_str(ds, "Modality"),
-                    sop_class_uid=sop_class,
-                )
+def _scan_file(name: str, frames, others, non_dicom, dicomdir, broken) -> None:
+    """Read one file's header into the list it belongs to."""
+    if os.path.basename(name).upper() == "DICOMDIR":
+        dicomdir.append(name)
+        return
+    try:
+        if not stat.S_ISREG(os.stat(name).st_mode):  # a named pipe would block open()
+            broken.append((name, "not a regular file (named pipe, socket or device)"))
+            return
+        ds, why, native = _read_header(name)
+    except OSError as exc:
+        broken.append((name, f"cannot open ({exc.strerror or exc})"))
+        return
+    if ds is None:
+        (non_dicom.append(name) if why == "not-dicom" else broken.append((name, why)))
+        return
+    meta = getattr(ds, "file_meta", None)
+    sop_class = _str(ds, "SOPClassUID") or _meta_str(meta, "MediaStorageSOPClassUID")
+    if sop_class == _DICOMDIR_SOP_CLASS or "DirectoryRecordSequence" in ds:
+        dicomdir.append(name)
+        return
+    has_image = int(_get(ds, "Rows", 0) or 0) > 0 and int(_get(ds, "Columns", 0) or 0) > 0
+    if not has_image:
+        others.append(
+            _Other(
+                path=name,
+                series_instance_uid=_str(ds, "SeriesInstanceUID"),
+                study_instance_uid=_str(ds, "StudyInstanceUID"),
+                series_number=_as_int(_get(ds, "SeriesNumber")),
+                description=_str(ds, "SeriesDescription"),
+                modality=_str(ds, "Modality"),
+                sop_class_uid=sop_class,
             )
-            continue
-        try:
-            frames.extend(_frames_from_dataset(ds, name, native))
-        except _BadGeometry as exc:
-            broken.append((name, str(exc)))
-        except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
-            broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
-    return said
+        )
+        return
+    try:
+        frames.extend(_frames_from_dataset(ds, name, native))
+    except _BadGeometry as exc:
+        broken.append((name, str(exc)))
+    except Exception as exc:  # noqa: BLE001 - malformed functional groups etc.
+        broken.append((name, f"malformed header ({type(exc).__name__}: {exc})"))
