@@ -99,6 +99,15 @@ def _check_is_file(path: Path, kind: str) -> None:
                           f"{path} is a folder named like a {kind} file: rename it if it holds a DICOM study")
 
 
+def degenerate_affine(T) -> str:
+    """Why a voxel -> patient affine places no voxels ('degenerate affine (voxel sizes ...)'), '' when it does:
+    NaN or infinite entries, or an axis of no length."""
+    spacing = np.linalg.norm(np.asarray(T, dtype=float)[:3, :3], axis=0)
+    if np.any(spacing < 1e-6) or not np.all(np.isfinite(T)):
+        return f"degenerate affine (voxel sizes {spacing.tolist()} mm)"
+    return ""
+
+
 def nifti_unoriented(img) -> bool:
     """Whether a NIfTI image has no orientation (qform_code and sform_code 0): nibabel then places it by guess."""
     return int(img.header["qform_code"]) == 0 and int(img.header["sform_code"]) == 0
@@ -235,10 +244,9 @@ def read_nrrd_volume(path) -> Volume:
 
 def _volume(data, T, path: Path, kind: str, affine_note: str) -> Volume:
     """The :class:`Volume` of a file's voxels ``data[i, j, k]`` and LPS affine ``T``."""
-    spacing = np.linalg.norm(T[:3, :3], axis=0)
-    if np.any(spacing < 1e-6) or not np.all(np.isfinite(T)):
-        raise SeriesError(f"{kind} file {path}: degenerate affine (voxel sizes {spacing.tolist()} mm)")
-    axes = T[:3, :3] / spacing
+    if problem := degenerate_affine(T):
+        raise SeriesError(f"{kind} file {path}: {problem}")
+    axes = T[:3, :3] / np.linalg.norm(T[:3, :3], axis=0)
     cosines = np.abs(axes.T @ axes - np.eye(3))
     if cosines.max() > ORTHOGONAL_TOL:
         raise SeriesError(

@@ -19,7 +19,7 @@ from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
-from imaging.volume_file import load_nifti, nifti_lps_affine, nifti_unoriented
+from imaging.volume_file import degenerate_affine, load_nifti, nifti_lps_affine, nifti_unoriented
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
 
@@ -56,11 +56,8 @@ class LabelMap:
     unoriented: bool = False
 
     def __post_init__(self):
-        T = np.asarray(self.T_patient_from_voxel, dtype=float)
-        spacing = np.linalg.norm(T[:3, :3], axis=0)
-        if not np.all(np.isfinite(T)) or np.any(spacing < 1e-6):  # else: "made on another study?"
-            raise LabelMapError(f"label map {self.source}: degenerate affine (voxel sizes {spacing.tolist()} mm); "
-                                "write it again with its CT's geometry")
+        if problem := degenerate_affine(self.T_patient_from_voxel):  # else: "made on another study?"
+            raise LabelMapError(f"label map {self.source}: {problem}; write it again with its CT's geometry")
 
     def select(self, label=None) -> tuple[np.ndarray, str]:
         """The voxels of one label, ``[k, j, i]`` bool, and how it is called in messages.
