@@ -391,6 +391,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         labelled = _read_study_waveforms(volume, notes)
     else:
         labelled = [(_waveform_label(k, len(ecg_records)), r) for k, r in enumerate(ecg_records)]
+    waveforms = bool(labelled or getattr(volume, "waveform_files", ()))  # read, or there and unreadable (noted)
     acq = _column(volume, "acquisition_time_s")
     has_acq = bool(np.all(np.isfinite(acq)))
 
@@ -459,7 +460,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
                 peaks.times_s, notes,
             )
         notes.append(why)
-    if not labelled and not getattr(volume, "waveform_files", ()):  # an unreadable one was noted so
+    if not waveforms:
         notes.append("no DICOM ECG waveform instance in the study")
 
     # 4. TriggerTime over the nominal RR interval
@@ -471,7 +472,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         phases = np.mod(trigger / rr_ms, 1.0)
         nominal = ("TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
                    "last the nominal interval; give R-peak times (--qrs) for measured phases")
-        if labelled or rpeaks_ms or getattr(volume, "waveform_files", ()):  # its own R-peaks failed: said
+        if waveforms or rpeaks_ms:  # the study's own R-peaks failed: said, not only noted
             warnings.warn(f"{nominal}; the study's own R-peak sources were not usable: {'; '.join(notes)}",
                           GatingWarning, stacklevel=2)
         notes.append(nominal)
