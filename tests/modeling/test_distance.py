@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from modeling import distance
 from modeling.distance import distance_mm
 
 
@@ -43,3 +44,16 @@ def test_bad_spacing_is_refused(spacing):
 def test_refuses_2d():
     with pytest.raises(ValueError, match="3-D"):
         distance_mm(np.ones((4, 4), bool), (1.0, 1.0))
+
+
+def test_threads_give_the_same_bits(monkeypatch):
+    """edt splits lines between threads: one thread (a batch worker, OMP_NUM_THREADS=1) and two agree exactly."""
+    rng = np.random.default_rng(3)
+    mask = rng.random((30, 40, 50)) < 0.95
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert distance._cores() == 1
+    one = distance.distance_mm(mask, (2.5, 0.7, 0.7))
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setattr(distance.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert distance._cores() == 2
+    assert np.array_equal(one, distance.distance_mm(mask, (2.5, 0.7, 0.7)))
