@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.geometry import apply_to_points
+from hrcore.redact import pseudonym_uid
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 from imaging.files import gzip_damage
 from imaging.grouping import StudyWarning
@@ -62,9 +63,8 @@ def read_volume_file(path) -> Volume:
 
 
 def _uid(digest: str, what: str) -> str:
-    """A deterministic DICOM UID from the file's content (2.25 root, UUID-sized)."""
-    value = int(hashlib.sha256((what + digest).encode()).hexdigest()[:32], 16)
-    return f"2.25.{value}"
+    """A deterministic DICOM UID from the file's content (2.25 root, UUID-sized; the outputs' pseudonym rule)."""
+    return pseudonym_uid(what + digest)
 
 
 def nifti_lps_affine(img) -> tuple[np.ndarray, str]:

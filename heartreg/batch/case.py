@@ -26,7 +26,6 @@ import contextlib
 import hashlib
 import io
 import json
-import re
 import os
 import shutil
 import tempfile
@@ -135,20 +134,16 @@ def _redact(text: str, pairs) -> str:
     return text
 
 
-#: A DICOM UID (dotted digits, at least five parts).
-_UID = re.compile(r"(?<![\w.])\d+(?:\.\d+){4,}(?![\w.])")
-
-
 def _without_file_names(case: Case):
     """A function dropping the names of the case's input files from a text (they can name the patient)."""
-    from hrcore.redact import file_namer
+    from hrcore.redact import UID_IN_TEXT, file_namer
 
     namers = [file_namer(p) for role, p in case.inputs.items() if p and role != "session"]
 
     def clean(text: str) -> str:
         for namer in namers:
             text = namer(text)
-        return _UID.sub("<uid>", text)  # a series' UID is header data: summary.csv holds none
+        return UID_IN_TEXT.sub("<uid>", text)  # a series' UID (or its pseudonym): summary.csv holds none
 
     return clean
 

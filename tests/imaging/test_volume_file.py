@@ -37,6 +37,16 @@ def test_voxels_land_where_nibabel_puts_them(tmp_path, ras_diag):
     assert read_nifti_volume(tmp_path / "ct.nii.gz").series == volume.series
 
 
+def test_the_identity_of_a_volume_file_stays_as_it_was(tmp_path):
+    """The UIDs a NIfTI volume gets are those of before (made by hrcore.redact.pseudonym_uid since the outputs'
+    pseudonyms, from the same digest)."""
+    series = read_nifti_volume(_save(tmp_path / "ct.nii.gz", np.arange(120, dtype=np.int16).reshape(4, 5, 6),
+                                     np.eye(4))).series
+    assert (series.series_instance_uid, series.study_instance_uid, series.frame_of_reference_uid) == (
+        "2.25.103821495976319723755832144795743719996", "2.25.194117790028750960534613638400830168739",
+        "2.25.260370079638683039107699958380485683248")
+
+
 def test_a_volume_edited_anywhere_is_another_series(tmp_path):
     """Every voxel counts for the identity (it once hashed the first MiB only: edited CTs shared their UIDs)."""
     data = np.full((256, 256, 24), 40, np.int16)  # 3 MiB
