@@ -113,7 +113,7 @@ def _cmd_phases(args) -> int:
     extra = phase_report_extra(volume, args.study_dir)
     paths = write_phase_report(report, args.out_dir, extra=extra, overwrite=args.overwrite, inputs=inputs)
     lo, hi = 0.6, 0.8
-    print(f"{report.n_slices} slices of series {volume.series.series_instance_uid}")
+    print(f"{report.n_slices} slices of series {extra['series_instance_uid']}")  # its pseudonym, as written
     print(f"  R-peak source     {report.source}")
     print(f"  clock             {report.clock}")
     print(f"  volume phase      {report.volume_cardiac_phase:.4f} (mean), {report.circular_mean_phase:.4f} (circular mean)")
@@ -240,7 +240,7 @@ def _cmd_model(args) -> int:
     )
     stage("write")
     model = build.model
-    series_uid = volume.series.series_instance_uid
+    series_uid = model.source["series_instance_uid"]  # the UID's pseudonym, as model.json (hrcore.redact)
     mesh = model.mesh_patient()
     panels = ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces)  # small 2-D planes
     del volume, mesh  # the CT is done with: the pictures' memory comes on top of what is left

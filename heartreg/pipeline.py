@@ -52,9 +52,10 @@ def check_out_dir(path, *, what: str = "output folder", must_be_empty: bool = Fa
 def phase_report_extra(volume, study_dir) -> dict:
     """Series identity and the volume's notes for ``phases.json``, without the study
     folder's path nor its files' names (either can identify a patient: a file is
-    "a file" in the notes written, :mod:`hrcore.redact`); not the series'
-    description, free text that can name the patient too."""
-    from hrcore.redact import file_namer
+    "a file" in the notes written, :mod:`hrcore.redact`), and with the pseudonyms
+    of the study's DICOM UIDs in place of the UIDs (as ``model.json``); not the
+    series' description, free text that can name the patient too."""
+    from hrcore.redact import file_namer, pseudonym_uid, pseudonymize_uids
 
     root = str(Path(study_dir).resolve())
     unnamed = file_namer(study_dir)  # file names can name the patient too: "a file"
@@ -62,9 +63,9 @@ def phase_report_extra(volume, study_dir) -> dict:
     for note in volume.notes:
         for prefix in (root + os.sep, str(study_dir).rstrip(os.sep) + os.sep):
             note = note.replace(prefix, "")
-        notes.append(unnamed(note))
+        notes.append(pseudonymize_uids(unnamed(note)))
     return {
-        "series_instance_uid": volume.series.series_instance_uid,
+        "series_instance_uid": pseudonym_uid(volume.series.series_instance_uid),
         "volume_notes": notes,
     }
 
@@ -121,7 +122,8 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
 
 @dataclass(frozen=True)
 class PipelineResult:
-    """Everything one run produced, with where it was written."""
+    """Everything one run produced, with where it was written; ``volume_series_uid``
+    is the series UID's pseudonym, as written (:func:`hrcore.redact.pseudonym_uid`)."""
 
     volume_series_uid: str
     phase_report: object
@@ -216,7 +218,7 @@ def run_pipeline(
         timings["registration"] = time.perf_counter() - t
 
         run = PipelineResult(
-            volume_series_uid=volume.series.series_instance_uid,
+            volume_series_uid=build.model.source["series_instance_uid"],  # the pseudonym, as model.json
             phase_report=report,
             model_build=build,
             registration=result,

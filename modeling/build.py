@@ -19,6 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.memory import release_free_memory
+from hrcore.redact import pseudonym_uid
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import FiducialError, Fiducials, find_fiducials
@@ -446,8 +447,8 @@ def build_heart_model(
                      "usual apex direction: apex and base told apart by the cross-sections' width")
     series = volume.series
     source = {
-        "series_instance_uid": series.series_instance_uid,
-        "study_instance_uid": series.study_instance_uid,
+        "series_instance_uid": pseudonym_uid(series.series_instance_uid),  # PS3.15: the UIDs identify the study
+        "study_instance_uid": pseudonym_uid(series.study_instance_uid),
         "modality": series.modality,
         "manufacturer": series.manufacturer,
         "n_slices": int(volume.shape[0]),

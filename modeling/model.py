@@ -15,7 +15,8 @@ and, for 3D Slicer (:mod:`modeling.slicer`; ``docs/slicer.md``)::
 
 The folder carries no patient-identifying data: ``source`` accepts only the
 keys in :data:`SOURCE_KEYS` (series and study instance UIDs, modality,
-geometry), never names, IDs or dates.
+geometry), never names, IDs or dates; the models heartreg builds hold the UIDs'
+pseudonyms (:func:`hrcore.redact.pseudonym_uid`), older ones the UIDs.
 """
 
 from __future__ import annotations

@@ -11,11 +11,14 @@ an R-peak file and on the folder above the patient's (a duplicate image in a
 subfolder: its note names the file), ``model`` with a mask whose file names carry the patient's name
 (exports often do), and every file they wrote is searched, as bytes and with the
 compressed text chunks of PNG files inflated, for the name, the ID, the birth date
-(both spellings), the folder name and the temporary path.
+(both spellings), the folder name and the temporary path, and, with what they
+printed, for the study's DICOM UIDs (DICOM PS3.15: outputs carry their pseudonyms,
+``hrcore.redact.pseudonym_uid``).
 """
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 from pathlib import Path
@@ -24,6 +27,7 @@ import pydicom
 import pytest
 
 from heartreg.cli import main
+from hrcore.redact import pseudonym_uid
 from tests.heartreg.small_case import first_points
 
 NAME = "DOE^JANE"
@@ -105,7 +109,18 @@ def _leaks(out_root: Path, needles: list[str]) -> list[str]:
     return found
 
 
-def test_no_patient_data_in_any_output(sample_case, tmp_path):
+def _study_uids(ct: Path) -> dict[str, str]:
+    """Every instance UID of the study's files (study, series, frame of reference, image), as pydicom reads them."""
+    uids = {}
+    for f in sorted(ct.iterdir()):
+        ds = pydicom.dcmread(f, stop_before_pixels=True)
+        for tag in ("StudyInstanceUID", "SeriesInstanceUID", "FrameOfReferenceUID", "SOPInstanceUID"):
+            if tag in ds:
+                uids[str(ds[tag].value)] = f"{tag} of a {ds.Modality} file"
+    return uids
+
+
+def test_no_patient_data_in_any_output(sample_case, tmp_path, capsys):
     case, _ = sample_case
     folder = _patient_case(case, tmp_path / "studies")
     out = tmp_path / "outputs"
@@ -131,6 +146,31 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path):
     needles = [NAME, NAME.replace("^", " "), PATIENT_ID, BIRTH, "1961-04-12", FOLDER, str(tmp_path),
                str(tmp_path.resolve())]
     assert _leaks(out, needles) == []
+    # the study's UIDs: in no file written nor anything printed (the summaries name the series by its pseudonym)
+    uids = _study_uids(ct)
+    ct_file = pydicom.dcmread(next(f for f in sorted(ct.iterdir()) if pydicom.dcmread(f).Modality == "CT"))
+    study, series = str(ct_file.StudyInstanceUID), str(ct_file.SeriesInstanceUID)
+    assert {uids[study], uids[series]} == {"StudyInstanceUID of a CT file", "SeriesInstanceUID of a CT file"}
+    assert len(uids) > 70  # each image's SOPInstanceUID, the ECG's series
+    assert [f"{hit} ({uids[hit.split(': ')[1]]})" for hit in _leaks(out, list(uids))] == []
+    printed = capsys.readouterr()
+    assert [uids[u] for u in uids if u in printed.out or u in printed.err] == []
+    assert f"slices of series {pseudonym_uid(series)}\n" in printed.out
+    assert f"heart model of series {pseudonym_uid(series)} written to" in printed.out
+    for model_json in (out / "model_mask" / "model.json", out / "pipeline" / "model" / "model.json"):
+        source = json.loads(model_json.read_text())["source"]
+        assert (source["series_instance_uid"], source["study_instance_uid"]) == (pseudonym_uid(series),
+                                                                                pseudonym_uid(study))
+    # the same series in the phase report: one can still tell a model and its phases belong together
+    for phases_json in (out / "phases" / "phases.json", out / "pipeline" / "phases" / "phases.json"):
+        written = json.loads(phases_json.read_text())
+        assert written["series_instance_uid"] == pseudonym_uid(series)
+        assert f"chose series [0] {pseudonym_uid(series)}: axial CT" in written["volume_notes"][0]
+    # the listing a user picks a series from shows the study's own UIDs, and --series takes them
+    assert main(["phases", str(ct), "--list-series"]) == 0
+    assert f"[0] {series}  CT" in capsys.readouterr().out
+    assert main(["phases", str(ct), "--series", series, "-o", str(tmp_path / "chosen"), "-q"]) == 0
+    assert json.loads((tmp_path / "chosen" / "phases.json").read_text())["series_instance_uid"] == pseudonym_uid(series)
 
 
 @pytest.mark.parametrize("needle", [FOLDER, PATIENT_ID])

@@ -63,3 +63,10 @@ def test_uids_in_a_text_become_their_pseudonyms_but_the_standards_own():
         f"chose series [0] {pseudonym_uid(SERIES)}: axial CT; series {pseudonym_uid(STUDY)}: 1 image(s) of another "
         "size; no image (SOP Class 1.2.840.10008.5.1.4.1.1.9.1.1); heartreg 1.2.3, 1.5 mm")
 
+
+def test_phases_json_carries_the_pseudonym_of_the_series_uid(tmp_path):
+    volume = SimpleNamespace(notes=(f"chose series [0] {SERIES}: axial CT, 72 image(s)",),
+                             series=SimpleNamespace(series_instance_uid=SERIES))
+    extra = phase_report_extra(volume, tmp_path)
+    assert extra == {"series_instance_uid": pseudonym_uid(SERIES),
+                     "volume_notes": [f"chose series [0] {pseudonym_uid(SERIES)}: axial CT, 72 image(s)"]}

@@ -139,6 +139,16 @@ def test_no_patient_data_and_input_checks(model):
     assert isinstance(model, HeartModel)
 
 
+def test_older_model_with_the_study_uids_reads(model, tmp_path):
+    """Models written before the pseudonyms (hrcore.redact.pseudonym_uid) carry the study's UIDs: read as they are."""
+    out = write_model(model, tmp_path / "m")
+    meta = json.loads((out / "model.json").read_text())
+    meta["source"]["study_instance_uid"] = "1.2.826.0.1.3680043.8.498.2"
+    (out / "model.json").write_text(json.dumps(meta))
+    assert dict(read_model(out).source) == {"series_instance_uid": "1.2.826.0.1.3680043.8.498.1",
+                                            "study_instance_uid": "1.2.826.0.1.3680043.8.498.2", "kind": "phantom"}
+
+
 def test_order_fiducials():
     truth = layout.fiducials_patient_mm()
     shuffled = truth[np.random.default_rng(3).permutation(9)]
