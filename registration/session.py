@@ -164,10 +164,15 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
         fiducials_probe_mm=fiducials,
         exclusions=tuple(exclusions),
         generator=str(meta.get("generator", "")),
-        pose_source=f"PLUS sequence ({', '.join(sorted(plus_files))})" if plus_files else "csv",
+        pose_source=_plus_source(len(plus_files)) if plus_files else "csv",  # by kind: a file name can name the patient
         notes=tuple(notes),
         fiducial_trace=trace,
     )
+
+
+def _plus_source(n_files: int) -> str:
+    """Where the poses came from, by kind and count (PLUS files are often named after the patient)."""
+    return "PLUS sequence" if n_files == 1 else f"PLUS sequences ({n_files} files)"
 
 
 def _find_folder(path: Path) -> Path:

@@ -173,7 +173,8 @@ class Session:
     generator : str
         The writing software, as recorded (may be empty).
     pose_source : str
-        Where the poses came from: ``"csv"``, or ``"PLUS sequence (NAME)"``.
+        Where the poses came from: ``"csv"``, ``"PLUS sequence"`` or ``"PLUS sequences (N files)"`` (by
+        kind, never by file name: it can name the patient).
     notes : tuple of str
         What the reader did that a user should know (e.g. samples dropped for
         an invalid PLUS pose).

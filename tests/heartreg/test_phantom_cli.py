@@ -54,7 +54,7 @@ def test_cli_writes_a_complete_case(tmp_path, capsys):
     from registration.session import read_session
 
     csv, plus = read_session(out / "session"), read_session(out / "session_plus")
-    assert plus.pose_source == "PLUS sequence (tracking.seq.mha)" and len(plus.points) == 6
+    assert plus.pose_source == "PLUS sequence" and len(plus.points) == 6
     for a, b in zip(csv.points, plus.points):
         np.testing.assert_array_equal(a.T_probe_from_robot, b.T_probe_from_robot)
         np.testing.assert_array_equal(a.ecg_mv, b.ecg_mv)
