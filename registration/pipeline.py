@@ -278,11 +278,18 @@ def register_session(
         except (SignalError, TemporalError) as exc:
             notes.append(f"the fiducial trace was not used: {exc}")
     vertices = model.mesh.vertices
-    shape = estimate_phase(
-        phases, resp.distances_mm, resp.T_heart_from_probe, vertices, fiducials=curve,
-        breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd, points_mm=means_map,
-    )
     paper = paper_phase(phases, resp.T_heart_from_probe, fid_probe, fid_model, pivot, vertices, order=fid.order)
+    try:
+        shape = estimate_phase(
+            phases, resp.distances_mm, resp.T_heart_from_probe, vertices, fiducials=curve,
+            breath_hold_phase=breath_hold_phase, breath_hold_sd=breath_hold_sd, points_mm=means_map,
+        )
+    except TemporalError as exc:  # too few points for its interval: only eq. 10's choice can stand
+        if estimator is TemporalEstimator.SHAPE:
+            raise
+        shape = None
+        notes.append(f"the shape estimator (reported beside eq. 10) was not run: it needs at least 7 registered "
+                     f"points, got {resp.distances_mm.shape[1]}")
     chosen, other = (shape, paper) if estimator is TemporalEstimator.SHAPE else (paper, shape)
     timings["phase_estimate"] = time.perf_counter() - t
     if not chosen.decided:
@@ -385,7 +392,7 @@ def register_session(
         respiration_sweep=resp,
         cardiac_sweep=card,
         static=static,
-        phase_estimates=(chosen, other),
+        phase_estimates=(chosen, other) if other is not None else (chosen,),
         point_ids=frozen(np.array([f.point_id for f in fits], dtype=np.int64)),
         points_probe_mm=frozen(reg.points_probe_mm),
         normals_probe=frozen(normals),
