@@ -321,10 +321,11 @@ def evaluate(
         case's name to its one-line error (a failed case is left out of the
         table and runs again next time).
     """
-    if harmonics is not None:  # checked (a UsageError naming --harmonics) before any case runs
-        from registration.options import RegistrationOptions
+    from registration.options import RegistrationOptions
 
+    if harmonics is not None:  # checked (a UsageError naming --harmonics) before any case runs
         harmonics = dataclasses.astuple(RegistrationOptions(harmonics=harmonics).harmonics)
+    wanted = list(harmonics if harmonics is not None else dataclasses.astuple(RegistrationOptions().harmonics))
     seeds = [int(s) for s in seeds]
     if not seeds or min(seeds) < 1:
         raise UsageError(f"seeds must be 1 or more (--seeds N runs seeds 1..N), got {seeds}")
@@ -347,6 +348,9 @@ def evaluate(
                 if have[path].get("size", size) != size:
                     raise UsageError(f"{out} holds cases of size {have[path]['size']!r}, not {size!r} (--size): "
                                      "choose another output folder for another size")
+                if list(have[path].get("harmonics", wanted)) != wanted:
+                    raise UsageError(f"{out} holds cases fitted with harmonics {have[path]['harmonics']}, not {wanted} "
+                                     "(--harmonics): choose another output folder for other harmonics")
             else:
                 todo.append((preset, int(seed), true_phase(preset, int(seed)), size, harmonics))
     failed = {}

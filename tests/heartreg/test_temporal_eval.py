@@ -82,7 +82,8 @@ def test_bad_harmonics_are_refused_before_any_case_runs(tmp_path, capsys):
 
 def test_bad_seeds_workers_and_case_records_are_one_line(tmp_path, capsys, grid_slice):
     """Session 17's sweep: --seeds 0 made OUT and said 'no case yet'; --workers -1 said 'at least 1' though 0
-    runs in process; a damaged case record was a traceback; cases of another --size were labelled with it."""
+    runs in process; a damaged case record was a traceback; cases of another --size (or --harmonics) were labelled
+    with it."""
     out = tmp_path / "out"
     with pytest.raises(SystemExit) as info:  # a usage error naming the flag and the value typed
         main(["evaluate-temporal", "-o", str(out), "--trials", "1", "--seeds", "0", "-q"])
@@ -98,6 +99,11 @@ def test_bad_seeds_workers_and_case_records_are_one_line(tmp_path, capsys, grid_
     argv = ["evaluate-temporal", "-o", str(out), "--trials", trial, "--seeds", seed, "--report-only", "-q"]
     assert main([*argv, "--size", "full"]) == 1
     assert "holds cases of size 'sample', not 'full'" in capsys.readouterr().err
+    # ... nor cases fitted with other harmonics (an audit: the same table came back, labelled with neither)
+    assert main([*argv, "--harmonics", "5", "4", "2", "1"]) == 1
+    assert "holds cases fitted with harmonics [5, 4, 5, 2], not [5, 4, 2, 1] (--harmonics)" in capsys.readouterr().err
+    assert main(argv) == 0 and main([*argv, "--harmonics", "5", "4", "5", "2"]) == 0
+    capsys.readouterr()
     (out / "cases" / case.name).write_text("{bad")
     assert main(argv) == 1
     err = capsys.readouterr().err
