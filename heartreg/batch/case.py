@@ -264,7 +264,7 @@ def _error_line(exc: BaseException) -> str:
     return f"internal error ({type(exc).__name__}: {text}); a bug in heartreg, please report it"
 
 
-def _remove_leftovers(out: Path, name: str) -> None:
+def remove_leftovers(out: Path, name: str) -> None:
     """Staging folders a stopped run left for this case (only this case's: other cases may be running)."""
     for pattern in (f".{name}.staging-*", f".{name}.old-*"):
         for leftover in out.glob(pattern):
@@ -330,7 +330,7 @@ def run_case(case: Case, out_dir: str) -> CaseRecord:
                           error=f"{step}: {_without_file_names(case)(_redact(_error_line(exc), pairs))}",
                           times_s={"total": time.perf_counter() - t_start})
 
-    _remove_leftovers(out, case.name)
+    remove_leftovers(out, case.name)
     staging = Path(tempfile.mkdtemp(prefix=f".{case.name}.staging-", dir=out))
     pairs = pairs + [(str(staging), f"<out>/{case.name}")]
     times, notes = {}, []

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import re
 import shlex
 from dataclasses import dataclass
@@ -61,6 +62,9 @@ class Case:
     inputs : dict of str to str
         Every input path of the case by role (``study``, ``session``,
         ``model --mask``, ``phases --qrs``, ...): what its key hashes.
+    unnamed_study : str
+        The study as the cohort gives it when the cohort gives no name
+        (the case is :func:`default_name` of it), else ``""``.
     """
 
     name: str
@@ -68,6 +72,7 @@ class Case:
     session: str
     argv: dict
     inputs: dict
+    unnamed_study: str = ""
 
     @property
     def has_session(self) -> bool:
@@ -191,7 +196,16 @@ def _absolute_paths(argv: list[str], actions: dict, base: Path) -> tuple[list[st
     return out, paths
 
 
+def default_name(study: str) -> str:
+    """A case's name when the cohort gives none: ``case-`` and 10 hex digits of the SHA-256 of the study's path as
+    the cohort gives it (a folder's name is often the patient's: it would name the output folder, the summary's
+    rows and the page; the hash is the same on every run, so a run goes on where the last one stopped)."""
+    return "case-" + hashlib.sha256(study.encode()).hexdigest()[:10]
+
+
 def _make_case(name, study, session, mask, options, *, base: Path, where: str, table) -> Case:
+    unnamed = "" if name else study
+    name = name or default_name(study)
     if not _NAME.match(name):
         raise CohortError(
             f"{where}: case name {name!r} must start with a letter or digit and hold only letters, digits, "
@@ -220,7 +234,8 @@ def _make_case(name, study, session, mask, options, *, base: Path, where: str, t
     if not session:
         argv["register"] = ()
     _check_parse(argv, inputs, where)
-    return Case(name=name, study=inputs["study"], session=inputs.get("session", ""), argv=argv, inputs=inputs)
+    return Case(name=name, study=inputs["study"], session=inputs.get("session", ""), argv=argv, inputs=inputs,
+                unnamed_study=unnamed)
 
 
 def _check_parse(argv: dict, inputs: dict, where: str) -> None:
@@ -257,8 +272,9 @@ def read_cohort(path) -> tuple[Case, ...]:
         A CSV file with a header and the columns ``study`` (required),
         ``case``, ``session``, ``mask`` and ``options`` (optional; see the
         module docstring), paths relative to the file's folder; or a folder
-        whose every subfolder is one study (phases and model, named by the
-        subfolder; a batch's output folder inside it is not one).
+        whose every subfolder is one study (phases and model; a batch's
+        output folder inside it is not one).  A case the cohort does not name
+        is named by :func:`default_name`, never by its folder.
 
     Returns
     -------
@@ -281,15 +297,7 @@ def read_cohort(path) -> tuple[Case, ...]:
                          and not is_batch_output(p))
         if not folders:
             raise CohortError(f"cohort folder {path} holds no study folders; give a folder of study folders or a CSV")
-        bad = [p.name for p in folders if not _NAME.match(p.name)]
-        if bad:  # all of them at once, not one per run
-            raise CohortError(
-                f"cohort folder {path}: {len(bad)} folder name(s) cannot name a case "
-                f"({', '.join(map(repr, bad[:5]))}{', ...' if len(bad) > 5 else ''}): a case name starts with a letter "
-                "or digit and holds only letters, digits, '.', '_' and '-'; rename them, or list the cases in a "
-                "cohort CSV whose 'case' column names them"
-            )
-        cases = [_make_case(p.name, p.name, "", "", "", base=path, where=f"cohort folder {path}", table=table)
+        cases = [_make_case("", p.name, "", "", "", base=path, where=f"cohort folder {path}", table=table)
                  for p in folders]
     elif path.is_file():
         try:
@@ -314,8 +322,7 @@ def read_cohort(path) -> tuple[Case, ...]:
                 raise CohortError(f"{where}: {len(row)} fields for {len(header)} columns")
             cell = dict(zip(header, (c.strip() for c in row)))
             study = cell.get("study", "")
-            name = cell.get("case") or Path(study).name
-            cases.append(_make_case(name, study, cell.get("session", ""), cell.get("mask", ""),
+            cases.append(_make_case(cell.get("case", ""), study, cell.get("session", ""), cell.get("mask", ""),
                                     cell.get("options", ""), base=path.parent, where=where, table=table))
         if not cases:
             raise CohortError(f"cohort file {path} has a header but no cases")

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from heartreg.batch.case import CaseRecord, read_case_record, run_case
+from heartreg.batch.case import CaseRecord, read_case_record, remove_leftovers, run_case
 from heartreg.batch.cluster import (
     DEFAULT_MEMORY_LIMIT,
     TaskFailure,
@@ -186,6 +186,9 @@ def run_batch(
         raise CohortError("cohort must be a CSV file, a folder or a sequence of Case")
     mine = select_part(cases, num_parts, part_id)
     out = _check_out(Path(out_dir), cases)
+    for case in mine:  # on the terminal only: the study's folder name can name the patient
+        if case.unnamed_study:
+            say(f"case {case.name}: study {case.unnamed_study}")
     now: dict[str, CaseRecord] = {}
     interrupted = False
     counts = {"done": 0, "failed": 0}
@@ -210,6 +213,9 @@ def run_batch(
     except KeyboardInterrupt:
         interrupted = True
         say(f"interrupted: {len(now)} of {len(mine)} case(s) finished; run the same command again to go on")
+        for case in mine:  # the local workers are stopped (a scheduler's own may still be writing theirs)
+            if scheduler is None and case.name not in now and out.is_dir():
+                remove_leftovers(out, case.name)
         raise
     finally:
         records = tuple(now.get(c.name) or _on_disk(out, c.name) for c in cases)
