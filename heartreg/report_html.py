@@ -163,7 +163,7 @@ def write_html_report(run, path, *, truth_rows=None, title: str = "heartreg run"
     t = reg.T_heart_from_probe[:3, 3]
     phase_rows = [
         (f"respiration phase phi_R* by {e.method}" + (" (used)" if k == 0 else ""),
-         f"{e.respiration_phase:.2f}, 90 % interval [{e.interval[0]:.2f}, {e.interval[1]:.2f}]; final T within "
+         f"{e.respiration_phase:.2f}, 90 % interval {e.interval_text()}; final T within "
          f"{e.transform_mm:.1f} mm, {e.transform_deg:.1f} deg"
          + ("" if e.decided else " — UNDECIDED: the data cannot decide phi_R*"))
         for k, e in enumerate(reg.phase_estimates)

@@ -178,7 +178,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
                 _shade_interval(ax_j, e, "#2980b9", "90 % interval")
             colour = "#2980b9" if e.method == "shape" else "#e67e22"
             ax_b.hist(e.bootstrap_phases, bins=np.linspace(0, 1, 51), color=colour, alpha=0.6,
-                      label=f"{e.method}: {e.respiration_phase:.2f} [{e.interval[0]:.2f}, {e.interval[1]:.2f}]"
+                      label=f"{e.method}: {e.respiration_phase:.2f}, {e.interval_text()}"
                       + ("" if e.decided else " undecided"))
         ax_j.set_ylabel("J - min J (chi-square units)")
         ax_j.set_yscale("symlog", linthresh=10.0)

@@ -114,11 +114,18 @@ class TemporalEstimate:
         d = float(wrap_phase(phase - self.respiration_phase))
         return bool(self.interval_offsets[0] - 1e-9 <= d <= self.interval_offsets[1] + 1e-9)
 
+    def interval_text(self) -> str:
+        """The interval as printed: ``[0.25, 0.35]``, ``[0.95, 0.05] through 0`` when it wraps, ``the whole
+        cycle`` when it leaves out less than 0.02 of it (an audit read ``[0.79, 0.78]`` as a narrow interval)."""
+        lo, hi = self.interval
+        if self.width >= 0.98:
+            return "the whole cycle"
+        return f"[{lo:.2f}, {hi:.2f}]" + (" through 0" if lo > hi else "")
+
     def summary(self) -> str:
         """One line: phase, interval, and whether the data decide."""
-        lo, hi = self.interval
         text = (f"phi_R* {self.respiration_phase:.2f} ({self.method}), {100 * self.confidence:.0f} % interval "
-                f"[{lo:.2f}, {hi:.2f}]; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
+                f"{self.interval_text()}; final T within {self.transform_mm:.1f} mm, {self.transform_deg:.1f} deg")
         if not self.decided:
             text += f"; UNDECIDED: the data cannot decide phi_R* (interval {self.width:.2f} of a cycle wide): {self.advice()}"
         return text

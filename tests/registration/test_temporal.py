@@ -214,3 +214,16 @@ def test_terms_that_disagree_widen_the_interval_to_hold_both():
     assert type(apart).from_dict(legacy).disagreement == 1.0
     assert "the heart and the chest disagree" in dataclasses.replace(apart, decided=False).summary()
     assert "trace the staples" in dataclasses.replace(agree, decided=False).summary()
+
+
+def test_the_interval_reads_as_it_is_wrapping_or_whole():
+    """An audit read eq. 10's ``[0.79, 0.78]`` (all but 0.01 of the cycle) as a narrow interval."""
+    rng = np.random.default_rng(1)
+    est = estimate_phase(PHASES, _distances(rng, 0.5), _identity_sweep(101), rng.normal(0, 40, (200, 3)))
+    lo, hi = est.interval
+    assert est.interval_text() == f"[{lo:.2f}, {hi:.2f}]" and f"interval [{lo:.2f}, {hi:.2f}];" in est.summary()
+    wraps = dataclasses.replace(est, interval=np.array([0.95, 0.05]), interval_offsets=np.array([-0.05, 0.05]))
+    assert wraps.interval_text() == "[0.95, 0.05] through 0"
+    whole = dataclasses.replace(est, interval=np.array([0.79, 0.78]), interval_offsets=np.array([-0.5, 0.49]),
+                                decided=False)
+    assert whole.interval_text() == "the whole cycle" and "interval the whole cycle; " in whole.summary()
