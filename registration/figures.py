@@ -34,16 +34,30 @@ def _shade_interval(ax, estimate, colour, label):
 
 
 # ------------------------------------------------------------------ plots
-def _figure(ncols, width=11.0, height=4.2, top_in=0.6):
+#: inches under a panel's axis label for one row of its legend (:func:`_legend_below`)
+_LEGEND_ROW_IN = 0.2
+
+
+def _figure(ncols, width=11.0, height=4.2, top_in=0.6, legend_rows=0):
     """A figure of ``ncols`` panels in a row; ``top_in`` (inches) holds the
-    suptitle and the panels' titles (0.35 for a title alone)."""
+    suptitle and the panels' titles (0.35 for a title alone); ``legend_rows``
+    rows of legend fit under the panels (the figure grows by them)."""
     from matplotlib.figure import Figure  # no pyplot: no global backend state
 
-    fig = Figure(figsize=(width, height), dpi=_DPI)
+    legend_in = legend_rows * _LEGEND_ROW_IN + (0.15 if legend_rows else 0.0)
+    fig = Figure(figsize=(width, height + legend_in), dpi=_DPI)
     axes = subplots(fig, 1, ncols, squeeze=False)[0]
     # fixed room (no layout engine: it cost half of writing the figures) for tick and axis labels
-    fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55, top_in=top_in, wspace_in=0.8)
+    fixed_margins(fig, left_in=0.68, right_in=0.15, bottom_in=0.55 + legend_in, top_in=top_in, wspace_in=0.8)
     return fig, axes
+
+
+def _legend_below(ax, ncol=2):
+    """The panel's legend under its axis label, where it covers no curve, marker or interval (inside the panels
+    it hid Fig. 2B's peak, Fig. 7's eq. 10 minimum and Fig. 10A's cost: an audit)."""
+    height_in = ax.get_figure().get_size_inches()[1] * ax.get_position().height
+    ax.legend(fontsize=8, ncol=ncol, loc="upper center", frameon=False,
+              bbox_to_anchor=(0.5, -0.48 / height_in))
 
 
 def _save(fig, path: Path) -> Path:
@@ -70,11 +84,11 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     paths = {}
 
     # Fig. 2: RMS vs phase
-    fig, (ax_c, ax_r) = _figure(2)
+    fig, (ax_c, ax_r) = _figure(2, legend_rows=1)
     if card is not None:
         ax_c.plot(card.phases, card.rms_mm, color="#2c3e50", marker=".", markersize=3)
         _mark(ax_c, phi_c, f"image phase $\\varphi_C^*$ = {phi_c:.2f}")
-        ax_c.legend(loc="upper right", fontsize=8)
+        _legend_below(ax_c)
     else:
         ax_c.text(0.5, 0.5, "cardiac sweep not run", ha="center", va="center", transform=ax_c.transAxes)
     ax_c.set_title(f"(A) cardiac phase swept at $\\varphi_R$ = {phi_r:.2f}", fontsize=10)
@@ -82,7 +96,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     ax_r.plot(resp.phases, resp.rms_mm, color="#2c3e50", marker=".", markersize=3)
     method = result.phase_estimates[0].method if result.phase_estimates else "eq10"
     _mark(ax_r, phi_r, f"$\\varphi_R^*$ = {phi_r:.2f} ({method})")
-    ax_r.legend(loc="upper right", fontsize=8)
+    _legend_below(ax_r)
     ax_r.set_title(f"(B) respiration phase swept at $\\varphi_C^*$ = {phi_c:.2f}", fontsize=10)
     ax_r.set_xlabel("respiration phase $\\varphi_R$")
     for ax in (ax_c, ax_r):
@@ -117,7 +131,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
     paths["fig6"] = _save(fig, out / "fig6_parameters.png")
 
     # Fig. 7: distance magnitudes vs phi_R
-    fig, (ax_t, ax_r) = _figure(2)
+    fig, (ax_t, ax_r) = _figure(2, legend_rows=2)
     ax_t.plot(resp.phases, resp.translation_distance_mm, color="#2c3e50")
     ax_r.plot(resp.phases, resp.rotation_distance_deg, color="#2c3e50")
     estimates = {e.method: e for e in result.phase_estimates}
@@ -143,7 +157,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
         ax.set_xlim(0, 1)
         ax.set_ylim(bottom=0)
         ax.set_title(title, fontsize=10)
-        ax.legend(fontsize=8, loc="upper right")
+        _legend_below(ax)
         ax.grid(alpha=0.3)
     fig.suptitle("Distance of the registration from the fiducial seed (cf. Fig. 7, eq. 10)", fontsize=11)
     paths["fig7"] = _save(fig, out / "fig7_distances.png")
@@ -165,7 +179,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
 
     # Fig. 10 (ours): the evidence behind phi_R* and its bootstrap
     if result.phase_estimates:
-        fig, (ax_j, ax_b) = _figure(2)
+        fig, (ax_j, ax_b) = _figure(2, legend_rows=2)
         for e in result.phase_estimates:
             if e.method == "shape":
                 ax_j.plot(resp.phases, e.cost, color="#2c3e50", label="J, all terms")
@@ -179,7 +193,7 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
             colour = "#2980b9" if e.method == "shape" else "#e67e22"
             ax_b.hist(e.bootstrap_phases, bins=np.linspace(0, 1, 51), color=colour, alpha=0.6,
                       label=f"{e.method}: {e.respiration_phase:.2f}, {e.interval_text()}"
-                      + ("" if e.decided else " undecided"))
+                      + ("" if e.decided else " (undecided)"))
         ax_j.set_ylabel("J - min J (chi-square units)")
         ax_j.set_yscale("symlog", linthresh=10.0)
         ax_j.set_title("(A) shape estimator: cost over the respiration phase", fontsize=10)
@@ -188,8 +202,9 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
         for ax in (ax_j, ax_b):
             ax.set_xlabel("respiration phase $\\varphi_R$")
             ax.set_xlim(0, 1)
-            ax.legend(fontsize=8, loc="upper right")
             ax.grid(alpha=0.3)
+        _legend_below(ax_j)
+        _legend_below(ax_b, ncol=1)
         fig.suptitle("The image's respiration phase: evidence and uncertainty", fontsize=11)
         paths["fig10"] = _save(fig, out / "fig10_phase.png")
     return paths
