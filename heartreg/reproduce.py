@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -331,11 +332,14 @@ def _load_trial(k, trial_dir, *, size, seed, n_points) -> TrialResult:
 
 
 def _trial_task(k: int, out_dir: str, size: str, seed: int, n_points, phase_step: float):
-    """One trial as a Dask task: paths in, its result and log lines out."""
+    """One trial as a Dask task: paths in, its result and log lines out (its warnings among them, one line each:
+    the worker printed them as Python does, file, line and source, an audit)."""
     lines = []
-    result = _run_trial(k, Path(out_dir) / f"trial{k}", size=size, seed=seed, n_points=n_points,
-                        phase_step=phase_step, progress=False, say=lines.append)
-    return result, lines
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        result = _run_trial(k, Path(out_dir) / f"trial{k}", size=size, seed=seed, n_points=n_points,
+                            phase_step=phase_step, progress=False, say=lines.append)
+    return result, lines + [f"warning: {' '.join(str(w.message).split())}" for w in caught]
 
 
 def _run_trials(trials, out: Path, *, size, seed, n_points, phase_step, workers, scheduler, memory_limit,

@@ -278,3 +278,24 @@ def test_an_interrupt_leaves_no_staging_of_its_stopped_workers(tmp_path, monkeyp
         _run_trials([1, 2], out, size="sample", seed=0, n_points=None, phase_step=0.02, workers=1, scheduler=None,
                     memory_limit=None, progress=False, say=lambda m: None)
     assert not out.exists()
+
+
+def test_a_trials_warnings_come_back_as_its_log_lines(monkeypatch):
+    """A trial's warning reached the terminal from its Dask worker as Python prints it, file, line and source
+    line (an audit's 'reproduce' run); the task returns it as one line the driver prints with the trial's name."""
+    import warnings
+
+    import heartreg.reproduce as reproduce
+    from modeling.build import ModelingWarning
+
+    def run_trial(k, trial_dir, *, say, **kw):
+        say("phantom written")
+        warnings.warn("the vessel trim left 2 pieces;\n  the largest was kept", ModelingWarning, stacklevel=2)
+        return "result"
+
+    monkeypatch.setattr(reproduce, "_run_trial", run_trial)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing escapes the task
+        result, lines = reproduce._trial_task(1, "/nowhere", "sample", 0, None, 0.02)
+    assert result == "result"
+    assert lines == ["phantom written", "warning: the vessel trim left 2 pieces; the largest was kept"]
