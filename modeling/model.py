@@ -453,6 +453,7 @@ def read_model(model_dir) -> HeartModel:
     try:
         mesh = read_ply(ply)
         fit = meta["frame_fit"]
+        fid_heart = meta["fiducials_heart_mm"]  # a missing one 'disagreed with T_heart_from_patient' (an audit)
         frame = HeartFrame(
             T_heart_from_patient=np.asarray(meta["T_heart_from_patient"], dtype=np.float64),
             euler_xyz_deg=tuple(meta["euler_xyz_deg"]),
@@ -484,7 +485,7 @@ def read_model(model_dir) -> HeartModel:
     if mesh.n_faces != meta.get("n_faces"):
         raise ModelError(f"{ply} has {mesh.n_faces} faces, {jpath} says {meta.get('n_faces')}")
     try:
-        fid_heart = np.asarray(meta.get("fiducials_heart_mm", []), dtype=np.float64).reshape(-1, 3)
+        fid_heart = np.asarray(fid_heart, dtype=np.float64).reshape(-1, 3)
     except (TypeError, ValueError) as exc:
         raise ModelError(f"{jpath}: fiducials_heart_mm must be a list of [x, y, z] mm ({exc})") from None
     if fid_heart.shape != model.fiducials_heart_mm.shape or not np.allclose(

@@ -292,6 +292,9 @@ def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrac
     file = folder / rel
     cols = _read_header(file, rel, FIDUCIAL_TRACE_COLUMNS)
     data = _load_table(file, rel, cols, FIDUCIAL_TRACE_COLUMNS).reshape(-1, len(FIDUCIAL_TRACE_COLUMNS))
+    if not len(data):  # it said all nine staples were 'never held' (an audit)
+        raise SessionError(f"{rel} holds a header and no rows; record the trace again, or remove "
+                           "'fiducial_trace_file' from session.json to register with the touched fiducials alone")
     _check_finite(data, rel, FIDUCIAL_TRACE_COLUMNS)
     time_s = data[:, 0]
     steps = np.diff(time_s)

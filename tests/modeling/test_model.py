@@ -121,6 +121,11 @@ def test_read_errors(model, tmp_path):
     (out / "model.json").write_text(json.dumps(meta))
     with pytest.raises(ModelError, match="incomplete or corrupt"):
         read_model(out)
+    del meta["fiducials_heart_mm"]  # was read as none, then said to 'disagree with T_heart_from_patient'
+    meta["ellipses"] = json.loads((write_model(model, tmp_path / "m5") / "model.json").read_text())["ellipses"]
+    (out / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match=r"incomplete or corrupt \(no field 'fiducials_heart_mm'\)"):
+        read_model(out)
     out = write_model(model, tmp_path / "m4")
     (out / "heart.ply").unlink()
     with pytest.raises(ModelError, match="no heart.ply"):

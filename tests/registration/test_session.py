@@ -164,6 +164,14 @@ def test_a_trace_in_a_format_1_file_or_a_staple_never_held_is_refused(copy):
     file.write_text("\n".join(kept) + "\n")
     with pytest.raises(SessionError, match=r"fiducial_trace.csv: staple\(s\) \[5\] never held"):
         read_session(copy)
+    file.write_text(lines[0] + "\n")  # a header alone: not 'staples [1, ..., 9] never held'
+    with pytest.raises(SessionError, match=r"fiducial_trace.csv holds a header and no rows; .* remove "
+                                           r"'fiducial_trace_file' from session.json"):
+        read_session(copy)
+    meta = json.loads((copy / "session.json").read_text())  # as the message says: the touched fiducials alone
+    del meta["fiducial_trace_file"]
+    (copy / "session.json").write_text(json.dumps(meta))
+    assert read_session(copy).fiducial_trace is None
 
 
 def test_parent_folder_is_accepted(phantom):
