@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import warnings
 from pathlib import Path
 
 from hrcore.errors import UsageError
@@ -147,6 +148,11 @@ def _model_options(args):
             points = read_markups(args.seed).points_lps_mm
             if len(points) == 0:
                 raise UsageError(f"--seed: the markups file {args.seed} holds no placed point")
+            if len(points) > 1:  # the others were ignored without a word (an audit)
+                from modeling.build import ModelingWarning
+
+                warnings.warn(f"--seed: the markups file {args.seed} holds {len(points)} points; the first is the "
+                              "seed, the others are not used", ModelingWarning, stacklevel=2)
             seed = [float(x) for x in points[0]]
         else:
             seed = list(args.seed)

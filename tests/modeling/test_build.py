@@ -275,6 +275,14 @@ def test_cli_seed_point(tmp_path, capsys):
         (tmp_path / "mrk" / "model.json").read_text())
     assert a["parameters"]["segmentation"]["seed_patient_mm"] == pytest.approx(centre_lps)
     assert b["parameters"]["segmentation"]["seed_patient_mm"] == pytest.approx(centre_lps)
+    # more than one point: the first is the seed, and the user is told (the others were ignored without a word)
+    mrk = json.loads(markups.read_text())
+    mrk["markups"][0]["controlPoints"] += [{"label": "F-2", "position": [0, 0, 0]}, {"label": "F-3", "position": [1, 1, 1]}]
+    markups.write_text(json.dumps(mrk))
+    with pytest.warns(UserWarning, match=r"--seed: the markups file .*seed.mrk.json holds 3 points; the first is"):
+        assert main(["model", str(path), "-o", str(tmp_path / "mrk3"), "-q", "--seed", str(markups)]) == 0
+    assert json.loads((tmp_path / "mrk3" / "model.json").read_text())["parameters"]["segmentation"][
+        "seed_patient_mm"] == pytest.approx(centre_lps)
     mesh = read_model(tmp_path / "lps").mesh_patient()
     volume_ml = abs(trimesh.Trimesh(mesh.vertices, mesh.faces).volume) / 1000.0
     assert 0.9 * (4 / 3 * np.pi * 32 * 26 * 40 / 1000) < volume_ml < 1.1 * (4 / 3 * np.pi * 32 * 26 * 40 / 1000)
