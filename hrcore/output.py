@@ -485,6 +485,8 @@ def staged_output(
                 f"{_amount(written)} written before the disk ran out ({_amount(free)} free now, nothing "
                 "was kept); free space or choose another output path"
             ) from None
+        if exc.filename is not None:  # named as the user gave it: '/sys/.x.heartreg-1234-ab12.tmp' was (an audit)
+            raise OSError(exc.errno, exc.strerror, _named_in_out(exc.filename, stage, out)) from None
         raise
     except BaseException:
         _cleanup(stage, created)

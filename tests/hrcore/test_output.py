@@ -180,6 +180,23 @@ def test_os_error_message_is_one_line_with_a_hint():
     assert msg == "/x/model.json: Permission denied; check the permissions or choose another path"
 
 
+def test_a_refused_staging_folder_is_named_as_the_output(tmp_path, monkeypatch):
+    """``register -o /sys/x`` said '/sys/.x.heartreg-13237-c898a018.tmp: Operation not permitted' (an audit)."""
+    mkdir = os.mkdir
+
+    def refuse_staging(path, *args, **kwargs):
+        if ".heartreg-" in os.fspath(path):
+            raise PermissionError(errno.EPERM, "Operation not permitted", os.fspath(path))
+        return mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", refuse_staging)
+    out = tmp_path / "x"
+    with pytest.raises(PermissionError) as info, staged_output(out, folder=True):
+        pass
+    assert refusal_line(info.value) == f"{out}: Operation not permitted; check the permissions or choose another path"
+    assert _listing(tmp_path) == []
+
+
 _WRITER = """
 import sys, time
 from pathlib import Path
