@@ -24,7 +24,7 @@ import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, UsageError
 
 __all__ = ["COMMANDS", "Case", "CohortError", "read_cohort", "select_part"]
 
@@ -239,18 +239,24 @@ def _make_case(name, study, session, mask, options, *, base: Path, where: str, t
 
 
 def _check_parse(argv: dict, inputs: dict, where: str) -> None:
-    """Parse each command line as the CLI will (bad values fail here, before any work)."""
+    """Parse each command line as the CLI will and make its options (bad values fail here, before any work: a
+    cohort's '--faces -5' failed each case once it ran, an audit)."""
     from heartreg.cli import CommandLineError, command_parser
+    from heartreg.cli_commands import _model_options, _registration_options
 
+    options = {"model": _model_options, "register": _registration_options}
     parser = command_parser()
     lines = {"phases": ["phases", inputs["study"], "-o", "OUT"], "model": ["model", inputs["study"], "-o", "OUT"]}
     if "session" in inputs:
         lines["register"] = ["register", "MODEL", inputs["session"], "-o", "OUT"]
     for command, head in lines.items():
         try:
-            parser.parse_args([*head, *argv[command]])
-        except CommandLineError as exc:
+            args = parser.parse_args([*head, *argv[command]])
+            options.get(command, lambda a: None)(args)
+        except (CommandLineError, UsageError) as exc:
             raise CohortError(f"{where}: heartreg {command}: {exc}") from None
+        except HeartregError:  # an input it reads (a --seed file) missing or bad: that case fails, as for a study
+            pass
 
 
 def is_batch_output(folder) -> bool:

@@ -368,6 +368,9 @@ def test_a_seed_file_is_an_input_like_the_others(tmp_path, sample_case):
     ("--faces many", r"line 2: heartreg model: argument --faces: invalid int value: 'many'"),
     ("--step 0.05", r"line 2: --step is an option of register, but the case has no session"),
     ("--harmonics 5 4", r"line 2: option --harmonics needs 4 value\(s\)"),
+    # values the parser takes and the options refuse: refused here too, not once the case runs (an audit)
+    ("--faces -5", r"line 2: heartreg model: target_faces \(--faces\) must be an integer of at least 100, got -5"),
+    ("--keep-vessels --trim-vessels", r"line 2: heartreg model: --keep-vessels and --trim-vessels contradict"),
 ])
 def test_bad_options_are_refused_before_any_work(tmp_path, sample_case, options, match):
     case_dir, _ = sample_case
