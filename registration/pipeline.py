@@ -407,6 +407,7 @@ def register_session(
             fre_mm=float(fid.fre_rms_mm), max_fre_mm=max_fre_mm, fiducials_ambiguous=bool(fid.ambiguous),
             rms_mm=float(reg.rms_mm), correction_mm=float(reg.translation_distance_mm),
             correction_deg=float(reg.rotation_distance_deg),
+            invalid_samples_per_point={p.point_id: (p.n_invalid, p.n_samples + p.n_invalid) for p in session.points},
         ),
         parameters=params,
         timings_s={k: float(v) for k, v in timings.items()},

@@ -56,6 +56,9 @@ MAX_RMS_MM = 3.0
 #: centre) contradicts it: in Wood et al. 2018 the correction was 8.2 deg and 9.9 mm on average.
 MAX_CORRECTION_DEG = 25.0
 MAX_CORRECTION_MM = 30.0
+#: Largest share of a point's samples the tracker may have marked invalid (dropped, the motion interpolated
+#: across them) before the trust says so: an audit's PLUS session lost half of them and the trust was "ok".
+MAX_INVALID_FRACTION = 0.1
 #: running-median window of the outlier check, s (short against a 1 s heartbeat).
 OUTLIER_WINDOW_S = 0.11
 #: a sample is an outlier this many robust standard deviations from the running median ...
@@ -205,7 +208,7 @@ class TrustReason:
     ----------
     code : str
         Stable name: ``few_points``, ``narrow_coverage``, ``outlier_samples``,
-        ``excluded_points``, ``phase_undecided``, ``sweep_not_converged``,
+        ``invalid_poses``, ``excluded_points``, ``phase_undecided``, ``sweep_not_converged``,
         ``icp_not_converged``, ``icp_degenerate``, ``fiducial_error``,
         ``fiducials_ambiguous``, ``surface_misfit``, ``seed_contradicted``.
     level : TrustLevel
@@ -271,6 +274,7 @@ def assess_trust(
     rms_mm: float,
     correction_mm: float,
     correction_deg: float,
+    invalid_samples_per_point: dict | None = None,
 ) -> Trust:
     """The verdict on a registration from its checks and diagnostics.
 
@@ -301,6 +305,9 @@ def assess_trust(
         A model of another heart (or of this one in another state) fits with
         its points mm off the surface, after the ICP turned tens of degrees away
         from what the staples say.
+    invalid_samples_per_point : dict of int to (int, int), optional
+        Point id: (samples the tracker marked invalid, samples recorded);
+        more than :data:`MAX_INVALID_FRACTION` of a point's is a caution.
 
     Returns
     -------
@@ -338,6 +345,13 @@ def assess_trust(
         reasons.append(TrustReason("outlier_samples", caution, (
             f"{sum(bad.values())} outlier sample(s) (tracker glitches) in {len(bad)} point(s) "
             f"({', '.join(str(k) for k in sorted(bad))}) were left out of their motion models; check the tracker")))
+    lossy = {int(k): d / n for k, (d, n) in (invalid_samples_per_point or {}).items()
+             if n and d / n > MAX_INVALID_FRACTION}
+    if lossy:
+        reasons.append(TrustReason("invalid_poses", caution, (
+            f"the tracker marked up to {max(lossy.values()):.0%} of the poses of {len(lossy)} point(s) "
+            f"({', '.join(str(k) for k in sorted(lossy))}) invalid (more than {MAX_INVALID_FRACTION:.0%}): their "
+            "motion is interpolated across the gaps; check the tracker's line of sight")))
     if n_excluded:
         reasons.append(TrustReason("excluded_points", caution, (
             f"{n_excluded} point(s) of the session could not be registered (see exclusions)")))

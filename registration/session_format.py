@@ -105,6 +105,9 @@ class PointRecord:
         Inspiratory and expiratory airflow.
     rate_hz : float
         Declared sample rate.
+    n_invalid : int
+        Samples dropped because the tracker marked their pose invalid (a PLUS
+        sequence's ``INVALID`` or ``MISSING``); 0 for a CSV record.
     """
 
     point_id: int
@@ -116,6 +119,7 @@ class PointRecord:
     flow_insp_lpm: np.ndarray
     flow_exp_lpm: np.ndarray
     rate_hz: float
+    n_invalid: int = 0
 
     @property
     def n_samples(self) -> int:

@@ -149,7 +149,7 @@ def _read_samples(folder: Path, rel: str, columns, rate_hz: float) -> np.ndarray
     return data
 
 
-def _point_record(entry: dict, rate_hz: float, time_s, T_probe_from_robot, signals) -> PointRecord:
+def _point_record(entry: dict, rate_hz: float, time_s, T_probe_from_robot, signals, n_invalid=0) -> PointRecord:
     """The record of ``entry``; ``signals`` (n, 3): ECG mV, inspiratory and expiratory flow L/min."""
     return PointRecord(
         point_id=int(entry["id"]),
@@ -161,6 +161,7 @@ def _point_record(entry: dict, rate_hz: float, time_s, T_probe_from_robot, signa
         flow_insp_lpm=frozen(signals[:, 1]),
         flow_exp_lpm=frozen(signals[:, 2]),
         rate_hz=rate_hz,
+        n_invalid=int(n_invalid),
     )
 
 
@@ -246,7 +247,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
         data, k = data[ok], k[ok]
     Tr, Tp = T_robot[k], T_probe[k]
     T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
-    return _point_record(entry, rate_hz, data[:, 0], T, data[:, 1:4])
+    return _point_record(entry, rate_hz, data[:, 0], T, data[:, 1:4], n_invalid=int((~ok).sum()))
 
 
 def _matrices(q_wxyz: np.ndarray) -> np.ndarray:

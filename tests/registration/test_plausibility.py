@@ -119,6 +119,9 @@ def test_nothing_against_it_is_ok(sound):
     ({"correction_deg": 48.0, "correction_mm": 12.0}, "seed_contradicted", TrustLevel.POOR),
     ({"correction_deg": 5.0, "correction_mm": 41.0}, "seed_contradicted", TrustLevel.POOR),
     ({"rms_mm": 2.0, "correction_deg": 8.2, "correction_mm": 9.9}, None, TrustLevel.OK),  # the paper's in vivo means
+    # a tracker that lost half of a point's poses (an audit's PLUS session: the trust was "ok"); a few are normal
+    ({"invalid_samples_per_point": {0: (750, 1500), 2: (3, 1500)}}, "invalid_poses", TrustLevel.CAUTION),
+    ({"invalid_samples_per_point": {0: (150, 1500), 2: (0, 1500)}}, None, TrustLevel.OK),
 ])
 def test_each_other_reason_alone_sets_its_level(case, weak, sound, change, code, level):
     args = dict(sound, **change)
@@ -134,6 +137,8 @@ def test_each_other_reason_alone_sets_its_level(case, weak, sound, change, code,
         return
     assert [(r.code, r.level) for r in trust.reasons] == [(code, level)] and trust.level is level
     assert trust.summary() == f"{level.value} ({code})"
+    if code == "invalid_poses":
+        assert trust.reasons[0].message.startswith("the tracker marked up to 50% of the poses of 1 point(s) (0) invalid")
 
 
 def test_register_writes_and_prints_the_trust(case, tmp_path, capsys):

@@ -90,6 +90,7 @@ def test_session_poses_from_plus_drop_invalid_samples(tmp_path):
                                atol=1e-9)
     note = "point 0: 3 of 1500 samples dropped, the tracker marked the pose invalid in its PLUS sequence"
     assert session.notes == (note,)
+    assert rec.n_invalid == 3  # the trust's share (registration.plausibility.MAX_INVALID_FRACTION)
     assert session.pose_source == "PLUS sequence"
 
 
