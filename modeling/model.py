@@ -442,11 +442,11 @@ def read_model(model_dir) -> HeartModel:
         raise ModelError(f"{jpath} is not readable JSON ({exc}); re-create the model") from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ModelError(f"{jpath} is not a {FORMAT} file")
-    if meta.get("format_version") != FORMAT_VERSION:
-        raise ModelError(
-            f"{jpath} has format_version {meta.get('format_version')!r}; this heartreg "
-            f"reads version {FORMAT_VERSION}"
-        )
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION or not isinstance(version, int):
+        kind = "the text " if isinstance(version, str) else ""  # "has '2'; reads version 2" read as a riddle
+        raise ModelError(f"{jpath} has format_version {kind}{version!r}; this heartreg reads the number "
+                         f"{FORMAT_VERSION}")
     ply = d / MESH_FILES[0]
     if not ply.is_file():
         raise ModelError(f"{d} has no {MESH_FILES[0]}; re-create the model")

@@ -126,6 +126,10 @@ def test_read_errors(model, tmp_path):
     (out / "model.json").write_text(json.dumps(meta))
     with pytest.raises(ModelError, match=r"incomplete or corrupt \(no field 'fiducials_heart_mm'\)"):
         read_model(out)
+    meta["format_version"] = str(meta["format_version"])  # "has format_version '2'; reads version 2" (an audit)
+    (out / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match=r"has format_version the text '\d+'; this heartreg reads the number \d+$"):
+        read_model(out)
     out = write_model(model, tmp_path / "m4")
     (out / "heart.ply").unlink()
     with pytest.raises(ModelError, match="no heart.ply"):
