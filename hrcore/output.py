@@ -480,11 +480,9 @@ def staged_output(
         exc = root_os_error(exc)
         if exc.errno in (errno.ENOSPC, errno.EDQUOT):
             free = shutil.disk_usage(_existing_parent(absolute)).free
-            raise OutputError(
-                f"disk full writing {_named_in_out(exc.filename, stage, out)}: {what} {out} needed more than the "
-                f"{_amount(written)} written before the disk ran out ({_amount(free)} free now, nothing "
-                "was kept); free space or choose another output path"
-            ) from None
+            raise OutputError(f"disk full writing {_named_in_out(exc.filename, stage, out)}: {what} {out} needed more "
+                              f"than the {_amount(written)} written before the disk ran out ({_amount(free)} free now, "
+                              "nothing was kept); free space or choose another output path") from None
         if exc.filename is not None:  # named as the user gave it: '/sys/.x.heartreg-1234-ab12.tmp' was (an audit)
             raise OSError(exc.errno, exc.strerror, _named_in_out(exc.filename, stage, out)) from None
         raise

@@ -191,12 +191,12 @@ class _Classifier:
         self.npk = min(self.npk, typical)
         return True
 
-    def _search_back(self, last: int, j: int) -> int | None:
+    def _search_back(self, last: int, j: int, end: float | None = None) -> int | None:
         """The largest peak in the gap (last, j) above half its threshold 1 (a quarter when it stands out of its
         neighbours and is half as large as the last QRS complexes: a wide premature beat's low QRS-band energy),
-        as steep as a QRS and no T wave."""
+        as steep as a QRS and no T wave; ``end`` (a sample) instead of peak ``j`` after the last detection."""
         peaks, values, slopes = self.peaks, self.values, self.slopes
-        lo_p, hi_p = peaks[last] + self.refractory, peaks[j] - self.refractory
+        lo_p, hi_p = peaks[last] + self.refractory, (peaks[j] - self.refractory) if end is None else end
         best, best_v = None, 0.0
         steep = SEARCH_BACK_SLOPE_RATIO * _median(self.steep) if self.steep else 0.0
         for k in range(last + 1, j):
@@ -301,8 +301,8 @@ def _search_edges(clf: _Classifier, qrs: list[int], n: int) -> list[int]:
         if found is None:
             break
         qrs.insert(0, found)
-    while n - 1 - peaks[qrs[-1]] > limit:
-        found = clf.best_in(peaks[qrs[-1]] + clf.refractory, n - 1, 0.5 * clf.threshold(0))
+    while n - 1 - peaks[qrs[-1]] > limit:  # as within the record: the last beat's T wave is none (it was)
+        found = clf._search_back(qrs[-1], len(peaks), end=n - 1)
         if found is None:
             break
         qrs.append(found)
