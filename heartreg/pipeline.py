@@ -109,7 +109,8 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
     except GatingError as exc:
         if phase_required or qrs:
             raise
-        return volume, f"no ECG gating ({str(exc).split(';')[0]})"
+        why = getattr(exc, "reason", None)  # the scan says it was not gated (imaging.nominal); the model warns
+        return volume, f"no ECG gating ({why or str(exc).split(';')[0]})"
     if warn is not None:
         for note in volume.notes:
             if note.startswith("chose series") and "other CT candidate" in note:

@@ -22,6 +22,7 @@ import warnings
 import numpy as np
 
 from .grouping import _LOADABLE, SeriesSummary, StudyWarning, _Group, _scan_groups
+from .nominal import percent_not_gated, trigger_not_gated
 from .pixels import _assemble
 from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _plan_geometry
 
@@ -30,7 +31,7 @@ logger = logging.getLogger(__name__)
 #: What a `SliceInfo` and the `SeriesInfo` copy unchanged from the frames' headers.
 _SLICE_FROM_FRAME = (
     "instance_number", "sop_instance_uid", "acquisition_time_s", "mid_scan_time_s", "trigger_time_ms",
-    "nominal_interval_ms", "heart_rate_bpm", "nominal_cardiac_percent",
+    "nominal_interval_ms", "heart_rate_bpm", "nominal_cardiac_percent", "cardiac_sync_technique",
 )  # fmt: skip
 _SERIES_FROM_FRAME = (
     "series_instance_uid", "study_instance_uid", "frame_of_reference_uid", "series_number", "description",
@@ -92,9 +93,11 @@ def _gating(group: _Group, ecg_studies: set) -> str:
         f.acquisition_time_s is not None for f in frames
     ):
         return "the study's ECG waveform"
-    if all(f.trigger_time_ms is not None and (f.nominal_interval_ms or f.heart_rate_bpm) for f in frames):
+    if all(f.trigger_time_ms is not None and (f.nominal_interval_ms or f.heart_rate_bpm) for f in frames) and (
+        not trigger_not_gated(frames)
+    ):
         return "TriggerTime"
-    if all(f.nominal_cardiac_percent is not None for f in frames):
+    if all(f.nominal_cardiac_percent is not None for f in frames) and not percent_not_gated(frames):
         return "NominalPercentageOfCardiacPhase"
     return ""
 

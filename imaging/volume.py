@@ -84,6 +84,9 @@ class SliceInfo:
         (0018,1060) *Trigger Time*, (0018,1062) *Nominal Interval*, (0018,1088)
         *Heart Rate*, (0020,9241) *Nominal Percentage of Cardiac Phase* (classic or
         from the per-frame *Cardiac Synchronization Sequence*).
+    cardiac_sync_technique : str or None
+        (0018,9037) *Cardiac Synchronization Technique* (``NONE``, ``PROSPECTIVE``,
+        ``RETROSPECTIVE``, ...), upper case; None when absent.
     """
 
     index: int
@@ -99,6 +102,7 @@ class SliceInfo:
     nominal_interval_ms: float | None
     heart_rate_bpm: float | None
     nominal_cardiac_percent: float | None
+    cardiac_sync_technique: str | None = None
 
 
 @dataclass(frozen=True)
