@@ -27,6 +27,17 @@ is known:
 The phase is then unknown (:func:`imaging.compute_phase_report` raises
 ``GatingError`` with the reason, a model records it and registration asks for
 ``--cardiac-phase``), unless a measured R-peak source times the slices.
+
+Values beyond one RR interval
+-----------------------------
+A trigger time longer than the nominal RR interval (a percentage over 100)
+means the beat lasted longer than nominal, or the value is bad. Such phases are
+kept wrapped into the next beat (``trigger / RR - 1``), with a warning giving
+their count and range: a prospective trigger delay longer than the beat does
+acquire in the next beat, and the other slices' phases stay usable; a trigger
+time counted from the slice's own R-peak (retrospective) is late in a long beat
+instead, which the warning says to check. Values of 2 RR intervals (200 %) or
+more, or negative ones, are no delay within a beat: the source is not used.
 """
 
 from __future__ import annotations
@@ -35,6 +46,8 @@ import numpy as np
 
 #: (0018,9037) *Cardiac Synchronization Technique* of a scan without ECG gating.
 NOT_GATED = "NONE"
+#: A trigger time at this many nominal RR intervals or more (or negative) is no delay within a beat: not used.
+MAX_RR_RATIO = 2.0
 
 
 def _column(items, name) -> np.ndarray:
@@ -78,12 +91,28 @@ def percent_not_gated(items) -> str | None:
     return None
 
 
-def _range(values: np.ndarray, unit: str) -> str:
-    lo, hi = float(np.min(values)), float(np.max(values))
-    return f"{lo:g} {unit}" if lo == hi else f"{lo:g}..{hi:g} {unit}"
+def _range(values: np.ndarray, unit: str = "") -> str:
+    lo, hi = (float(f"{v:.4g}") for v in (np.min(values), np.max(values)))
+    return (f"{lo:g}" if lo == hi else f"{lo:g}..{hi:g}") + (f" {unit}" if unit else "")
 
 
-def _wrapped(ratio: np.ndarray, *_) -> np.ndarray:
+def _wrapped(ratio: np.ndarray, what: str, values: np.ndarray, unit: str, limit: str, notes: list, warn):
+    """``ratio`` wrapped into [0, 1), or None when some value is negative or 2 cycles or more (noted);
+    values over one cycle are warned about with their count and range (module docstring)."""
+    n = ratio.size
+    bad = (ratio < 0) | (ratio >= MAX_RR_RATIO)
+    if bad.any():
+        notes.append(f"{what}: {int(bad.sum())} of {n} slice(s) at {_range(values[bad], unit)}, negative or "
+                     f"{MAX_RR_RATIO:g} times {limit} or more: not a phase within a beat; not used")
+        return None
+    over = ratio > 1.0
+    if over.any():
+        message = (f"{what}: {int(over.sum())} of {n} slice(s) at {_range(values[over], unit)}, beyond {limit}: "
+                   "the beat lasted longer than nominal, or the values are bad; their phases are wrapped into "
+                   f"the next beat (phases {_range(ratio[over] - 1.0)}); check them, or give R-peak times with --qrs "
+                   "or the phase with --cardiac-phase")
+        notes.append(message)
+        warn(message)
     return np.mod(ratio, 1.0)
 
 

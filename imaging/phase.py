@@ -471,7 +471,7 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
 
     # 4. TriggerTime over the nominal RR interval; 5. the nominal percentage of the cardiac cycle
     def warn(message):
-        warnings.warn(message, GatingWarning, stacklevel=4)
+        warnings.warn(message, GatingWarning, stacklevel=5)  # the caller of compute_phase_report
 
     none = np.full(len(acq), np.nan)
     phases = nominal.trigger_phases(volume.slices, notes, warn)

@@ -122,3 +122,31 @@ def test_the_automatic_choice_does_not_count_an_ungated_series_as_gated(tmp_path
     assert volume.series.series_instance_uid == uid
     note = next(n for n in volume.notes if n.startswith("chose series"))
     assert "cardiac gating from TriggerTime" in note, note
+
+
+def test_trigger_times_beyond_the_rr_interval_are_warned(tmp_path):
+    """A TriggerTime longer than the nominal RR interval was wrapped into the next beat without a word (a new
+    user's audit): kept wrapped, warned with the count and the values' range."""
+    folder = _series(tmp_path, technique="RETROSPECTIVE", trigger=lambda k: 600.0 + 25.0 * k, interval=800)
+    with pytest.warns(GatingWarning, match=r"TriggerTime: 11 of 20 slice\(s\) at 825\.\.1075 ms, beyond the nominal "
+                                           r"RR interval \(800 ms\).*wrapped into the next beat \(phases 0\.03125\.\.0\.3438\)"):
+        report = compute_phase_report(load_study(folder))
+    np.testing.assert_allclose(report.phases, np.mod((600.0 + 25.0 * np.arange(20)) / 800.0, 1.0))
+    assert any("beyond the nominal RR interval" in n for n in report.notes)
+
+
+@pytest.mark.parametrize("trigger", [lambda k: 2000.0 if k == 3 else 500.0, lambda k: -50.0 if k == 3 else 500.0])
+def test_trigger_times_of_no_beat_are_not_used(tmp_path, trigger):
+    """Two RR intervals or more, or negative: no delay within a beat; the source is not used (and says so)."""
+    folder = _series(tmp_path, technique="PROSPECTIVE", trigger=trigger, interval=800)
+    with pytest.raises(GatingError, match=r"TriggerTime: 1 of 20 slice\(s\) at -?\d+ ms, negative or 2 times the "
+                                          r"nominal RR interval \(800 ms\) or more: not a phase within a beat; not used"):
+        compute_phase_report(load_study(folder))
+
+
+def test_percentages_over_100_are_warned(tmp_path):
+    folder = _series(tmp_path, technique="RETROSPECTIVE", trigger=None, percent=lambda k: 95 + k)
+    with pytest.warns(GatingWarning, match=r"NominalPercentageOfCardiacPhase: 14 of 20 slice\(s\) at 101\.\.114 %, "
+                                           r"beyond 100 %"):
+        report = compute_phase_report(load_study(folder))
+    np.testing.assert_allclose(report.phases, np.mod((95 + np.arange(20)) / 100.0, 1.0))
