@@ -374,6 +374,30 @@ def test_slice_thickness_differing_from_spacing_is_noted(tmp_path):
                in n for n in vol.notes)
 
 
+def _spacing_on_odd_slices(value):
+    def extra(ds, k):
+        if k % 2:
+            ds.PixelSpacing = value
+    return extra
+
+
+def test_pixel_spacing_differing_by_rounding_is_one_spacing(tmp_path):
+    """PixelSpacing 1.5 beside 1.500001 (exporters round DS values differently) was refused as 'PixelSpacing
+    differs between images' (a new user's audit): equal within 1e-4 of the value, the median used."""
+    fac.write_ct_series(tmp_path, pixel_spacing=(1.5, 1.5), extra=_spacing_on_odd_slices(["1.500001", "1.5"]))
+    vol = load_study(tmp_path)
+    assert vol.hu.shape == (20, 32, 32) and not vol.resampled
+    assert vol.spacing_mm[0] == 1.5 and vol.spacing_mm[1] == pytest.approx(1.5000005)
+    assert pattern_error(vol) <= 1.0  # round(x + 2y + 3z) at 1 um per 32 pixels: a rounding step at most
+
+
+def test_pixel_spacing_that_really_differs_is_refused(tmp_path):
+    fac.write_ct_series(tmp_path, pixel_spacing=(1.5, 1.5), extra=_spacing_on_odd_slices(["1.5", "1.51"]))
+    with pytest.raises(SeriesError, match=r"PixelSpacing differs between images .* by more than 0\.0001 of its "
+                                          r"value; pass series=\.\.\. \(--series\)"):
+        load_study(tmp_path)
+
+
 def test_wild_gap_is_refused_naming_files(tmp_path):
     fac.write_ct_series(tmp_path, skip=(8, 9, 10, 11))
     with pytest.raises(SeriesError, match=r"gap of 10\.000 mm.*slice_007\.dcm.*slice_012\.dcm"):
