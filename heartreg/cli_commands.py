@@ -86,7 +86,8 @@ def _listed(args) -> bool:
             raise UsageError(f"{args.study_dir} is a volume file, one series: --list-series lists a DICOM folder's")
         for s in list_series(args.study_dir):
             print(f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  {s.orientation:<8} "
-                  f"{s.description!r}  {s.kind}{(' - ' + s.reason) if s.reason else ''}")
+                  f"{s.description!r}  {s.kind}{('  ' + s.cardiac) if s.cardiac else ''}"
+                  f"{(' - ' + s.reason) if s.reason else ''}")
         return True
     if args.out_dir is None:
         raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")

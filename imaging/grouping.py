@@ -44,6 +44,10 @@ class SeriesSummary:
     ``"unusable"``; ``reason`` says why a group is not a volume or how it was split.
     ``uid`` is the Series Instance UID; a series split into several groups has the
     same ``uid`` in each, with ``subset`` telling them apart: select those by index.
+    ``cardiac`` is the images' cardiac phase tag when they share one value
+    (``"phase 70 %"`` from *Nominal Percentage of Cardiac Phase*, else
+    ``"TriggerTime 560 ms"``, or its range), "" without one: the phases of a
+    multi-phase series told apart in ``--list-series``.
     """
 
     index: int
@@ -58,6 +62,19 @@ class SeriesSummary:
     subset: str
     n_files: int
     files: tuple[str, ...] = field(repr=False)
+    cardiac: str = ""
+
+
+def _cardiac_label(frames) -> str:
+    """The frames' cardiac phase tag (SeriesSummary.cardiac)."""
+    pct = {f.nominal_cardiac_percent for f in frames}
+    if None not in pct and len(pct) == 1:
+        return f"phase {pct.pop():g} %"
+    trigger = [f.trigger_time_ms for f in frames]
+    if frames and None not in trigger:
+        lo, hi = min(trigger), max(trigger)
+        return f"TriggerTime {lo:g} ms" if lo == hi else f"TriggerTime {lo:g}-{hi:g} ms"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -214,6 +231,7 @@ def _summarise(
         subset=subset,
         n_files=len(files),
         files=files,
+        cardiac=_cardiac_label(frames),
     )
     return summary, tuple(frames)
 

@@ -164,13 +164,15 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
             warnings.warn(
                 f"series [{best.index}] {best.uid} is used without {sum(a.n_files for a in apart)} of its own "
                 "image(s) that do not stack with it: " + ", ".join(
-                    f"[{a.index}] {a.orientation or a.kind} {a.n_files} file(s)" for a in apart[:4])
+                    f"[{a.index}] {a.orientation or a.kind} {a.n_files} file(s)" + (f" {a.cardiac}" if a.cardiac else "")
+                    for a in apart[:4])
                 + "; choose another part with --series (see --list-series)", StudyWarning, stacklevel=3)
         if len(ranked) > 1:
             why += (
                 f"; {len(ranked) - 1} other CT candidate(s) "
                 + ", ".join(
                     f"[{g.summary.index}] {g.summary.orientation} {g.summary.n_slices}"
+                    + (f" {g.summary.cardiac}" if g.summary.cardiac else "")
                     for g in ranked[1:6]
                 )
                 + " (pass series=... / --series to choose)"
