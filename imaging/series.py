@@ -24,7 +24,7 @@ import numpy as np
 from .grouping import _LOADABLE, SeriesSummary, StudyWarning, _Group, _scan_groups
 from .nominal import percent_not_gated, trigger_not_gated
 from .pixels import _assemble
-from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _plan_geometry
+from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _files_text, _plan_geometry
 
 logger = logging.getLogger(__name__)
 
@@ -113,6 +113,8 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
                   if unreadable else "")
         if not loadable and broken:  # the images are there, but none could be read: say why, not --series
             raise SeriesError(f"no CT image stack: {broken}")
+        if not ranked and len(groups) == 1 and groups[0].summary.kind == "unusable":  # nothing else to choose
+            raise SeriesError(f"no CT image stack in {_files_text(groups[0].summary.files, 2)}: {groups[0].summary.reason}")
         if not ranked:
             raise SeriesError(
                 "no CT image stack found automatically" + (f" ({broken})" if broken else "")

@@ -112,6 +112,23 @@ def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
     return T, ""
 
 
+def nifti_misnamed(path) -> str:
+    """Why a ``.nii.gz`` that is not gzip-compressed cannot be read as named ('' for any other file): an
+    uncompressed NIfTI under a .gz name (nibabel says 'Not a gzipped file'), or no NIfTI at all."""
+    if not str(path).lower().endswith(".gz"):
+        return ""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(352)
+    except OSError:
+        return ""  # said by the reader
+    if head[:2] == b"\x1f\x8b":
+        return ""
+    if len(head) >= 348 and 348 in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+        return "is an uncompressed NIfTI file named .nii.gz (no gzip compression): rename it to .nii"
+    return "is not gzip-compressed, as a .nii.gz must be, nor a NIfTI file: check what was exported"
+
+
 def _check_is_file(path: Path, kind: str) -> None:
     """Refuse a missing volume file, or a folder named like one, in one line."""
     if not path.is_file():
@@ -197,6 +214,8 @@ def read_nifti_volume(path) -> Volume:
     """
     path = Path(path)
     _check_is_file(path, "NIfTI")
+    if misnamed := nifti_misnamed(path):
+        raise SeriesError(f"NIfTI file {path} {misnamed}")
     damage = gzip_damage(path)
     if damage:
         raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
