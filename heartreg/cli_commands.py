@@ -86,8 +86,8 @@ def _listed(args) -> bool:
         if is_volume_file(args.study_dir):
             raise UsageError(f"{args.study_dir} is a volume file, one series: --list-series lists a DICOM folder's")
         for s in list_series(args.study_dir):
-            print(f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  {s.orientation:<8} "
-                  f"{s.description!r}  {s.kind}{(' - ' + s.reason) if s.reason else ''}")
+            print(f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  {s.orientation:<8} {s.description!r}  "
+                  f"{s.kind}{('  ' + s.cardiac) if s.cardiac else ''}{(' - ' + s.reason) if s.reason else ''}")
         return True
     if args.out_dir is None:
         raise UsageError("give an output folder with -o OUT_DIR (or --list-series)")
@@ -189,7 +189,7 @@ def _open_model_input(args):
     """
     from imaging.volume_file import is_nifti_path, is_volume_file, read_volume_file
 
-    from heartreg.pipeline import open_study
+    from heartreg.pipeline import open_study, refuse_one_image
 
     if is_volume_file(args.study_dir):
         kind, article = ("NIfTI", "a") if is_nifti_path(args.study_dir) else ("NRRD", "an")
@@ -200,6 +200,7 @@ def _open_model_input(args):
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
         warn=lambda msg: print(msg, file=sys.stderr), phase_required=False,
     )
+    refuse_one_image(args.study_dir, volume)
     if isinstance(report, str):
         return volume, None, report, None
     from modeling.slice_phases import SlicePhases

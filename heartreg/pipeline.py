@@ -70,6 +70,14 @@ def phase_report_extra(volume, study_dir) -> dict:
     }
 
 
+def refuse_one_image(study_dir, volume) -> None:
+    """A heart model needs a 3-D CT: one DICOM file holding one slice, given for the study, is refused in
+    one line saying so (the model's 'the CT spans only 2 mm' did not say what was given)."""
+    if volume.shape[0] == 1 and Path(study_dir).is_file():
+        raise UsageError(f"{study_dir} is one DICOM image (a single slice), not a study: give the folder that "
+                         "holds the whole CT series")
+
+
 def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None, phase_required: bool = True):
     """Load a study's volume and its cardiac phase report: ``imaging.load_study``
     then ``imaging.compute_phase_report`` (which reads the study's ECG waveforms
@@ -109,7 +117,8 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
     except GatingError as exc:
         if phase_required or qrs:
             raise
-        return volume, f"no ECG gating ({str(exc).split(';')[0]})"
+        why = getattr(exc, "reason", None)  # the scan says it was not gated (imaging.nominal); the model warns
+        return volume, f"no ECG gating ({why or str(exc).split(';')[0]})"
     if warn is not None:
         for note in volume.notes:
             if note.startswith("chose series") and "other CT candidate" in note:
@@ -184,6 +193,7 @@ def run_pipeline(
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")
         volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
+        refuse_one_image(study_dir, volume)
         session = read_session(session_dir)  # fail early on a bad session, before the slow work
         extra = phase_report_extra(volume, study_dir)
         paths = {"phases": write_phase_report(report, staging / "phases", extra=extra)}

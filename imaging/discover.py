@@ -99,6 +99,8 @@ class _Frame:
     # file offset and length of a native little-endian (7FE0,0010) value, else None
     pixel_offset: int | None = field(default=None, repr=False, compare=False)
     pixel_length: int | None = field(default=None, repr=False, compare=False)
+    # (0018,9037) Cardiac Synchronization Technique (NONE, PROSPECTIVE, ...), upper case; None if absent
+    cardiac_sync_technique: str | None = None
 
     @property
     def is_localizer(self) -> bool:
@@ -315,6 +317,8 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
                 nominal_cardiac_percent=_as_float(
                     _first("NominalPercentageOfCardiacPhase", cardiac, ds)
                 ),
+                cardiac_sync_technique=(" ".join(_upper_values(_first("CardiacSynchronizationTechnique", ds)))
+                                        .strip() or None),
                 temporal_position=_as_int(
                     _first("TemporalPositionIndex", content)
                     if content is not None

@@ -13,6 +13,7 @@ import os
 import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -44,6 +45,10 @@ class SeriesSummary:
     ``"unusable"``; ``reason`` says why a group is not a volume or how it was split.
     ``uid`` is the Series Instance UID; a series split into several groups has the
     same ``uid`` in each, with ``subset`` telling them apart: select those by index.
+    ``cardiac`` is the images' cardiac phase tag when they share one value
+    (``"phase 70 %"`` from *Nominal Percentage of Cardiac Phase*, else
+    ``"TriggerTime 560 ms"``, or its range), "" without one: the phases of a
+    multi-phase series told apart in ``--list-series``.
     """
 
     index: int
@@ -58,6 +63,19 @@ class SeriesSummary:
     subset: str
     n_files: int
     files: tuple[str, ...] = field(repr=False)
+    cardiac: str = ""
+
+
+def _cardiac_label(frames) -> str:
+    """The frames' cardiac phase tag (SeriesSummary.cardiac)."""
+    pct = {f.nominal_cardiac_percent for f in frames}
+    if None not in pct and len(pct) == 1:
+        return f"phase {pct.pop():g} %"
+    trigger = [f.trigger_time_ms for f in frames]
+    if frames and None not in trigger:
+        lo, hi = min(trigger), max(trigger)
+        return f"TriggerTime {lo:g} ms" if lo == hi else f"TriggerTime {lo:g}-{hi:g} ms"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -182,6 +200,12 @@ def _missing_geometry_text(frames) -> str:
     return "/".join(dict.fromkeys(t for f in frames for t in _missing_geometry(f)))
 
 
+def _classic_multiframe(frames) -> bool:
+    """Frames of one multi-frame file without per-frame positions (CT Image Storage with NumberOfFrames > 1)."""
+    return (len({f.path for f in frames}) == 1 and frames[0].n_frames_in_file > 1
+            and frames[0].sop_class_uid != "1.2.840.10008.5.1.4.1.1.2.1")  # not Enhanced CT
+
+
 def _summarise(
     frames: list[_Frame], subset: str, reason: str, kind: str | None = None
 ) -> tuple[SeriesSummary, tuple[_Frame, ...]]:
@@ -193,6 +217,11 @@ def _summarise(
         elif any(_missing_geometry(f) for f in frames):
             kind = "unusable"
             reason = reason or "no " + _missing_geometry_text(frames)
+        elif _has_duplicates(frames) and _classic_multiframe(frames):
+            kind = "unusable"
+            reason = (f"a classic multi-frame CT image ({first.n_frames_in_file} frames in one file, one "
+                      "ImagePositionPatient for them all): its frames cannot be placed; export the series as "
+                      "single-frame CT images or as Enhanced CT")
         elif _has_duplicates(frames):
             kind = "unusable"
             reason = (
@@ -214,6 +243,7 @@ def _summarise(
         subset=subset,
         n_files=len(files),
         files=files,
+        cardiac=_cardiac_label(frames),
     )
     return summary, tuple(frames)
 
@@ -343,6 +373,20 @@ def _warn_broken(found: _Scan) -> None:
         )
 
 
+def _image_pair(path) -> str:
+    """What a ``.hdr``/``.img`` file is (an Analyze 7.5 or NIfTI-1 pair, by its header's 348 bytes), '' otherwise."""
+    p = Path(path)
+    if not p.is_file() or p.suffix.lower() not in (".hdr", ".img"):
+        return ""
+    try:
+        head = p.with_suffix(".hdr" if p.suffix.islower() else ".HDR").read_bytes()[:348]
+    except OSError:
+        return ""
+    if len(head) < 348 or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+        return ""
+    return "a NIfTI-1 image pair (.hdr/.img)" if head[344:347] == b"ni1" else "an Analyze 7.5 image (.hdr/.img pair)"
+
+
 def _scan_groups(path, progress: bool):
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path must be a str or os.PathLike, got {type(path).__name__}")
@@ -358,6 +402,9 @@ def _scan_groups(path, progress: bool):
             f"{found.n_files} file(s) examined: {len(found.skipped_non_dicom)} not DICOM, "
             f"{len(found.skipped_broken)} unreadable file(s) or folder(s), {len(found.skipped_dicomdir)} DICOMDIR"
         )
+        if pair := _image_pair(path):
+            raise StudyError(f"{os.fspath(path)!r} is {pair}, not DICOM: convert it to NIfTI (.nii.gz, e.g. with "
+                             "nibabel or 3D Slicer) and give that file, or give the DICOM study's folder")
         raise StudyError(
             f"no DICOM images found under {os.fspath(path)!r} ({detail}); point to the folder "
             "that holds the study's DICOM files"

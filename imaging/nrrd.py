@@ -93,10 +93,15 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     if fields.get("type", "").lower() not in _TYPES:
         raise NrrdError(f"NRRD file {path}: voxel type {fields.get('type', '(none)')!r} is not read; save it as an "
                         "integer or float type")
+    space_name = fields.get("space", "left-posterior-superior").strip().lower()
+    if space_name not in _SPACES:  # scanner-xyz, 3d-right-handed, ...: no patient directions
+        raise NrrdError(f"NRRD file {path}: space '{space_name[:40]}' names no patient directions (only "
+                        "left-posterior-superior, right-anterior-superior or left-anterior-superior place a CT); "
+                        "save the volume in patient space (3D Slicer writes left-posterior-superior)")
     try:
         sizes = [int(v) for v in fields["sizes"].split()]
         dtype = np.dtype(_TYPES[fields["type"].lower()])
-        space = _SPACES[fields.get("space", "left-posterior-superior").lower()]
+        space = _SPACES[space_name]
         directions = [_vector(d) for d in re.findall(r"\([^)]*\)", fields["space directions"])]
         origin = _vector(fields.get("space origin", "(0,0,0)"))
     except (KeyError, ValueError) as exc:

@@ -15,6 +15,11 @@ R-peak sources, in order of preference (DESIGN.md section 4):
    (0018,1088) *Heart Rate*;
 5. (0020,9241) *Nominal Percentage of Cardiac Phase*.
 
+Sources 4 and 5 (:mod:`imaging.nominal`) are not used when they carry no gating
+information (a scan whose *Cardiac Synchronization Technique* is ``NONE``; trigger
+times all 0 with no technique and no nominal RR interval): the phase is then
+unknown, as for a CT without any timing.
+
 The first source that can time every slice wins; the report names it and how
 the clocks were aligned.
 """
@@ -29,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from imaging import nominal
 from imaging.ecg import cardiac_phase, detect_r_peaks
 
 __all__ = [
@@ -463,38 +469,32 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
     if not waveforms:
         notes.append("no DICOM ECG waveform instance in the study")
 
-    # 4. TriggerTime over the nominal RR interval
-    trigger = _column(volume, "trigger_time_ms")
-    interval = _column(volume, "nominal_interval_ms")
-    rate = _column(volume, "heart_rate_bpm")
-    rr_ms = np.where(np.isfinite(interval) & (interval > 0), interval, 60000.0 / np.where(rate > 0, rate, np.nan))
-    if np.all(np.isfinite(trigger)) and np.all(np.isfinite(rr_ms)):
-        phases = np.mod(trigger / rr_ms, 1.0)
-        nominal = ("TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
-                   "last the nominal interval; give R-peak times (--qrs) for measured phases")
-        if waveforms or rpeaks_ms:  # the study's own R-peaks failed: said, not only noted
-            warnings.warn(f"{nominal}; the study's own R-peak sources were not usable: {'; '.join(notes)}",
-                          GatingWarning, stacklevel=2)
-        notes.append(nominal)
-        return _report(
-            volume, acq if has_acq else np.full(len(acq), np.nan), phases,
-            "TriggerTime / nominal RR interval", "phases relative to each slice's own trigger R-peak",
-            np.empty(0), notes,
-        )
-    notes.append("no TriggerTime with NominalInterval or HeartRate on every slice")
+    # 4. TriggerTime over the nominal RR interval; 5. the nominal percentage of the cardiac cycle
+    def warn(message):
+        warnings.warn(message, GatingWarning, stacklevel=5)  # the caller of compute_phase_report
 
-    # 5. the nominal percentage of the cardiac cycle
-    pct = _column(volume, "nominal_cardiac_percent")
-    if np.all(np.isfinite(pct)):
-        return _report(
-            volume, acq if has_acq else np.full(len(acq), np.nan), np.mod(pct / 100.0, 1.0),
-            "NominalPercentageOfCardiacPhase", "nominal (reconstruction) phase, no clock",
-            np.empty(0), notes,
-        )
-    notes.append("no NominalPercentageOfCardiacPhase on every slice")
+    none = np.full(len(acq), np.nan)
+    phases = nominal.trigger_phases(volume.slices, notes, warn)
+    if phases is not None:
+        note = ("TriggerTime over the nominal RR interval gives nominal phases: every beat is assumed to "
+                "last the nominal interval; give R-peak times (--qrs) for measured phases")
+        if waveforms or rpeaks_ms:  # the study's own R-peaks failed: said, not only noted
+            warnings.warn(f"{note}; the study's own R-peak sources were not usable: {'; '.join(notes)}",
+                          GatingWarning, stacklevel=2)
+        notes.append(note)
+        return _report(volume, acq if has_acq else none, phases, "TriggerTime / nominal RR interval",
+                       "phases relative to each slice's own trigger R-peak", np.empty(0), notes)
+    phases = nominal.percent_phases(volume.slices, notes, warn)
+    if phases is not None:
+        return _report(volume, acq if has_acq else none, phases, "NominalPercentageOfCardiacPhase",
+                       "nominal (reconstruction) phase, no clock", np.empty(0), notes)
+    not_gated = nominal.trigger_not_gated(volume.slices) or nominal.percent_not_gated(volume.slices)
     advice = (
         ". Check that the R-peak file's times are seconds after midnight on the slices' AcquisitionTime clock"
         if qrs_s is not None and has_acq
         else ". Pass an R-peak file with --qrs FILE (CSV, column time_s, seconds after midnight)"
     )
-    raise GatingError("no cardiac gating information for the slices; looked for: " + "; ".join(notes) + advice)
+    error = GatingError("no cardiac gating information for the slices" + (f" ({not_gated})" if not_gated else "")
+                        + "; looked for: " + "; ".join(notes) + advice)
+    error.reason = not_gated  # a model records the phase as unknown, and why (heartreg.pipeline.open_study)
+    raise error

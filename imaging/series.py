@@ -22,15 +22,16 @@ import warnings
 import numpy as np
 
 from .grouping import _LOADABLE, SeriesSummary, StudyWarning, _Group, _scan_groups
+from .nominal import percent_not_gated, trigger_not_gated
 from .pixels import _assemble
-from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _plan_geometry
+from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _files_text, _plan_geometry
 
 logger = logging.getLogger(__name__)
 
 #: What a `SliceInfo` and the `SeriesInfo` copy unchanged from the frames' headers.
 _SLICE_FROM_FRAME = (
     "instance_number", "sop_instance_uid", "acquisition_time_s", "mid_scan_time_s", "trigger_time_ms",
-    "nominal_interval_ms", "heart_rate_bpm", "nominal_cardiac_percent",
+    "nominal_interval_ms", "heart_rate_bpm", "nominal_cardiac_percent", "cardiac_sync_technique",
 )  # fmt: skip
 _SERIES_FROM_FRAME = (
     "series_instance_uid", "study_instance_uid", "frame_of_reference_uid", "series_number", "description",
@@ -92,9 +93,11 @@ def _gating(group: _Group, ecg_studies: set) -> str:
         f.acquisition_time_s is not None for f in frames
     ):
         return "the study's ECG waveform"
-    if all(f.trigger_time_ms is not None and (f.nominal_interval_ms or f.heart_rate_bpm) for f in frames):
+    if all(f.trigger_time_ms is not None and (f.nominal_interval_ms or f.heart_rate_bpm) for f in frames) and (
+        not trigger_not_gated(frames)
+    ):
         return "TriggerTime"
-    if all(f.nominal_cardiac_percent is not None for f in frames):
+    if all(f.nominal_cardiac_percent is not None for f in frames) and not percent_not_gated(frames):
         return "NominalPercentageOfCardiacPhase"
     return ""
 
@@ -110,6 +113,8 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
                   if unreadable else "")
         if not loadable and broken:  # the images are there, but none could be read: say why, not --series
             raise SeriesError(f"no CT image stack: {broken}")
+        if not ranked and len(groups) == 1 and groups[0].summary.kind == "unusable":  # nothing else to choose
+            raise SeriesError(f"no CT image stack in {_files_text(groups[0].summary.files, 2)}: {groups[0].summary.reason}")
         if not ranked:
             raise SeriesError(
                 "no CT image stack found automatically" + (f" ({broken})" if broken else "")
@@ -161,13 +166,15 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
             warnings.warn(
                 f"series [{best.index}] {best.uid} is used without {sum(a.n_files for a in apart)} of its own "
                 "image(s) that do not stack with it: " + ", ".join(
-                    f"[{a.index}] {a.orientation or a.kind} {a.n_files} file(s)" for a in apart[:4])
+                    f"[{a.index}] {a.orientation or a.kind} {a.n_files} file(s)" + (f" {a.cardiac}" if a.cardiac else "")
+                    for a in apart[:4])
                 + "; choose another part with --series (see --list-series)", StudyWarning, stacklevel=3)
         if len(ranked) > 1:
             why += (
                 f"; {len(ranked) - 1} other CT candidate(s) "
                 + ", ".join(
                     f"[{g.summary.index}] {g.summary.orientation} {g.summary.n_slices}"
+                    + (f" {g.summary.cardiac}" if g.summary.cardiac else "")
                     for g in ranked[1:6]
                 )
                 + " (pass series=... / --series to choose)"

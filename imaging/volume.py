@@ -45,6 +45,9 @@ GAP_TOL_REL = 0.01
 SHEAR_TOL_MM = 0.02
 #: Value given to resampled voxels that fall outside every acquired slice (air).
 OUTSIDE_HU = -1024.0
+#: PixelSpacing values of one series differing by at most this share of their value are one spacing:
+#: DICOM DS values hold 16 characters, and exporters round them differently (1.5 beside 1.500001).
+PIXEL_SPACING_TOL_REL = 1e-4
 #: Orthonormality tolerance for ImageOrientationPatient.
 ORIENTATION_TOL = 1e-3
 
@@ -84,6 +87,9 @@ class SliceInfo:
         (0018,1060) *Trigger Time*, (0018,1062) *Nominal Interval*, (0018,1088)
         *Heart Rate*, (0020,9241) *Nominal Percentage of Cardiac Phase* (classic or
         from the per-frame *Cardiac Synchronization Sequence*).
+    cardiac_sync_technique : str or None
+        (0018,9037) *Cardiac Synchronization Technique* (``NONE``, ``PROSPECTIVE``,
+        ``RETROSPECTIVE``, ...), upper case; None when absent.
     """
 
     index: int
@@ -99,6 +105,7 @@ class SliceInfo:
     nominal_interval_ms: float | None
     heart_rate_bpm: float | None
     nominal_cardiac_percent: float | None
+    cardiac_sync_technique: str | None = None
 
 
 @dataclass(frozen=True)
@@ -243,13 +250,15 @@ def _unit_axes(frames: list[_Frame], label: str):
 def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -> _Plan:
     """Order one orientation-consistent stack and decide how to grid it."""
     r, c, n = _unit_axes(frames, label)
-    spacings = {f.pixel_spacing for f in frames}
-    if len(spacings) > 1:
+    spacings = np.array([f.pixel_spacing for f in frames], dtype=np.float64)
+    if np.any(np.ptp(spacings, axis=0) > PIXEL_SPACING_TOL_REL * spacings.max(axis=0)):
         raise SeriesError(
-            f"series {label}: PixelSpacing differs between images {sorted(spacings)}; "
-            "pass series=... (--series) to choose a consistent one"
+            f"series {label}: PixelSpacing differs between images {sorted({f.pixel_spacing for f in frames})} "
+            f"by more than {PIXEL_SPACING_TOL_REL:g} of its value; pass series=... (--series) to choose a "
+            "consistent one"
         )
-    dr, dc = frames[0].pixel_spacing  # row spacing (between rows), column spacing
+    # row spacing (between rows), column spacing: the median of values that differ by rounding at most
+    dr, dc = (float(v) for v in np.median(spacings, axis=0))
     ipp = np.array([f.ipp for f in frames], dtype=np.float64)
     pos = ipp @ n
     order = np.argsort(pos, kind="stable")

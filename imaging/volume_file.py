@@ -27,7 +27,7 @@ from imaging.files import gzip_damage
 from imaging.grouping import StudyWarning
 from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume
 
-__all__ = ["nifti_lps_affine", "is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
+__all__ = ["nifti_lps_affine", "nifti_unit", "is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
            "read_volume_file"]
 
 _LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -67,29 +67,66 @@ def _uid(digest: str, what: str) -> str:
     return pseudonym_uid(what + digest)
 
 
-def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
-    """The LPS affine of a nibabel NIfTI image, and why it cannot be trusted ('' when it can).
+#: mm per unit of each NIfTI spatial unit code (``xyzt_units & 7``); 0 (unknown) is mm, as NIfTI practice.
+NIFTI_MM_PER_UNIT = {0: (1.0, "unknown (taken as mm)"), 1: (1000.0, "metres"), 2: (1.0, "mm"), 3: (1e-3, "micrometres")}
 
-    nibabel's affine is the sform whenever ``sform_code`` is set; ITK, and so
-    3D Slicer, take the qform when both are set (unless the sform is scanner
-    coordinates).  Where both are set and place the volume's corners more than
-    half its smallest voxel apart, the file means two things and no choice is
-    safe: that is said instead.
+
+def nifti_unit(img) -> tuple[float, str]:
+    """mm per unit of a NIfTI image's spatial unit (``xyzt_units``) and the unit's name; (nan, why) when its code
+    is none of NIfTI's four (nibabel raises a KeyError on such a header)."""
+    code = int(img.header["xyzt_units"]) & 0x07
+    if code not in NIFTI_MM_PER_UNIT:
+        return float("nan"), (f"its spatial unit code (xyzt_units & 7) is {code}, none of NIfTI's (0 unknown, "
+                              "1 metre, 2 mm, 3 micrometre): write the file with its unit")
+    return NIFTI_MM_PER_UNIT[code]
+
+
+def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
+    """The LPS affine of a nibabel NIfTI image, in mm, and why it cannot be trusted ('' when it can).
+
+    The affine is scaled to mm by the header's spatial unit (``xyzt_units``:
+    metres x 1000, micrometres x 0.001; unknown is mm); an unknown unit code is
+    said instead.  nibabel's affine is the sform whenever ``sform_code`` is set;
+    ITK, and so 3D Slicer, take the qform when both are set (unless the sform is
+    scanner coordinates).  Where both are set and place the volume's corners more
+    than half its smallest voxel apart, the file means two things and no choice
+    is safe: that is said instead.
     """
     header = img.header
+    mm, unit = nifti_unit(img)
+    if not np.isfinite(mm):
+        return _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), unit
     T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64)
+    T[:3, :] *= mm
     if int(header["sform_code"]) > 0 and int(header["qform_code"]) > 0:
         shape = np.asarray(img.shape[:3], float)
         corners = np.stack(np.meshgrid(*[[0.0, n - 1] for n in shape], indexing="ij"), -1).reshape(-1, 3)
-        apart = np.linalg.norm(apply_to_points(img.get_sform(), corners) - apply_to_points(img.get_qform(), corners),
-                               axis=1).max()
-        voxel = float(np.min(header.get_zooms()[:3]))
+        apart = mm * np.linalg.norm(apply_to_points(img.get_sform(), corners) - apply_to_points(img.get_qform(),
+                                                                                                corners), axis=1).max()
+        voxel = mm * float(np.min(header.get_zooms()[:3]))
         if apart > 0.5 * voxel:
             return T, (f"its sform and qform place the volume up to {apart:.1f} mm apart (sform_code "
                        f"{int(header['sform_code'])}, qform_code {int(header['qform_code'])}): nibabel reads the "
                        "sform, ITK and 3D Slicer the qform; write the file with one orientation (e.g. nibabel's "
                        "img.set_qform(img.get_sform()))")
     return T, ""
+
+
+def nifti_misnamed(path) -> str:
+    """Why a ``.nii.gz`` that is not gzip-compressed cannot be read as named ('' for any other file): an
+    uncompressed NIfTI under a .gz name (nibabel says 'Not a gzipped file'), or no NIfTI at all."""
+    if not str(path).lower().endswith(".gz"):
+        return ""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(352)
+    except OSError:
+        return ""  # said by the reader
+    if head[:2] == b"\x1f\x8b":
+        return ""
+    if len(head) >= 348 and 348 in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+        return "is an uncompressed NIfTI file named .nii.gz (no gzip compression): rename it to .nii"
+    return "is not gzip-compressed, as a .nii.gz must be, nor a NIfTI file: check what was exported"
 
 
 def _check_is_file(path: Path, kind: str) -> None:
@@ -177,6 +214,8 @@ def read_nifti_volume(path) -> Volume:
     """
     path = Path(path)
     _check_is_file(path, "NIfTI")
+    if misnamed := nifti_misnamed(path):
+        raise SeriesError(f"NIfTI file {path} {misnamed}")
     damage = gzip_damage(path)
     if damage:
         raise SeriesError(f"NIfTI file {path} is damaged ({damage}): copy it again from its source")
@@ -204,6 +243,9 @@ def read_nifti_volume(path) -> Volume:
         # not the file's name: batch writes warnings into its records, and a name can name the patient
         warnings.warn(f"NIfTI input: {note}; write the file with its orientation (an sform or qform)",
                       StudyWarning, stacklevel=2)
+    mm, unit = nifti_unit(img)
+    if mm != 1.0:
+        note += f"; its {unit} (xyzt_units) scaled to mm"
     return _volume(data, T, path, "NIfTI", note)
 
 

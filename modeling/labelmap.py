@@ -19,7 +19,7 @@ from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
-from imaging.volume_file import degenerate_affine, load_nifti, nifti_lps_affine, nifti_unoriented
+from imaging.volume_file import degenerate_affine, load_nifti, nifti_lps_affine, nifti_misnamed, nifti_unoriented
 
 __all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
 
@@ -121,6 +121,8 @@ class LabelMap:
 
 
 def _read_nifti(path: Path) -> LabelMap:
+    if misnamed := nifti_misnamed(path):
+        raise LabelMapError(f"NIfTI label map {path} {misnamed}")
     damage = gzip_damage(path)
     if damage:
         raise LabelMapError(f"NIfTI label map {path} is damaged ({damage}): copy it again from its source")

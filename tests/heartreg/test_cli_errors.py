@@ -135,3 +135,49 @@ def test_a_signal_after_the_command_is_done_changes_nothing(monkeypatch):
         for s, handler in before.items():
             signal.signal(s, handler)
     assert seen == {signal.SIGINT: signal.SIG_IGN, signal.SIGTERM: signal.SIG_IGN, "status": 0}
+
+
+def _misleading_inputs(tmp, make_series):
+    """The files of a new user's audit that got a misleading refusal, and what the one line must say now."""
+    import shutil
+
+    import nibabel as nib
+    import numpy as np
+    import pydicom
+
+    nib.save(nib.Nifti1Image(np.full((10, 10, 10), -1000, np.int16), np.eye(4)), str(tmp / "plain.nii"))
+    shutil.copy(tmp / "plain.nii", tmp / "misnamed.nii.gz")
+    (tmp / "junk.nii.gz").write_bytes(b"not a volume at all" * 30)
+    nib.save(nib.AnalyzeImage(np.full((10, 10, 10), -1000, np.int16), np.eye(4)), str(tmp / "analyze.img"))
+    files = make_series(tmp / "series", n_slices=5, ge_private=None)
+    shutil.copy(files[0], tmp / "single.dcm")
+    ds = pydicom.dcmread(files[0])
+    ds.NumberOfFrames = 5
+    ds.PixelData = ds.PixelData * 5
+    ds.save_as(tmp / "multiframe.dcm")
+    header = ("NRRD0004\ntype: short\ndimension: 3\nspace: scanner-xyz\nsizes: 4 4 4\n"
+              "space directions: (1,0,0) (0,1,0) (0,0,1)\nspace origin: (0,0,0)\nencoding: raw\nendian: little\n\n")
+    (tmp / "scanner.nrrd").write_bytes(header.encode() + bytes(128))
+    return [
+        ("misnamed.nii.gz", "is an uncompressed NIfTI file named .nii.gz (no gzip compression): rename it to .nii"),
+        ("junk.nii.gz", "is not gzip-compressed, as a .nii.gz must be, nor a NIfTI file"),
+        ("analyze.hdr", "is an Analyze 7.5 image (.hdr/.img pair), not DICOM: convert it to NIfTI"),
+        ("analyze.img", "is an Analyze 7.5 image (.hdr/.img pair), not DICOM: convert it to NIfTI"),
+        ("single.dcm", "is one DICOM image (a single slice), not a study: give the folder that holds the whole CT"),
+        ("multiframe.dcm", "a classic multi-frame CT image (5 frames in one file, one ImagePositionPatient for them "
+                           "all): its frames cannot be placed; export the series as single-frame CT images"),
+        ("scanner.nrrd", "space 'scanner-xyz' names no patient directions"),
+    ]
+
+
+def test_misleading_refusals_say_what_the_file_is(tmp_path, capsys):
+    """Before: 'damaged (Not a gzipped file)', 'no DICOM images found', 'the CT spans only 2 mm', 'repeated slice
+    positions that no attribute separates; choose one with --series', 'missing or bad header field
+    ('scanner-xyz')' (a new user's audit)."""
+    from tests.imaging.dicom_factory import write_ct_series
+
+    for name, said in _misleading_inputs(tmp_path, write_ct_series):
+        assert cli.main(["model", str(tmp_path / name), "-o", str(tmp_path / "out"), "-q"]) == 1, name
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and said in err and name in err, (name, err)
+        assert not (tmp_path / "out").exists()

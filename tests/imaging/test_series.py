@@ -306,6 +306,37 @@ def test_two_cardiac_phases_in_one_series_are_split(tmp_path):
     assert {s.nominal_cardiac_percent for s in vol.slices} == {70.0}
 
 
+def test_list_series_shows_the_phase_of_each_part(tmp_path, capsys):
+    """A multi-phase series (0 %, 40 %, 70 % in one SeriesInstanceUID): --list-series showed three alike lines
+    and the automatic choice (the lowest) named the others by size only (a new user's audit); each part now
+    shows its NominalPercentageOfCardiacPhase, or its TriggerTime when it has no percentage."""
+    from heartreg.cli import main
+
+    uid = pydicom.uid.generate_uid()
+    for pct in (0.0, 40.0, 70.0):
+        def tag(ds, k, pct=pct):
+            ds.NominalPercentageOfCardiacPhase = pct
+            ds.TriggerTime = 8.5 * pct
+        fac.write_ct_series(tmp_path / "study" / f"p{pct:g}", n_slices=8, series_uid=uid, extra=tag)
+    assert [s.cardiac for s in list_series(tmp_path / "study")] == ["phase 0 %", "phase 40 %", "phase 70 %"]
+    assert main(["phases", str(tmp_path / "study"), "--list-series"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [re.search(r"volume  (phase \d+ %) - series repeats", line).group(1) for line in lines] == [
+        "phase 0 %", "phase 40 %", "phase 70 %"]
+    with pytest.warns(StudyWarning, match=r"\[1\] axial 8 file\(s\) phase 40 %, \[2\] axial 8 file\(s\) phase 70 %"):
+        volume = load_study(tmp_path / "study")
+    assert any(re.search(r"other CT candidate\(s\) \[1\] axial 8 phase 40 %, \[2\] axial 8 phase 70 %", n)
+               for n in volume.notes), volume.notes
+    # TriggerTime alone: one value, or the range of a retrospective series
+    fac.write_ct_series(tmp_path / "tt", n_slices=4, extra=lambda ds, k: setattr(ds, "TriggerTime", 560))
+    fac.write_ct_series(tmp_path / "tr", n_slices=4, extra=lambda ds, k: setattr(ds, "TriggerTime", 100 * k))
+    assert list_series(tmp_path / "tt")[0].cardiac == "TriggerTime 560 ms"
+    assert list_series(tmp_path / "tr")[0].cardiac == "TriggerTime 0-300 ms"
+    assert list_series(tmp_path / "study" / "p0")[0].cardiac == "phase 0 %"
+    fac.write_ct_series(tmp_path / "none", n_slices=4)
+    assert list_series(tmp_path / "none")[0].cardiac == ""
+
+
 def test_duplicate_copies_are_kept_once(tmp_path, axial):
     shutil.copytree(axial, tmp_path / "copy")
     vol = load_study(tmp_path)
@@ -372,6 +403,30 @@ def test_slice_thickness_differing_from_spacing_is_noted(tmp_path):
     vol = load_study(tmp_path)
     assert any("SliceThickness 1.25 mm differs from the slice spacing 2.000 mm (gaps between"
                in n for n in vol.notes)
+
+
+def _spacing_on_odd_slices(value):
+    def extra(ds, k):
+        if k % 2:
+            ds.PixelSpacing = value
+    return extra
+
+
+def test_pixel_spacing_differing_by_rounding_is_one_spacing(tmp_path):
+    """PixelSpacing 1.5 beside 1.500001 (exporters round DS values differently) was refused as 'PixelSpacing
+    differs between images' (a new user's audit): equal within 1e-4 of the value, the median used."""
+    fac.write_ct_series(tmp_path, pixel_spacing=(1.5, 1.5), extra=_spacing_on_odd_slices(["1.500001", "1.5"]))
+    vol = load_study(tmp_path)
+    assert vol.hu.shape == (20, 32, 32) and not vol.resampled
+    assert vol.spacing_mm[0] == 1.5 and vol.spacing_mm[1] == pytest.approx(1.5000005)
+    assert pattern_error(vol) <= 1.0  # round(x + 2y + 3z) at 1 um per 32 pixels: a rounding step at most
+
+
+def test_pixel_spacing_that_really_differs_is_refused(tmp_path):
+    fac.write_ct_series(tmp_path, pixel_spacing=(1.5, 1.5), extra=_spacing_on_odd_slices(["1.5", "1.51"]))
+    with pytest.raises(SeriesError, match=r"PixelSpacing differs between images .* by more than 0\.0001 of its "
+                                          r"value; pass series=\.\.\. \(--series\)"):
+        load_study(tmp_path)
 
 
 def test_wild_gap_is_refused_naming_files(tmp_path):

@@ -57,6 +57,34 @@ def test_a_volume_edited_anywhere_is_another_series(tmp_path):
         assert getattr(first, key) != getattr(edited, key), key
 
 
+@pytest.mark.parametrize("code, per_mm, said", [(1, 1e-3, "its metres (xyzt_units) scaled to mm"),
+                                                 (3, 1e3, "its micrometres (xyzt_units) scaled to mm"),
+                                                 (2, 1.0, ""), (0, 1.0, ""), (2 | 8, 1.0, "")])
+def test_the_spatial_unit_is_scaled_to_mm(tmp_path, code, per_mm, said):
+    """A NIfTI in metres or micrometres (xyzt_units) was read as if mm: a heart of 0.1 mm or 100 m (a new user's
+    audit). Scaled to mm and said in the RAS note; unknown (0) stays mm, as NIfTI practice."""
+    affine = np.diag([-0.7 * per_mm, -0.7 * per_mm, 1.5 * per_mm, 1.0])
+    affine[:3, 3] = np.array([10.0, -20.0, 30.0]) * per_mm
+    img = nib.Nifti1Image(np.full((4, 5, 6), -1000, np.int16), affine)
+    img.header["xyzt_units"] = code
+    nib.save(img, str(tmp_path / "ct.nii.gz"))
+    volume = read_nifti_volume(tmp_path / "ct.nii.gz")
+    np.testing.assert_allclose(volume.spacing_mm, [0.7, 0.7, 1.5])
+    np.testing.assert_allclose(volume.T_patient_from_voxel[:3, 3], [-10.0, 20.0, 30.0])
+    note = volume.notes[0]
+    assert note.startswith("NIfTI input: affine taken as RAS (NIfTI convention) and converted to LPS")
+    assert (said in note) if said else "xyzt_units" not in note, note
+
+
+def test_an_unknown_unit_code_is_refused(tmp_path):
+    img = nib.Nifti1Image(np.full((4, 5, 6), -1000, np.int16), np.eye(4))
+    img.header["xyzt_units"] = 5
+    nib.save(img, str(tmp_path / "ct.nii.gz"))
+    with pytest.raises(SeriesError, match=r"ct\.nii\.gz: its spatial unit code \(xyzt_units & 7\) is 5, none of "
+                                          r"NIfTI's \(0 unknown, 1 metre, 2 mm, 3 micrometre\): write the file"):
+        read_nifti_volume(tmp_path / "ct.nii.gz")
+
+
 def test_bad_files(tmp_path):
     assert is_nifti_path("a/b.NII.GZ") and not is_nifti_path("a/b.nrrd")
     with pytest.raises(SeriesError, match="does not exist"):

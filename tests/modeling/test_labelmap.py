@@ -273,6 +273,19 @@ def test_a_label_map_without_orientation_says_so(tmp_path):
         mask_on_grid(label_map, (10, 10, 10), far)
 
 
+def test_a_label_map_in_metres_lands_in_mm(tmp_path):
+    """xyzt_units metres: the label map's affine scaled to mm, as the CT's (it was taken as mm: 1000 x too small)."""
+    import nibabel as nib
+
+    T, shape = _source_T()
+    img = nib.Nifti1Image(_ball_labels(T, shape).transpose(2, 1, 0), np.diag([-1e-3, -1e-3, 1e-3, 1.0]) @ T)
+    img.header["xyzt_units"] = 1
+    nib.save(img, str(tmp_path / "metres.nii.gz"))
+    label_map = read_label_map(tmp_path / "metres.nii.gz")
+    np.testing.assert_allclose(label_map.T_patient_from_voxel, T, atol=1e-9)
+    _check(label_map)
+
+
 def test_header_conflicts_and_other_nrrd_forms(tmp_path):
     """Found by session 17's sweep: a NIfTI whose sform and qform disagree was placed by its sform (nibabel),
     30 mm from where 3D Slicer (ITK: the qform) shows it, without a word; a detached ``.nhdr`` was 'not a DICOM
