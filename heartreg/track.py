@@ -25,7 +25,6 @@ flow_insp, flow_exp)`` samples; :func:`heartreg.igtl.igtl_client_chunks` is one)
 from __future__ import annotations
 
 import errno
-import json
 import os
 import tempfile
 import time
@@ -34,9 +33,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from heartreg.igtl import IgtlSink
+from heartreg.track_log import TRACK_COLUMNS, umask
+from heartreg.track_log import csv_lines as _csv_lines
+from heartreg.track_log import status_text as _status_text
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
 from registration.localise import FAR_MM, Localiser, registered_models
@@ -62,12 +63,6 @@ T_RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 OFF_SURFACE_MM = 5.0
 #: a gap between samples longer than this many sample intervals restarts the phases.
 GAP_SAMPLES = 10
-TRACK_COLUMNS = (
-    "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
-    "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
-    "surface_x_mm", "surface_y_mm", "surface_z_mm", "distance_mm", "nearest_point_mm",
-    "static_x_mm", "static_y_mm", "static_z_mm", "sent",
-)  # fmt: skip
 
 
 class TrackError(HeartregError, ValueError):
@@ -303,41 +298,6 @@ def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
                          "give the model the session was registered to")
 
 
-def _status_text(rows: TrackRows, i: int) -> str:
-    p = rows.T_heart_from_robot[i, :3, 3]
-    return json.dumps({
-        "time_s": round(float(rows.time_s[i]), 4),
-        "cardiac_phase": None if np.isnan(rows.cardiac_phase[i]) else round(float(rows.cardiac_phase[i]), 4),
-        "respiration_phase": (None if np.isnan(rows.respiration_phase[i])
-                              else round(float(rows.respiration_phase[i]), 4)),
-        "quality": rows.quality[i],
-        "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
-        "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],
-    }, separators=(",", ":"))
-
-
-_ROW_FMT = ",".join(
-    ["%.3f", "%.4f", "%.4f", "%s", "%d"] + ["%.4f"] * 3 + ["%.6f"] * 4 + ["%.4f"] * 4 + ["%.3f"]
-    + ["%.4f"] * 3 + ["%d"]
-) + "\n"
-
-
-def _csv_lines(rows: TrackRows, sent: np.ndarray) -> str:
-    """The log rows of a chunk (``nan`` where a value is undefined)."""
-    T = rows.T_heart_from_robot
-    m = T.shape[0]
-    ok = np.isfinite(T[:, 0, 0])
-    q = np.full((m, 4), np.nan)
-    if ok.any():
-        q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    cols = [rows.time_s, rows.cardiac_phase, rows.respiration_phase, rows.quality, rows.flags,
-            *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
-            *rows.static_mm.T, sent.astype(int)]
-    cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]
-    fmt = _ROW_FMT
-    return "".join([fmt % r for r in zip(*cols)])
-
-
 @dataclass(frozen=True)
 class TrackSummary:
     """What a run did: samples, sent, dropped, placed, wall time, R-peak latency."""
@@ -461,7 +421,7 @@ def run_track(
                 interrupted_by = type(exc)
         if sink is not None:
             sink.flush()
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~umask())
         os.replace(tmp, csv_path)
     except OSError as exc:  # a write to the open log (a disk's error, not the OpenIGTLink socket's): name it
         if exc.filename is None and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO):
@@ -479,12 +439,6 @@ def run_track(
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
         interrupted=interrupted_by is not None, interrupted_by=interrupted_by,
     )
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):
