@@ -31,7 +31,7 @@ import shutil
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, os_error_message, refusal_line, root_os_error  # noqa: F401 - theirs, as before
 
 __all__ = [
     "OutputError",
@@ -269,42 +269,6 @@ def _commit(stage: Path, out: Path) -> None:
     os.rename(out, old)  # a kill here: clean_stale_staging moves it back
     os.rename(stage, out)
     _remove(old)
-
-
-# ------------------------------------------------------------------ messages
-def root_os_error(exc: BaseException) -> BaseException:
-    """The OS error behind ``exc`` (``exc`` when none): a library may re-raise one errno-less, its traceback in
-    the message (pydicom's writer: "With tag (7FE0,0010) got exception: [Errno 28] ...")."""
-    seen = exc
-    while seen is not None and not (isinstance(seen, OSError) and seen.errno is not None):
-        seen = seen.__cause__ or seen.__context__
-    return exc if seen is None else seen
-
-
-def os_error_message(exc: OSError, *, what: str = "") -> str:
-    """One line for an OS error: the file, the reason in words, what to do."""
-    exc = root_os_error(exc)
-    name = exc.filename or what or "a file"
-    reason = exc.strerror or str(exc) or type(exc).__name__
-    hint = {
-        errno.ENOSPC: "free disk space or choose an output on another disk",
-        errno.EDQUOT: "free space within your quota or choose another disk",
-        errno.EACCES: "check the permissions or choose another path",
-        errno.EPERM: "check the permissions or choose another path",
-        errno.EROFS: "choose an output on a writable disk",
-        errno.ENOENT: "check the path",
-    }.get(exc.errno, "check the path and rerun")
-    return f"{name}: {reason}; {hint}"
-
-
-def refusal_line(exc: BaseException) -> str | None:
-    """The one line a command prints for a refusal (a :class:`HeartregError` or an
-    OS error, translated); None for anything else, which is a bug."""
-    if isinstance(exc, OSError) and getattr(root_os_error(exc), "strerror", None):
-        return os_error_message(exc)
-    if isinstance(exc, (HeartregError, OSError)):
-        return " ".join(str(exc).split()) or type(exc).__name__
-    return None
 
 
 def _size_bytes(path: Path) -> int:
