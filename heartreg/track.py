@@ -40,6 +40,7 @@ from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
+from hrcore.output import check_output_file
 from registration.localise import FAR_MM, Localiser, registered_models
 from registration.motion_model import Harmonics
 from registration.online import CausalPhases, PhaseFlag
@@ -360,7 +361,8 @@ def run_track(
     TrackSummary
     """
     csv_path = Path(csv_path)
-    if csv_path.exists() and csv_path.is_dir():
+    check_output_file(csv_path, what="--log")  # a link, a FIFO, a device is never replaced
+    if csv_path.is_dir():
         raise TrackError(f"--log {csv_path} is a folder; give a file name")
     try:
         csv_path.parent.mkdir(parents=True, exist_ok=True)
@@ -422,6 +424,7 @@ def run_track(
         if sink is not None:
             sink.flush()
         os.chmod(tmp, 0o666 & ~umask())
+        check_output_file(csv_path, what="--log")  # again: one may have been put there meanwhile
         os.replace(tmp, csv_path)
     except OSError as exc:  # a write to the open log (a disk's error, not the OpenIGTLink socket's): name it
         if exc.filename is None and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO):

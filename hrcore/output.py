@@ -28,6 +28,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from hrcore.errors import HeartregError, os_error_message, refusal_line, root_os
 
 __all__ = [
     "OutputError",
+    "check_output_file",
     "check_output_path",
     "clean_stale_staging",
     "os_error_message",
@@ -116,6 +118,7 @@ def check_output_path(
                     "whose files alone are ever replaced; choose an empty folder or a new name"
                 )
     else:
+        check_output_file(out, what=what)
         if out.is_dir():
             raise OutputError(f"{what} {out} is a folder; give a file name")
         if out.exists() and not overwrite:
@@ -125,6 +128,38 @@ def check_output_path(
         raise OutputError(f"{what} {out}: {parent} is a file, not a folder; choose another output path")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{what} {out}: folder {parent} is not writable; choose another output path")
+    return out
+
+
+_KINDS = ((stat.S_ISFIFO, "named pipe"), (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"),
+          (stat.S_ISSOCK, "socket"))
+
+
+def check_output_file(out, *, what: str = "output file") -> Path:
+    """Refuse an output file's path that holds anything but a regular file (or nothing).
+
+    A symbolic link (dangling or not) is never followed nor replaced, nor is a
+    named pipe, a device (a log with ``--overwrite`` replaced ``/dev/null`` by a
+    regular file, as root) or a socket.  :func:`check_output_path` calls it for a
+    file; a writer calls it again just before its rename.
+
+    Raises
+    ------
+    OutputError
+        One line naming ``what``, ``out`` and what to do.
+    """
+    out = Path(out)
+    try:
+        mode = os.lstat(out).st_mode
+    except OSError:  # nothing there (or a place that cannot be looked at: refused by the checks of its folder)
+        return out
+    if stat.S_ISLNK(mode):
+        raise OutputError(f"{what} {out} is a symbolic link, which is never followed nor replaced; "
+                          "give a regular file's own path or a new name")
+    for test, kind in _KINDS:
+        if test(mode):
+            raise OutputError(f"{what} {out} is a {kind}, not a regular file (only a regular file is ever "
+                              "replaced); choose another name")
     return out
 
 

@@ -419,6 +419,48 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
         write_navigation(nav["case"], out_dir=tmp_path, speed_mm_s=0.0)
 
 
+def test_the_log_replaces_only_a_regular_file(nav, loaded, tmp_path, capsys):
+    """``--log X --overwrite`` replaced whatever X was: a symbolic link, a named pipe, a device node (as root:
+    /dev/null) became the log (a user's audit).  Now each is one line and left as it was; the check is
+    :func:`hrcore.output.check_output_file`, run again just before the log's rename."""
+    import os
+
+    from hrcore.output import OutputError
+
+    inputs = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"),
+              "--replay", str(nav["root"] / "navigation"), "-q", "--overwrite"]
+    (tmp_path / "target.txt").write_text("theirs")
+    (tmp_path / "link.csv").symlink_to(tmp_path / "target.txt")
+    os.mkfifo(tmp_path / "fifo.csv")
+    said = {"link.csv": "is a symbolic link, which is never followed nor replaced",
+            "fifo.csv": "is a named pipe, not a regular file"}
+    if os.geteuid() == 0:
+        import stat
+
+        os.mknod(tmp_path / "dev.csv", 0o644 | stat.S_IFCHR, os.makedev(1, 3))
+        said["dev.csv"] = "is a character device, not a regular file"
+    for name, words in said.items():
+        before = os.lstat(tmp_path / name)
+        assert main(["track", *inputs, "--log", str(tmp_path / name)]) == 1
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"heartreg track: error: --log {tmp_path / name} {words}"), lines
+        after = os.lstat(tmp_path / name)
+        assert (after.st_mode, after.st_ino) == (before.st_mode, before.st_ino), name
+    assert (tmp_path / "target.txt").read_text() == "theirs"
+
+    # a link put there while the stream runs is not replaced at the end either (the run is refused, nothing left)
+    def chunks():
+        for i, chunk in enumerate(session_chunks(read_session(nav["root"] / "navigation"), chunk=500)):
+            if i == 1:
+                (tmp_path / "late.csv").symlink_to(tmp_path / "target.txt")
+            yield chunk
+
+    with pytest.raises(OutputError, match=r"^--log .*late.csv is a symbolic link"):
+        run_track(loaded(), chunks(), tmp_path / "late.csv")
+    assert (tmp_path / "late.csv").is_symlink() and (tmp_path / "target.txt").read_text() == "theirs"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["target.txt", "late.csv", *said])
+
+
 def test_navigation_of_a_case_with_its_own_anatomy(nav, tmp_path):
     """A case made with ``--fov-mm 200 --stent`` (its truth.json holds the anatomy) gets its navigation:
     before session 18 ``heartreg phantom --fov-mm 200 --stent --navigation`` ended in a traceback (the
