@@ -66,13 +66,17 @@ def _cmd_track(args) -> int:
     return _interrupted_status(summary.interrupted_by) if summary.interrupted else 0
 
 
-def _print_track_summary(summary, csv_path, *, file=sys.stdout) -> None:
-    """``heartreg track``'s summary lines (a :class:`heartreg.track.TrackSummary`)."""
+def _print_track_summary(summary, csv_path, *, file=None) -> None:
+    """``heartreg track``'s summary lines (a :class:`heartreg.track.TrackSummary`; ``file``: stdout)."""
+    file = sys.stdout if file is None else file  # the stdout of the call, not of the import
     s = summary
     rate = s.n_samples / s.wall_s if s.wall_s > 0 else float("nan")
     print(f"tracked {s.n_samples} samples ({s.n_placed} placed on the map) in {s.wall_s:.2f} s "
           f"({rate:.0f} samples/s){' - interrupted' if s.interrupted else ''}", file=file)
     print(f"  log               {csv_path}", file=file)
+    if s.n_invalid_pose:
+        print(f"  invalid poses     {s.n_invalid_pose} sample(s): a pose not a rigid transform (NaN or inf, rotation "
+              "not orthonormal, det not +1, last row not 0 0 0 1), logged as quality 'tracker', not placed", file=file)
     if s.n_sent == 0 and s.models_sent == 0:
         print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
         print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)

@@ -25,6 +25,7 @@ flow_insp, flow_exp)`` samples; :func:`heartreg.igtl.igtl_client_chunks` is one)
 from __future__ import annotations
 
 import errno
+import math
 import os
 import tempfile
 import time
@@ -39,11 +40,12 @@ from heartreg.track_log import TRACK_COLUMNS, umask
 from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
 from hrcore.errors import HeartregError
-from hrcore.geometry import apply_to_points
+from hrcore.geometry import apply_to_points, is_rigid
 from hrcore.output import check_output_file
 from registration.localise import FAR_MM, Localiser, registered_models
 from registration.motion_model import Harmonics
 from registration.online import CausalPhases, PhaseFlag
+from registration.plus import RIGID_TOL as POSE_TOL
 
 __all__ = [
     "TRACK_COLUMNS",
@@ -173,6 +175,8 @@ class TrackRows:
     distance_mm: np.ndarray
     nearest_point_mm: np.ndarray
     static_mm: np.ndarray
+    #: (m,) bool: both poses were finite rigid transforms (else the sample's quality is ``tracker``, unplaced)
+    pose_ok: np.ndarray
 
 
 def _quality(flags: int, distance: float, nearest: float, status: bool) -> str:
@@ -225,19 +229,44 @@ class Tracker:
         self.r_peaks.extend(ph.r_peaks)
         self.onsets.extend(ph.onsets)
         Tp = chunk.T_tracker_from_probe
+        # a pose that is no rigid transform (NaN, a scaled or reflected rotation, a last row not 0 0 0 1) is a
+        # sensor not seen: it was placed and logged 'ok' (a reflection ended the run with a traceback)
+        pose_ok = _rigid_poses(chunk.T_tracker_from_robot, Tp)
+        status = chunk.status & pose_ok
         Rt = np.swapaxes(Tp[:, :3, :3], 1, 2)
         T_probe_from_robot = np.zeros_like(chunk.T_tracker_from_robot)
         T_probe_from_robot[:, :3, :3] = Rt @ chunk.T_tracker_from_robot[:, :3, :3]
         T_probe_from_robot[:, :3, 3] = np.einsum("mij,mj->mi", Rt, chunk.T_tracker_from_robot[:, :3, 3] - Tp[:, :3, 3])
         T_probe_from_robot[:, 3, 3] = 1.0
-        pc = np.where(chunk.status, ph.cardiac_phase, np.nan)
+        T_probe_from_robot[~pose_ok] = np.nan
+        pc = np.where(status, ph.cardiac_phase, np.nan)
         mp = self.localiser.locate(T_probe_from_robot, pc, ph.respiration_phase)
         quality = tuple(
             _quality(int(f), float(d), float(nn), bool(s))
-            for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, chunk.status)
+            for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, status)
         )
         return TrackRows(t, ph.cardiac_phase, ph.respiration_phase, quality, ph.flags, mp.T_heart_from_robot,
-                         mp.surface_mm, mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
+                         mp.surface_mm, mp.distance_mm, mp.nearest_point_mm, mp.static_mm, pose_ok)
+
+
+def _rigid_poses(Tr: np.ndarray, Tp: np.ndarray) -> np.ndarray:
+    """(m,) bool: both poses of a sample are finite rigid transforms (:func:`hrcore.geometry.is_rigid`, within
+    :data:`POSE_TOL`); a live sample (m = 1) in plain floats, as :func:`is_rigid`'s set-up took 0.06 ms of it."""
+    if Tr.shape[0] != 1:
+        return is_rigid(Tr, tol=POSE_TOL) & is_rigid(Tp, tol=POSE_TOL)
+    for T in (Tr[0].tolist(), Tp[0].tolist()):
+        if not all(math.isfinite(x) for row in T for x in row):
+            return np.zeros(1, bool)
+        (a, b, c, _), (d, e, f, _), (g, h, k, _), last = T
+        cols = ((a, d, g), (b, e, h), (c, f, k))
+        for i in range(3):
+            for j in range(i, 3):
+                if abs(sum(x * y for x, y in zip(cols[i], cols[j])) - (i == j)) > POSE_TOL:
+                    return np.zeros(1, bool)
+        det = a * (e * k - f * h) - b * (d * k - f * g) + c * (d * h - e * g)
+        if abs(det - 1.0) > POSE_TOL or max(abs(x - y) for x, y in zip(last, (0.0, 0.0, 0.0, 1.0))) > POSE_TOL:
+            return np.zeros(1, bool)
+    return np.ones(1, bool)
 
 
 def load_tracker(model_dir, registration_dir, session_dir):
@@ -301,7 +330,7 @@ def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
 
 @dataclass(frozen=True)
 class TrackSummary:
-    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency."""
+    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency, invalid poses."""
 
     n_samples: int
     n_placed: int
@@ -313,6 +342,8 @@ class TrackSummary:
     interrupted: bool
     #: what interrupted the stream: KeyboardInterrupt (Ctrl-C) or a subclass of it (the CLI's SIGTERM)
     interrupted_by: type | None = None
+    #: samples whose pose was no finite rigid transform (logged with quality ``tracker``, not placed)
+    n_invalid_pose: int = 0
 
 
 def run_track(
@@ -388,7 +419,7 @@ def run_track(
         if own_sink:
             sink.close()
         raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
-    n = placed = sent_total = 0
+    n = placed = sent_total = invalid = 0
     interrupted_by = None
     t_wall0 = time.perf_counter()
     try:
@@ -417,6 +448,7 @@ def run_track(
                         n += len(rows.time_s)
                         placed += int(np.count_nonzero(np.isfinite(rows.T_heart_from_robot[:, 0, 3])))
                         sent_total += int(sent.sum())
+                        invalid += int(np.count_nonzero(~rows.pose_ok))
                         if progress is not None:
                             progress(rows)
             except KeyboardInterrupt as exc:
@@ -440,7 +472,7 @@ def run_track(
         n_samples=n, n_placed=placed, n_sent=sent_total, n_dropped=limiter.dropped,
         models_sent=0 if sink is None else sink.models_sent, wall_s=time.perf_counter() - t_wall0,
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
-        interrupted=interrupted_by is not None, interrupted_by=interrupted_by,
+        interrupted=interrupted_by is not None, interrupted_by=interrupted_by, n_invalid_pose=invalid,
     )
 
 

@@ -35,6 +35,7 @@ from heartreg.track import (
     TRACK_COLUMNS,
     RateLimiter,
     Tracker,
+    chunks_from_samples,
     load_tracker,
     run_track,
     session_chunks,
@@ -209,15 +210,16 @@ def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):
         assert f'"quality":"{r["quality"]}"' in status[t].string
 
 
-def _serve_stream(rec, n, run, *, bad=None):
+def _serve_stream(rec, n, run, *, bad=None, poses=None):
     """A pyigtl server sending the record's first ``n`` samples as a PLUS-like stream (``bad``: sample index ->
-    (time, Signals text) replacing that sample's); ``run(port)`` consumes it.  Returns what ``run`` returns."""
+    (time, Signals text) replacing that sample's; ``poses``: sample index -> (RobotToTracker, ProbeToTracker)
+    replacing its poses); ``run(port)`` consumes it.  Returns what ``run`` returns."""
     import signal
     import threading
 
     import pyigtl
 
-    bad = bad or {}
+    bad, poses = bad or {}, poses or {}
     server = pyigtl.OpenIGTLinkServer(port=0, local_server=True)
     for s in (signal.SIGINT, signal.SIGTERM):  # pyigtl's handlers: give Ctrl-C back to pytest
         signal.signal(s, signal.default_int_handler if s == signal.SIGINT else signal.SIG_DFL)
@@ -228,8 +230,9 @@ def _serve_stream(rec, n, run, *, bad=None):
         for i in range(n):
             t, text = bad.get(i, (float(rec.time_s[i]), f"{float(rec.ecg_mv[i])!r},{float(rec.flow_insp_lpm[i])!r},"
                                                             f"{float(rec.flow_exp_lpm[i])!r}"))
-            server.send_message(pyigtl.TransformMessage(rec.T_probe_from_robot[i], timestamp=t, device_name=DEVICE_ROBOT), wait=False)
-            server.send_message(pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name=DEVICE_PROBE), wait=False)
+            robot, probe = poses.get(i, (rec.T_probe_from_robot[i], np.eye(4)))
+            server.send_message(pyigtl.TransformMessage(robot, timestamp=t, device_name=DEVICE_ROBOT), wait=False)
+            server.send_message(pyigtl.TransformMessage(probe, timestamp=t, device_name=DEVICE_PROBE), wait=False)
             server.send_message(pyigtl.StringMessage(text, timestamp=t, device_name=DEVICE_SIGNALS),
                                 wait=i % 25 == 24)  # keep pyigtl's 100-message queue from overflowing
 
@@ -281,6 +284,46 @@ def test_bad_live_samples_are_skipped_not_fatal(nav, loaded, tmp_path):
     # a server that is not there is said, not taken for an empty stream
     with pytest.raises(IgtlError, match="no connection within 0.5 s"):
         list(igtl_client_chunks("127.0.0.1", _free_port(), idle_timeout_s=0.5))
+
+
+def test_a_pose_that_is_no_rigid_transform_is_not_placed(nav, loaded, tmp_path, capsys):
+    """A pose over OpenIGTLink with a NaN or an infinity, a scaled rotation or a reflection (det -1) was
+    logged 'ok' and placed (the NaN one at NaN, the scaled one at a plausible place), and a reflection ended the
+    run with scipy's traceback and no log (a user's audit).  Now each is a sample whose sensor was not seen:
+    quality 'tracker', not placed, counted in the summary; the phases go on (its ECG and airflow are fine)."""
+    rec = read_session(nav["root"] / "navigation").points[0]
+    T = rec.T_probe_from_robot
+    nan, inf, scaled, mirrored, probe_nan = T[1000].copy(), T[1010].copy(), T[1020].copy(), T[1030].copy(), np.eye(4)
+    nan[0, 0], inf[1, 3], probe_nan[2, 3] = np.nan, np.inf, np.nan
+    scaled[:3, :3] *= 1.5
+    mirrored[:3, 0] *= -1.0
+    poses = {1000: (nan, np.eye(4)), 1010: (inf, np.eye(4)), 1020: (scaled, np.eye(4)), 1030: (mirrored, np.eye(4)),
+             1040: (T[1040], probe_nan)}
+    log = tmp_path / "live.csv"
+    args = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"), "-q",
+            "--idle-timeout", "2", "--log", str(log)]
+    status = _serve_stream(rec, 1200, lambda port: main(["track", *args, "--igtl-in", f"127.0.0.1:{port}"]),
+                           poses=poses)
+    out = capsys.readouterr().out
+    assert status == 0
+    assert "  invalid poses     5 sample(s): a pose not a rigid transform (NaN or inf" in out
+    with open(log, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 1200
+    for i in poses:
+        assert rows[i]["quality"] == "tracker" and rows[i]["map_x_mm"] == "nan" and rows[i]["sent"] == "0", rows[i]
+        assert rows[i]["cardiac_phase"] != "nan"  # the signals of the sample were used
+    assert sum(r["quality"] == "tracker" for r in rows) == 5
+    assert all(r["map_x_mm"] != "nan" for i, r in enumerate(rows) if i >= 1000 and i not in poses
+               and r["quality"] in ("ok", "predicted"))
+    # a last row that is not 0 0 0 1 (OpenIGTLink cannot carry one: a PLUS reader or another source can)
+    tracker = loaded()
+    s = (rec.time_s[0], T[0], np.eye(4), True, rec.ecg_mv[0], rec.flow_insp_lpm[0], rec.flow_exp_lpm[0])
+    skewed = T[1].copy()
+    skewed[3] = [0.0, 0.0, 0.1, 1.0]
+    s2 = (rec.time_s[1], skewed, np.eye(4), True, rec.ecg_mv[1], rec.flow_insp_lpm[1], rec.flow_exp_lpm[1])
+    rows = tracker.process(next(chunks_from_samples([s, s2], chunk=2)))
+    assert list(rows.pose_ok) == [True, False] and rows.quality[1] == "tracker"
 
 
 def _free_port() -> int:
