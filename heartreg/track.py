@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from heartreg.igtl import IgtlSink
+from heartreg.igtl import IgtlSink, RateLimiter
 from heartreg.track_log import TRACK_COLUMNS, umask
 from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
@@ -135,30 +135,6 @@ def _stack(buf) -> StreamChunk:
     t, Tr, Tp, st, ecg, fi, fe = zip(*buf)
     return StreamChunk(np.array(t, float), np.array(Tr, float), np.array(Tp, float), np.array(ecg, float),
                        np.array(fi, float), np.array(fe, float), np.array(st, bool))
-
-
-class RateLimiter:
-    """At most ``max_hz`` events per second of the given clock; the rest are
-    dropped quietly and counted (``dropped``)."""
-
-    def __init__(self, max_hz: float | None, *, clock=time.monotonic):
-        if max_hz is not None and not max_hz > 0:
-            raise ValueError(f"max_hz must be positive or None, got {max_hz!r}")
-        self._interval = 0.0 if max_hz is None else 1.0 / float(max_hz)
-        self._clock = clock
-        self._next = -np.inf
-        self.passed = 0
-        self.dropped = 0
-
-    def allow(self) -> bool:
-        now = self._clock()
-        if now >= self._next:
-            # the budget follows the clock; a late event does not earn a burst
-            self._next = max(self._next + self._interval, now) if np.isfinite(self._next) else now + self._interval
-            self.passed += 1
-            return True
-        self.dropped += 1
-        return False
 
 
 @dataclass(frozen=True, eq=False)
