@@ -15,7 +15,7 @@ def _cmd_track(args) -> int:
     from registration.session import read_session
 
     from heartreg.igtl import igtl_client_chunks
-    from heartreg.track import load_tracker, run_track, session_chunks
+    from heartreg.track import TrackError, load_tracker, run_track, session_chunks
 
     if args.speed is not None and not args.speed > 0:
         raise UsageError(f"--speed must be positive (1 = real time), got {args.speed}")
@@ -63,7 +63,30 @@ def _cmd_track(args) -> int:
     _print_track_summary(summary, args.log)
     for why, n in skipped.items():
         print(f"  skipped           {n} sample(s) from --igtl-in: {why}")
-    return _interrupted_status(summary.interrupted_by) if summary.interrupted else 0
+    if summary.interrupted:
+        return _interrupted_status(summary.interrupted_by)
+    if summary.n_placed == 0:  # a run that placed nothing is no success, though its log is kept (a record)
+        raise TrackError(_nothing_placed(summary, args, skipped))
+    return 0
+
+
+def _nothing_placed(s, args, skipped: dict) -> str:
+    """Why a run placed no sample on the map, in one line."""
+    source = f"--igtl-in {args.igtl_in}" if args.igtl_in is not None else "the replay"
+    if s.n_samples == 0:
+        why = (f"no pose arrived from {source} before it went quiet for --idle-timeout {args.idle_timeout:g} s"
+               if args.igtl_in else f"{source} held no sample")
+        if skipped:
+            why += f"; {sum(skipped.values())} sample(s) were skipped, see above"
+    elif s.n_invalid_pose == s.n_samples:
+        why = (f"all {s.n_samples} poses from {source} were invalid (no rigid transform); check the tracker's "
+               "RobotToTracker and ProbeToTracker transforms")
+    else:
+        counts = ", ".join(f"{v} {k}" for k, v in sorted(s.qualities.items(), key=lambda kv: -kv[1]))
+        why = f"none of the {s.n_samples} samples could be placed (quality: {counts})"
+        if s.qualities.get("no_phase"):
+            why += "; the phases need an R-peak and a start of expiration: stream at least about 10 s"
+    return f"nothing was placed on the map: {why}; the log {args.log} was written"
 
 
 def _print_track_summary(summary, csv_path, *, file=None) -> None:

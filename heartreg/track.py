@@ -30,7 +30,7 @@ import os
 import tempfile
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -306,7 +306,7 @@ def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
 
 @dataclass(frozen=True)
 class TrackSummary:
-    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency, invalid poses."""
+    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency, invalid poses, qualities."""
 
     n_samples: int
     n_placed: int
@@ -320,6 +320,8 @@ class TrackSummary:
     interrupted_by: type | None = None
     #: samples whose pose was no finite rigid transform (logged with quality ``tracker``, not placed)
     n_invalid_pose: int = 0
+    #: samples by their ``quality`` (the log's column)
+    qualities: dict = field(default_factory=dict)
 
 
 def run_track(
@@ -397,6 +399,8 @@ def run_track(
         raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
     n = placed = sent_total = invalid = 0
     interrupted_by = None
+    qualities: dict[str, int] = {}
+    source_error: list = []
     t_wall0 = time.perf_counter()
     try:
         with os.fdopen(fd, "w", newline="") as fh:
@@ -405,7 +409,7 @@ def run_track(
                 sink.wait_for_client(wait_client_s)
             t_stream0 = None
             try:
-                for chunk in chunks:
+                for chunk in _until_error(chunks, source_error):
                     if speed is not None and len(chunk):
                         if t_stream0 is None:
                             t_stream0, t_real0 = float(chunk.time_s[0]), time.monotonic()
@@ -425,6 +429,8 @@ def run_track(
                         placed += int(np.count_nonzero(np.isfinite(rows.T_heart_from_robot[:, 0, 3])))
                         sent_total += int(sent.sum())
                         invalid += int(np.count_nonzero(~rows.pose_ok))
+                        for q in rows.quality:
+                            qualities[q] = qualities.get(q, 0) + 1
                         if progress is not None:
                             progress(rows)
             except KeyboardInterrupt as exc:
@@ -443,13 +449,26 @@ def run_track(
             os.unlink(tmp)
         if own_sink:
             sink.close()
+    if source_error:  # after the rename: the log is a record of the run
+        raise TrackError(f"{'nothing was placed on the map: ' if not placed else ''}{source_error[0]} (the log "
+                         f"{csv_path} was written: the {n} sample(s) before it)") from None
     lat = np.array([c - r for r, c in tracker.r_peaks]) * 1000.0
     return TrackSummary(
         n_samples=n, n_placed=placed, n_sent=sent_total, n_dropped=limiter.dropped,
         models_sent=0 if sink is None else sink.models_sent, wall_s=time.perf_counter() - t_wall0,
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
         interrupted=interrupted_by is not None, interrupted_by=interrupted_by, n_invalid_pose=invalid,
+        qualities=qualities,
     )
+
+
+def _until_error(chunks, errors: list):
+    """The chunks of a source until it fails with a refusal (a server that never answered, a bad file), kept in
+    ``errors``: the log keeps the samples before it."""
+    try:
+        yield from chunks
+    except HeartregError as exc:
+        errors.append(exc)
 
 
 def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):

@@ -326,6 +326,48 @@ def test_a_pose_that_is_no_rigid_transform_is_not_placed(nav, loaded, tmp_path, 
     assert list(rows.pose_ok) == [True, False] and rows.quality[1] == "tracker"
 
 
+def test_a_run_that_placed_nothing_exits_1_and_keeps_its_log(nav, tmp_path, capsys):
+    """A run that placed no sample exited 0 as if fine: every pose invalid, no pose at all (every sample
+    skipped), a server that sent nothing (a user's audit; the last exited 1 but lost the log).  Now each is
+    exit 1 and one line saying why, and the log is written (it is the run's record)."""
+    rec = read_session(nav["root"] / "navigation").points[0]
+    args = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"), "-q",
+            "--idle-timeout", "1"]
+
+    def run(log, n, **kw):
+        return _serve_stream(rec, n, lambda port: (port, main(["track", *args, "--log", str(tmp_path / log),
+                                                                "--igtl-in", f"127.0.0.1:{port}"])), **kw)
+
+    nan = rec.T_probe_from_robot[0].copy()
+    nan[0, 3] = np.nan
+    port, status = run("invalid.csv", 300, poses={i: (nan, np.eye(4)) for i in range(300)})
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert status == 1 and lines == [
+        f"heartreg track: error: nothing was placed on the map: all 300 poses from --igtl-in 127.0.0.1:{port} were "
+        "invalid (no rigid transform); check the tracker's RobotToTracker and ProbeToTracker transforms; the log "
+        f"{tmp_path / 'invalid.csv'} was written"], lines
+    with open(tmp_path / "invalid.csv", newline="") as fh:
+        assert [r["quality"] for r in csv.DictReader(fh)] == ["tracker"] * 300
+
+    port, status = run("none.csv", 50, bad={i: (float(rec.time_s[i]), "x") for i in range(50)})
+    captured = capsys.readouterr()
+    assert status == 1 and captured.err.strip().splitlines() == [
+        f"heartreg track: error: nothing was placed on the map: no pose arrived from --igtl-in 127.0.0.1:{port} "
+        f"before it went quiet for --idle-timeout 1 s; 50 sample(s) were skipped, see above; the log "
+        f"{tmp_path / 'none.csv'} was written"]
+    assert "skipped           50 sample(s) from --igtl-in: Signals not three finite numbers" in captured.out
+    assert (tmp_path / "none.csv").read_text().splitlines() == [",".join(TRACK_COLUMNS)]
+
+    port, status = run("silent.csv", 0)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert status == 1 and len(lines) == 1 and lines[0].startswith(
+        f"heartreg track: error: nothing was placed on the map: --igtl-in 127.0.0.1:{port}: connected but sent "
+        "nothing within 1 s"), lines
+    assert lines[0].endswith(f"(the log {tmp_path / 'silent.csv'} was written: the 0 sample(s) before it)")
+    assert (tmp_path / "silent.csv").read_text().splitlines() == [",".join(TRACK_COLUMNS)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["invalid.csv", "none.csv", "silent.csv"]
+
+
 def _free_port() -> int:
     import socket
 
