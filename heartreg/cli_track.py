@@ -31,6 +31,12 @@ def _cmd_track(args) -> int:
     check_output_path(args.log, inputs=(args.model_dir, args.registration_dir, args.session_dir, args.replay),
                       what="--log", overwrite=args.overwrite, folder=False)
     tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
+    trust = tracker.trust
+    if trust.level.value != "ok":  # once, before the stream: every place on the map rests on it (the log says so)
+        worst = max(trust.reasons, key=lambda r: r.level.rank)
+        print(f"warning: registration {args.registration_dir} is trusted '{trust.summary()}': {worst.message}; "
+              "every place on the map rests on it: check it before navigating on it (the log's registration_trust "
+              "says so)", file=sys.stderr, flush=True)
     skipped: dict[str, int] = {}
     if args.igtl_in is not None:
         host, _, port = args.igtl_in.rpartition(":")

@@ -39,6 +39,7 @@ from heartreg.igtl import IgtlSink, RateLimiter
 from heartreg.track_log import TRACK_COLUMNS, umask
 from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
+from heartreg.track_log import trust_cell
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, is_rigid
 from hrcore.output import check_output_file
@@ -179,10 +180,13 @@ class Tracker:
         The stream's sample rate.
     rr_prior_s, breath_prior_s : float, s, optional
         Periods assumed before two events are seen.
+    trust : registration.plausibility.Trust, optional
+        The registration's verdict (``registration.json``), written in every log row.
     """
 
-    def __init__(self, localiser: Localiser, rate_hz: float, *, rr_prior_s=None, breath_prior_s=None):
+    def __init__(self, localiser: Localiser, rate_hz: float, *, rr_prior_s=None, breath_prior_s=None, trust=None):
         self.localiser = localiser
+        self.trust = trust
         self.rate_hz = float(rate_hz)
         self._priors = dict(rr_prior_s=rr_prior_s, breath_prior_s=breath_prior_s)
         self.phases = CausalPhases(self.rate_hz, **self._priors)
@@ -192,7 +196,7 @@ class Tracker:
 
     def at_rate(self, rate_hz: float) -> "Tracker":
         """The same tracker for a stream sampled at ``rate_hz`` (its causal filters are built for its rate)."""
-        return Tracker(self.localiser, rate_hz, **self._priors)
+        return Tracker(self.localiser, rate_hz, trust=self.trust, **self._priors)
 
     def process(self, chunk: StreamChunk) -> TrackRows:
         """Phases and map positions of every sample of ``chunk``."""
@@ -282,7 +286,8 @@ def load_tracker(model_dir, registration_dir, session_dir):
     localiser = Localiser(models, reg.T_heart_from_probe, reg.cardiac_phase, reg.respiration_phase, surface)
     rr = 1.0 / float(np.mean([f.heart_rate_hz for f in reg.point_fits]))
     br = 1.0 / float(np.mean([f.resp_rate_hz for f in reg.point_fits]))
-    return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
+    tracker = Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br, trust=reg.trust)
+    return tracker, model, session.sample_rate_hz
 
 
 def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
@@ -424,7 +429,7 @@ def run_track(
                     else:
                         rows_list = [_emit(tracker.process(chunk), sink, limiter, T_ras_from_heart)]
                     for rows, sent in rows_list:
-                        fh.write(_csv_lines(rows, sent))
+                        fh.write(_csv_lines(rows, sent, trust_cell(tracker.trust)))
                         n += len(rows.time_s)
                         placed += int(np.count_nonzero(np.isfinite(rows.T_heart_from_robot[:, 0, 3])))
                         sent_total += int(sent.sum())

@@ -13,18 +13,18 @@ import os
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["TRACK_COLUMNS", "csv_lines", "status_text", "umask"]
+__all__ = ["TRACK_COLUMNS", "csv_lines", "status_text", "trust_cell", "umask"]
 
 TRACK_COLUMNS = (
     "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
     "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
     "surface_x_mm", "surface_y_mm", "surface_z_mm", "distance_mm", "nearest_point_mm",
-    "static_x_mm", "static_y_mm", "static_z_mm", "sent",
+    "static_x_mm", "static_y_mm", "static_z_mm", "sent", "registration_trust",
 )  # fmt: skip
 
 _ROW_FMT = ",".join(
     ["%.3f", "%.4f", "%.4f", "%s", "%d"] + ["%.4f"] * 3 + ["%.6f"] * 4 + ["%.4f"] * 4 + ["%.3f"]
-    + ["%.4f"] * 3 + ["%d"]
+    + ["%.4f"] * 3 + ["%d", "%s"]
 ) + "\n"
 
 
@@ -42,8 +42,16 @@ def status_text(rows, i: int) -> str:
     }, separators=(",", ":"))
 
 
-def csv_lines(rows, sent: np.ndarray) -> str:
-    """The log rows of a chunk (``nan`` where a value is undefined)."""
+def trust_cell(trust) -> str:
+    """The log's ``registration_trust``: the level of a :class:`registration.plausibility.Trust`, then its
+    reasons' codes after ``:``, joined by ``+`` (``caution:phase_undecided``); ``unknown`` without one."""
+    if trust is None:
+        return "unknown"
+    return ":".join([trust.level.value, "+".join(r.code for r in trust.reasons)] if trust.reasons else [trust.level.value])
+
+
+def csv_lines(rows, sent: np.ndarray, trust: str = "unknown") -> str:
+    """The log rows of a chunk (``nan`` where a value is undefined; ``trust``: :func:`trust_cell`)."""
     T = rows.T_heart_from_robot
     m = T.shape[0]
     ok = np.isfinite(T[:, 0, 0])
@@ -52,7 +60,7 @@ def csv_lines(rows, sent: np.ndarray) -> str:
         q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
     cols = [rows.time_s, rows.cardiac_phase, rows.respiration_phase, rows.quality, rows.flags,
             *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
-            *rows.static_mm.T, sent.astype(int)]
+            *rows.static_mm.T, sent.astype(int), (trust,) * m]
     cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]
     fmt = _ROW_FMT
     return "".join([fmt % r for r in zip(*cols)])

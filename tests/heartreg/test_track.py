@@ -338,10 +338,13 @@ def test_a_run_that_placed_nothing_exits_1_and_keeps_its_log(nav, tmp_path, caps
         return _serve_stream(rec, n, lambda port: (port, main(["track", *args, "--log", str(tmp_path / log),
                                                                 "--igtl-in", f"127.0.0.1:{port}"])), **kw)
 
+    def errors(err):  # but the warning on the fixture's registration ('caution', test_an_untrusted_registration...)
+        return [line for line in err.strip().splitlines() if not line.startswith("warning: registration ")]
+
     nan = rec.T_probe_from_robot[0].copy()
     nan[0, 3] = np.nan
     port, status = run("invalid.csv", 300, poses={i: (nan, np.eye(4)) for i in range(300)})
-    lines = capsys.readouterr().err.strip().splitlines()
+    lines = errors(capsys.readouterr().err)
     assert status == 1 and lines == [
         f"heartreg track: error: nothing was placed on the map: all 300 poses from --igtl-in 127.0.0.1:{port} were "
         "invalid (no rigid transform); check the tracker's RobotToTracker and ProbeToTracker transforms; the log "
@@ -351,7 +354,7 @@ def test_a_run_that_placed_nothing_exits_1_and_keeps_its_log(nav, tmp_path, caps
 
     port, status = run("none.csv", 50, bad={i: (float(rec.time_s[i]), "x") for i in range(50)})
     captured = capsys.readouterr()
-    assert status == 1 and captured.err.strip().splitlines() == [
+    assert status == 1 and errors(captured.err) == [
         f"heartreg track: error: nothing was placed on the map: no pose arrived from --igtl-in 127.0.0.1:{port} "
         f"before it went quiet for --idle-timeout 1 s; 50 sample(s) were skipped, see above; the log "
         f"{tmp_path / 'none.csv'} was written"]
@@ -359,13 +362,51 @@ def test_a_run_that_placed_nothing_exits_1_and_keeps_its_log(nav, tmp_path, caps
     assert (tmp_path / "none.csv").read_text().splitlines() == [",".join(TRACK_COLUMNS)]
 
     port, status = run("silent.csv", 0)
-    lines = capsys.readouterr().err.strip().splitlines()
+    lines = errors(capsys.readouterr().err)
     assert status == 1 and len(lines) == 1 and lines[0].startswith(
         f"heartreg track: error: nothing was placed on the map: --igtl-in 127.0.0.1:{port}: connected but sent "
         "nothing within 1 s"), lines
     assert lines[0].endswith(f"(the log {tmp_path / 'silent.csv'} was written: the 0 sample(s) before it)")
     assert (tmp_path / "silent.csv").read_text().splitlines() == [",".join(TRACK_COLUMNS)]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["invalid.csv", "none.csv", "silent.csv"]
+
+
+def test_an_untrusted_registration_is_said_once_and_logged(nav, tmp_path, capsys):
+    """registration.json's trust verdict ('caution' or 'poor', e.g. 'the data cannot decide phi_R*') was
+    ignored: track placed the robot on it without a word (a user's audit).  Now one warning line on stderr before
+    the stream, and every log row carries it (registration_trust); a trusted one says nothing."""
+    import json
+    import shutil
+
+    reg = tmp_path / "registration"
+    shutil.copytree(nav["root"] / "registration", reg)
+    doc = json.loads((reg / "registration.json").read_text())
+    cases = {
+        "caution": (doc["trust"], "caution:phase_undecided", "is trusted 'caution (phase_undecided)': the data cannot "
+                    "decide phi_R*"),
+        "poor": ({"level": "poor", "reasons": [
+            {"code": "phase_undecided", "level": "caution", "message": "phi_R* undecided"},
+            {"code": "icp_degenerate", "level": "poor", "message": "the final ICP can slide along the surface"}]},
+            "poor:phase_undecided+icp_degenerate",
+            "is trusted 'poor (phase_undecided, icp_degenerate)': the final ICP can slide along the surface; every "
+            "place on the map rests on it"),
+        "ok": ({"level": "ok", "reasons": []}, "ok", None),
+    }
+    assert doc["trust"]["reasons"][0]["code"] == "phase_undecided"  # the fixture's own registration
+    for name, (trust, cell, said) in cases.items():
+        doc["trust"] = trust
+        (reg / "registration.json").write_text(json.dumps(doc))
+        log = tmp_path / f"{name}.csv"
+        assert main(["track", str(nav["model_dir"]), str(reg), str(nav["case"] / "session"), "-q",
+                     "--replay", str(nav["root"] / "navigation"), "--log", str(log)]) == 0
+        err = capsys.readouterr().err.strip().splitlines()
+        if said is None:
+            assert err == [], err
+        else:
+            assert len(err) == 1 and err[0].startswith(f"warning: registration {reg} {said}"), err
+        with open(log, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        assert len(rows) == 6000 and {r["registration_trust"] for r in rows} == {cell}
 
 
 def _free_port() -> int:
