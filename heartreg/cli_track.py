@@ -96,7 +96,7 @@ def _nothing_placed(s, args, skipped: dict) -> str:
 
 
 def _print_track_summary(summary, csv_path, *, file=None) -> None:
-    """``heartreg track``'s summary lines (a :class:`heartreg.track.TrackSummary`; ``file``: stdout)."""
+    """``heartreg track``'s summary lines (a :class:`heartreg.track_log.TrackSummary`; ``file``: stdout)."""
     file = sys.stdout if file is None else file  # the stdout of the call, not of the import
     s = summary
     rate = s.n_samples / s.wall_s if s.wall_s > 0 else float("nan")

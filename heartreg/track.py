@@ -24,19 +24,20 @@ flow_insp, flow_exp)`` samples; :func:`heartreg.igtl.igtl_client_chunks` is one)
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import math
 import os
 import tempfile
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from heartreg.igtl import IgtlSink, RateLimiter
-from heartreg.track_log import TRACK_COLUMNS, umask
+from heartreg.track_log import TRACK_COLUMNS, TrackSummary, umask
 from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
 from heartreg.track_log import trust_cell
@@ -54,6 +55,7 @@ __all__ = [
     "RateLimiter",
     "StreamChunk",
     "TrackError",
+    "TrackSummary",
     "Tracker",
     "chunks_from_samples",
     "load_tracker",
@@ -309,26 +311,6 @@ def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
                          "give the model the session was registered to")
 
 
-@dataclass(frozen=True)
-class TrackSummary:
-    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency, invalid poses, qualities."""
-
-    n_samples: int
-    n_placed: int
-    n_sent: int
-    n_dropped: int
-    models_sent: int
-    wall_s: float
-    r_peak_latency_ms: tuple
-    interrupted: bool
-    #: what interrupted the stream: KeyboardInterrupt (Ctrl-C) or a subclass of it (the CLI's SIGTERM)
-    interrupted_by: type | None = None
-    #: samples whose pose was no finite rigid transform (logged with quality ``tracker``, not placed)
-    n_invalid_pose: int = 0
-    #: samples by their ``quality`` (the log's column)
-    qualities: dict = field(default_factory=dict)
-
-
 def run_track(
     tracker: Tracker,
     chunks: Iterable[StreamChunk],
@@ -378,10 +360,6 @@ def run_track(
     check_output_file(csv_path, what="--log")  # a link, a FIFO, a device is never replaced
     if csv_path.is_dir():
         raise TrackError(f"--log {csv_path} is a folder; give a file name")
-    try:
-        csv_path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
     own_sink = False
     if sink is None and igtl_port is not None:
         if model is None:
@@ -396,9 +374,14 @@ def run_track(
     if sink is not None and T_ras_from_heart is None:
         raise TrackError("OpenIGTLink needs the model (its frame)")
     limiter = RateLimiter(igtl_rate_hz)
+    made: list[Path] = []  # missing folders above the log, made now and removed unless it is written (as for -o)
     try:
+        for d in _missing_folders(csv_path):
+            os.mkdir(d)
+            made.insert(0, d)
         fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.stem}-", suffix=".csv", dir=csv_path.parent)
     except OSError as exc:
+        _remove_folders(made)
         if own_sink:
             sink.close()
         raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
@@ -450,8 +433,9 @@ def run_track(
             raise TrackError(f"--log {csv_path}: {exc.strerror}; free disk space or give a log on another disk") from None
         raise
     finally:
-        if os.path.exists(tmp):
+        if os.path.exists(tmp):  # not renamed: no log, and no folder made for it
             os.unlink(tmp)
+            _remove_folders(made)
         if own_sink:
             sink.close()
     if source_error:  # after the rename: the log is a record of the run
@@ -465,6 +449,21 @@ def run_track(
         interrupted=interrupted_by is not None, interrupted_by=interrupted_by, n_invalid_pose=invalid,
         qualities=qualities,
     )
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """The folders above ``path`` that do not exist, outermost first."""
+    missing, parent = [], Path(os.path.abspath(path)).parent
+    while not parent.exists():
+        missing.insert(0, parent)
+        parent = parent.parent
+    return missing
+
+
+def _remove_folders(folders) -> None:
+    for d in folders:  # innermost first; one that is not empty (another process's file) stays
+        with contextlib.suppress(OSError):
+            os.rmdir(d)
 
 
 def _until_error(chunks, errors: list):

@@ -1,4 +1,5 @@
-"""The outputs of ``heartreg track`` as text: the CSV log's rows and the ``RobotStatus`` string.
+"""The outputs of ``heartreg track``: the CSV log's rows and the ``RobotStatus`` string as text, and what a run
+did (:class:`TrackSummary`).
 
 Formats: ``docs/formats.md`` (*Track log and OpenIGTLink messages*).  The rows
 come from :class:`heartreg.track.TrackRows`; :func:`heartreg.track.run_track`
@@ -9,11 +10,12 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["TRACK_COLUMNS", "csv_lines", "status_text", "trust_cell", "umask"]
+__all__ = ["TRACK_COLUMNS", "TrackSummary", "csv_lines", "status_text", "trust_cell", "umask"]
 
 TRACK_COLUMNS = (
     "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
@@ -26,6 +28,26 @@ _ROW_FMT = ",".join(
     ["%.3f", "%.4f", "%.4f", "%s", "%d"] + ["%.4f"] * 3 + ["%.6f"] * 4 + ["%.4f"] * 4 + ["%.3f"]
     + ["%.4f"] * 3 + ["%d", "%s"]
 ) + "\n"
+
+
+@dataclass(frozen=True)
+class TrackSummary:
+    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency, invalid poses, qualities."""
+
+    n_samples: int
+    n_placed: int
+    n_sent: int
+    n_dropped: int
+    models_sent: int
+    wall_s: float
+    r_peak_latency_ms: tuple
+    interrupted: bool
+    #: what interrupted the stream: KeyboardInterrupt (Ctrl-C) or a subclass of it (the CLI's SIGTERM)
+    interrupted_by: type | None = None
+    #: samples whose pose was no finite rigid transform (logged with quality ``tracker``, not placed)
+    n_invalid_pose: int = 0
+    #: samples by their ``quality`` (the log's column)
+    qualities: dict = field(default_factory=dict)
 
 
 def status_text(rows, i: int) -> str:

@@ -490,6 +490,50 @@ def test_a_full_disk_names_the_log(nav, loaded, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_missing_folders_above_the_log_are_made_and_removed_with_a_refused_run(nav, loaded, tmp_path, capsys,
+                                                                             monkeypatch):
+    """A --log below missing folders: they are made, as for every -o; a run refused before its log was written
+    (a busy --igtl-port, a full disk) left them behind, empty (a user's audit).  Now they go with it."""
+    import errno
+    import socket
+
+    import heartreg.track as track
+
+    args = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"), "-q",
+            "--replay", str(nav["root"] / "navigation")]
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["track", *args, "--log", str(tmp_path / "new" / "a" / "log.csv"), "--igtl-port", str(port)]) == 1
+    assert f"--igtl-port {port}: cannot listen" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(track, "_csv_lines", full)
+        with pytest.raises(track.TrackError, match="No space left on device"):
+            run_track(loaded(), session_chunks(read_session(nav["root"] / "navigation"), chunk=500),
+                      tmp_path / "new" / "b" / "log.csv")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "new").mkdir()  # a folder that was there stays, the ones made go
+
+    def refused(**_):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    with monkeypatch.context() as m:
+        m.setattr(track.tempfile, "mkstemp", refused)
+        with pytest.raises(track.TrackError, match="cannot write there"):
+            run_track(loaded(), session_chunks(read_session(nav["root"] / "navigation"), chunk=500),
+                      tmp_path / "new" / "c" / "d" / "log.csv")
+    assert [p.relative_to(tmp_path) for p in tmp_path.rglob("*")] == [Path("new")]
+    # a run that writes its log keeps the folders made for it
+    assert main(["track", *args, "--log", str(tmp_path / "new" / "e" / "log.csv")]) == 0
+    assert (tmp_path / "new" / "e" / "log.csv").is_file()
+
+
 def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
     root = nav["root"]
     (tmp_path / "empty").mkdir()
