@@ -1,10 +1,10 @@
 """The ``heartreg`` command line.
 
-One function per subcommand (:mod:`heartreg.cli_commands`): parse
-(:mod:`heartreg.cli_parser`), call the library, write files.  Logs and
-progress go to stderr, summaries to stdout.  The project's errors are caught
-here and printed as one line on stderr with a non-zero exit status
-(``--debug`` shows the traceback instead).
+One function per subcommand (:mod:`heartreg.cli_commands`, ``track``'s in
+:mod:`heartreg.cli_track`): parse (:mod:`heartreg.cli_parser`), call the
+library, write files.  Logs and progress go to stderr, summaries to stdout.
+The project's errors are caught here and printed as one line on stderr with a
+non-zero exit status (``--debug`` shows the traceback instead).
 """
 
 from __future__ import annotations

@@ -328,83 +328,12 @@ def _cmd_register(args) -> int:
     return 0
 
 
-def _cmd_track(args) -> int:
-    from registration.session import read_session
-
-    from heartreg.igtl import igtl_client_chunks
-    from heartreg.track import load_tracker, run_track, session_chunks
-
-    if args.speed is not None and not args.speed > 0:
-        raise UsageError(f"--speed must be positive (1 = real time), got {args.speed}")
-    if args.igtl_rate < 0:
-        raise UsageError(f"--igtl-rate must be 0 (all samples) or a positive rate, got {args.igtl_rate}")
-    if args.igtl_in is not None and args.replay is not None:
-        raise UsageError("--igtl-in and --replay are two sources of the stream: give one")
-    if not args.idle_timeout > 0:
-        raise UsageError(f"--idle-timeout must be positive (s), got {args.idle_timeout}")
-    from hrcore.output import check_output_path
-
-    # the log never lies inside an input (it replaced registration.json), nor replaces a file without --overwrite
-    check_output_path(args.log, inputs=(args.model_dir, args.registration_dir, args.session_dir, args.replay),
-                      what="--log", overwrite=args.overwrite, folder=False)
-    tracker, model, _ = load_tracker(args.model_dir, args.registration_dir, args.session_dir)
-    skipped: dict[str, int] = {}
-    if args.igtl_in is not None:
-        host, _, port = args.igtl_in.rpartition(":")
-        if not port.isdigit() or not 0 < int(port) <= 65535:
-            raise UsageError(f"--igtl-in must be HOST:PORT with a port 1..65535, got {args.igtl_in!r}")
-        chunks = igtl_client_chunks(host or "127.0.0.1", int(port), idle_timeout_s=args.idle_timeout,
-                                    skipped=skipped)
-        speed = None  # a live stream paces itself
-    else:
-        replay = read_session(args.replay if args.replay is not None else args.session_dir)
-        if replay.sample_rate_hz != tracker.rate_hz:  # the causal filters follow the stream's own rate
-            tracker = tracker.at_rate(replay.sample_rate_hz)
-        chunks = session_chunks(replay, chunk=1 if args.speed is not None else 2000)
-        speed = args.speed
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(desc="track", unit="sample", leave=False)
-    try:
-        summary = run_track(
-            tracker, chunks, args.log, model=model, speed=speed, igtl_port=args.igtl_port,
-            igtl_rate_hz=args.igtl_rate if args.igtl_rate > 0 else None, wait_client_s=args.wait_client,
-            progress=None if bar is None else (lambda rows: bar.update(len(rows.time_s))),
-            listening=None if args.quiet else (lambda port: print(f"OpenIGTLink server on port {port}", flush=True)),
-        )
-    finally:
-        if bar is not None:
-            bar.close()
-    _print_track_summary(summary, args.log)
-    for why, n in skipped.items():
-        print(f"  skipped           {n} sample(s) from --igtl-in: {why}")
-    return _interrupted_status(summary.interrupted_by) if summary.interrupted else 0
-
-
 def _interrupted_status(kind) -> int:
     """The exit status of a command that kept its output through an interruption: 143 for SIGTERM, 130 for
     Ctrl-C, as :func:`heartreg.cli.main` gives when it handles one."""
     from heartreg.cli import Terminated
 
     return 143 if issubclass(kind, Terminated) else 130
-
-
-def _print_track_summary(summary, csv_path, *, file=sys.stdout) -> None:
-    """``heartreg track``'s summary lines (a :class:`heartreg.track.TrackSummary`)."""
-    s = summary
-    rate = s.n_samples / s.wall_s if s.wall_s > 0 else float("nan")
-    print(f"tracked {s.n_samples} samples ({s.n_placed} placed on the map) in {s.wall_s:.2f} s "
-          f"({rate:.0f} samples/s){' - interrupted' if s.interrupted else ''}", file=file)
-    print(f"  log               {csv_path}", file=file)
-    if s.n_sent == 0 and s.models_sent == 0:
-        print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
-        print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
-        return
-    print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
-          f"model sent {s.models_sent} time(s)", file=file)
-    print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
 
 
 def _cmd_evaluate_temporal(args) -> int:

@@ -22,8 +22,8 @@ from heartreg.cli_commands import (
     _cmd_pipeline,
     _cmd_register,
     _cmd_reproduce,
-    _cmd_track,
 )
+from heartreg.cli_track import _cmd_track
 
 
 def _finite(value: str) -> float:

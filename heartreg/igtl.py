@@ -1,4 +1,4 @@
-"""OpenIGTLink for ``heartreg track`` (pyigtl 0.3): the server Slicer connects to,
+"""OpenIGTLink for ``heartreg track`` (pyigtl 0.3): the server Slicer connects to and its rate limit,
 a client that loses no message, and the pose stream from a tracker server.
 
 Formats and device names: ``docs/formats.md`` (*Track log and OpenIGTLink
@@ -27,6 +27,7 @@ __all__ = [
     "DEVICE_TRANSFORM",
     "IgtlError",
     "IgtlSink",
+    "RateLimiter",
     "igtl_client_chunks",
     "lossless_client",
     "unpack_polydata",
@@ -131,6 +132,30 @@ class IgtlSink:
         self._server.communication_thread_stop_requested = True
         self._server.shutdown()
         self._server.server_close()
+
+
+class RateLimiter:
+    """At most ``max_hz`` events per second of the given clock; the rest are
+    dropped quietly and counted (``dropped``)."""
+
+    def __init__(self, max_hz: float | None, *, clock=time.monotonic):
+        if max_hz is not None and not max_hz > 0:
+            raise ValueError(f"max_hz must be positive or None, got {max_hz!r}")
+        self._interval = 0.0 if max_hz is None else 1.0 / float(max_hz)
+        self._clock = clock
+        self._next = -np.inf
+        self.passed = 0
+        self.dropped = 0
+
+    def allow(self) -> bool:
+        now = self._clock()
+        if now >= self._next:
+            # the budget follows the clock; a late event does not earn a burst
+            self._next = max(self._next + self._interval, now) if np.isfinite(self._next) else now + self._interval
+            self.passed += 1
+            return True
+        self.dropped += 1
+        return False
 
 
 def _counting_handler(pyigtl):

@@ -24,8 +24,9 @@ flow_insp, flow_exp)`` samples; :func:`heartreg.igtl.igtl_client_chunks` is one)
 
 from __future__ import annotations
 
+import contextlib
 import errno
-import json
+import math
 import os
 import tempfile
 import time
@@ -34,14 +35,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from heartreg.igtl import IgtlSink
+from heartreg.igtl import IgtlSink, RateLimiter
+from heartreg.track_log import TRACK_COLUMNS, TrackSummary, umask
+from heartreg.track_log import csv_lines as _csv_lines
+from heartreg.track_log import status_text as _status_text
+from heartreg.track_log import trust_cell
 from hrcore.errors import HeartregError
-from hrcore.geometry import apply_to_points
+from hrcore.geometry import apply_to_points, is_rigid
+from hrcore.output import check_output_file
 from registration.localise import FAR_MM, Localiser, registered_models
 from registration.motion_model import Harmonics
 from registration.online import CausalPhases, PhaseFlag
+from registration.plus import RIGID_TOL as POSE_TOL
 
 __all__ = [
     "TRACK_COLUMNS",
@@ -49,6 +55,7 @@ __all__ = [
     "RateLimiter",
     "StreamChunk",
     "TrackError",
+    "TrackSummary",
     "Tracker",
     "chunks_from_samples",
     "load_tracker",
@@ -62,12 +69,6 @@ T_RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 OFF_SURFACE_MM = 5.0
 #: a gap between samples longer than this many sample intervals restarts the phases.
 GAP_SAMPLES = 10
-TRACK_COLUMNS = (
-    "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
-    "map_x_mm", "map_y_mm", "map_z_mm", "map_qw", "map_qx", "map_qy", "map_qz",
-    "surface_x_mm", "surface_y_mm", "surface_z_mm", "distance_mm", "nearest_point_mm",
-    "static_x_mm", "static_y_mm", "static_z_mm", "sent",
-)  # fmt: skip
 
 
 class TrackError(HeartregError, ValueError):
@@ -139,30 +140,6 @@ def _stack(buf) -> StreamChunk:
                        np.array(fi, float), np.array(fe, float), np.array(st, bool))
 
 
-class RateLimiter:
-    """At most ``max_hz`` events per second of the given clock; the rest are
-    dropped quietly and counted (``dropped``)."""
-
-    def __init__(self, max_hz: float | None, *, clock=time.monotonic):
-        if max_hz is not None and not max_hz > 0:
-            raise ValueError(f"max_hz must be positive or None, got {max_hz!r}")
-        self._interval = 0.0 if max_hz is None else 1.0 / float(max_hz)
-        self._clock = clock
-        self._next = -np.inf
-        self.passed = 0
-        self.dropped = 0
-
-    def allow(self) -> bool:
-        now = self._clock()
-        if now >= self._next:
-            # the budget follows the clock; a late event does not earn a burst
-            self._next = max(self._next + self._interval, now) if np.isfinite(self._next) else now + self._interval
-            self.passed += 1
-            return True
-        self.dropped += 1
-        return False
-
-
 @dataclass(frozen=True, eq=False)
 class TrackRows:
     """The outputs of a chunk (see :data:`TRACK_COLUMNS`)."""
@@ -177,6 +154,8 @@ class TrackRows:
     distance_mm: np.ndarray
     nearest_point_mm: np.ndarray
     static_mm: np.ndarray
+    #: (m,) bool: both poses were finite rigid transforms (else the sample's quality is ``tracker``, unplaced)
+    pose_ok: np.ndarray
 
 
 def _quality(flags: int, distance: float, nearest: float, status: bool) -> str:
@@ -203,10 +182,13 @@ class Tracker:
         The stream's sample rate.
     rr_prior_s, breath_prior_s : float, s, optional
         Periods assumed before two events are seen.
+    trust : registration.plausibility.Trust, optional
+        The registration's verdict (``registration.json``), written in every log row.
     """
 
-    def __init__(self, localiser: Localiser, rate_hz: float, *, rr_prior_s=None, breath_prior_s=None):
+    def __init__(self, localiser: Localiser, rate_hz: float, *, rr_prior_s=None, breath_prior_s=None, trust=None):
         self.localiser = localiser
+        self.trust = trust
         self.rate_hz = float(rate_hz)
         self._priors = dict(rr_prior_s=rr_prior_s, breath_prior_s=breath_prior_s)
         self.phases = CausalPhases(self.rate_hz, **self._priors)
@@ -216,7 +198,7 @@ class Tracker:
 
     def at_rate(self, rate_hz: float) -> "Tracker":
         """The same tracker for a stream sampled at ``rate_hz`` (its causal filters are built for its rate)."""
-        return Tracker(self.localiser, rate_hz, **self._priors)
+        return Tracker(self.localiser, rate_hz, trust=self.trust, **self._priors)
 
     def process(self, chunk: StreamChunk) -> TrackRows:
         """Phases and map positions of every sample of ``chunk``."""
@@ -229,19 +211,44 @@ class Tracker:
         self.r_peaks.extend(ph.r_peaks)
         self.onsets.extend(ph.onsets)
         Tp = chunk.T_tracker_from_probe
+        # a pose that is no rigid transform (NaN, a scaled or reflected rotation, a last row not 0 0 0 1) is a
+        # sensor not seen: it was placed and logged 'ok' (a reflection ended the run with a traceback)
+        pose_ok = _rigid_poses(chunk.T_tracker_from_robot, Tp)
+        status = chunk.status & pose_ok
         Rt = np.swapaxes(Tp[:, :3, :3], 1, 2)
         T_probe_from_robot = np.zeros_like(chunk.T_tracker_from_robot)
         T_probe_from_robot[:, :3, :3] = Rt @ chunk.T_tracker_from_robot[:, :3, :3]
         T_probe_from_robot[:, :3, 3] = np.einsum("mij,mj->mi", Rt, chunk.T_tracker_from_robot[:, :3, 3] - Tp[:, :3, 3])
         T_probe_from_robot[:, 3, 3] = 1.0
-        pc = np.where(chunk.status, ph.cardiac_phase, np.nan)
+        T_probe_from_robot[~pose_ok] = np.nan
+        pc = np.where(status, ph.cardiac_phase, np.nan)
         mp = self.localiser.locate(T_probe_from_robot, pc, ph.respiration_phase)
         quality = tuple(
             _quality(int(f), float(d), float(nn), bool(s))
-            for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, chunk.status)
+            for f, d, nn, s in zip(ph.flags, mp.distance_mm, mp.nearest_point_mm, status)
         )
         return TrackRows(t, ph.cardiac_phase, ph.respiration_phase, quality, ph.flags, mp.T_heart_from_robot,
-                         mp.surface_mm, mp.distance_mm, mp.nearest_point_mm, mp.static_mm)
+                         mp.surface_mm, mp.distance_mm, mp.nearest_point_mm, mp.static_mm, pose_ok)
+
+
+def _rigid_poses(Tr: np.ndarray, Tp: np.ndarray) -> np.ndarray:
+    """(m,) bool: both poses of a sample are finite rigid transforms (:func:`hrcore.geometry.is_rigid`, within
+    :data:`POSE_TOL`); a live sample (m = 1) in plain floats, as :func:`is_rigid`'s set-up took 0.06 ms of it."""
+    if Tr.shape[0] != 1:
+        return is_rigid(Tr, tol=POSE_TOL) & is_rigid(Tp, tol=POSE_TOL)
+    for T in (Tr[0].tolist(), Tp[0].tolist()):
+        if not all(math.isfinite(x) for row in T for x in row):
+            return np.zeros(1, bool)
+        (a, b, c, _), (d, e, f, _), (g, h, k, _), last = T
+        cols = ((a, d, g), (b, e, h), (c, f, k))
+        for i in range(3):
+            for j in range(i, 3):
+                if abs(sum(x * y for x, y in zip(cols[i], cols[j])) - (i == j)) > POSE_TOL:
+                    return np.zeros(1, bool)
+        det = a * (e * k - f * h) - b * (d * k - f * g) + c * (d * h - e * g)
+        if abs(det - 1.0) > POSE_TOL or max(abs(x - y) for x, y in zip(last, (0.0, 0.0, 0.0, 1.0))) > POSE_TOL:
+            return np.zeros(1, bool)
+    return np.ones(1, bool)
 
 
 def load_tracker(model_dir, registration_dir, session_dir):
@@ -281,7 +288,8 @@ def load_tracker(model_dir, registration_dir, session_dir):
     localiser = Localiser(models, reg.T_heart_from_probe, reg.cardiac_phase, reg.respiration_phase, surface)
     rr = 1.0 / float(np.mean([f.heart_rate_hz for f in reg.point_fits]))
     br = 1.0 / float(np.mean([f.resp_rate_hz for f in reg.point_fits]))
-    return Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br), model, session.sample_rate_hz
+    tracker = Tracker(localiser, session.sample_rate_hz, rr_prior_s=rr, breath_prior_s=br, trust=reg.trust)
+    return tracker, model, session.sample_rate_hz
 
 
 def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
@@ -301,57 +309,6 @@ def _check_same_model(model, surface, reg, model_dir, registration_dir) -> None:
     if why:
         raise TrackError(f"{registration_dir} was not made with the model {model_dir}: {why}; "
                          "give the model the session was registered to")
-
-
-def _status_text(rows: TrackRows, i: int) -> str:
-    p = rows.T_heart_from_robot[i, :3, 3]
-    return json.dumps({
-        "time_s": round(float(rows.time_s[i]), 4),
-        "cardiac_phase": None if np.isnan(rows.cardiac_phase[i]) else round(float(rows.cardiac_phase[i]), 4),
-        "respiration_phase": (None if np.isnan(rows.respiration_phase[i])
-                              else round(float(rows.respiration_phase[i]), 4)),
-        "quality": rows.quality[i],
-        "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
-        "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],
-    }, separators=(",", ":"))
-
-
-_ROW_FMT = ",".join(
-    ["%.3f", "%.4f", "%.4f", "%s", "%d"] + ["%.4f"] * 3 + ["%.6f"] * 4 + ["%.4f"] * 4 + ["%.3f"]
-    + ["%.4f"] * 3 + ["%d"]
-) + "\n"
-
-
-def _csv_lines(rows: TrackRows, sent: np.ndarray) -> str:
-    """The log rows of a chunk (``nan`` where a value is undefined)."""
-    T = rows.T_heart_from_robot
-    m = T.shape[0]
-    ok = np.isfinite(T[:, 0, 0])
-    q = np.full((m, 4), np.nan)
-    if ok.any():
-        q[ok] = Rotation.from_matrix(T[ok, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    cols = [rows.time_s, rows.cardiac_phase, rows.respiration_phase, rows.quality, rows.flags,
-            *T[:, :3, 3].T, *q.T, *rows.surface_mm.T, rows.distance_mm, rows.nearest_point_mm,
-            *rows.static_mm.T, sent.astype(int)]
-    cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]
-    fmt = _ROW_FMT
-    return "".join([fmt % r for r in zip(*cols)])
-
-
-@dataclass(frozen=True)
-class TrackSummary:
-    """What a run did: samples, sent, dropped, placed, wall time, R-peak latency."""
-
-    n_samples: int
-    n_placed: int
-    n_sent: int
-    n_dropped: int
-    models_sent: int
-    wall_s: float
-    r_peak_latency_ms: tuple
-    interrupted: bool
-    #: what interrupted the stream: KeyboardInterrupt (Ctrl-C) or a subclass of it (the CLI's SIGTERM)
-    interrupted_by: type | None = None
 
 
 def run_track(
@@ -400,12 +357,9 @@ def run_track(
     TrackSummary
     """
     csv_path = Path(csv_path)
-    if csv_path.exists() and csv_path.is_dir():
+    check_output_file(csv_path, what="--log")  # a link, a FIFO, a device is never replaced
+    if csv_path.is_dir():
         raise TrackError(f"--log {csv_path} is a folder; give a file name")
-    try:
-        csv_path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
     own_sink = False
     if sink is None and igtl_port is not None:
         if model is None:
@@ -420,14 +374,21 @@ def run_track(
     if sink is not None and T_ras_from_heart is None:
         raise TrackError("OpenIGTLink needs the model (its frame)")
     limiter = RateLimiter(igtl_rate_hz)
+    made: list[Path] = []  # missing folders above the log, made now and removed unless it is written (as for -o)
     try:
+        for d in _missing_folders(csv_path):
+            os.mkdir(d)
+            made.insert(0, d)
         fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.stem}-", suffix=".csv", dir=csv_path.parent)
     except OSError as exc:
+        _remove_folders(made)
         if own_sink:
             sink.close()
         raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
-    n = placed = sent_total = 0
+    n = placed = sent_total = invalid = 0
     interrupted_by = None
+    qualities: dict[str, int] = {}
+    source_error: list = []
     t_wall0 = time.perf_counter()
     try:
         with os.fdopen(fd, "w", newline="") as fh:
@@ -436,7 +397,7 @@ def run_track(
                 sink.wait_for_client(wait_client_s)
             t_stream0 = None
             try:
-                for chunk in chunks:
+                for chunk in _until_error(chunks, source_error):
                     if speed is not None and len(chunk):
                         if t_stream0 is None:
                             t_stream0, t_real0 = float(chunk.time_s[0]), time.monotonic()
@@ -451,40 +412,67 @@ def run_track(
                     else:
                         rows_list = [_emit(tracker.process(chunk), sink, limiter, T_ras_from_heart)]
                     for rows, sent in rows_list:
-                        fh.write(_csv_lines(rows, sent))
+                        fh.write(_csv_lines(rows, sent, trust_cell(tracker.trust)))
                         n += len(rows.time_s)
                         placed += int(np.count_nonzero(np.isfinite(rows.T_heart_from_robot[:, 0, 3])))
                         sent_total += int(sent.sum())
+                        invalid += int(np.count_nonzero(~rows.pose_ok))
+                        for q in rows.quality:
+                            qualities[q] = qualities.get(q, 0) + 1
                         if progress is not None:
                             progress(rows)
             except KeyboardInterrupt as exc:
                 interrupted_by = type(exc)
         if sink is not None:
             sink.flush()
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~umask())
+        check_output_file(csv_path, what="--log")  # again: one may have been put there meanwhile
         os.replace(tmp, csv_path)
     except OSError as exc:  # a write to the open log (a disk's error, not the OpenIGTLink socket's): name it
         if exc.filename is None and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO):
             raise TrackError(f"--log {csv_path}: {exc.strerror}; free disk space or give a log on another disk") from None
         raise
     finally:
-        if os.path.exists(tmp):
+        if os.path.exists(tmp):  # not renamed: no log, and no folder made for it
             os.unlink(tmp)
+            _remove_folders(made)
         if own_sink:
             sink.close()
+    if source_error:  # after the rename: the log is a record of the run
+        raise TrackError(f"{'nothing was placed on the map: ' if not placed else ''}{source_error[0]} (the log "
+                         f"{csv_path} was written: the {n} sample(s) before it)") from None
     lat = np.array([c - r for r, c in tracker.r_peaks]) * 1000.0
     return TrackSummary(
         n_samples=n, n_placed=placed, n_sent=sent_total, n_dropped=limiter.dropped,
         models_sent=0 if sink is None else sink.models_sent, wall_s=time.perf_counter() - t_wall0,
         r_peak_latency_ms=(float(lat.mean()), float(lat.max())) if lat.size else (float("nan"),) * 2,
-        interrupted=interrupted_by is not None, interrupted_by=interrupted_by,
+        interrupted=interrupted_by is not None, interrupted_by=interrupted_by, n_invalid_pose=invalid,
+        qualities=qualities,
     )
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+def _missing_folders(path: Path) -> list[Path]:
+    """The folders above ``path`` that do not exist, outermost first."""
+    missing, parent = [], Path(os.path.abspath(path)).parent
+    while not parent.exists():
+        missing.insert(0, parent)
+        parent = parent.parent
+    return missing
+
+
+def _remove_folders(folders) -> None:
+    for d in folders:  # innermost first; one that is not empty (another process's file) stays
+        with contextlib.suppress(OSError):
+            os.rmdir(d)
+
+
+def _until_error(chunks, errors: list):
+    """The chunks of a source until it fails with a refusal (a server that never answered, a bad file), kept in
+    ``errors``: the log keeps the samples before it."""
+    try:
+        yield from chunks
+    except HeartregError as exc:
+        errors.append(exc)
 
 
 def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):

@@ -4,7 +4,8 @@ Every domain error of heartreg derives from :class:`HeartregError`, and also
 from the built-in it has always been (``ValueError`` for bad values,
 ``RuntimeError`` for a missing capability), so callers that caught the built-in
 keep working. A caller catches ``HeartregError`` to handle the library's own
-refusals without catching programming errors.
+refusals without catching programming errors. :func:`refusal_line` is the one
+line a command prints for a refusal or an OS error (:func:`os_error_message`).
 
 Examples
 --------
@@ -16,6 +17,8 @@ True
 """
 
 from __future__ import annotations
+
+import errno
 
 
 class HeartregError(Exception):
@@ -51,3 +54,39 @@ def read_json_object(path, *, keys=(), what: str = "file", error: type = Heartre
         held = f"lacks {', '.join(map(repr, missing))}" if isinstance(doc, dict) else "is no JSON object"
         raise error(f"{path} {held}: not a {what}{'; ' + fix if fix else ''}")
     return doc
+
+
+# ------------------------------------------------------------------ OS errors as one line
+def root_os_error(exc: BaseException) -> BaseException:
+    """The OS error behind ``exc`` (``exc`` when none): a library may re-raise one errno-less, its traceback in
+    the message (pydicom's writer: "With tag (7FE0,0010) got exception: [Errno 28] ...")."""
+    seen = exc
+    while seen is not None and not (isinstance(seen, OSError) and seen.errno is not None):
+        seen = seen.__cause__ or seen.__context__
+    return exc if seen is None else seen
+
+
+def os_error_message(exc: OSError, *, what: str = "") -> str:
+    """One line for an OS error: the file, the reason in words, what to do."""
+    exc = root_os_error(exc)
+    name = exc.filename or what or "a file"
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    hint = {
+        errno.ENOSPC: "free disk space or choose an output on another disk",
+        errno.EDQUOT: "free space within your quota or choose another disk",
+        errno.EACCES: "check the permissions or choose another path",
+        errno.EPERM: "check the permissions or choose another path",
+        errno.EROFS: "choose an output on a writable disk",
+        errno.ENOENT: "check the path",
+    }.get(exc.errno, "check the path and rerun")
+    return f"{name}: {reason}; {hint}"
+
+
+def refusal_line(exc: BaseException) -> str | None:
+    """The one line a command prints for a refusal (a :class:`HeartregError` or an
+    OS error, translated); None for anything else, which is a bug."""
+    if isinstance(exc, OSError) and getattr(root_os_error(exc), "strerror", None):
+        return os_error_message(exc)
+    if isinstance(exc, (HeartregError, OSError)):
+        return " ".join(str(exc).split()) or type(exc).__name__
+    return None

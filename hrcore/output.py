@@ -28,13 +28,15 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from hrcore.errors import HeartregError
+from hrcore.errors import HeartregError, os_error_message, refusal_line, root_os_error  # noqa: F401 - theirs, as before
 
 __all__ = [
     "OutputError",
+    "check_output_file",
     "check_output_path",
     "clean_stale_staging",
     "os_error_message",
@@ -116,6 +118,7 @@ def check_output_path(
                     "whose files alone are ever replaced; choose an empty folder or a new name"
                 )
     else:
+        check_output_file(out, what=what)
         if out.is_dir():
             raise OutputError(f"{what} {out} is a folder; give a file name")
         if out.exists() and not overwrite:
@@ -125,6 +128,38 @@ def check_output_path(
         raise OutputError(f"{what} {out}: {parent} is a file, not a folder; choose another output path")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{what} {out}: folder {parent} is not writable; choose another output path")
+    return out
+
+
+_KINDS = ((stat.S_ISFIFO, "named pipe"), (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"),
+          (stat.S_ISSOCK, "socket"))
+
+
+def check_output_file(out, *, what: str = "output file") -> Path:
+    """Refuse an output file's path that holds anything but a regular file (or nothing).
+
+    A symbolic link (dangling or not) is never followed nor replaced, nor is a
+    named pipe, a device (a log with ``--overwrite`` replaced ``/dev/null`` by a
+    regular file, as root) or a socket.  :func:`check_output_path` calls it for a
+    file; a writer calls it again just before its rename.
+
+    Raises
+    ------
+    OutputError
+        One line naming ``what``, ``out`` and what to do.
+    """
+    out = Path(out)
+    try:
+        mode = os.lstat(out).st_mode
+    except OSError:  # nothing there (or a place that cannot be looked at: refused by the checks of its folder)
+        return out
+    if stat.S_ISLNK(mode):
+        raise OutputError(f"{what} {out} is a symbolic link, which is never followed nor replaced; "
+                          "give a regular file's own path or a new name")
+    for test, kind in _KINDS:
+        if test(mode):
+            raise OutputError(f"{what} {out} is a {kind}, not a regular file (only a regular file is ever "
+                              "replaced); choose another name")
     return out
 
 
@@ -269,42 +304,6 @@ def _commit(stage: Path, out: Path) -> None:
     os.rename(out, old)  # a kill here: clean_stale_staging moves it back
     os.rename(stage, out)
     _remove(old)
-
-
-# ------------------------------------------------------------------ messages
-def root_os_error(exc: BaseException) -> BaseException:
-    """The OS error behind ``exc`` (``exc`` when none): a library may re-raise one errno-less, its traceback in
-    the message (pydicom's writer: "With tag (7FE0,0010) got exception: [Errno 28] ...")."""
-    seen = exc
-    while seen is not None and not (isinstance(seen, OSError) and seen.errno is not None):
-        seen = seen.__cause__ or seen.__context__
-    return exc if seen is None else seen
-
-
-def os_error_message(exc: OSError, *, what: str = "") -> str:
-    """One line for an OS error: the file, the reason in words, what to do."""
-    exc = root_os_error(exc)
-    name = exc.filename or what or "a file"
-    reason = exc.strerror or str(exc) or type(exc).__name__
-    hint = {
-        errno.ENOSPC: "free disk space or choose an output on another disk",
-        errno.EDQUOT: "free space within your quota or choose another disk",
-        errno.EACCES: "check the permissions or choose another path",
-        errno.EPERM: "check the permissions or choose another path",
-        errno.EROFS: "choose an output on a writable disk",
-        errno.ENOENT: "check the path",
-    }.get(exc.errno, "check the path and rerun")
-    return f"{name}: {reason}; {hint}"
-
-
-def refusal_line(exc: BaseException) -> str | None:
-    """The one line a command prints for a refusal (a :class:`HeartregError` or an
-    OS error, translated); None for anything else, which is a bug."""
-    if isinstance(exc, OSError) and getattr(root_os_error(exc), "strerror", None):
-        return os_error_message(exc)
-    if isinstance(exc, (HeartregError, OSError)):
-        return " ".join(str(exc).split()) or type(exc).__name__
-    return None
 
 
 def _size_bytes(path: Path) -> int:

@@ -35,6 +35,7 @@ from heartreg.track import (
     TRACK_COLUMNS,
     RateLimiter,
     Tracker,
+    chunks_from_samples,
     load_tracker,
     run_track,
     session_chunks,
@@ -209,15 +210,16 @@ def test_openigtlink_stream_matches_the_log(nav, loaded, tmp_path):
         assert f'"quality":"{r["quality"]}"' in status[t].string
 
 
-def _serve_stream(rec, n, run, *, bad=None):
+def _serve_stream(rec, n, run, *, bad=None, poses=None):
     """A pyigtl server sending the record's first ``n`` samples as a PLUS-like stream (``bad``: sample index ->
-    (time, Signals text) replacing that sample's); ``run(port)`` consumes it.  Returns what ``run`` returns."""
+    (time, Signals text) replacing that sample's; ``poses``: sample index -> (RobotToTracker, ProbeToTracker)
+    replacing its poses); ``run(port)`` consumes it.  Returns what ``run`` returns."""
     import signal
     import threading
 
     import pyigtl
 
-    bad = bad or {}
+    bad, poses = bad or {}, poses or {}
     server = pyigtl.OpenIGTLinkServer(port=0, local_server=True)
     for s in (signal.SIGINT, signal.SIGTERM):  # pyigtl's handlers: give Ctrl-C back to pytest
         signal.signal(s, signal.default_int_handler if s == signal.SIGINT else signal.SIG_DFL)
@@ -228,8 +230,9 @@ def _serve_stream(rec, n, run, *, bad=None):
         for i in range(n):
             t, text = bad.get(i, (float(rec.time_s[i]), f"{float(rec.ecg_mv[i])!r},{float(rec.flow_insp_lpm[i])!r},"
                                                             f"{float(rec.flow_exp_lpm[i])!r}"))
-            server.send_message(pyigtl.TransformMessage(rec.T_probe_from_robot[i], timestamp=t, device_name=DEVICE_ROBOT), wait=False)
-            server.send_message(pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name=DEVICE_PROBE), wait=False)
+            robot, probe = poses.get(i, (rec.T_probe_from_robot[i], np.eye(4)))
+            server.send_message(pyigtl.TransformMessage(robot, timestamp=t, device_name=DEVICE_ROBOT), wait=False)
+            server.send_message(pyigtl.TransformMessage(probe, timestamp=t, device_name=DEVICE_PROBE), wait=False)
             server.send_message(pyigtl.StringMessage(text, timestamp=t, device_name=DEVICE_SIGNALS),
                                 wait=i % 25 == 24)  # keep pyigtl's 100-message queue from overflowing
 
@@ -281,6 +284,129 @@ def test_bad_live_samples_are_skipped_not_fatal(nav, loaded, tmp_path):
     # a server that is not there is said, not taken for an empty stream
     with pytest.raises(IgtlError, match="no connection within 0.5 s"):
         list(igtl_client_chunks("127.0.0.1", _free_port(), idle_timeout_s=0.5))
+
+
+def test_a_pose_that_is_no_rigid_transform_is_not_placed(nav, loaded, tmp_path, capsys):
+    """A pose over OpenIGTLink with a NaN or an infinity, a scaled rotation or a reflection (det -1) was
+    logged 'ok' and placed (the NaN one at NaN, the scaled one at a plausible place), and a reflection ended the
+    run with scipy's traceback and no log (a user's audit).  Now each is a sample whose sensor was not seen:
+    quality 'tracker', not placed, counted in the summary; the phases go on (its ECG and airflow are fine)."""
+    rec = read_session(nav["root"] / "navigation").points[0]
+    T = rec.T_probe_from_robot
+    nan, inf, scaled, mirrored, probe_nan = T[1000].copy(), T[1010].copy(), T[1020].copy(), T[1030].copy(), np.eye(4)
+    nan[0, 0], inf[1, 3], probe_nan[2, 3] = np.nan, np.inf, np.nan
+    scaled[:3, :3] *= 1.5
+    mirrored[:3, 0] *= -1.0
+    poses = {1000: (nan, np.eye(4)), 1010: (inf, np.eye(4)), 1020: (scaled, np.eye(4)), 1030: (mirrored, np.eye(4)),
+             1040: (T[1040], probe_nan)}
+    log = tmp_path / "live.csv"
+    args = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"), "-q",
+            "--idle-timeout", "2", "--log", str(log)]
+    status = _serve_stream(rec, 1200, lambda port: main(["track", *args, "--igtl-in", f"127.0.0.1:{port}"]),
+                           poses=poses)
+    out = capsys.readouterr().out
+    assert status == 0
+    assert "  invalid poses     5 sample(s): a pose not a rigid transform (NaN or inf" in out
+    with open(log, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 1200
+    for i in poses:
+        assert rows[i]["quality"] == "tracker" and rows[i]["map_x_mm"] == "nan" and rows[i]["sent"] == "0", rows[i]
+        assert rows[i]["cardiac_phase"] != "nan"  # the signals of the sample were used
+    assert sum(r["quality"] == "tracker" for r in rows) == 5
+    assert all(r["map_x_mm"] != "nan" for i, r in enumerate(rows) if i >= 1000 and i not in poses
+               and r["quality"] in ("ok", "predicted"))
+    # a last row that is not 0 0 0 1 (OpenIGTLink cannot carry one: a PLUS reader or another source can)
+    tracker = loaded()
+    s = (rec.time_s[0], T[0], np.eye(4), True, rec.ecg_mv[0], rec.flow_insp_lpm[0], rec.flow_exp_lpm[0])
+    skewed = T[1].copy()
+    skewed[3] = [0.0, 0.0, 0.1, 1.0]
+    s2 = (rec.time_s[1], skewed, np.eye(4), True, rec.ecg_mv[1], rec.flow_insp_lpm[1], rec.flow_exp_lpm[1])
+    rows = tracker.process(next(chunks_from_samples([s, s2], chunk=2)))
+    assert list(rows.pose_ok) == [True, False] and rows.quality[1] == "tracker"
+
+
+def test_a_run_that_placed_nothing_exits_1_and_keeps_its_log(nav, tmp_path, capsys):
+    """A run that placed no sample exited 0 as if fine: every pose invalid, no pose at all (every sample
+    skipped), a server that sent nothing (a user's audit; the last exited 1 but lost the log).  Now each is
+    exit 1 and one line saying why, and the log is written (it is the run's record)."""
+    rec = read_session(nav["root"] / "navigation").points[0]
+    args = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"), "-q",
+            "--idle-timeout", "1"]
+
+    def run(log, n, **kw):
+        return _serve_stream(rec, n, lambda port: (port, main(["track", *args, "--log", str(tmp_path / log),
+                                                                "--igtl-in", f"127.0.0.1:{port}"])), **kw)
+
+    def errors(err):  # but the warning on the fixture's registration ('caution', test_an_untrusted_registration...)
+        return [line for line in err.strip().splitlines() if not line.startswith("warning: registration ")]
+
+    nan = rec.T_probe_from_robot[0].copy()
+    nan[0, 3] = np.nan
+    port, status = run("invalid.csv", 300, poses={i: (nan, np.eye(4)) for i in range(300)})
+    lines = errors(capsys.readouterr().err)
+    assert status == 1 and lines == [
+        f"heartreg track: error: nothing was placed on the map: all 300 poses from --igtl-in 127.0.0.1:{port} were "
+        "invalid (no rigid transform); check the tracker's RobotToTracker and ProbeToTracker transforms; the log "
+        f"{tmp_path / 'invalid.csv'} was written"], lines
+    with open(tmp_path / "invalid.csv", newline="") as fh:
+        assert [r["quality"] for r in csv.DictReader(fh)] == ["tracker"] * 300
+
+    port, status = run("none.csv", 50, bad={i: (float(rec.time_s[i]), "x") for i in range(50)})
+    captured = capsys.readouterr()
+    assert status == 1 and errors(captured.err) == [
+        f"heartreg track: error: nothing was placed on the map: no pose arrived from --igtl-in 127.0.0.1:{port} "
+        f"before it went quiet for --idle-timeout 1 s; 50 sample(s) were skipped, see above; the log "
+        f"{tmp_path / 'none.csv'} was written"]
+    assert "skipped           50 sample(s) from --igtl-in: Signals not three finite numbers" in captured.out
+    assert (tmp_path / "none.csv").read_text().splitlines() == [",".join(TRACK_COLUMNS)]
+
+    port, status = run("silent.csv", 0)
+    lines = errors(capsys.readouterr().err)
+    assert status == 1 and len(lines) == 1 and lines[0].startswith(
+        f"heartreg track: error: nothing was placed on the map: --igtl-in 127.0.0.1:{port}: connected but sent "
+        "nothing within 1 s"), lines
+    assert lines[0].endswith(f"(the log {tmp_path / 'silent.csv'} was written: the 0 sample(s) before it)")
+    assert (tmp_path / "silent.csv").read_text().splitlines() == [",".join(TRACK_COLUMNS)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["invalid.csv", "none.csv", "silent.csv"]
+
+
+def test_an_untrusted_registration_is_said_once_and_logged(nav, tmp_path, capsys):
+    """registration.json's trust verdict ('caution' or 'poor', e.g. 'the data cannot decide phi_R*') was
+    ignored: track placed the robot on it without a word (a user's audit).  Now one warning line on stderr before
+    the stream, and every log row carries it (registration_trust); a trusted one says nothing."""
+    import json
+    import shutil
+
+    reg = tmp_path / "registration"
+    shutil.copytree(nav["root"] / "registration", reg)
+    doc = json.loads((reg / "registration.json").read_text())
+    cases = {
+        "caution": (doc["trust"], "caution:phase_undecided", "is trusted 'caution (phase_undecided)': the data cannot "
+                    "decide phi_R*"),
+        "poor": ({"level": "poor", "reasons": [
+            {"code": "phase_undecided", "level": "caution", "message": "phi_R* undecided"},
+            {"code": "icp_degenerate", "level": "poor", "message": "the final ICP can slide along the surface"}]},
+            "poor:phase_undecided+icp_degenerate",
+            "is trusted 'poor (phase_undecided, icp_degenerate)': the final ICP can slide along the surface; every "
+            "place on the map rests on it"),
+        "ok": ({"level": "ok", "reasons": []}, "ok", None),
+    }
+    assert doc["trust"]["reasons"][0]["code"] == "phase_undecided"  # the fixture's own registration
+    for name, (trust, cell, said) in cases.items():
+        doc["trust"] = trust
+        (reg / "registration.json").write_text(json.dumps(doc))
+        log = tmp_path / f"{name}.csv"
+        assert main(["track", str(nav["model_dir"]), str(reg), str(nav["case"] / "session"), "-q",
+                     "--replay", str(nav["root"] / "navigation"), "--log", str(log)]) == 0
+        err = capsys.readouterr().err.strip().splitlines()
+        if said is None:
+            assert err == [], err
+        else:
+            assert len(err) == 1 and err[0].startswith(f"warning: registration {reg} {said}"), err
+        with open(log, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        assert len(rows) == 6000 and {r["registration_trust"] for r in rows} == {cell}
 
 
 def _free_port() -> int:
@@ -364,6 +490,50 @@ def test_a_full_disk_names_the_log(nav, loaded, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_missing_folders_above_the_log_are_made_and_removed_with_a_refused_run(nav, loaded, tmp_path, capsys,
+                                                                             monkeypatch):
+    """A --log below missing folders: they are made, as for every -o; a run refused before its log was written
+    (a busy --igtl-port, a full disk) left them behind, empty (a user's audit).  Now they go with it."""
+    import errno
+    import socket
+
+    import heartreg.track as track
+
+    args = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"), "-q",
+            "--replay", str(nav["root"] / "navigation")]
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["track", *args, "--log", str(tmp_path / "new" / "a" / "log.csv"), "--igtl-port", str(port)]) == 1
+    assert f"--igtl-port {port}: cannot listen" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+    def full(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(track, "_csv_lines", full)
+        with pytest.raises(track.TrackError, match="No space left on device"):
+            run_track(loaded(), session_chunks(read_session(nav["root"] / "navigation"), chunk=500),
+                      tmp_path / "new" / "b" / "log.csv")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "new").mkdir()  # a folder that was there stays, the ones made go
+
+    def refused(**_):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    with monkeypatch.context() as m:
+        m.setattr(track.tempfile, "mkstemp", refused)
+        with pytest.raises(track.TrackError, match="cannot write there"):
+            run_track(loaded(), session_chunks(read_session(nav["root"] / "navigation"), chunk=500),
+                      tmp_path / "new" / "c" / "d" / "log.csv")
+    assert [p.relative_to(tmp_path) for p in tmp_path.rglob("*")] == [Path("new")]
+    # a run that writes its log keeps the folders made for it
+    assert main(["track", *args, "--log", str(tmp_path / "new" / "e" / "log.csv")]) == 0
+    assert (tmp_path / "new" / "e" / "log.csv").is_file()
+
+
 def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
     root = nav["root"]
     (tmp_path / "empty").mkdir()
@@ -417,6 +587,48 @@ def test_bad_inputs_say_what_is_wrong(nav, tmp_path, capsys):
         write_navigation(tmp_path)
     with pytest.raises(PhantomError, match="speed_mm_s must be positive"):
         write_navigation(nav["case"], out_dir=tmp_path, speed_mm_s=0.0)
+
+
+def test_the_log_replaces_only_a_regular_file(nav, loaded, tmp_path, capsys):
+    """``--log X --overwrite`` replaced whatever X was: a symbolic link, a named pipe, a device node (as root:
+    /dev/null) became the log (a user's audit).  Now each is one line and left as it was; the check is
+    :func:`hrcore.output.check_output_file`, run again just before the log's rename."""
+    import os
+
+    from hrcore.output import OutputError
+
+    inputs = [str(nav["model_dir"]), str(nav["root"] / "registration"), str(nav["case"] / "session"),
+              "--replay", str(nav["root"] / "navigation"), "-q", "--overwrite"]
+    (tmp_path / "target.txt").write_text("theirs")
+    (tmp_path / "link.csv").symlink_to(tmp_path / "target.txt")
+    os.mkfifo(tmp_path / "fifo.csv")
+    said = {"link.csv": "is a symbolic link, which is never followed nor replaced",
+            "fifo.csv": "is a named pipe, not a regular file"}
+    if os.geteuid() == 0:
+        import stat
+
+        os.mknod(tmp_path / "dev.csv", 0o644 | stat.S_IFCHR, os.makedev(1, 3))
+        said["dev.csv"] = "is a character device, not a regular file"
+    for name, words in said.items():
+        before = os.lstat(tmp_path / name)
+        assert main(["track", *inputs, "--log", str(tmp_path / name)]) == 1
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"heartreg track: error: --log {tmp_path / name} {words}"), lines
+        after = os.lstat(tmp_path / name)
+        assert (after.st_mode, after.st_ino) == (before.st_mode, before.st_ino), name
+    assert (tmp_path / "target.txt").read_text() == "theirs"
+
+    # a link put there while the stream runs is not replaced at the end either (the run is refused, nothing left)
+    def chunks():
+        for i, chunk in enumerate(session_chunks(read_session(nav["root"] / "navigation"), chunk=500)):
+            if i == 1:
+                (tmp_path / "late.csv").symlink_to(tmp_path / "target.txt")
+            yield chunk
+
+    with pytest.raises(OutputError, match=r"^--log .*late.csv is a symbolic link"):
+        run_track(loaded(), chunks(), tmp_path / "late.csv")
+    assert (tmp_path / "late.csv").is_symlink() and (tmp_path / "target.txt").read_text() == "theirs"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["target.txt", "late.csv", *said])
 
 
 def test_navigation_of_a_case_with_its_own_anatomy(nav, tmp_path):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import errno
 import os
+import re
+import stat
 import subprocess
 import sys
 import time
@@ -86,6 +88,30 @@ def test_non_empty_needs_overwrite_and_a_file_is_refused(tmp_path):
             pass
     with pytest.raises(OutputError, match="exists and is not a folder"):
         check_output_path(out / "x")
+
+
+def test_an_output_file_replaces_only_a_regular_file(tmp_path):
+    """A file output (``track --log``) with ``overwrite`` replaced whatever was at its path: a symbolic link
+    (dangling or not), a named pipe, a device (``/dev/null`` as root) became a regular file (a user's audit)."""
+    import os
+
+    (tmp_path / "target.txt").write_text("theirs")
+    (tmp_path / "link.csv").symlink_to(tmp_path / "target.txt")
+    (tmp_path / "dangling.csv").symlink_to(tmp_path / "nowhere.csv")
+    os.mkfifo(tmp_path / "fifo.csv")
+    said = {"link.csv": "is a symbolic link, which is never followed nor replaced; give a regular file's own path",
+            "dangling.csv": "is a symbolic link, which is never followed nor replaced",
+            "fifo.csv": "is a named pipe, not a regular file (only a regular file is ever replaced); choose another"}
+    if os.geteuid() == 0:  # a device node needs root (the case the audit found)
+        os.mknod(tmp_path / "dev.csv", 0o644 | stat.S_IFCHR, os.makedev(1, 3))
+        said["dev.csv"] = "is a character device, not a regular file"
+    for name, words in said.items():
+        for overwrite in (False, True):
+            with pytest.raises(OutputError, match=rf"^--log {tmp_path / name} {re.escape(words)}"):
+                check_output_path(tmp_path / name, what="--log", overwrite=overwrite, folder=False)
+    assert (tmp_path / "target.txt").read_text() == "theirs"
+    (tmp_path / "old.csv").write_text("an earlier log")
+    assert check_output_path(tmp_path / "old.csv", what="--log", overwrite=True, folder=False) == tmp_path / "old.csv"
 
 
 @pytest.mark.parametrize("where", ["same", "inside", "contains"])
