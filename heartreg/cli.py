@@ -63,15 +63,10 @@ def _usage_error_in_one_line(parser) -> None:
 
 
 def _one_line_warning(message, category, filename, lineno, line=None) -> str:
-    return f"warning: {message}\n"
-
-
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """A warning on a line of its own above any progress bar (written after the bar's text, it ran on from it:
-    'model:   0%| ... mask]warning: ...', an audit)."""
-    from tqdm import tqdm
-
-    tqdm.write(_one_line_warning(message, category, filename, lineno).rstrip("\n"), file=file or sys.stderr)
+    """``warning: MESSAGE``, on a line of its own: after a progress bar's text when a bar is drawn (it ran on
+    from it, 'model:   0%| ... mask]warning: ...', an audit; the bar is drawn again below it)."""
+    bars = getattr(getattr(sys.modules.get("tqdm"), "tqdm", None), "_instances", ())
+    return ("\n" if bars else "") + f"warning: {message}\n"
 
 
 class Terminated(KeyboardInterrupt):
@@ -179,8 +174,8 @@ def _parse_and_run(argv: list[str] | None, in_main: bool) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
-    format_warning, show_warning = warnings.formatwarning, warnings.showwarning
-    warnings.formatwarning, warnings.showwarning = _one_line_warning, _show_warning
+    format_warning = warnings.formatwarning
+    warnings.formatwarning = _one_line_warning
     from hrcore.output import defer_interrupt, raise_deferred_interrupt, refusal_line, take_deferred_interrupt
 
     unraisable = sys.unraisablehook
@@ -225,7 +220,7 @@ def _parse_and_run(argv: list[str] | None, in_main: bool) -> int:
               "with the traceback above and the command line", file=sys.stderr)
         return EXIT_BUG
     finally:
-        warnings.formatwarning, warnings.showwarning = format_warning, show_warning
+        warnings.formatwarning = format_warning
         if in_main:
             sys.unraisablehook = unraisable
             defer_interrupt(None)  # nothing kept past this command

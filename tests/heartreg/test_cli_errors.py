@@ -183,18 +183,18 @@ def test_misleading_refusals_say_what_the_file_is(tmp_path, capsys):
         assert not (tmp_path / "out").exists()
 
 
-def test_a_warning_is_a_line_of_its_own_above_a_progress_bar():
+def test_a_warning_is_a_line_of_its_own_under_a_progress_bar():
     """A warning under a progress bar ran on from the bar's text ('model:   0%| ... mask]warning: ...', an audit):
-    it is written on a line of its own, the bar redrawn after it."""
+    it starts a line of its own while a bar is drawn."""
     import io
+    import warnings
 
     from tqdm import tqdm
 
-    from heartreg.cli import _show_warning
+    from heartreg.cli import _one_line_warning
 
-    err = io.StringIO()
-    with tqdm(total=5, desc="model", file=err, postfix="mask") as bar:
-        bar.update(1)
-        _show_warning(UserWarning("the heart is cut"), UserWarning, "x.py", 1, file=err)
-    before, warning, after = err.getvalue().partition("warning: the heart is cut\n")
-    assert warning and before.endswith(" \r") and after.startswith("\rmodel:"), err.getvalue()  # bar cleared, redrawn
+    assert _one_line_warning(UserWarning("the heart is cut"), UserWarning, "x.py", 1) == "warning: the heart is cut\n"
+    with tqdm(total=5, desc="model", file=io.StringIO()):
+        line = _one_line_warning(UserWarning("the heart is cut"), UserWarning, "x.py", 1)
+    assert line == "\nwarning: the heart is cut\n"
+    assert warnings.formatwarning is not _one_line_warning  # the command's format, not the process's
