@@ -28,10 +28,9 @@ from imaging import load_study
 from modeling import build_heart_model
 
 
-@pytest.fixture(scope="module")
-def anatomy(tmp_path_factory):
-    out = tmp_path_factory.mktemp("anatomy_model")
-    make_phantom(out, preset="human", size="sample", seed=0, session=False, overwrite=True)
+def _measured(out, seed):
+    """The human phantom of ``seed`` (sample size) in ``out``, its automatic model and the truth to compare."""
+    make_phantom(out, preset="human", size="sample", seed=seed, session=False, overwrite=True)
     truth = json.loads((out / "truth.json").read_text())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -47,6 +46,22 @@ def anatomy(tmp_path_factory):
                                                     200_000, seed=0)
     return dict(truth=truth, build=build, verts=verts, heart=heart, phases=(e["phase_c"], e["phase_r"]),
                 pts=pts, back=cKDTree(samples).query(pts)[0])
+
+
+@pytest.fixture(scope="module")
+def anatomy(tmp_path_factory):
+    return _measured(tmp_path_factory.mktemp("anatomy_model"), 0)
+
+
+def test_no_chamber_is_lost_on_another_seed(tmp_path):
+    """Seed 4 (image phase 0.61): the right atrium's blood lay more than 20 mm from the chambers' cores that
+    seed the heart against the liver (``modeling.seed.BLOOD_REACH_MM``), was flooded last and went with the
+    liver: 275 ml, 20 % of the true surface farther than 5 mm from the mesh, truth -> mesh p95 24.4 mm (an
+    audit).  Reaching 30 mm: 318 ml, 5.4 %, p95 5.2 mm (the rest is the pulmonary trunk's known limit;
+    seed 0: 2.8 %, 3.1 mm)."""
+    m = _measured(tmp_path, 4)
+    assert np.mean(m["back"] > 5.0) <= 0.08 and np.percentile(m["back"], 95) <= 6.5, (
+        np.mean(m["back"] > 5.0), np.percentile(m["back"], 95))
 
 
 def test_mesh_on_the_true_epicardium(anatomy):
