@@ -227,3 +227,18 @@ def test_the_interval_reads_as_it_is_wrapping_or_whole():
     whole = dataclasses.replace(est, interval=np.array([0.79, 0.78]), interval_offsets=np.array([-0.5, 0.49]),
                                 decided=False)
     assert whole.interval_text() == "the whole cycle" and "interval the whole cycle; " in whole.summary()
+
+
+def test_a_rigid_fit_of_few_points_claims_no_certainty():
+    """Eight points fit rigidly with 2 degrees of freedom left: their residual (2-7 um, as in an audit's
+    8-point phantom session) is no measure of the noise, and taken as one it made misfits of hundredths of a
+    mm look impossible (here a 0.05 wide interval; the audit's [0.17, 0.18] with the truth at 0.30).  The
+    heart term's noise is at least HEART_NOISE_FLOOR_MM."""
+    from registration.temporal import HEART_NOISE_FLOOR_MM
+
+    rng = np.random.default_rng(3)
+    d = _distances(rng, 0.3, n=8, noise_mm=0.002, signal_mm=0.08)
+    est = estimate_phase(PHASES, d, _identity_sweep(101), rng.normal(0, 40, (200, 3)))
+    assert est.width >= 0.1 and est.contains(0.3), (est.width, est.interval)
+    # a hundred points' ordinary noise (0.15 mm, above the floor) decides as before
+    assert HEART_NOISE_FLOOR_MM < 0.15
