@@ -444,6 +444,8 @@ def staged_output(
     else:
         check_output_path(out, inputs=inputs, what=what, overwrite=overwrite, folder=folder, earlier=earlier)
     absolute = Path(os.path.abspath(out))
+    if absolute.is_symlink() and absolute.is_dir():  # the folder it links to is the output, the link stays (an audit)
+        absolute = Path(os.path.realpath(absolute))
     new = _missing_or_empty(absolute)
     home = absolute.parent if whole else absolute
     created = []

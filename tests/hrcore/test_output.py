@@ -79,6 +79,20 @@ def test_overwrite_replaces_an_earlier_output_only(tmp_path):
     assert _listing(tmp_path) == ["home", "home/model.json"]
 
 
+def test_a_link_to_an_earlier_output_is_written_through(tmp_path):
+    """``-o LINK --overwrite`` with LINK a symbolic link to an earlier output replaced the link by a folder and
+    left the output it named stale, without a word (an audit); the folder it links to is the output."""
+    old = tmp_path / "runs" / "registration"
+    old.mkdir(parents=True)
+    (old / "registration.json").write_text("old")
+    link = tmp_path / "latest"
+    link.symlink_to(old, target_is_directory=True)
+    with staged_output(link, overwrite=True, earlier=("registration.json",)) as stage:
+        (stage / "registration.json").write_text("new")
+    assert link.is_symlink() and (old / "registration.json").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest", "runs"]
+
+
 def test_non_empty_needs_overwrite_and_a_file_is_refused(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
