@@ -170,7 +170,11 @@ def _parse_and_run(argv: list[str] | None, in_main: bool) -> int:
     parser = _build_parser()
     for p in _all_parsers(parser):
         _usage_error_in_one_line(p)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # named by the command they were given to, not by 'heartreg' (an audit)
+        where = f"heartreg {args.command}" if args.command else "heartreg"
+        sys.stderr.write(f"{where}: error: unrecognized arguments: {' '.join(extra)} (see {where} --help)\n")
+        sys.exit(EXIT_USAGE)
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE

@@ -198,3 +198,15 @@ def test_a_warning_is_a_line_of_its_own_under_a_progress_bar():
         line = _one_line_warning(UserWarning("the heart is cut"), UserWarning, "x.py", 1)
     assert line == "\nwarning: the heart is cut\n"
     assert warnings.formatwarning is not _one_line_warning  # the command's format, not the process's
+
+
+def test_an_unknown_option_is_named_with_its_command(capsys):
+    """'heartreg pipeline ... --cardiac-phase 0.2' said 'heartreg: error: unrecognized arguments ... (see heartreg
+    --help)', which names neither the command nor its help (an audit)."""
+    from heartreg.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["pipeline", "ct", "session", "-o", "out", "--cardiac-phase", "0.2"])
+    assert stop.value.code == 2
+    assert capsys.readouterr().err == ("heartreg pipeline: error: unrecognized arguments: --cardiac-phase 0.2 "
+                                       "(see heartreg pipeline --help)\n")
