@@ -141,6 +141,9 @@ def run() -> None:
     import os
     import signal
 
+    for stream in (sys.stdout, sys.stderr):  # a path the terminal cannot encode is escaped, not a crash after the work
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
     status = main()
     for sig in (signal.SIGINT, signal.SIGTERM):  # done, outputs whole: a signal now would only change the status
         signal.signal(sig, signal.SIG_IGN)

@@ -210,3 +210,18 @@ def test_an_unknown_option_is_named_with_its_command(capsys):
     assert stop.value.code == 2
     assert capsys.readouterr().err == ("heartreg pipeline: error: unrecognized arguments: --cardiac-phase 0.2 "
                                        "(see heartreg pipeline --help)\n")
+
+
+def test_a_path_the_terminal_cannot_encode_is_escaped(tmp_path):
+    """With an ASCII-only terminal (PYTHONIOENCODING=ascii) a non-ASCII path in the summary crashed the command
+    after its work was written ('internal error', 70; the next run found the folder not empty; an audit)."""
+    import os
+    import subprocess
+    import sys
+
+    missing = tmp_path / "Jörg" / "ct"
+    env = dict(os.environ, PYTHONIOENCODING="ascii")
+    done = subprocess.run([sys.executable, "-m", "heartreg", "model", str(missing), "-o", str(tmp_path / "m")],
+                          capture_output=True, env=env, timeout=120)
+    err = done.stderr.decode("ascii")
+    assert done.returncode == 1 and "J\\xf6rg" in err and "Traceback" not in err, err
