@@ -2,10 +2,13 @@
 
 The bundled ``sample_dicom/`` is a phantom case (CT study, ``qrs.csv``,
 ``truth.json``) written by ``heartreg phantom sample_dicom --preset
-wood2018-trial1 --seed 0 --no-session``.  Its intra-operative session is made
-again by the phantom from the same preset and seed (55 MB of CSV: too large to
-commit).  If the sample is not beside the package (an installed wheel), the
-phantom writes the whole case first.
+wood2018-trial1 --seed 0 --no-session``.  A case's own ``session/`` is used
+when it has one; otherwise (the bundled sample: 55 MB of CSV, too large to
+commit) the phantom writes it again from the configuration and seed its
+``truth.json`` records (``config``: preset, points, respiration phase, chest
+wall, ... as ``heartreg phantom`` was given them), so it is the session that
+case would have had.  If the sample is not beside the package (an installed
+wheel), the phantom writes the whole case first.
 """
 
 from __future__ import annotations
@@ -64,7 +67,7 @@ def _rigid_error(T, T_true):
 
 def truth_rows(run, truth: dict) -> list[tuple]:
     """Recovered vs truth: ``(quantity, recovered, truth, error, tolerance, within)``."""
-    from heartreg.phantom import layout, make_config
+    from heartreg.phantom import heart_from_truth
 
     report, build, reg = run.phase_report, run.model_build, run.registration
     model = build.model
@@ -85,7 +88,7 @@ def truth_rows(run, truth: dict) -> list[tuple]:
     rows.append(("heart frame z axis (deg)", z_err, 0.0, z_err, TOL_Z_DEG, z_err <= TOL_Z_DEG))
     rows.append(("heart frame x axis (deg)", x_err, 0.0, x_err, TOL_X_DEG, x_err <= TOL_X_DEG))
 
-    heart = layout.make_heart(make_config(truth["preset"], image_resp_phase=truth["respiration_phase"]))
+    heart = heart_from_truth(truth)  # the case's own configuration (its respiration phase, anatomy, ...)
     vertices = model.mesh_patient().vertices
     d = np.abs(heart.surface_distance(vertices, truth["cardiac_phase"]))
     rows.append(("mesh to true surface, mean (mm)", float(d.mean()), 0.0, float(d.mean()), TOL_SURFACE_MEAN_MM,
@@ -127,14 +130,16 @@ def format_table(rows) -> str:
 
 
 def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object, list]:
-    """Run the chain on the bundled sample and compare with its truth.
+    """Run the chain on the bundled sample (or the phantom case ``sample_dir``) and compare with its truth.
 
-    Returns the pipeline result and the recovered-vs-truth rows; writes
+    The case's own ``session/`` when it has one, else the session the phantom
+    writes from ``truth.json``'s configuration and seed into
+    ``OUT_DIR/session_case/``.  Returns the pipeline result and the recovered-vs-truth rows; writes
     ``OUT_DIR/demo_table.txt`` and ``OUT_DIR/demo.json`` beside the run's files.
     """
-    from heartreg.phantom import make_config, make_phantom, write_session
+    from heartreg.phantom import make_phantom, write_session
+    from heartreg.phantom.config import config_from_dict
     from heartreg.pipeline import run_pipeline
-    from heartreg.phantom.config import PRESETS
     from hrcore.errors import read_json_object
     from hrcore.output import check_output_path, staged_output
 
@@ -143,7 +148,7 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
         if not (sample / "truth.json").exists() or not (sample / "ct").is_dir():
             raise UsageError(
                 f"--sample {sample} is not a phantom case (needs ct/ and truth.json, "
-                "as 'heartreg phantom OUT --no-session' writes)"
+                "as 'heartreg phantom OUT' writes)"
             )
     out_dir = Path(out_dir)
     if sample_dir is None:  # the bundled sample, else one the demo writes into its folder
@@ -156,24 +161,35 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
     if own_sample and not (sample / "truth.json").exists():
         print(f"bundled sample not found; writing it with the phantom into {sample}", file=sys.stderr)
         make_phantom(sample, preset="wood2018-trial1", seed=0, session=False, progress=progress)
-    truth = read_json_object(sample / "truth.json", keys=("preset", "seed"), what="phantom truth", error=UsageError,
-                             fix="give a case that 'heartreg phantom OUT --no-session' wrote")
-    if truth["preset"] not in PRESETS or isinstance(truth["seed"], bool) or not isinstance(truth["seed"], int):
-        raise UsageError(f"{sample / 'truth.json'} names preset {truth['preset']!r} and seed {truth['seed']!r}: not a "
-                         "phantom case; give a case that 'heartreg phantom OUT --no-session' wrote")
-    session_root = out_dir / "session_case"
-    recipe = {"preset": truth["preset"], "seed": int(truth["seed"])}
-    marker = session_root / "recipe.json"
-    if not (session_root / "session" / "session.json").exists() or (
-        not marker.exists() or json.loads(marker.read_text()) != recipe
-    ):
-        if progress:
-            print("writing the intra-operative session with the phantom (same preset and seed)", file=sys.stderr)
-        # staged whole: an interrupt leaves the earlier session or none
-        with staged_output(session_root, overwrite=True, earlier=("recipe.json", "session/session.json"),
-                           what="demo session folder") as stage:
-            write_session(stage, make_config(truth["preset"]), seed=int(truth["seed"]), progress=progress)
-            write_text_atomic(stage / "recipe.json", json.dumps(recipe) + "\n")
+    fix = "give a case that 'heartreg phantom OUT' wrote"
+    truth = read_json_object(sample / "truth.json", keys=("preset", "seed", "config"), what="phantom truth",
+                             error=UsageError, fix=fix)
+    seed = truth["seed"]
+    try:
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0 or not isinstance(truth["config"], dict):
+            raise TypeError(f"seed {seed!r}")
+        # every setting of the case (preset, --points, --resp-phase, --chest-wall-mm, anatomy): one record
+        config = config_from_dict(truth["config"])
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"{sample / 'truth.json'} does not describe a phantom case ({exc}); {fix}") from None
+    if (sample / "session" / "session.json").exists():  # the case's own session
+        session_dir = sample / "session"
+    else:
+        session_root = out_dir / "session_case"
+        session_dir = session_root / "session"
+        recipe = {"config": truth["config"], "seed": seed}
+        marker = session_root / "recipe.json"
+        if not (session_dir / "session.json").exists() or (
+            not marker.exists() or json.loads(marker.read_text()) != recipe
+        ):
+            if progress:
+                print("writing the intra-operative session with the phantom (the case's configuration and seed, "
+                      "truth.json)", file=sys.stderr)
+            # staged whole: an interrupt leaves the earlier session or none
+            with staged_output(session_root, overwrite=True, earlier=("recipe.json", "session/session.json"),
+                               what="demo session folder") as stage:
+                write_session(stage, config, seed=seed, progress=progress)
+                write_text_atomic(stage / "recipe.json", json.dumps(recipe) + "\n")
 
     made = []  # the rows the report shows, made once (the true surface's sampling takes seconds)
 
@@ -182,7 +198,7 @@ def run_demo(out_dir, *, sample_dir=None, progress: bool = True) -> tuple[object
         return made[-1]
 
     run = run_pipeline(
-        sample / "ct", session_root / "session", out_dir, overwrite=True, progress=progress,
+        sample / "ct", session_dir, out_dir, overwrite=True, progress=progress,
         truth_rows=report_rows,
     )
     rows = made[-1]

@@ -22,7 +22,7 @@ from hrcore.memory import release_free_memory
 from hrcore.redact import pseudonym_uid
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
-from modeling.fiducials import FiducialError, Fiducials, find_fiducials
+from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.model import HeartModel, make_heart_model
@@ -416,15 +416,15 @@ def build_heart_model(
         except FiducialError as exc:
             if not auto:
                 raise
-            fallback(f"fiducial search skipped: {exc}")
+            fallback(f"fiducial search skipped: {exc}; {NO_FIDUCIALS}")
         else:
             notes.extend(fiducials.notes)
             n_found = len(fiducials.centres_patient_mm)
             if auto and n_found == 0:
-                fallback("no skin markers found: the model has no fiducials (registration will need them from elsewhere)")
+                fallback(f"no skin markers found: {NO_FIDUCIALS}; make it from a CT that shows the staples")
             elif auto and n_found % fiducial_rows:
-                fallback(f"{n_found} skin marker(s) found, which cannot form {fiducial_rows} equal rows: the model has "
-                         "no fiducials (give --fiducials N to insist on a count)")
+                fallback(f"{n_found} skin marker(s) found, which cannot form {fiducial_rows} equal rows: {NO_FIDUCIALS}; "
+                         "give --fiducials N (the staples' count) to insist on it")
                 fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
     done("fiducials")
 
@@ -485,6 +485,8 @@ def build_heart_model(
             f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
             "as usual: check the model (dextrocardia, or a segmentation error)"
         )
+    if not model.frame.converged:
+        fallback(model.frame.convergence_warning())
     notes.append(
         {"great vessels": "heart frame: base where the great vessels leave",
          "usual orientation": "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)",

@@ -49,6 +49,10 @@ from modeling.distance import distance_mm
 
 __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
 
+#: what a model without fiducials means (the model's warnings): 'heartreg register' refuses it
+NO_FIDUCIALS = ("the model has no fiducials and cannot be registered ('heartreg register' starts from the CT's skin "
+                "staples, touched in surgery)")
+
 #: Excess density is counted above this HU (above any skin or soft tissue).
 FLOOR_HU = 300.0
 #: A staple lies on the skin: voxels this close to the air outside are searched.

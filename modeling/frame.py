@@ -123,6 +123,14 @@ class HeartFrame:
 
     __hash__ = None
 
+    def convergence_warning(self) -> str | None:
+        """One line when the axis fit did not converge (the model's warning), None when it did."""
+        if self.converged:
+            return None
+        return (f"the heart frame's fit did not converge ({self.iterations} iterations, the long axis still moved "
+                f"{self.axis_change_deg:.1f} deg in the last): the frame's axes (z, x, the Euler angles) are "
+                "unreliable; check that the mask is one whole heart (its slabs' ellipses must line up)")
+
     @property
     def T_patient_from_heart(self) -> np.ndarray:
         return invert(self.T_heart_from_patient)

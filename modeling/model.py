@@ -445,8 +445,8 @@ def read_model(model_dir) -> HeartModel:
     version = meta.get("format_version")
     if version != FORMAT_VERSION or not isinstance(version, int):
         kind = "the text " if isinstance(version, str) else ""  # "has '2'; reads version 2" read as a riddle
-        raise ModelError(f"{jpath} has format_version {kind}{version!r}; this heartreg reads the number "
-                         f"{FORMAT_VERSION}")
+        held = "has no format_version" if version is None else f"has format_version {kind}{version!r}"
+        raise ModelError(f"{jpath} {held}; this heartreg reads the number {FORMAT_VERSION}")
     ply = d / MESH_FILES[0]
     if not ply.is_file():
         raise ModelError(f"{d} has no {MESH_FILES[0]}; re-create the model")

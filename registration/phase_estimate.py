@@ -85,6 +85,8 @@ class TemporalEstimate:
         (:func:`registration.temporal.disagreement`): about 1 when they agree
         within their noise, 1.0 with a single term; the interval's threshold
         was multiplied by it where it exceeds 1.
+    breath_hold_phase : float or None, cycles
+        The stated breath-hold phase (``"breath_hold"`` evidence), None when none was used.
     """
 
     method: str
@@ -103,6 +105,7 @@ class TemporalEstimate:
     transform_mm: float
     transform_deg: float
     disagreement: float = 1.0
+    breath_hold_phase: float | None = None
 
     @property
     def width(self) -> float:
@@ -131,11 +134,29 @@ class TemporalEstimate:
         return text
 
     def advice(self) -> str:
-        """What would decide an undecided phi_R* (the summary's and the trust report's hint)."""
-        if self.disagreement > DISAGREE_RATIO:
-            return (f"the heart and the chest disagree ({self.disagreement:.1f} times their noise); "
-                    "state the breath-hold phase")
-        return "trace the staples over a breath or state the breath-hold phase"
+        """What would decide an undecided phi_R*, from the evidence this estimate used (the summary's, the
+        registration's note's and the trust report's hint: an audit was told to trace the staples and state the
+        breath-hold phase after doing both)."""
+        if "fiducials" in self.evidence:  # eq. 10: the fiducial seed T0 alone
+            return ("eq. 10 reads only the fiducial registration T0; the shape estimator (--estimator shape) also "
+                    "reads the heart's shape, the staples' trace and a stated breath-hold phase")
+        traced, stated = "fiducial_trace" in self.evidence, "breath_hold" in self.evidence
+        if stated and (self.cost_prior[self.index] > DISAGREE_RATIO or
+                       (not traced and self.disagreement > DISAGREE_RATIO)):
+            phase = "" if self.breath_hold_phase is None else f" {self.breath_hold_phase:.2f}"
+            return (f"the stated breath-hold phase{phase} disagrees with the data; check it or leave it out "
+                    "(--breath-hold-phase)")
+        if self.disagreement > DISAGREE_RATIO:  # the heart and the staples' trace
+            text = f"the heart and the staples' trace disagree ({self.disagreement:.1f} times their noise); "
+            if stated:
+                return text + "the stated breath-hold phase does not settle it: check the trace and the stated phase"
+            return text + "state the breath-hold phase (--breath-hold-phase)"
+        steps = ([] if traced else ["trace the staples over a breath (session format 2)"]) + (
+            [] if stated else ["state the breath-hold phase (--breath-hold-phase)"])
+        if steps:
+            return " or ".join(steps)
+        return ("the heart, the staples' trace and the stated breath-hold phase leave it open; "
+                "record more points, spread over the heart")
 
     def to_dict(self) -> dict:
         """JSON-ready, keys equal to the attribute names; non-finite numbers as ``None``."""
@@ -156,6 +177,7 @@ class TemporalEstimate:
             "transform_mm": self.transform_mm,
             "transform_deg": self.transform_deg,
             "disagreement": self.disagreement,
+            "breath_hold_phase": self.breath_hold_phase,
         }
 
     @classmethod
@@ -173,4 +195,5 @@ class TemporalEstimate:
             transform_mm=float(data["transform_mm"]),
             transform_deg=float(data["transform_deg"]),
             disagreement=float(data.get("disagreement", 1.0)),  # absent before it was written
+            breath_hold_phase=None if data.get("breath_hold_phase") is None else float(data["breath_hold_phase"]),
         )

@@ -295,8 +295,7 @@ def register_session(
     if not chosen.decided:
         notes.append(
             f"the data cannot decide phi_R* ({estimator.value}): its {100 * chosen.confidence:.0f} % "
-            f"interval is {chosen.width:.2f} of a cycle wide; trace the staples over a breath "
-            "(session format 2) or state the breath-hold phase (--breath-hold-phase)"
+            f"interval is {chosen.width:.2f} of a cycle wide; {chosen.advice()}"
         )
     best = chosen.index
     reg = _Chosen(

@@ -374,6 +374,7 @@ def estimate_phase(
         cost_heart=full(J_h),
         cost_fiducial=full(J_f) if e_f.shape[1] else np.zeros(m),
         cost_prior=full(prior) if breath_hold_phase is not None else np.zeros(m),
+        breath_hold_phase=None if breath_hold_phase is None else float(breath_hold_phase),
         transform_mm=t_mm,
         transform_deg=t_deg,
         disagreement=inflation,

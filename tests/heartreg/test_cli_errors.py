@@ -85,6 +85,19 @@ def test_list_series_needs_no_output_folder(tmp_path, capsys):
     assert not (tmp_path / "no-session").exists()
 
 
+def test_pipeline_of_a_volume_file_says_it_needs_dicom_and_where_a_volume_goes(tmp_path, capsys):
+    """``heartreg pipeline CT.nii.gz`` said "no DICOM images found under 'CT.nii.gz'" (an audit); phases said
+    why, pipeline now says the same (one check) and that 'heartreg model' takes the volume."""
+    (tmp_path / "ct.nii.gz").write_bytes(b"\x1f\x8b")  # never read: the name says what it is
+    for command, rest in (("pipeline", [str(tmp_path / "session")]), ("phases", [])):
+        assert cli.main([command, str(tmp_path / "ct.nii.gz"), *rest, "-o", str(tmp_path / "out"), "-q"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1, err
+        assert f"is a volume file: {command} reads a DICOM study (its slice times and ECG)" in err
+        assert "make the model from the volume with 'heartreg model'" in err
+        assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("value", ["-1e9", "50", "1e5"])
 def test_a_fiducial_floor_outside_tissue_and_metal_is_refused(tmp_path, capsys, value):
     """--fiducial-floor-hu=-1e9 was taken: every voxel 'dense', no marker found, exit 0."""

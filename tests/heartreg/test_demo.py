@@ -150,5 +150,61 @@ def test_a_sample_or_output_in_the_way_is_refused_before_anything_is_written(tmp
     (sample / "truth.json").write_text("{}")
     assert main(["demo", "-o", str(tmp_path / "d"), "--sample", str(sample), "-q"]) == 1
     err = capsys.readouterr().err
-    assert "truth.json lacks 'preset', 'seed': not a phantom truth" in err and "Traceback" not in err
+    assert "truth.json lacks 'preset', 'seed', 'config': not a phantom truth" in err and "Traceback" not in err
     assert not (tmp_path / "d").exists()
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_demo_scores_the_experiment_of_the_case_it_is_given(sample_case, tmp_path, monkeypatch):
+    """An audit's `demo --sample` of a case made with --resp-phase 0.6 (or --points 8) registered a session
+    regenerated from preset and seed alone (phi_R* 0.33 against 0.6, 100 points): the demo takes the case's own
+    session, and without one writes the session the case would have had (truth.json's configuration)."""
+    import shutil
+
+    import heartreg.pipeline
+    from tests.heartreg.small_case import digest
+
+    case, truth = sample_case  # trial 1 with 30 points (the preset has 101)
+    used = []
+
+    def pipeline(study, session, out, **kwargs):  # the registration itself is tested above
+        used.append(session)
+        raise _Stop
+
+    monkeypatch.setattr(heartreg.pipeline, "run_pipeline", pipeline)
+    with pytest.raises(_Stop):
+        run_demo(tmp_path / "own", sample_dir=case, progress=False)
+    assert used[-1] == case / "session" and not (tmp_path / "own" / "session_case").exists()
+
+    bare = tmp_path / "bare"  # the case without its session
+    shutil.copytree(case / "ct", bare / "ct")
+    shutil.copyfile(case / "truth.json", bare / "truth.json")
+    with pytest.raises(_Stop):
+        run_demo(tmp_path / "again", sample_dir=bare, progress=False)
+    assert used[-1] == tmp_path / "again" / "session_case" / "session"
+    assert len(json.loads((used[-1] / "session.json").read_text())["points"]) == 30
+    assert digest(used[-1]) == digest(case / "session")  # byte for byte the case's own
+
+
+def test_demo_fails_when_a_row_is_outside_its_tolerance(tmp_path, monkeypatch, capsys):
+    """The audit's demo printed phi_R* 0.33 against 0.6, 'NO', and exited 0."""
+    import types
+
+    import heartreg.demo
+
+    rows = [("cardiac phase phi_C*", 0.5, 0.5, 0.0, 0.005, True),
+            ("respiration phase phi_R*", 0.33, 0.6, -0.27, 0.05, False),
+            ("fiducial FRE (mm)", 1.8, "", "", "", ""),
+            ("final T, rotation (deg)", 3.0, 0.0, 3.0, 2.0, False)]
+    run = types.SimpleNamespace(out_dir=tmp_path, paths={"report": tmp_path / "report.html"}, timings_s={})
+    monkeypatch.setattr(heartreg.demo, "run_demo", lambda *a, **k: (run, rows))
+    assert main(["demo", "-o", str(tmp_path), "-q"]) == 1
+    captured = capsys.readouterr()
+    assert "NO" in captured.out
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "outside tolerance: respiration phase phi_R*; final T, rotation (deg)" in lines[0]
+    monkeypatch.setattr(heartreg.demo, "run_demo", lambda *a, **k: (run, rows[:1] + rows[2:3]))
+    assert main(["demo", "-o", str(tmp_path), "-q"]) == 0 and capsys.readouterr().err == ""

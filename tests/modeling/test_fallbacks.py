@@ -25,16 +25,27 @@ def _fail(exc):
 
 
 def test_trim_and_fiducial_search_fall_back(sample_case, monkeypatch):
+    """Also: a model without fiducials says it cannot be registered (it said 'registration will need them from
+    elsewhere', and register refuses it); a frame fit that did not converge is a warning (it was none)."""
+    import modeling.model
+
     case, truth = sample_case
     volume = load_study(case / "ct")
     monkeypatch.setattr(modeling.build, "trim_vessel_stubs", _fail(MeshError("left an open surface")))
     monkeypatch.setattr(modeling.build, "find_fiducials", _fail(FiducialError("no air around the body")))
+    fit = modeling.model.fit_heart_frame
+    monkeypatch.setattr(modeling.model, "fit_heart_frame", lambda *a, **k: fit(*a, **k, max_iterations=1))
     with pytest.warns(ModelingWarning) as caught:
         build = build_heart_model(volume, cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
                                   expected_fiducials="auto", target_faces=4000)
     messages = [str(w.message) for w in caught]
     assert any(m.startswith("vessel stub trim skipped, surface kept as segmented: left an open surface") for m in messages)
-    assert any(m.startswith("fiducial search skipped: no air around the body") for m in messages)
+    assert any(m.startswith("fiducial search skipped: no air around the body; the model has no fiducials and "
+                            "cannot be registered ('heartreg register' starts from the CT's skin staples")
+               for m in messages)
+    assert not build.model.frame.converged
+    assert any(m.startswith("the heart frame's fit did not converge (1 iterations") and "unreliable" in m
+               for m in messages)
     assert set(messages) <= set(build.model.parameters["warnings"])
     assert len(build.model.fiducials_patient_mm) == 0 and build.model.mesh.n_faces > 0
     # a count asked for is insisted on: no fallback

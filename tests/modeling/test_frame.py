@@ -80,6 +80,20 @@ def test_elongated_ellipsoid_gives_exact_axes():
     assert np.allclose(flipped.axes_patient[:, 2], -R[:, 2])
 
 
+def test_a_fit_that_did_not_converge_says_its_axes_are_unreliable():
+    """CTChest4's 'tissue' (a whole chest) gave '20 iterations, last change 43.362 deg' in model.json and no
+    warning: the frame says so (build_heart_model's warning, tests/modeling/test_fallbacks.py)."""
+    v = _ellipsoid()
+    tilted = Rotation.from_euler("X", 20.0, degrees=True).apply([0.0, 0.0, 1.0])
+    frame = fit_heart_frame(v, base_hint=[0.0, 0.0, 1.0], initial_axis=tilted, max_iterations=1)
+    assert not frame.converged and frame.axis_change_deg > 5.0
+    text = frame.convergence_warning()
+    assert text.startswith(f"the heart frame's fit did not converge (1 iterations, the long axis still moved "
+                           f"{frame.axis_change_deg:.1f} deg in the last): the frame's axes")
+    assert "unreliable" in text
+    assert fit_heart_frame(v, base_hint=[0.0, 0.0, 1.0]).convergence_warning() is None
+
+
 def test_pointed_end_is_apex():
     """Egg: pointed prolate half (apex) below a flat-topped half (base)."""
     v = _ellipsoid((20.0, 30.0, 60.0))

@@ -130,6 +130,10 @@ def test_read_errors(model, tmp_path):
     (out / "model.json").write_text(json.dumps(meta))
     with pytest.raises(ModelError, match=r"has format_version the text '\d+'; this heartreg reads the number \d+$"):
         read_model(out)
+    del meta["format_version"]  # said "has format_version None"
+    (out / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match=r"model.json has no format_version; this heartreg reads the number \d+$"):
+        read_model(out)
     out = write_model(model, tmp_path / "m4")
     (out / "heart.ply").unlink()
     with pytest.raises(ModelError, match="no heart.ply"):

@@ -305,7 +305,10 @@ def test_model_with_no_options(realct, auto_model, heart_less_artery):
     assert payload["cardiac_phase"] is None and "no ECG gating" in payload["cardiac_phase_source"]
     # no skin markers in this scan (contrast vessels, sternum, an ECG clip in the air are not markers)
     assert payload["fiducials_patient_mm"] == []
-    for message in ("cardiac phase unknown", "no skin markers found"):
+    # it said "registration will need them from elsewhere", and 'heartreg register' refuses a model without them
+    for message in ("cardiac phase unknown", "no skin markers found: the model has no fiducials and cannot be "
+                    "registered ('heartreg register' starts from the CT's skin staples, touched in surgery); make it "
+                    "from a CT that shows the staples"):
         assert any(message in w for w in caught), message
         assert any(message in w for w in payload["parameters"]["warnings"]), message
     model, m = _metrics(out, volume, reference)

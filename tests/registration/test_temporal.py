@@ -212,8 +212,36 @@ def test_terms_that_disagree_widen_the_interval_to_hold_both():
     assert type(apart).from_dict(apart.to_dict()).disagreement == apart.disagreement
     legacy = {k: v for k, v in apart.to_dict().items() if k != "disagreement"}  # written before the ratio
     assert type(apart).from_dict(legacy).disagreement == 1.0
-    assert "the heart and the chest disagree" in dataclasses.replace(apart, decided=False).summary()
-    assert "trace the staples" in dataclasses.replace(agree, decided=False).summary()
+    assert "the heart and the staples' trace disagree" in dataclasses.replace(apart, decided=False).summary()
+
+
+def test_the_advice_on_an_undecided_phase_follows_the_evidence_used():
+    """An audit that had traced the staples and stated the breath-hold phase (0.9, against data at 0.11) was
+    told to 'trace the staples over a breath (session format 2) or state the breath-hold phase'; eq. 10, which
+    reads neither, was told the same."""
+    rng = np.random.default_rng(5)
+    vertices = rng.normal(0, 40, (200, 3))
+    heart, trace = _distances(rng, 0.30, signal_mm=1.0), _fiducial_residuals(rng, 0.30)
+
+    def advice(**evidence):
+        est = estimate_phase(PHASES, heart, _identity_sweep(101), vertices, **evidence)
+        return est, dataclasses.replace(est, decided=False).summary()
+
+    _, text = advice()  # the heart alone: either would help
+    assert text.endswith("trace the staples over a breath (session format 2) or state the breath-hold phase "
+                         "(--breath-hold-phase)")
+    traced, text = advice(fiducials=trace)
+    assert "trace the staples" not in text and text.endswith("state the breath-hold phase (--breath-hold-phase)")
+    wrong, text = advice(fiducials=trace, breath_hold_phase=0.9)
+    assert text.endswith("the stated breath-hold phase 0.90 disagrees with the data; check it or leave it out "
+                         "(--breath-hold-phase)")
+    assert type(wrong).from_dict(wrong.to_dict()).breath_hold_phase == 0.9  # registration.json keeps it
+    assert type(wrong).from_dict({k: v for k, v in wrong.to_dict().items() if k != "breath_hold_phase"}
+                                 ).breath_hold_phase is None  # written before it
+    _, text = advice(fiducials=trace, breath_hold_phase=0.3)  # all three agree: only more points are left
+    assert "trace the staples" not in text and "state the" not in text and "record more points" in text
+    eq10 = dataclasses.replace(traced, method="eq10", evidence=("fiducials",), decided=False)
+    assert "trace the staples" not in eq10.summary() and "the shape estimator (--estimator shape)" in eq10.summary()
 
 
 def test_the_interval_reads_as_it_is_wrapping_or_whole():
