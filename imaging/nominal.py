@@ -116,6 +116,14 @@ def _wrapped(ratio: np.ndarray, what: str, values: np.ndarray, unit: str, limit:
     return np.mod(ratio, 1.0)
 
 
+def _not_gated(items, what: str, why_not, notes: list) -> bool:
+    """Whether the ``what`` values of ``items`` are no gating (``why_not(items)`` says why, noted)."""
+    why = why_not(items)
+    if why:
+        notes.append(f"{what} not used: {why}")
+    return bool(why)
+
+
 def trigger_phases(items, notes: list, warn) -> np.ndarray | None:
     """Phases ``TriggerTime / RR`` of ``items``, or None (why noted) when not every slice has both or they
     are no gating (module docstring); ``warn(message)`` is called for values beyond the RR interval."""
@@ -127,9 +135,7 @@ def trigger_phases(items, notes: list, warn) -> np.ndarray | None:
     if not (np.all(np.isfinite(trigger)) and np.all(np.isfinite(rr_ms))):
         notes.append("no TriggerTime with NominalInterval or HeartRate on every slice")
         return None
-    why = trigger_not_gated(items)
-    if why:
-        notes.append(f"TriggerTime not used: {why}")
+    if _not_gated(items, "TriggerTime", trigger_not_gated, notes):
         return None
     if not _techniques(items) and _all_zero(trigger):
         notes.append("TriggerTime 0 on every slice with a NominalInterval and no CardiacSynchronizationTechnique: "
@@ -144,8 +150,6 @@ def percent_phases(items, notes: list, warn) -> np.ndarray | None:
     if not np.all(np.isfinite(pct)):
         notes.append("no NominalPercentageOfCardiacPhase on every slice")
         return None
-    why = percent_not_gated(items)
-    if why:
-        notes.append(f"NominalPercentageOfCardiacPhase not used: {why}")
+    if _not_gated(items, "NominalPercentageOfCardiacPhase", percent_not_gated, notes):
         return None
     return _wrapped(pct / 100.0, "NominalPercentageOfCardiacPhase", pct, "%", "100 %", notes, warn)
