@@ -108,8 +108,7 @@ def _print_track_summary(summary, csv_path, *, file=None) -> None:
               "not orthonormal, det not +1, last row not 0 0 0 1), logged as quality 'tracker', not placed", file=file)
     if s.n_sent == 0 and s.models_sent == 0:
         print("  OpenIGTLink       nothing sent (no --igtl-port, or no client connected)", file=file)
-        print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)
-        return
-    print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
-          f"model sent {s.models_sent} time(s)", file=file)
+    else:
+        print(f"  OpenIGTLink       {s.n_sent} samples sent, {s.n_dropped} held back by the rate limit, "
+              f"model sent {s.models_sent} time(s)", file=file)
     print(f"  R-peak latency    mean {s.r_peak_latency_ms[0]:.0f} ms, max {s.r_peak_latency_ms[1]:.0f} ms", file=file)

@@ -24,7 +24,6 @@ flow_insp, flow_exp)`` samples; :func:`heartreg.igtl.igtl_client_chunks` is one)
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import math
 import os
@@ -42,6 +41,7 @@ from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
 from heartreg.track_log import trust_cell
 from hrcore.errors import HeartregError
+from hrcore.folders import make_folders, remove_folders
 from hrcore.geometry import apply_to_points, is_rigid
 from hrcore.output import check_output_file
 from registration.localise import FAR_MM, Localiser, registered_models
@@ -376,12 +376,10 @@ def run_track(
     limiter = RateLimiter(igtl_rate_hz)
     made: list[Path] = []  # missing folders above the log, made now and removed unless it is written (as for -o)
     try:
-        for d in _missing_folders(csv_path):
-            os.mkdir(d)
-            made.insert(0, d)
+        made = make_folders(Path(os.path.abspath(csv_path)).parent)
         fd, tmp = tempfile.mkstemp(prefix=f".{csv_path.stem}-", suffix=".csv", dir=csv_path.parent)
     except OSError as exc:
-        _remove_folders(made)
+        remove_folders(made)
         if own_sink:
             sink.close()
         raise TrackError(f"--log {csv_path}: cannot write there ({exc.strerror or exc}); give a writable place") from None
@@ -389,6 +387,7 @@ def run_track(
     interrupted_by = None
     qualities: dict[str, int] = {}
     source_error: list = []
+    trust = trust_cell(tracker.trust)  # every row's registration_trust
     t_wall0 = time.perf_counter()
     try:
         with os.fdopen(fd, "w", newline="") as fh:
@@ -412,7 +411,7 @@ def run_track(
                     else:
                         rows_list = [_emit(tracker.process(chunk), sink, limiter, T_ras_from_heart)]
                     for rows, sent in rows_list:
-                        fh.write(_csv_lines(rows, sent, trust_cell(tracker.trust)))
+                        fh.write(_csv_lines(rows, sent, trust))
                         n += len(rows.time_s)
                         placed += int(np.count_nonzero(np.isfinite(rows.T_heart_from_robot[:, 0, 3])))
                         sent_total += int(sent.sum())
@@ -435,7 +434,7 @@ def run_track(
     finally:
         if os.path.exists(tmp):  # not renamed: no log, and no folder made for it
             os.unlink(tmp)
-            _remove_folders(made)
+            remove_folders(made)
         if own_sink:
             sink.close()
     if source_error:  # after the rename: the log is a record of the run
@@ -449,21 +448,6 @@ def run_track(
         interrupted=interrupted_by is not None, interrupted_by=interrupted_by, n_invalid_pose=invalid,
         qualities=qualities,
     )
-
-
-def _missing_folders(path: Path) -> list[Path]:
-    """The folders above ``path`` that do not exist, outermost first."""
-    missing, parent = [], Path(os.path.abspath(path)).parent
-    while not parent.exists():
-        missing.insert(0, parent)
-        parent = parent.parent
-    return missing
-
-
-def _remove_folders(folders) -> None:
-    for d in folders:  # innermost first; one that is not empty (another process's file) stays
-        with contextlib.suppress(OSError):
-            os.rmdir(d)
 
 
 def _until_error(chunks, errors: list):

@@ -33,6 +33,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from hrcore.errors import HeartregError, os_error_message, refusal_line, root_os_error  # noqa: F401 - theirs, as before
+from hrcore.folders import make_folders, remove_folders
 
 __all__ = [
     "OutputError",
@@ -448,18 +449,10 @@ def staged_output(
         absolute = Path(os.path.realpath(absolute))
     new = _missing_or_empty(absolute)
     home = absolute.parent if whole else absolute
-    created = []
-    probe = home
-    while not probe.exists():
-        created.append(probe)
-        probe = probe.parent
+    created: list[Path] = []
     stage = home / f".{absolute.name}.{_MARK}-{os.getpid()}-{secrets.token_hex(4)}.tmp"
     try:
-        for d in reversed(list(created)):
-            try:
-                os.mkdir(d)
-            except FileExistsError:  # another process (a parallel trial) made it first: not ours to remove
-                created.remove(d)
+        created = make_folders(home)
         clean_stale_staging(home)
         if folder or parts is not None:
             os.mkdir(stage)
@@ -495,6 +488,4 @@ def staged_output(
 def _cleanup(stage: Path, created: list) -> None:
     if os.path.lexists(stage):
         _remove(stage)
-    for d in created:  # deepest first
-        with contextlib.suppress(OSError):
-            os.rmdir(d)
+    remove_folders(created)
