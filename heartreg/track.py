@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from heartreg.igtl import IgtlSink, RateLimiter
-from heartreg.track_log import TRACK_COLUMNS, TrackSummary, umask
+from heartreg.track_log import TRACK_COLUMNS, TrackSummary
 from heartreg.track_log import csv_lines as _csv_lines
 from heartreg.track_log import status_text as _status_text
 from heartreg.track_log import trust_cell
@@ -44,6 +44,7 @@ from hrcore.errors import HeartregError
 from hrcore.folders import make_folders, remove_folders
 from hrcore.geometry import apply_to_points, is_rigid
 from hrcore.output import check_output_file
+from imaging.files import umask_mode
 from registration.localise import FAR_MM, Localiser, registered_models
 from registration.motion_model import Harmonics
 from registration.online import CausalPhases, PhaseFlag
@@ -424,7 +425,7 @@ def run_track(
                 interrupted_by = type(exc)
         if sink is not None:
             sink.flush()
-        os.chmod(tmp, 0o666 & ~umask())
+        os.chmod(tmp, umask_mode())
         check_output_file(csv_path, what="--log")  # again: one may have been put there meanwhile
         os.replace(tmp, csv_path)
     except OSError as exc:  # a write to the open log (a disk's error, not the OpenIGTLink socket's): name it

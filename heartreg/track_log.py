@@ -9,13 +9,12 @@ writes them.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["TRACK_COLUMNS", "TrackSummary", "csv_lines", "status_text", "trust_cell", "umask"]
+__all__ = ["TRACK_COLUMNS", "TrackSummary", "csv_lines", "status_text", "trust_cell"]
 
 TRACK_COLUMNS = (
     "time_s", "cardiac_phase", "respiration_phase", "quality", "flags",
@@ -86,10 +85,3 @@ def csv_lines(rows, sent: np.ndarray, trust: str = "unknown") -> str:
     cols = [c if isinstance(c, tuple) else np.asarray(c).tolist() for c in cols]
     fmt = _ROW_FMT
     return "".join([fmt % r for r in zip(*cols)])
-
-
-def umask() -> int:
-    """The process's umask (read without changing it for good)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

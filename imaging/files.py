@@ -11,7 +11,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_path", "gzip_damage", "write_text_atomic", "umask_mode"]
+__all__ = ["atomic_path", "gzip_damage", "is_analyze_header", "write_text_atomic", "umask_mode"]
 
 
 def umask_mode(*, directory: bool = False) -> int:
@@ -77,3 +77,9 @@ def gzip_damage(path) -> str | None:
     except (gzip.BadGzipFile, EOFError, zlib.error) as exc:
         return str(exc) or type(exc).__name__
     return None
+
+
+def is_analyze_header(head: bytes) -> bool:
+    """Whether ``head`` (a file's first bytes) opens an Analyze 7.5 / NIfTI-1 header: its size, 348, in the
+    first four bytes, in either byte order."""
+    return len(head) >= 348 and 348 in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big"))

@@ -20,6 +20,7 @@ import numpy as np
 from hrcore.errors import HeartregError
 
 from .discover import _Frame, _Other, _Scan, _scan
+from .files import is_analyze_header
 from .volume import _files_text
 
 
@@ -382,7 +383,7 @@ def _image_pair(path) -> str:
         head = p.with_suffix(".hdr" if p.suffix.islower() else ".HDR").read_bytes()[:348]
     except OSError:
         return ""
-    if len(head) < 348 or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+    if not is_analyze_header(head):
         return ""
     return "a NIfTI-1 image pair (.hdr/.img)" if head[344:347] == b"ni1" else "an Analyze 7.5 image (.hdr/.img pair)"
 

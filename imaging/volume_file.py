@@ -23,7 +23,7 @@ import numpy as np
 from hrcore.geometry import apply_to_points
 from hrcore.redact import pseudonym_uid
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
-from imaging.files import gzip_damage
+from imaging.files import gzip_damage, is_analyze_header
 from imaging.grouping import StudyWarning
 from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume
 
@@ -94,9 +94,9 @@ def nifti_lps_affine(img) -> tuple[np.ndarray, str]:
     """
     header = img.header
     mm, unit = nifti_unit(img)
-    if not np.isfinite(mm):
-        return _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64), unit
     T = _LPS_FROM_RAS @ np.asarray(img.affine, dtype=np.float64)
+    if not np.isfinite(mm):
+        return T, unit
     T[:3, :] *= mm
     if int(header["sform_code"]) > 0 and int(header["qform_code"]) > 0:
         shape = np.asarray(img.shape[:3], float)
@@ -124,7 +124,7 @@ def nifti_misnamed(path) -> str:
         return ""  # said by the reader
     if head[:2] == b"\x1f\x8b":
         return ""
-    if len(head) >= 348 and 348 in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+    if is_analyze_header(head):
         return "is an uncompressed NIfTI file named .nii.gz (no gzip compression): rename it to .nii"
     return "is not gzip-compressed, as a .nii.gz must be, nor a NIfTI file: check what was exported"
 
