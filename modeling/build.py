@@ -485,8 +485,8 @@ def build_heart_model(
             f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
             "as usual: check the model (dextrocardia, or a segmentation error)"
         )
-    if not model.frame.converged:
-        fallback(model.frame.convergence_warning())
+    if frame_warning := model.frame.convergence_warning():
+        fallback(frame_warning)
     notes.append(
         {"great vessels": "heart frame: base where the great vessels leave",
          "usual orientation": "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)",
