@@ -334,4 +334,5 @@ def load_study(
             if o.study_instance_uid == info.study_instance_uid
             and o.sop_class_uid.startswith("1.2.840.10008.5.1.4.1.1.9.1.")
         ),
+        selection=why,
     )

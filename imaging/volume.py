@@ -153,6 +153,10 @@ class Volume:
     waveform_files : tuple of str
         Waveform instances (e.g. the ECG recorded during the scan) of the same
         study found beside the images; used as an R-peak source.
+    selection : str
+        How the series was chosen among the study's (its place in the listing,
+        the other candidates; ``''`` for a volume file): it names series by
+        their UIDs, as the terminal does.
     """
 
     hu: np.ndarray = field(repr=False)
@@ -164,6 +168,7 @@ class Volume:
     source_path: str
     resampled: bool = False
     waveform_files: tuple[str, ...] = ()
+    selection: str = ""
 
     @property
     def shape(self) -> tuple[int, int, int]:

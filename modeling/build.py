@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from hrcore.memory import release_free_memory
-from hrcore.redact import pseudonym_uid
+from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
@@ -455,6 +455,7 @@ def build_heart_model(
         "shape_kji": [int(s) for s in volume.shape],
         "spacing_mm": [float(s) for s in volume.spacing_mm],
         "kind": mask_source,
+        **({"series_choice": pseudonymize_uids(volume.selection)} if volume.selection else {}),  # UIDs: as above
     }
     parameters = {
         "target_faces": int(target_faces),

@@ -68,6 +68,7 @@ SOURCE_KEYS = frozenset(
         "shape_kji",
         "spacing_mm",
         "kind",
+        "series_choice",
     }
 )
 MESH_FILES = ("heart.ply", "heart.stl")

@@ -161,6 +161,8 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path, capsys):
         source = json.loads(model_json.read_text())["source"]
         assert (source["series_instance_uid"], source["study_instance_uid"]) == (pseudonym_uid(series),
                                                                                 pseudonym_uid(study))
+        # how the series was chosen, named by its pseudonym (the UID search above finds no original in it)
+        assert source["series_choice"].startswith(f"chose series [0] {pseudonym_uid(series)}: axial CT"), source
     # the same series in the phase report: one can still tell a model and its phases belong together
     for phases_json in (out / "phases" / "phases.json", out / "pipeline" / "phases" / "phases.json"):
         written = json.loads(phases_json.read_text())

@@ -265,6 +265,18 @@ def test_automatic_choice_is_axial_ct_not_localizer(mixed):
     assert any("localizer(s) ignored" in n for n in vol.notes)
     assert any("1 non-DICOM file(s) ignored" in n for n in vol.notes)
     assert any("DICOMDIR ignored" in n for n in vol.notes)
+    # how it was chosen, for model.json (modeling.build writes it with the UIDs' pseudonyms): the chosen series
+    # by its place in the listing, the other CT candidate and the localizer passed over
+    cor = next(s for s in list_series(mixed) if s.description == "Coronal MPR")
+    assert vol.selection.startswith(f"chose series [{vol_index(mixed, vol)}] {vol.series.series_instance_uid}: "
+                                    "axial CT, 20 image(s)"), vol.selection
+    assert f"1 other CT candidate(s) [{cor.index}] coronal 25" in vol.selection
+    assert "localizer(s) ignored" in vol.selection and vol.selection in vol.notes
+    assert load_study(mixed, series=cor.index).selection == f"series [{cor.index}] {cor.uid} chosen by the caller"
+
+
+def vol_index(study, volume) -> int:
+    return next(s.index for s in list_series(study) if s.uid == volume.series.series_instance_uid)
 
 
 def test_series_selectable_by_index_and_uid(mixed):
