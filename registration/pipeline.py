@@ -29,7 +29,7 @@ from registration.options import MIN_BEATS, MIN_BREATHS, RegistrationOptions
 from registration.icp import SurfaceIndex, icp
 from registration.plausibility import assess_coverage, assess_trust
 from registration.result import IcpReport, RegistrationResult
-from registration.point_models import fit_point_models
+from registration.point_models import fit_point_models, on_sample_clock
 from registration.session import Session
 from registration.slice_phase import point_cardiac_phases, predict_at_point_phases
 from registration.spatiotemporal import (
@@ -104,12 +104,11 @@ class _Chosen:
 
 def _trace_curve(trace, fid_model, phases, order):
     """The traced staples over the breath (:func:`registration.temporal.fiducial_curve`)."""
-    onsets = expiration_onsets(
+    onsets = on_sample_clock(expiration_onsets(  # a trace's dropped samples leave gaps, as a point's
         rate_hz=trace.rate_hz,
         flow_exp_lpm=trace.flow_exp_lpm,
         flow_insp_lpm=trace.flow_insp_lpm,
-        start_s=float(trace.time_s[0]),
-    )
+    ), trace.time_s, trace.rate_hz)
     phase_r = respiration_phase(trace.time_s, onsets)
     return fiducial_curve(trace.fiducial, trace.stylus_probe_mm, phase_r, fid_model, phases, order=order)
 

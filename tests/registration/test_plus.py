@@ -50,8 +50,9 @@ def test_sequence_round_trip_with_invalid_poses(tmp_path, name):
     assert np.prod(sitk.ReadImage(str(path)).GetSize()) * sitk.ReadImage(str(path)).GetNumberOfComponentsPerPixel() == n
 
 
-def _plus_session(tmp_path, n=1500, rate=100.0, invalid=(), shift_s=0.0):
-    """A small PLUS session: one point of n samples, robot fixed in the probe frame."""
+def _plus_session(tmp_path, n=1500, rate=100.0, invalid=(), shift_s=0.0, signals=None):
+    """A small PLUS session: one point of n samples, robot fixed in the probe frame; ``signals(t)``
+    gives its ECG and flows (default: constant)."""
     rng = np.random.default_rng(5)
     folder = tmp_path / "plus"
     (folder / "points").mkdir(parents=True)
@@ -63,7 +64,9 @@ def _plus_session(tmp_path, n=1500, rate=100.0, invalid=(), shift_s=0.0):
     seen[list(invalid)] = False
     write_plus_sequence(folder / "track.igs.nrrd", time_s + shift_s, {"RobotToTracker": robot, "ProbeToTracker": probe},
                         valid={"ProbeToTracker": seen})
-    rows = ["time_s,ecg_mv,flow_insp_lpm,flow_exp_lpm"] + [f"{t:.3f},0.1,1.0,0.0" for t in time_s]
+    cols = signals(time_s - time_s[0]) if signals else (np.full(n, 0.1), np.ones(n), np.zeros(n))
+    rows = ["time_s,ecg_mv,flow_insp_lpm,flow_exp_lpm"] + [
+        f"{t:.3f},{e:.4f},{i:.3f},{x:.3f}" for t, e, i, x in zip(time_s, *cols)]
     (folder / "points" / "p0.csv").write_text("\n".join(rows) + "\n")
     (folder / "fiducials.csv").write_text("fiducial,x_mm,y_mm,z_mm\n" + "".join(
         f"{k},{k}.0,{2 * k}.0,{k * k}.0\n" for k in range(1, 10)))
@@ -165,3 +168,40 @@ def test_session_names_missing_plus_parts(tmp_path):
     (folder / "track.igs.nrrd").write_bytes(text)
     with pytest.raises(SessionError, match="has no transform 'ProbeToTracker'"):
         read_session(folder)
+
+
+def _ecg_and_breaths(t):
+    """ECG: an R every 0.8 s from 0.3 s (Gaussian, 12 ms); flows: a 4 s breath, expiration from 1.5 s in."""
+    beats = np.arange(0.3, t[-1], 0.8)
+    ecg = np.exp(-0.5 * ((t[:, None] - beats[None]) / 0.012) ** 2).sum(axis=1)
+    cycle = t % 4.0  # a ventilator: constant inspiratory flow, the expiratory valve opening in a step
+    insp = np.where(cycle < 1.5, 20.0, 0.0)
+    exp = np.where(cycle >= 1.5, 30.0 * np.exp(-(cycle - 1.5) / 0.6), 0.0)
+    return ecg, insp, exp
+
+
+def test_phases_keep_their_clock_across_dropped_samples(tmp_path):
+    from registration.point_models import point_phases
+
+    # the tracker loses the robot 12 times for 80 ms (the ECG and flows of those rows go with the poses),
+    # one dropout over the R at 33.9 s; every other R lies outside the dropouts
+    starts = [130, 480, 810, 1190, 1530, 1980, 2300, 2705, 3100, 3385, 3775, 4170]
+    invalid = [s + k for s in starts for k in range(8)]
+    folder, _, time_s = _plus_session(tmp_path, n=4500, invalid=invalid, signals=_ecg_and_breaths)
+    record = read_session(folder).points[0]
+    assert record.n_invalid == 96
+    phase_c, phase_r, peaks, onsets = point_phases(record)
+    beats = 30000.0 + np.arange(0.3, 45.0, 0.8)
+    kept = beats[np.abs(beats - 30033.9) > 0.01]
+    # every R found at its time (before: each dropout put the R-peaks after it 80 ms early, up to 0.96 s by
+    # the end; median cardiac phase error 0.2 cycle)
+    np.testing.assert_allclose(peaks, kept[(kept > 30000.1) & (kept < 30044.9)], atol=0.002)
+    t = record.time_s
+    true_c = np.mod(t - 30000.3, 0.8) / 0.8
+    lost = (t > 30033.101) & (t < 30034.699)  # the R-R interval whose R the dropout took: no phase, not a wrong one
+    assert np.isnan(phase_c[lost]).all()
+    ok = np.isfinite(phase_c)
+    d = np.mod(phase_c[ok] - true_c[ok] + 0.5, 1.0) - 0.5
+    assert np.abs(d).max() < 0.005 and ok.sum() > 0.9 * t.size
+    # the starts of expiration too (the expiratory valve opens 1.5 s into each 4 s breath)
+    np.testing.assert_allclose(onsets, 30000.0 + np.arange(1.5, 45.0, 4.0), atol=0.011)
