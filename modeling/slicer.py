@@ -177,16 +177,17 @@ def write_markups(
     return path
 
 
-#: ``positionStatus`` of a markups control point that is not placed (the schema's others: ``defined``).
-UNPLACED = ("undefined", "preview")
+#: ``positionStatus`` of a markups control point that is not placed: the schema's ``undefined`` and
+#: ``preview``, and ``missing`` (a point skipped while placing, Slicer 5, written with ``"position": ""``).
+UNPLACED = ("undefined", "preview", "missing")
 
 
 def read_markups(path) -> Markups:
     """Read the first fiducial list of a ``.mrk.json`` file (LPS or RAS) as LPS.
 
     Only placed points are read: a control point whose ``positionStatus`` is
-    ``undefined`` or ``preview`` (listed in Slicer but not yet placed, or being
-    placed) is left out.
+    ``undefined``, ``preview`` or ``missing`` (listed in Slicer but not yet
+    placed, being placed, or skipped) is left out.
 
     Raises
     ------

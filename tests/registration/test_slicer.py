@@ -149,6 +149,27 @@ def test_ras_markups_and_slicers_example_transform(tmp_path):
     np.testing.assert_allclose(stored[:3, 3], _sitk_map(g, [[0.0, 0.0, 0.0]])[0], atol=1e-12)
 
 
+def test_skipped_points_of_a_slicer_list_are_not_read(tmp_path):
+    # Slicer 5 writes a point skipped while placing as positionStatus "missing" with "position": ""
+    # (and an unplaced one as "undefined", also with ""); the placed point is what --seed takes
+    orientation = [-1.0, -0.0, -0.0, -0.0, -1.0, -0.0, 0.0, 0.0, 1.0]
+    points = [{"id": str(k), "label": label, "description": "", "associatedNodeID": "", "position": position,
+               "orientation": orientation, "selected": True, "locked": False, "visibility": True,
+               "positionStatus": status}
+              for k, (label, position, status) in enumerate([("skipped", "", "missing"),
+                                                             ("placed", [-517.25, -0.5, 122.75], "defined"),
+                                                             ("editing", "", "undefined")], start=1)]
+    doc = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"
+                      "Resources/Schema/markups-schema-v1.0.3.json#",
+           "markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "coordinateUnits": "mm",
+                        "controlPoints": points}]}
+    f = tmp_path / "seed.mrk.json"
+    f.write_text(json.dumps(doc))
+    m = read_markups(f)
+    assert m.labels == ("placed",)
+    np.testing.assert_array_equal(m.points_lps_mm, [[517.25, 0.5, 122.75]])
+
+
 def test_bad_slicer_files(tmp_path):
     f = tmp_path / "two.tfm"
     f.write_text("#Insight Transform File V1.0\n#Transform 0\nTransform: CompositeTransform_double_3_3\n"
