@@ -256,10 +256,10 @@ def _from_r_peaks(times_s, r_peaks_s, what, notes):
     phases = cardiac_phase(times_s, r_peaks_s)
     bad = ~np.isfinite(phases)
     if bad.any():
-        return None, (
-            f"{what}: {int(bad.sum())} slice time(s) fall outside the R-peaks "
-            f"({r_peaks_s[0]:.3f}..{r_peaks_s[-1]:.3f} s); not extrapolated"
-        )
+        (t0, t1), r = (np.nanmin(times_s), np.nanmax(times_s)), r_peaks_s  # both: an ECG of another day shows
+        return None, (f"{what}: {int(bad.sum())} slice time(s) fall outside the R-peaks (slices {t0:.3f}..{t1:.3f} s, "
+                      f"R-peaks {r[0]:.3f}..{r[-1]:.3f} s" + ("; they do not overlap at all" if t1 < r[0] or t0 > r[-1]
+                                                              else "") + "); not extrapolated")
     # the R-R interval each slice lies in (cardiac_phase checked the R-peaks increase and holds every slice)
     r = np.asarray(r_peaks_s, dtype=float)
     rr = np.diff(r)

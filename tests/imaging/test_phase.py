@@ -206,6 +206,11 @@ def test_qrs_outside_scan_is_not_extrapolated(sample_case, tmp_path):
         report = compute_phase_report(load_study(case / "ct"), qrs_s=read_qrs_file(bad), qrs_label="late.csv")
     assert report.source.startswith("GE")  # fell through to the next source
     assert any("not extrapolated" in n for n in report.notes)
+    # both ranges, so that an ECG of another hour or day shows as such (an audit: the R-peaks' range alone, on
+    # another clock, read 412 million seconds and nothing to compare it with)
+    note = next(n for n in report.notes if "not extrapolated" in n)
+    assert re.search(r"fall outside the R-peaks \(slices \d+\.\d{3}\.\.\d+\.\d{3} s, R-peaks \d+\.\d{3}\.\.\d+\.\d{3} s; "
+                     r"they do not overlap at all\); not extrapolated", note), note
     # nothing to fall through to: the error asks to check the file given, not to give one
     (tmp_path / "ungated").mkdir()
     ungated = _copy_without(case, tmp_path / "ungated", private=True, ecg=True, gating=True)
