@@ -194,8 +194,13 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
             ax_b.hist(e.bootstrap_phases, bins=np.linspace(0, 1, 51), color=colour, alpha=0.6,
                       label=f"{e.method}: {e.respiration_phase:.2f}, {e.interval_text()}"
                       + ("" if e.decided else " (undecided)"))
-        ax_j.set_ylabel("J - min J (chi-square units)")
-        ax_j.set_yscale("symlog", linthresh=10.0)
+        if any(e.method == "shape" for e in result.phase_estimates):
+            ax_j.set_ylabel("J - min J (chi-square units)")
+            ax_j.set_yscale("symlog", linthresh=10.0)
+        else:  # an empty panel read as a flat, zero cost (an audit): say why it is empty
+            ax_j.set_yticks([])
+            ax_j.text(0.5, 0.5, f"the shape estimator was not run\n(phi_R* is {result.phase_estimates[0].method}'s; "
+                      "the notes say why)", ha="center", va="center", transform=ax_j.transAxes, fontsize=10)
         ax_j.set_title("(A) shape estimator: cost over the respiration phase", fontsize=10)
         ax_b.set_ylabel("bootstrap resamples")
         ax_b.set_title("(B) phi_R* of each bootstrap resample", fontsize=10)
@@ -203,7 +208,8 @@ def write_plots(result: RegistrationResult, out_dir) -> dict:
             ax.set_xlabel("respiration phase $\\varphi_R$")
             ax.set_xlim(0, 1)
             ax.grid(alpha=0.3)
-        _legend_below(ax_j)
+        if ax_j.get_legend_handles_labels()[1]:
+            _legend_below(ax_j)
         _legend_below(ax_b, ncol=1)
         fig.suptitle("The image's respiration phase: evidence and uncertainty", fontsize=11)
         paths["fig10"] = _save(fig, out / "fig10_phase.png")

@@ -439,3 +439,26 @@ def test_eq10_registers_few_points_that_the_shape_estimator_cannot(case, tmp_pat
     assert [e.method for e in back.phase_estimates] == ["eq10"]
     with pytest.raises(TemporalError, match=r"needs at least 7 registered points, got 5: .*--estimator eq10"):
         register_session(case["model"], few, cardiac_sweep=False, phase_step=0.02)
+
+
+def test_phase_evidence_figure_says_when_the_shape_estimator_did_not_run(case, tmp_path, monkeypatch):
+    """Fig. 10's panel A is the shape estimator's cost. With eq. 10 alone (few points) it was an empty log
+    axis (a page audit: a reader saw a flat, zero cost); it now says the estimator was not run and why to
+    look, and carries no cost axis or legend. With the shape estimator, the cost is drawn as before."""
+    import registration.figures as figures
+
+    drawn = {}
+    monkeypatch.setattr(figures, "_save", lambda fig, path: drawn.setdefault(path.name, fig) and path)
+    few = dataclasses.replace(case["session"], points=case["session"].points[:5])
+    result = register_session(case["model"], few, estimator="eq10", cardiac_sweep=False, phase_step=0.02)
+    figures.write_plots(result, tmp_path)
+    panel_a = drawn["fig10_phase.png"].axes[0]
+    words = " ".join(t.get_text() for t in panel_a.texts)
+    assert "the shape estimator was not run" in words and "eq10" in words
+    assert panel_a.get_legend() is None and not panel_a.lines and panel_a.get_ylabel() == ""
+
+    drawn.clear()
+    figures.write_plots(case["result"], tmp_path)
+    panel_a = drawn["fig10_phase.png"].axes[0]
+    assert not panel_a.texts and panel_a.get_yscale() == "symlog"
+    assert "J, all terms" in [t.get_text() for t in panel_a.get_legend().get_texts()]
