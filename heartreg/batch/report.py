@@ -98,6 +98,9 @@ td.num { text-align: right; font-variant-numeric: tabular-nums; }
 tr.failed td { background: #fde8e8; }
 tr.notrun td { color: #888; }
 img { display: block; max-width: 240px; max-height: 240px; }
+td.trust-poor { background: #fdeeee; color: #b42318; font-weight: 600; }
+td.trust-caution { background: #fdf6e7; color: #8a5a00; font-weight: 600; }
+p.untrusted { border-left: 6px solid #b42318; background: #fdeeee; padding: .4em .9em; }
 """
 
 
@@ -105,6 +108,12 @@ def index_html(records, path, *, out_dir) -> Path:
     """Write ``index.html``: per case a thumbnail, its numbers and a link to its folder (self-contained)."""
     out_dir = Path(out_dir)
     counts = {s: sum(r.status == s for r in records) for s in ("done", "failed", "not run")}
+    # a poor or caution registration stood as plain text among ok ones (a page audit): marked, and counted on top
+    levels = {lvl: [r.case for r in records if r.values.get("trust") == lvl] for lvl in ("poor", "caution")}
+    untrusted = "; ".join(f"{len(names)} {lvl} ({', '.join(map(html.escape, names))})"
+                          for lvl, names in levels.items() if names)
+    banner = (f'<p class="untrusted"><b>Registrations not trusted:</b> {untrusted}; see each case\'s trust '
+              "reasons.</p>" if untrusted else "")
     rows = []
     for r in records:
         v = r.values
@@ -126,7 +135,7 @@ def index_html(records, path, *, out_dir) -> Path:
             f'<td class="num">{_fmt(v.get("phi_r"), ".2f")}</td>'
             f'<td class="num">{_fmt(v.get("rms_mm"), ".3f")}</td>'
             f'<td class="num">{_fmt(v.get("fre_mm"), ".2f")}</td>'
-            f'<td>{html.escape(str(v.get("trust", "")))}'
+            f'<td class="trust-{html.escape(str(v.get("trust", "")))}">{html.escape(str(v.get("trust", "")))}'
             f'{"<br>" + html.escape(v["trust_reasons"]) if v.get("trust_reasons") else ""}</td>'
             f'<td class="num">{_fmt(r.times_s.get("total"), ".1f")}</td>'
             f"<td>{detail}</td></tr>"
@@ -137,6 +146,7 @@ def index_html(records, path, *, out_dir) -> Path:
 <h1>heartreg batch</h1>
 <p>{len(records)} case(s): {counts['done']} done, {counts['failed']} failed, {counts['not run']} not run.
 Every number is in <a href="summary.csv">summary.csv</a>; each case's outputs are in its folder.</p>
+{banner}
 <table>
 <tr><th></th><th>case</th><th>status</th><th>phi_C*</th><th>heart volume (mL)</th><th>heart frame Euler XYZ (deg)</th>
 <th>phi_R*</th><th>RMS (mm)</th><th>FRE (mm)</th><th>trust</th><th>time (s)</th><th>error / notes</th></tr>

@@ -460,3 +460,25 @@ def test_an_output_folder_inside_an_input_is_refused(tmp_path, sample_case):
     cohort = _write_cohort(tmp_path / "in", case_dir, [("a", "broken", "", "")])
     with pytest.raises(CohortError, match="is inside case a's study"):
         run_batch(cohort, tmp_path / "in" / "broken" / "out", workers=1, progress=False)
+
+
+def test_index_marks_untrusted_registrations_and_counts_them(tmp_path):
+    """A poor registration stood in index.html as the plain word 'poor' among ok cases (a page audit): its cell
+    is now marked by level, and a line above the table names the cases not trusted."""
+    import html as html_lib
+
+    from heartreg.batch.case import CaseRecord
+    from heartreg.batch.report import index_html
+
+    records = [CaseRecord(case="good", status="done", values={"trust": "ok", "phi_r": 0.29}),
+               CaseRecord(case="few", status="done",
+                          values={"trust": "poor", "trust_reasons": "few_points; icp_degenerate", "phi_r": 0.72}),
+               CaseRecord(case="odd", status="done", values={"trust": "caution", "trust_reasons": "phase_undecided"})]
+    page = index_html(records, tmp_path / "index.html", out_dir=tmp_path).read_text()
+    banner = re.search(r'<p class="untrusted">(.*?)</p>', page)
+    assert banner and html_lib.unescape(re.sub("<.*?>", "", banner.group(1))) == \
+        "Registrations not trusted: 1 poor (few); 1 caution (odd); see each case's trust reasons."
+    cells = re.findall(r'<td class="trust-(\w+)">(\w+)', page)
+    assert cells == [("ok", "ok"), ("poor", "poor"), ("caution", "caution")]
+    ok_only = index_html(records[:1], tmp_path / "ok.html", out_dir=tmp_path).read_text()
+    assert 'class="untrusted"' not in ok_only
