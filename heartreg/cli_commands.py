@@ -400,7 +400,8 @@ def _cmd_demo(args) -> int:
 def _cmd_reproduce(args) -> int:
     from heartreg.reproduce import reproduce
 
-    argv = ["heartreg", "reproduce", "-o", str(args.out_dir), "--size", args.size, "--seed", str(args.seed),
+    # the output folder by its name: an absolute path (a user's, a site's) has no place on the page (an audit)
+    argv = ["heartreg", "reproduce", "-o", Path(args.out_dir).resolve().name, "--size", args.size, "--seed", str(args.seed),
             "--trials", *map(str, args.trials)]
     if args.points is not None:
         argv += ["--points", str(args.points)]

@@ -185,6 +185,40 @@ def test_tables_and_page(repro):
     assert "Where our synthetic numbers differ from the paper and why" in page
     assert "along the respiratory path" in page
     assert f"{float(rows[1]['min_translation_mm']):.2f}" in page
+    # the command names the output folder, not its absolute path (it was on the page: an audit)
+    for text in (md, page, (out / "reproduction.json").read_text()):
+        assert str(out) not in text and str(out.parent) not in text
+    assert f"heartreg reproduce -o {out.name} --size sample" in md
+
+
+def test_fig9_legend_covers_no_dot(repro, tmp_path, monkeypatch):
+    """Fig. 9's legend sat in the upper left over the top dots of trial 1 (a page audit); with the highest dot
+    right under it (as that run's), every dot now lies outside the legend's box."""
+    import copy
+    import io
+
+    import heartreg.reproduce_figures as rf
+
+    figs = copy.deepcopy(repro[3])
+    (panel,) = figs["fig9"]["panels"]
+    first = [s for s in panel["series"] if s["kind"] == "trial"][0]
+    n = len(first["y"])
+    top = max(max(s["y"]) for s in panel["series"] if s["kind"] == "trial")
+    first["y"] = list(np.linspace(0.1, 0.6, n) * top)
+    first["y"][n // 2] = 1.02 * top  # the highest dot of all at the first trial's column, under the legend's text
+    drawn = {}
+    monkeypatch.setattr(rf, "_save", lambda fig, path: drawn.setdefault(path.name, fig) and path)
+    rf.plot_figures(figs, tmp_path)
+    fig = drawn["fig9_delta.png"]
+    fig.savefig(io.BytesIO(), format="png")
+    (ax,) = fig.axes
+    box = ax.get_legend().get_window_extent()
+    radius_px = 3.5 / 2 * fig.dpi / 72
+    dots = np.concatenate([ax.transData.transform(line.get_xydata()) for line in ax.lines
+                           if line.get_marker() == "o"])
+    inside = ((dots[:, 0] > box.x0 - radius_px) & (dots[:, 0] < box.x1 + radius_px)
+              & (dots[:, 1] > box.y0 - radius_px) & (dots[:, 1] < box.y1 + radius_px))
+    assert len(dots) == sum(len(s["y"]) for s in panel["series"] if s["kind"] == "trial") and not inside.any()
 
 
 def test_a_foreign_case_in_the_way_is_refused(repro):
