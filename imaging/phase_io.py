@@ -12,7 +12,7 @@ from hrcore.errors import HeartregError
 from hrcore.figlayout import PNG_OPTIONS, fixed_margins, subplots
 from hrcore.output import staged_output
 from imaging.files import atomic_path, write_text_atomic
-from imaging.phase import MOTION_FREE_WINDOW, PhaseReport, SlicePhase
+from imaging.phase import JUMP_THRESHOLD, MOTION_FREE_WINDOW, PhaseReport, SlicePhase
 
 __all__ = ["PhaseFileError", "write_phase_report", "read_phase_report", "plot_phases"]
 
@@ -59,8 +59,9 @@ def plot_phases(report: PhaseReport, path, *, title: str = "Cardiac phase per sl
     ax.plot(index, phases, ".", ms=4, color="tab:blue", label="slice phase")
     ax.axhline(report.volume_cardiac_phase, color="k", ls="--", lw=1,
                label=f"volume phase {report.volume_cardiac_phase:.3f} (mean)")
-    for j in report.jumps:
-        ax.axvline(j + 0.5, color="tab:red", lw=0.8, alpha=0.6)
+    for k, j in enumerate(report.jumps):  # named in the legend: unexplained red lines (a page audit)
+        ax.axvline(j + 0.5, color="tab:red", lw=0.8, alpha=0.6,
+                   label=f"phase jump > {JUMP_THRESHOLD:g} between slices" if k == 0 else None)
     ax.set_xlabel("slice index (along the slice normal)")
     ax.set_ylabel("cardiac phase")
     ax.set_ylim(0, 1)

@@ -495,3 +495,23 @@ def test_phases_of_a_volume_file_says_it_needs_dicom(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "is a volume file: phases reads a DICOM study" in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_phases_png_legend_names_the_jump_lines(tmp_path, monkeypatch):
+    """phases.png draws a red line at every jump between slices; the legend did not say what the lines were
+    (a page audit). The first line is now named in the legend, once however many jumps there are."""
+    from matplotlib.figure import Figure
+
+    import imaging.phase_io as phase_io
+
+    slices = tuple(SlicePhase(i, 2.5 * i, float(i), p, float(i)) for i, p in enumerate([0.7, 0.72, 0.55, 0.56, 0.7]))
+    report = PhaseReport(slices=slices, volume_cardiac_phase=0.646, circular_mean_phase=0.646, source="qrs.csv",
+                         clock="trigger time", r_peaks_s=np.array([0.0, 5.0]), jumps=(1, 3), fraction_in_window=0.6)
+    drawn = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: drawn.append(fig))
+    phase_io.plot_phases(report, tmp_path / "phases.png")
+    (ax,) = drawn[0].axes
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels.count("phase jump > 0.1 between slices") == 1
+    red = [line for line in ax.lines if line.get_color() == "tab:red"]
+    assert sorted(line.get_xdata()[0] for line in red) == [1.5, 3.5]
