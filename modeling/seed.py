@@ -178,7 +178,7 @@ def blood_noise_hu(raw, pool, cspacing) -> float | None:
     return float(np.median(spreads)) if spreads else None
 
 
-def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
+def split_solid_organs(region, pool, coarse, cspacing, blood_hu, height_axis: int = 0):
     """Part the heart from solid organs its tissue touches (the liver under the diaphragm).
 
     On a thick-slice CT (3 mm and more) the diaphragm and the fat over it
@@ -192,8 +192,11 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
     (brightest first), which floods each organ up to the dimmest layer between
     them, the diaphragm's.  The heart's seed is the pool near its chambers
     only (:func:`_heart_seeds`): blood in the other organ (a liver's veins)
-    would flood it from within.  Returns the heart's part of ``region`` and a
-    note (empty when nothing is split).
+    would flood it from within.  What the other organ's front took where the
+    heart's part encloses it in a plane across ``height_axis`` (the array
+    axis along the patient's height) is given back (:func:`_enclosed`).
+    Returns the heart's part of ``region`` and a note (empty when nothing is
+    split).
     """
     # the heart lies within HEART_REACH_MM of its pool's box: the rest of the region (chest wall, abdomen) is
     # no heart, and leaving it out keeps the distance maps and the watershed small
@@ -217,6 +220,7 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu):
         return region, ""
     seeds, flood_hu = _heart_seeds(blood_pool, hu, cspacing)
     heart = _flood(flood_hu, seeds, solid, inside)
+    heart |= _enclosed(heart, height_axis) & inside
     out = np.zeros_like(region)
     out[box] = heart
     removed_ml = float((region.sum() - heart.sum()) * np.prod(cspacing) / 1000.0)
@@ -255,6 +259,26 @@ def _heart_seeds(pool, hu, cspacing):
     # the lumen reaches CHAMBER_CORE_MM beyond its cores: within BLOOD_REACH_MM of it, the cores' reach plus that
     near = distance_mm(~cores, cspacing) <= CHAMBER_CORE_MM + BLOOD_REACH_MM
     return pool & near, np.where(pool & ~near, hu.min(), hu)
+
+
+def _enclosed(heart, height_axis: int) -> np.ndarray:
+    """What ``heart`` encloses in each plane across the patient's height (its holes in axial slices).
+
+    An organ below the heart meets it at the diaphragm and lies inside none of
+    its cross-sections; what its flood takes there came up through a vessel.
+    The inferior vena cava's unopacified stream (150 HU) reaches into the
+    right atrium: on the anatomical phantom (seed 1) the liver's front climbed
+    it along its noise, a channel of 1 ml about 6 mm wide into the atrium,
+    which left the atrium no ball of the heart body's radius (inscribed radius
+    21.6 -> 5 mm), and the vessel cut took it (truth -> mesh p95 23.4 mm; 3.3
+    with the channel given back).  Filled in 3-d, closed over 6 mm, it took back
+    22 ml of liver around the vena cava of TotalSegmentator's aortic CTA on
+    4.5 mm slices; filled in the axial planes, 4 ml (its mouth at the atrium).
+    """
+    from scipy.ndimage import binary_fill_holes
+
+    planes = np.moveaxis(heart, height_axis, 0)
+    return np.moveaxis(np.stack([binary_fill_holes(p) for p in planes]), 0, height_axis)
 
 
 def _flood(hu, heart, other, inside):

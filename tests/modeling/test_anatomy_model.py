@@ -53,13 +53,18 @@ def anatomy(tmp_path_factory):
     return _measured(tmp_path_factory.mktemp("anatomy_model"), 0)
 
 
-def test_no_chamber_is_lost_on_another_seed(tmp_path):
+@pytest.mark.parametrize("seed", [1, 4])
+def test_no_chamber_is_lost_on_another_seed(tmp_path, seed):
     """Seed 4 (image phase 0.61): the right atrium's blood lay more than 20 mm from the chambers' cores that
     seed the heart against the liver (``modeling.seed.BLOOD_REACH_MM``), was flooded last and went with the
     liver: 275 ml, 20 % of the true surface farther than 5 mm from the mesh, truth -> mesh p95 24.4 mm (an
     audit).  Reaching 30 mm: 318 ml, 5.4 %, p95 5.2 mm (the rest is the pulmonary trunk's known limit;
-    seed 0: 2.8 %, 3.1 mm)."""
-    m = _measured(tmp_path, 4)
+    seed 0: 2.8 %, 3.1 mm).
+
+    Seed 1: the liver's front climbed the inferior vena cava's stream into the right atrium (a channel of
+    1 ml) and the vessel cut took the atrium: 289 ml, 17.3 %, p95 23.4 mm.  With what the heart encloses in
+    its axial planes given back (``modeling.seed._enclosed``): 331 ml, 3.0 %, 3.3 mm."""
+    m = _measured(tmp_path, seed)
     assert np.mean(m["back"] > 5.0) <= 0.08 and np.percentile(m["back"], 95) <= 6.5, (
         np.mean(m["back"] > 5.0), np.percentile(m["back"], 95))
 
