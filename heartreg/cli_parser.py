@@ -262,18 +262,19 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="session folder to replay as the pose stream (default SESSION_DIR)")
     p.add_argument("--igtl-in", default=None, metavar="HOST:PORT",
                    help="take the stream from an OpenIGTLink server instead (docs/formats.md)")
-    p.add_argument("--idle-timeout", type=_finite, default=5.0, help="--igtl-in: end after this many idle seconds")
+    p.add_argument("--idle-timeout", type=_finite, default=5.0, help="--igtl-in: end after this many idle seconds (default %(default)g)")
     p.add_argument("--speed", type=_finite, default=None,
                    help="replay pacing: 1 = real time, 2 = twice as fast (default: as fast as possible)")
     p.add_argument("--log", type=_path, required=True,
                    help="CSV log to write (one row per sample), outside the input folders")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --log")
     p.add_argument("--igtl-port", type=_port, default=None,
-                   help="serve OpenIGTLink to Slicer on this port (18944 is Slicer's default; 0: any free)")
+                   help="serve OpenIGTLink to Slicer on this port (18944 is Slicer's default; 0: any free; "
+                        "default: no server, nothing sent)")
     p.add_argument("--igtl-rate", type=_finite, default=100.0,
-                   help="most samples per second sent over OpenIGTLink (0: all)")
+                   help="most samples per second sent over OpenIGTLink (default %(default)g; 0: all)")
     p.add_argument("--wait-client", type=_finite, default=0.0,
-                   help="seconds to wait for an OpenIGTLink client before the stream starts")
+                   help="seconds to wait for an OpenIGTLink client before the stream starts (default %(default)g)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_track)
 

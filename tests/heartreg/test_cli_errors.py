@@ -240,3 +240,15 @@ def test_a_path_the_terminal_cannot_encode_is_escaped(tmp_path):
                           capture_output=True, env=env, timeout=120)
     assert done.returncode == 0 and "J\\xf6rg" in done.stdout.decode("ascii"), done.stderr.decode("ascii")
     assert (out / "phases.json").is_file()
+
+
+def test_track_help_states_its_defaults(capsys):
+    """The README gives --igtl-rate's default (100/s); --help said nothing of it, nor that without --igtl-port
+    nothing is served."""
+    with pytest.raises(SystemExit):
+        cli.main(["track", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "end after this many idle seconds (default 5)" in text
+    assert "0: any free; default: no server, nothing sent)" in text
+    assert "most samples per second sent over OpenIGTLink (default 100; 0: all)" in text
+    assert "before the stream starts (default 0)" in text

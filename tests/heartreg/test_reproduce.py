@@ -333,3 +333,18 @@ def test_a_trials_warnings_come_back_as_its_log_lines(monkeypatch):
         result, lines = reproduce._trial_task(1, "/nowhere", "sample", 0, None, 0.02)
     assert result == "result"
     assert lines == ["phantom written", "warning: the vessel trim left 2 pieces; the largest was kept"]
+
+
+def test_static_rotation_sentence_follows_the_numbers():
+    """The full-size run of 5 December 2026 gave static 2.48°, T0 3.13°, final 0.71°: the page said the static
+    error was "more than T0's" whatever the numbers."""
+    from heartreg.reproduce_report import static_rotation_text
+
+    assert static_rotation_text(2.48, 3.13, 0.71) == (
+        "The static (mean-position) registration's averages 2.5°, less than T0's, more than the final one's; "
+        "a plausible cause, not isolated here, is the heartbeat's twist (apex +7°, base -4°) in the mean positions, "
+        "which a rigid fit to the diastolic map turns into a rotation.")
+    assert static_rotation_text(6.71, 3.13, 0.26).startswith(
+        "The static (mean-position) registration's averages 6.7°, more than T0's; a plausible cause")
+    assert static_rotation_text(0.2, 3.13, 0.26) == (
+        "The static (mean-position) registration's averages 0.2°, less than T0's and the final one's.")
