@@ -101,6 +101,9 @@ class _Frame:
     pixel_length: int | None = field(default=None, repr=False, compare=False)
     # (0018,9037) Cardiac Synchronization Technique (NONE, PROSPECTIVE, ...), upper case; None if absent
     cardiac_sync_technique: str | None = None
+    # (0028,0120) Pixel Padding Value and (0028,0121) Pixel Padding Range Limit, stored values; None if absent
+    padding_value: int | None = None
+    padding_limit: int | None = None
 
     @property
     def is_localizer(self) -> bool:
@@ -255,6 +258,8 @@ def _frames_from_dataset(ds, path: str, native: tuple[int, int] | None = None) -
         bits_allocated=int(_get(ds, "BitsAllocated", 16) or 16),
         bits_stored=int(_get(ds, "BitsStored", _get(ds, "BitsAllocated", 16)) or 16),
         pixel_representation=int(_get(ds, "PixelRepresentation", 0) or 0),
+        padding_value=_as_int(_get(ds, "PixelPaddingValue")),
+        padding_limit=_as_int(_get(ds, "PixelPaddingRangeLimit")),
         mid_scan_time_s=mid_scan,
         rpeak_timestamps_ms=rpeaks,
         pixel_offset=None if native is None else native[0],

@@ -210,10 +210,35 @@ def _int16_possible(frames) -> bool:
     return True
 
 
+def _padding_range(frame: _Frame) -> tuple[int, int] | None:
+    """Stored values of (0028,0120) *Pixel Padding Value* to (0028,0121) *Pixel Padding Range Limit*, or None.
+    A value written with the other sign (-2000 in unsigned data: 63536) is taken modulo 2**BitsStored."""
+    if frame.padding_value is None:
+        return None
+    size = 1 << frame.bits_stored
+
+    def wrap(v: int) -> int:
+        v %= size
+        return v - size if frame.pixel_representation == 1 and v >= size // 2 else v
+
+    ends = [wrap(frame.padding_value), wrap(frame.padding_limit if frame.padding_limit is not None else frame.padding_value)]
+    return min(ends), max(ends)
+
+
+def _padding(stored: np.ndarray, frame: _Frame) -> np.ndarray | None:
+    """Where `stored` holds padding (see `_padding_range`), or None."""
+    if (ends := _padding_range(frame)) is None:
+        return None
+    mask = (stored >= ends[0]) & (stored <= ends[1])
+    return mask if mask.any() else None
+
+
 def _slice_hu_int(arr: np.ndarray, frame: _Frame) -> np.ndarray | None:
-    """HU as int16 when it fits, else None."""
+    """HU as int16 when it fits, else None; padding at most OUTSIDE_HU."""
     s, b = _rescale(frame)
     hu = arr.astype(np.int32, copy=False) * int(round(s)) + int(round(b))
+    if (pad := _padding(arr, frame)) is not None:
+        hu[pad] = np.minimum(hu[pad], OUTSIDE_HU)
     if hu.size and (hu.min() < _INT16.min or hu.max() > _INT16.max):
         return None
     return hu.astype(np.int16)
@@ -236,22 +261,29 @@ def _read_hu_int16_into(dst: np.ndarray, frame: _Frame) -> bool:
     if dtype is None or dtype.itemsize != 2:
         return False
     stored = _read_native(frame, dtype, out=dst.view(dtype))
+    pad = _padding(stored, frame)
+    values = stored if pad is None else stored[~pad]
     s, b = _rescale(frame)
     s, b = int(round(s)), int(round(b))
-    lo, hi = int(stored.min()), int(stored.max())
-    ends = (s * lo + b, s * hi + b)
-    if min(ends) < _INT16.min or max(ends) > _INT16.max:
+    ends = (s * int(values.min()) + b, s * int(values.max()) + b) if values.size else (0, 0)
+    padded = None if pad is None else np.minimum(stored[pad].astype(np.int64) * s + b, int(OUTSIDE_HU))
+    if min(ends) < _INT16.min or max(ends) > _INT16.max or (padded is not None and padded.min() < _INT16.min):
         return False
     if s != 1:
         np.multiply(dst, _wrap16(s), out=dst)
     if b != 0:
         np.add(dst, _wrap16(b), out=dst)
+    if pad is not None:
+        dst[pad] = padded
     return True
 
 
 def _slice_hu_float(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     s, b = _rescale(frame)
-    return arr.astype(np.float32) * np.float32(s) + np.float32(b)
+    hu = arr.astype(np.float32) * np.float32(s) + np.float32(b)
+    if (pad := _padding(arr, frame)) is not None:
+        hu[pad] = np.minimum(hu[pad], np.float32(OUTSIDE_HU))
+    return hu
 
 
 def _series_rescale(frames):
@@ -300,6 +332,10 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
     frames, rescale_note = _series_rescale(frames)
     if rescale_note:
         notes.append(rescale_note)
+    if padded := sorted({f.padding_value for f in frames if (ends := _padding_range(f)) is not None
+                         and max(_rescale(f)[0] * v + _rescale(f)[1] for v in ends) > OUTSIDE_HU}):
+        notes.append(f"pixels at (0028,0120) Pixel Padding Value {', '.join(map(str, padded))} (outside the "
+                     f"reconstructed field of view) taken as at most {OUTSIDE_HU:g} (air)")
         plan = dataclasses.replace(plan, frames=frames)
     resampling = plan.resample_k or plan.resample_plane
     use_int16 = not resampling and _int16_possible(frames)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pydicom
 import pytest
+from pydicom.data import get_testdata_file
 from pydicom.pixels import get_decoder
 from pydicom.uid import DeflatedExplicitVRLittleEndian, JPEGLosslessSV1
 
@@ -202,3 +203,59 @@ def test_anonymised_jpeg2000_series_with_blanked_uids():
     assert min(median_hu("humerus_left"), median_hu("humerus_right"), median_hu("vertebrae_T12")) > 150
     for name, side in (("humerus_left", 1), ("spleen", 1), ("humerus_right", -1), ("liver", -1)):
         assert side * np.median(lps[label == _TS_LABELS[name], 0]) > 30, name
+
+
+def _padded_series(folder, *, signed: bool, compress_second: bool = False):
+    """Three copies of ``CT_small.dcm`` 2.5 mm apart with their corner 10 x 10 pixels set to the
+    (0028,0120) Pixel Padding Value: -2000 in signed data, 63536 in unsigned data (the same bits)."""
+    from pydicom.uid import JPEG2000Lossless, generate_uid
+
+    folder.mkdir()
+    series_uid, paths = generate_uid(), []
+    for k in range(3):
+        ds = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
+        stored = ds.pixel_array.astype(np.int32)
+        if not signed:  # the same HU as unsigned data: stored + 1024, rescaled by intercept -2048
+            stored += 1024
+            ds.PixelRepresentation, ds.RescaleIntercept = 0, -2048
+        stored[:10, :10] = -2000 if signed else 63536
+        ds.PixelData = stored.astype(np.int16 if signed else np.uint16).tobytes()
+        del ds.PixelPaddingValue
+        ds.add_new(0x00280120, "SS" if signed else "US", -2000 if signed else 63536)
+        ds.SeriesInstanceUID, ds.SOPInstanceUID = series_uid, generate_uid()
+        ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+        ds.ImagePositionPatient = [float(v) for v in ds.ImagePositionPatient[:2]] + [2.5 * k]
+        if compress_second and k == 1:
+            ds.compress(JPEG2000Lossless)
+        ds.save_as(folder / f"IM{k}", enforce_file_format=True)
+        paths.append(folder / f"IM{k}")
+    return paths
+
+
+@pytest.mark.parametrize("compress_second", [False, True])
+def test_unsigned_pixel_padding_value_is_air_not_62512_hu(tmp_path, compress_second):
+    """Unsigned CT whose corners hold Pixel Padding Value 63536 (GE writes it so): rescaled they were
+    63536 - 2048 = 61488 HU, brighter than any bone, and the volume went float32.  Padding is air now
+    (-1024 HU), read from the file or through a decoder; every other pixel is pydicom's HU exactly."""
+    paths = _padded_series(tmp_path / "u", signed=False, compress_second=compress_second)
+    volume = _load(tmp_path / "u")
+    assert volume.hu.dtype == np.int16
+    for k, path in enumerate(paths):
+        ds = pydicom.dcmread(path)
+        expected = _hu(ds)
+        assert expected[0, 0] == 61488
+        expected[:10, :10] = -1024
+        np.testing.assert_array_equal(volume.hu[k], expected)
+    assert ("pixels at (0028,0120) Pixel Padding Value 63536 (outside the reconstructed field of view) taken as "
+            "at most -1024 (air)") in volume.notes
+
+
+def test_signed_pixel_padding_below_air_kept_as_written(tmp_path):
+    """Signed padding -2000 rescales to -3024 HU, already below air: kept as pydicom (and ITK, dcm2niix)
+    give it, without a note."""
+    paths = _padded_series(tmp_path / "s", signed=True)
+    volume = _load(tmp_path / "s")
+    for k, path in enumerate(paths):
+        np.testing.assert_array_equal(volume.hu[k], _hu(pydicom.dcmread(path)))
+    assert volume.hu[0, 0, 0] == -3024
+    assert not any("Padding" in n for n in volume.notes)
