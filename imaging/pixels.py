@@ -332,11 +332,11 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
     frames, rescale_note = _series_rescale(frames)
     if rescale_note:
         notes.append(rescale_note)
+        plan = dataclasses.replace(plan, frames=frames)
     if padded := sorted({f.padding_value for f in frames if (ends := _padding_range(f)) is not None
                          and max(_rescale(f)[0] * v + _rescale(f)[1] for v in ends) > OUTSIDE_HU}):
         notes.append(f"pixels at (0028,0120) Pixel Padding Value {', '.join(map(str, padded))} (outside the "
                      f"reconstructed field of view) taken as at most {OUTSIDE_HU:g} (air)")
-        plan = dataclasses.replace(plan, frames=frames)
     resampling = plan.resample_k or plan.resample_plane
     use_int16 = not resampling and _int16_possible(frames)
     out = np.empty((plan.n_out, *(plan.grid_shape or (rows, cols))), dtype=np.int16 if use_int16 else np.float32)

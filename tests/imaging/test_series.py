@@ -582,6 +582,21 @@ def test_one_image_without_rescale_takes_the_series_own(tmp_path):
     np.testing.assert_array_equal(vol.hu, expected)
 
 
+def test_the_series_rescale_holds_while_resampling(tmp_path):
+    """The same image without rescale in a series with a missing slice (resampled): the resampling reads the
+    frames that carry the series' rescale (a merge once left them out of the plan: that image 1024 HU off)."""
+    files = fac.write_ct_series(tmp_path, n_slices=8, skip=(5,))
+    with pytest.warns(StudyWarning, match="missing slice"):
+        expected = load_study(tmp_path).hu
+    ds = pydicom.dcmread(files[2])
+    del ds.RescaleSlope, ds.RescaleIntercept
+    ds.save_as(files[2])
+    with pytest.warns(StudyWarning, match=r"lack RescaleSlope/RescaleIntercept"):
+        vol = load_study(tmp_path)
+    assert vol.resampled
+    np.testing.assert_array_equal(vol.hu, expected)
+
+
 @pytest.mark.parametrize("tag", ["ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing"])
 def test_an_image_that_cannot_be_placed_is_left_out_by_name(tmp_path, tag):
     """One image of 8 lacking ImagePositionPatient made the whole series "unusable" (and --series could not
