@@ -214,11 +214,14 @@ def unpack_polydata(content: bytes):
 DEVICE_ROBOT, DEVICE_PROBE, DEVICE_SIGNALS = "RobotToTracker", "ProbeToTracker", "Signals"
 
 
+#: messages ``igtl_client_chunks`` lets wait (1000 samples: 1 s of a 1 kHz robot); beyond, it reads no more and
+#: TCP holds the server back, so a server faster than the tracker neither fills memory nor lets the map lag on.
+MAX_QUEUED = 3000
 #: the largest message body read (a POLYDATA of a 1M-face model is ~30 MB); a header claiming more is garbage.
 MAX_BODY_BYTES = 256 << 20
 
 
-def lossless_client(host: str, port: int):
+def lossless_client(host: str, port: int, *, max_queued: int | None = None):
     """A pyigtl client that keeps every message (pyigtl keeps only the latest
     per device); POLYDATA bodies are kept raw (pyigtl 0.3 cannot unpack them:
     read them with :func:`unpack_polydata`).
@@ -268,6 +271,9 @@ def lossless_client(host: str, port: int):
 
         def _receive_message_from_socket(self, ssocket):
             if self.communication_thread_stop_requested:
+                return False
+            if max_queued is not None and len(received) >= max_queued:
+                time.sleep(0.001)  # the reader is behind: the server waits (every sample is needed, in order)
                 return False
             try:
                 data = ssocket.recv(1 << 16)
@@ -341,7 +347,7 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
     def skip(why):
         skipped[why] = skipped.get(why, 0) + 1
 
-    client, received = lossless_client(host, port)
+    client, received = lossless_client(host, port, max_queued=MAX_QUEUED)
     pending: dict[float, dict] = {}
     last = time.monotonic()
     latest = -np.inf

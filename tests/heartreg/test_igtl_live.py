@@ -137,3 +137,43 @@ def test_a_server_that_closes_the_connection_is_reconnected():
     server.join(timeout=10.0)
     assert x == [float(i) for i in range(60)]
     assert problems.get("the server closed the connection, reconnecting", 0) >= 1, problems
+
+
+def test_a_server_faster_than_the_tracker_is_held_back_not_queued():
+    """The client read everything a server sent into memory: a robot streaming flat out while ``heartreg track``
+    processed ~1300 samples/s grew the process by 26 MB/s (1.8 GB after 60 s; the map lagging ever more).  Now
+    no more is read while ``max_queued`` messages wait: TCP holds the server back, and reading resumes."""
+    from heartreg.igtl import MAX_QUEUED, lossless_client
+
+    assert 0 < MAX_QUEUED <= 10000
+    sent = [0]
+
+    def script(accept):
+        conn = accept()
+        conn.settimeout(0.5)  # held back for 0.5 s: the server gives up (bounded)
+        i, end = 0, time.monotonic() + 3.0
+        try:
+            while time.monotonic() < end:
+                conn.sendall(_sample(i))
+                i += 1
+        except socket.timeout:
+            pass
+        sent[0] = i
+        time.sleep(1.0)
+        conn.close()
+
+    port, server = _serve(script)
+    client, received = lossless_client("127.0.0.1", port, max_queued=300)
+    try:
+        time.sleep(1.5)
+        waiting = len(received)
+        for _ in range(200):
+            received.popleft()
+        time.sleep(0.2)
+        resumed = len(received)
+    finally:
+        client.stop()
+        server.join(timeout=6.0)
+    assert 300 <= waiting < 1100, waiting  # one 64 kB read past the limit at most (~700 messages)
+    assert resumed >= 300, resumed  # reading resumed once the consumer took some
+    assert sent[0] < 20000, sent  # the server was held back (flat out it sends ~100 000 samples in 3 s)
