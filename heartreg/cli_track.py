@@ -62,7 +62,8 @@ def _cmd_track(args) -> int:
             tracker, chunks, args.log, model=model, speed=speed, igtl_port=args.igtl_port,
             igtl_rate_hz=args.igtl_rate if args.igtl_rate > 0 else None, wait_client_s=args.wait_client,
             progress=None if bar is None else (lambda rows: bar.update(len(rows.time_s))),
-            listening=None if args.quiet else (lambda port: print(f"OpenIGTLink server on port {port}", flush=True)),
+            # also with -q (no progress bar): with --igtl-port 0 the line is the only way to learn the port
+            listening=lambda port: print(f"OpenIGTLink server on port {port}", flush=True),
         )
     finally:
         if bar is not None:
