@@ -38,12 +38,13 @@ def _cmd_track(args) -> int:
               "every place on the map rests on it: check it before navigating on it (the log's registration_trust "
               "says so)", file=sys.stderr, flush=True)
     skipped: dict[str, int] = {}
+    problems: dict[str, int] = {}  # malformed messages dropped, connections lost (counted by the client)
     if args.igtl_in is not None:
         host, _, port = args.igtl_in.rpartition(":")
         if not port.isdigit() or not 0 < int(port) <= 65535:
             raise UsageError(f"--igtl-in must be HOST:PORT with a port 1..65535, got {args.igtl_in!r}")
         chunks = igtl_client_chunks(host or "127.0.0.1", int(port), idle_timeout_s=args.idle_timeout,
-                                    skipped=skipped)
+                                    skipped=skipped, problems=problems)
         speed = None  # a live stream paces itself
     else:
         replay = read_session(args.replay if args.replay is not None else args.session_dir)
@@ -61,7 +62,8 @@ def _cmd_track(args) -> int:
             tracker, chunks, args.log, model=model, speed=speed, igtl_port=args.igtl_port,
             igtl_rate_hz=args.igtl_rate if args.igtl_rate > 0 else None, wait_client_s=args.wait_client,
             progress=None if bar is None else (lambda rows: bar.update(len(rows.time_s))),
-            listening=None if args.quiet else (lambda port: print(f"OpenIGTLink server on port {port}", flush=True)),
+            # also with -q (no progress bar): with --igtl-port 0 the line is the only way to learn the port
+            listening=lambda port: print(f"OpenIGTLink server on port {port}", flush=True),
         )
     finally:
         if bar is not None:
@@ -69,6 +71,8 @@ def _cmd_track(args) -> int:
     _print_track_summary(summary, args.log)
     for why, n in skipped.items():
         print(f"  skipped           {n} sample(s) from --igtl-in: {why}")
+    for why, n in problems.items():
+        print(f"  --igtl-in         {n} time(s): {why}")
     if summary.interrupted:
         return _interrupted_status(summary.interrupted_by)
     if summary.n_placed == 0:  # a run that placed nothing is no success, though its log is kept (a record)

@@ -11,6 +11,7 @@ works around each (see the functions).
 from __future__ import annotations
 
 import signal
+import struct
 import time
 from collections.abc import Iterator
 
@@ -213,22 +214,40 @@ def unpack_polydata(content: bytes):
 DEVICE_ROBOT, DEVICE_PROBE, DEVICE_SIGNALS = "RobotToTracker", "ProbeToTracker", "Signals"
 
 
-def lossless_client(host: str, port: int):
+#: messages ``igtl_client_chunks`` lets wait (1000 samples: 1 s of a 1 kHz robot); beyond, it reads no more and
+#: TCP holds the server back, so a server faster than the tracker neither fills memory nor lets the map lag on.
+MAX_QUEUED = 3000
+#: the largest message body read (a POLYDATA of a 1M-face model is ~30 MB); a header claiming more is garbage.
+MAX_BODY_BYTES = 256 << 20
+
+
+def lossless_client(host: str, port: int, *, max_queued: int | None = None):
     """A pyigtl client that keeps every message (pyigtl keeps only the latest
     per device); POLYDATA bodies are kept raw (pyigtl 0.3 cannot unpack them:
     read them with :func:`unpack_polydata`).
 
+    Its reader replaces pyigtl's, which (0.3.2) hung ``stop()`` while the server streamed without a 10 ms pause
+    (Ctrl-C of a live run never ended), printed two tracebacks and dropped the connection on one malformed
+    message, and never saw a server that closed the connection (it spun on the dead socket, never reconnecting).
+    Here a malformed body is dropped and counted, a closed or reset connection or a garbage header closes the
+    socket (pyigtl reconnects every 10 ms), and a stop request ends the reading at once.
+
     Returns
     -------
     client, messages
-        ``messages`` is a ``collections.deque`` the client appends to.
+        ``messages`` is a ``collections.deque`` the client appends to; ``client.problems`` counts what was
+        dropped (``{reason: n}``, filled by the client's thread).
     """
     import collections
+    import logging
+    import socket
 
     import pyigtl
     from pyigtl import messages as pm
 
     received = collections.deque()
+    log = logging.getLogger(__name__)
+    head = pyigtl.MessageBase.IGTL_HEADER_SIZE
 
     class _RawPolyData(pyigtl.MessageBase):
         def __init__(self):
@@ -240,20 +259,62 @@ def lossless_client(host: str, port: int):
             self.content = bytes(content)
 
     class _Client(pyigtl.OpenIGTLinkClient):
-        def _receive_message_from_socket(self, ssocket):
-            added = pm.message_type_to_class_constructor.setdefault("POLYDATA", _RawPolyData) is _RawPolyData
-            try:
-                got = super()._receive_message_from_socket(ssocket)
-            finally:
-                if added:
-                    pm.message_type_to_class_constructor.pop("POLYDATA", None)
-            if got:
-                with self.lock_incoming_messages:
-                    received.extend(self.incoming_messages.values())
-                    self.incoming_messages.clear()
-            return got
+        def _problem(self, why):
+            self.problems[why] = self.problems.get(why, 0) + 1
 
-    return _Client(host=host, port=int(port)), received
+        def _lost(self, ssocket, why):
+            log.info("OpenIGTLink server %s:%s: %s", self.host, self.port, why)
+            self._problem(why)
+            ssocket.close()
+            self.socket, self._connected, self._buffer = None, False, bytearray()  # pyigtl's loop reconnects
+            return False
+
+        def _receive_message_from_socket(self, ssocket):
+            if self.communication_thread_stop_requested:
+                return False
+            if max_queued is not None and len(received) >= max_queued:
+                time.sleep(0.001)  # the reader is behind: the server waits (every sample is needed, in order)
+                return False
+            try:
+                data = ssocket.recv(1 << 16)
+            except socket.timeout:
+                return False
+            except OSError as exc:
+                return self._lost(ssocket, f"connection lost ({exc.strerror or exc}), reconnecting")
+            if not data:
+                return self._lost(ssocket, "the server closed the connection, reconnecting")
+            buf = self._buffer
+            buf += data  # a bytearray: a large body (the model's POLYDATA) arrives without quadratic copies
+            at = 0
+            while len(buf) - at >= head:
+                try:
+                    fields = pyigtl.MessageBase.parse_header(bytes(buf[at:at + head]))
+                except (ValueError, struct.error):  # not UTF-8 names: not OpenIGTLink, or out of step
+                    fields = None
+                if fields is None or int(fields["body_size"]) > MAX_BODY_BYTES:  # the messages before it count
+                    return self._lost(ssocket, "a malformed message header, reconnecting")
+                size = int(fields["body_size"])
+                if len(buf) - at < head + size:
+                    break
+                body = bytes(buf[at + head:at + head + size])
+                at += head + size
+                kind = fields["message_type"]
+                message = _RawPolyData() if kind == "POLYDATA" else pm.MessageBase.create_message(kind)
+                if message is None:
+                    continue  # a type this reader does not know (STATUS, ...): ignored, as OpenIGTLink says
+                try:
+                    message.unpack(fields, body)
+                except Exception:  # noqa: BLE001 - a peer's malformed body (pyigtl raises struct, value errors)
+                    self._problem(f"a malformed {kind} message ({fields['device_name']}), dropped")
+                    continue
+                received.append(message)
+            del buf[:at]
+            return True
+
+    client = _Client(host=host, port=int(port), start_now=False)
+    client.problems, client._buffer = {}, bytearray()
+    client.start()
+    return client, received
 
 
 def _signals(text: str):
@@ -265,7 +326,8 @@ def _signals(text: str):
     return values if len(values) == 3 and all(np.isfinite(values)) else None
 
 
-def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, skipped: dict | None = None) -> Iterator:
+def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, skipped: dict | None = None,
+                       problems: dict | None = None) -> Iterator:
     """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample.
 
     A sample is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM``
@@ -274,7 +336,9 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
     time, s).  A sample missing a part, with bad signals or not later than the
     one before is skipped, counted by reason in ``skipped``; one bad sample
     does not end a live run.  The stream ends after ``idle_timeout_s`` without
-    a message; a server that never answers is an :class:`IgtlError`.
+    a message; a server that never answers is an :class:`IgtlError`.  A malformed message is dropped, a
+    connection the server closed is opened again (:func:`lossless_client`): each counted by reason in
+    ``problems`` when the stream ends.
     """
     from heartreg.track import chunks_from_samples
 
@@ -283,7 +347,7 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
     def skip(why):
         skipped[why] = skipped.get(why, 0) + 1
 
-    client, received = lossless_client(host, port)
+    client, received = lossless_client(host, port, max_queued=MAX_QUEUED)
     pending: dict[float, dict] = {}
     last = time.monotonic()
     latest = -np.inf
@@ -325,3 +389,6 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
                     [(key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE], True, ecg, fi, fe)]))
     finally:
         client.stop()
+        if problems is not None:
+            for why, k in client.problems.items():
+                problems[why] = problems.get(why, 0) + k

@@ -408,9 +408,9 @@ def run_track(
                             if delay > 0:
                                 time.sleep(delay)
                             one = StreamChunk(*(getattr(chunk, f)[k:k + 1] for f in StreamChunk.__dataclass_fields__))
-                            rows_list.append(_emit(tracker.process(one), sink, limiter, T_ras_from_heart))
+                            rows_list.append(_emit(tracker.process(one), sink, limiter, T_ras_from_heart, trust))
                     else:
-                        rows_list = [_emit(tracker.process(chunk), sink, limiter, T_ras_from_heart)]
+                        rows_list = [_emit(tracker.process(chunk), sink, limiter, T_ras_from_heart, trust)]
                     for rows, sent in rows_list:
                         fh.write(_csv_lines(rows, sent, trust))
                         n += len(rows.time_s)
@@ -460,7 +460,7 @@ def _until_error(chunks, errors: list):
         errors.append(exc)
 
 
-def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):
+def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart, trust: str = "unknown"):
     m = len(rows.time_s)
     sent = np.zeros(m, dtype=bool)
     if sink is None or not sink.poll():
@@ -468,6 +468,7 @@ def _emit(rows: TrackRows, sink, limiter, T_ras_from_heart):
     for i in range(m):
         if np.isnan(rows.T_heart_from_robot[i, 0, 3]) or not limiter.allow():
             continue
-        sink.send(float(rows.time_s[i]), T_ras_from_heart @ rows.T_heart_from_robot[i], _status_text(rows, i))
+        sink.send(float(rows.time_s[i]), T_ras_from_heart @ rows.T_heart_from_robot[i],
+                  _status_text(rows, i, trust))
         sent[i] = True
     return rows, sent

@@ -49,8 +49,9 @@ class TrackSummary:
     qualities: dict = field(default_factory=dict)
 
 
-def status_text(rows, i: int) -> str:
-    """The ``RobotStatus`` JSON of sample ``i`` of a :class:`heartreg.track.TrackRows`."""
+def status_text(rows, i: int, trust: str = "unknown") -> str:
+    """The ``RobotStatus`` JSON of sample ``i`` of a :class:`heartreg.track.TrackRows` (``trust``: the
+    registration's, :func:`trust_cell`: Slicer's operator sees it with every place, as the log does)."""
     p = rows.T_heart_from_robot[i, :3, 3]
     return json.dumps({
         "time_s": round(float(rows.time_s[i]), 4),
@@ -60,6 +61,7 @@ def status_text(rows, i: int) -> str:
         "quality": rows.quality[i],
         "distance_mm": None if np.isnan(rows.distance_mm[i]) else round(float(rows.distance_mm[i]), 3),
         "map_heart_mm": None if np.isnan(p[0]) else [round(float(x), 3) for x in p],
+        "registration_trust": trust,
     }, separators=(",", ":"))
 
 

@@ -679,3 +679,37 @@ def test_a_client_that_connects_while_another_is_served_gets_the_model(capfd):
         first.stop()
         sink.close()
     assert "Traceback" not in capfd.readouterr().err  # the first client left quietly (pyigtl printed two)
+
+
+def test_slicer_learns_the_port_under_quiet_and_the_trust_with_every_place(nav, tmp_path):
+    """Two gaps on Slicer's side (a robotics user's audit): with ``-q`` the 'OpenIGTLink server on port N' line was
+    not printed, so ``--igtl-port 0 -q`` served on a port nobody could learn; and ``RobotStatus`` carried no word
+    of the registration's trust (the fixture's is 'caution'), which only the log and stderr said.  Now the port
+    line is printed with ``-q`` too, and every ``RobotStatus`` carries ``registration_trust`` as the log does."""
+    import json
+    import os
+    import re
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    cmd = [sys.executable, "-m", "heartreg", "track", str(nav["model_dir"]), str(nav["root"] / "registration"),
+           str(nav["case"] / "session"), "-q", "--replay", str(nav["root"] / "navigation"), "--igtl-port", "0",
+           "--wait-client", "10", "--speed", "20", "--log", str(tmp_path / "log.csv")]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=root)
+    client = None
+    try:
+        line = proc.stdout.readline()  # the first line: the run waits for a client (--wait-client), bounded
+        m = re.fullmatch(r"OpenIGTLink server on port (\d+)\n", line)
+        assert m, f"no 'OpenIGTLink server on port N' line with -q: {line!r}"
+        client, received = lossless_client("127.0.0.1", int(m.group(1)))
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if client is not None:
+            client.stop()
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+    texts = [json.loads(m.string) for m in list(received) if m.message_type == "STRING"]
+    assert len(texts) > 100 and {t["registration_trust"] for t in texts} == {"caution:phase_undecided"}
