@@ -64,6 +64,14 @@ def _collect(port, **kw):
     return x, problems
 
 
+def _served(script, *, idle_timeout_s, join_s):
+    """What the client takes from a loopback server running ``script``: (x of each sample, problems)."""
+    port, server = _serve(script)
+    x, problems = _collect(port, idle_timeout_s=idle_timeout_s)
+    server.join(timeout=join_s)
+    return x, problems
+
+
 def test_ctrl_c_ends_a_live_run_while_the_robot_streams_without_a_pause():
     """pyigtl's reader (0.3.2) reads on while messages come less than 10 ms apart and only then looks at its stop
     flag: closing the stream (Ctrl-C) hung as long as a robot streamed at 1 kHz (measured: still running 20 s
@@ -113,9 +121,7 @@ def test_a_malformed_message_is_dropped_and_the_stream_goes_on(capfd):
         time.sleep(2.0)
         conn.close()
 
-    port, server = _serve(script)
-    x, problems = _collect(port, idle_timeout_s=1.0)
-    server.join(timeout=5.0)
+    x, problems = _served(script, idle_timeout_s=1.0, join_s=5.0)
     assert x == [float(i) for i in range(50)]
     assert problems == {f"a malformed TRANSFORM message ({DEVICE_ROBOT}), dropped": 2}
     assert "Traceback" not in capfd.readouterr().err
@@ -132,9 +138,7 @@ def test_a_server_that_closes_the_connection_is_reconnected():
             time.sleep(0.3)
             conn.close()
 
-    port, server = _serve(script)
-    x, problems = _collect(port, idle_timeout_s=1.5)
-    server.join(timeout=10.0)
+    x, problems = _served(script, idle_timeout_s=1.5, join_s=10.0)
     assert x == [float(i) for i in range(60)]
     assert problems.get("the server closed the connection, reconnecting", 0) >= 1, problems
 
