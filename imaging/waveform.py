@@ -45,7 +45,6 @@ ECG_SOP_CLASSES = {
 }
 #: Codes of lead II: SCP-ECG, MDC (numeric and reference id).
 _LEAD_II_CODES = {"5.6.3-9-2", "2:2", "MDC_ECG_LEAD_II"}
-_LEAD_II_LABELS = {"ii", "lead ii", "ecg lead ii"}
 #: Concept names of annotated beats (lower case).
 _BEAT_CONCEPTS = {"fiducial point", "r wave peak", "r-wave peak", "r peak", "qrs fiducial point"}
 _BEAT_CODES = {"5.7.1-3"}
@@ -150,7 +149,8 @@ def _is_lead_ii(ch: Dataset, label: str) -> bool:
     src = ch.get("ChannelSourceSequence")
     if src and str(src[0].get("CodeValue", "")) in _LEAD_II_CODES:
         return True
-    return label.strip().lower() in _LEAD_II_LABELS
+    # "II", "Lead II", "ECG II", "ECG Lead II", "II (mV)": vendors label without a code as they like
+    return re.fullmatch(r"(?:ecg[\s_-]*)?(?:lead[\s_-]*)?ii(?:\s*\(.*\))?", label.strip().lower()) is not None
 
 
 def _to_mv(ch: Dataset, label: str, name: str) -> tuple[float, str | None]:

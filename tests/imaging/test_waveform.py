@@ -159,6 +159,21 @@ def general_ecg(channels_mv, labels, *, rate_hz, acquisition_dt, offset_ms=0.0, 
     return ds
 
 
+@pytest.mark.parametrize("labels, chosen", [(("ECG V1", "ECG II"), 1), (("V1", "Lead II (mV)"), 1),
+                                            (("ECG1", "ECG2"), 0), (("V1", "III"), 0)])
+def test_lead_ii_is_found_by_its_label_alone(tmp_path, labels, chosen):
+    """A vendor's file without the leads' codes, labelled "ECG II": the first channel (here an inverted V1) was
+    taken (an ECG audit); a label naming lead II is enough, and without one the first channel stays."""
+    ecg = np.sin(np.linspace(0.0, 20.0, 500))
+    ds = general_ecg([-0.6 * ecg, ecg], ["V1", "II"], rate_hz=250.0, acquisition_dt="20240301140507.25")
+    for ch, label in zip(ds.WaveformSequence[0].ChannelDefinitionSequence, labels):
+        del ch.ChannelSourceSequence
+        ch.ChannelLabel = label
+    ds.save_as(tmp_path / "ecg.dcm", enforce_file_format=True)
+    rec = read_ecg_waveform(tmp_path / "ecg.dcm")
+    assert (rec.channel_index, rec.channel_label) == (chosen, labels[chosen])
+
+
 @pytest.mark.parametrize("rate_hz, units", [(250.0, "uV"), (500.0, "mV")])
 def test_phantom_ecg_file_round_trip_on_the_study_clock(tmp_path, rate_hz, units):
     """Phantom ECG written as General ECG (lead II second, after an inverted V1): read back,
