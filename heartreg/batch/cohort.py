@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import csv
 import hashlib
+import io
 import re
 import shlex
 from dataclasses import dataclass
@@ -259,6 +260,57 @@ def _check_parse(argv: dict, inputs: dict, where: str) -> None:
             pass
 
 
+#: Separators a spreadsheet writes a CSV with: ',' (English locales), ';' (where ',' is the decimal mark), tab.
+_DELIMITERS = (",", ";", "\t")
+
+
+def _read_rows(path: Path) -> list[tuple[int, list[str]]]:
+    """The non-blank rows of a cohort CSV with their line numbers, as spreadsheets save it: UTF-8 (with or
+    without Excel's byte order mark) or UTF-16 with its mark, CRLF or LF, separated by ',', ';' or tab (the
+    header's separator: the one that makes 'study' a column of its own)."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise CohortError(f"cannot read cohort file {path}: {exc.strerror or exc}") from None
+    encoding = "utf-16" if data[:2] in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
+    try:
+        text = data.decode(encoding)
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise CohortError(
+            f"cohort file {path} line {line} is not UTF-8 text (byte 0x{data[exc.start]:02x}; Excel's plain 'CSV' "
+            "is written in the Windows code page): save it as 'CSV UTF-8' or UTF-8 text") from None
+    first = next((ln for ln in text.splitlines() if ln.strip()), "")
+    delimiter = next((d for d in _DELIMITERS
+                      if "study" in (h.strip().lower() for h in next(csv.reader([first], delimiter=d), []))), ",")
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    rows, start = [], 1
+    try:
+        for row in reader:
+            if any(cell.strip() for cell in row):
+                rows.append((start, row))
+            start = reader.line_num + 1
+    except csv.Error as exc:
+        raise CohortError(f"cohort file {path} line {reader.line_num}: {exc}; check its quotes") from None
+    return rows
+
+
+def _without_unnamed_columns(numbered, path: Path):
+    """Drop columns without a header that hold nothing (a spreadsheet saves the empty columns after the last
+    used one); refuse one that holds a value."""
+    header = numbered[0][1]
+    blank = [i for i, h in enumerate(header) if not h.strip()]
+    if not blank:
+        return numbered
+    for n, row in numbered[1:]:
+        for i in blank:
+            if i < len(row) and row[i].strip():
+                raise CohortError(f"cohort file {path.name} line {n}: {row[i].strip()!r} is in column {i + 1}, "
+                                  "which has no name in the header; name it or move the value")
+    keep = [i for i in range(len(header)) if i not in blank]
+    return [(n, [row[i] for i in keep if i < len(row)] + row[len(header):]) for n, row in numbered]
+
+
 def is_batch_output(folder) -> bool:
     """Whether ``folder`` holds an earlier ``heartreg batch`` output (its ``summary.csv``, whose
     header starts ``case,status``): not a study, and an output folder a batch may go on in."""
@@ -296,6 +348,7 @@ def read_cohort(path) -> tuple[Case, ...]:
     """
     path = Path(path)
     table = _command_actions()
+    where_of: list[str] = []  # a CSV's line of each case
     if path.is_dir():
         # not a batch's output folder put inside the cohort's (it is no study)
         # a symbolic link counts even when broken: a study moved away is a case that fails, not one that vanishes
@@ -306,14 +359,12 @@ def read_cohort(path) -> tuple[Case, ...]:
         cases = [_make_case("", p.name, "", "", "", base=path, where=f"cohort folder {path}", table=table)
                  for p in folders]
     elif path.is_file():
-        try:
-            with path.open(newline="", encoding="utf-8-sig") as f:
-                rows = list(csv.reader(f))
-        except (OSError, UnicodeDecodeError, csv.Error) as exc:
-            raise CohortError(f"cannot read cohort file {path}: {exc}") from None
-        rows = [r for r in rows if any(cell.strip() for cell in r)]
-        if not rows:
+        numbered = _read_rows(path)
+        if not numbered:
             raise CohortError(f"cohort file {path} is empty; give a header row and one row per case")
+        numbered = _without_unnamed_columns(numbered, path)
+        lines = [n for n, _ in numbered]
+        rows = [r for _, r in numbered]
         header = [h.strip().lower() for h in rows[0]]
         unknown = [h for h in header if h not in _COLUMNS]
         if unknown or "study" not in header:
@@ -322,7 +373,7 @@ def read_cohort(path) -> tuple[Case, ...]:
                 f"got {', '.join(header)}"
             )
         cases = []
-        for n, row in enumerate(rows[1:], 2):
+        for n, row in zip(lines[1:], rows[1:]):
             where = f"cohort file {path.name} line {n}"
             if len(row) != len(header):
                 raise CohortError(f"{where}: {len(row)} fields for {len(header)} columns")
@@ -330,15 +381,20 @@ def read_cohort(path) -> tuple[Case, ...]:
             study = cell.get("study", "")
             cases.append(_make_case(cell.get("case", ""), study, cell.get("session", ""), cell.get("mask", ""),
                                     cell.get("options", ""), base=path.parent, where=where, table=table))
+            where_of.append(f"line {n}")
         if not cases:
             raise CohortError(f"cohort file {path} has a header but no cases")
     else:
         raise CohortError(f"cohort {path} does not exist; give a CSV file or a folder of study folders")
     seen = {}
-    for case in cases:
+    for i, case in enumerate(cases):
         if case.name.lower() in seen:
-            raise CohortError(f"cohort {path}: case name {case.name!r} is used twice; give each row its own case name")
-        seen[case.name.lower()] = case
+            j = seen[case.name.lower()]
+            rows = f" ({where_of[j]} and {where_of[i]})" if where_of else ""
+            same = "" if cases[j].name == case.name else f" as {cases[j].name!r} (one folder on many file systems)"
+            raise CohortError(f"cohort {path}: case name {case.name!r} is used twice{same}{rows}; "
+                              "give each row its own case name")
+        seen[case.name.lower()] = i
     return tuple(cases)
 
 
