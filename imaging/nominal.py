@@ -38,9 +38,19 @@ acquire in the next beat, and the other slices' phases stay usable; a trigger
 time counted from the slice's own R-peak (retrospective) is late in a long beat
 instead, which the warning says to check. Values of 2 RR intervals (200 %) or
 more, or negative ones, are no delay within a beat: the source is not used.
+
+TriggerTime and percentage disagreeing
+--------------------------------------
+When the slices carry both, TriggerTime is used; a percentage more than
+``DISAGREE`` of the RR interval away from its phase is warned about (one of the
+two is wrong). A phase stated only in the series description ("75%",
+"BestDiast") is free text, not used: the error says what it states and to give
+it with ``--cardiac-phase``.
 """
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 
@@ -48,6 +58,8 @@ import numpy as np
 NOT_GATED = "NONE"
 #: A trigger time at this many nominal RR intervals or more (or negative) is no delay within a beat: not used.
 MAX_RR_RATIO = 2.0
+#: TriggerTime and percentage phases further apart than this (share of the RR interval) disagree: warned.
+DISAGREE = 0.1
 
 
 def _column(items, name) -> np.ndarray:
@@ -140,8 +152,29 @@ def trigger_phases(items, notes: list, warn) -> np.ndarray | None:
     if not _techniques(items) and _all_zero(trigger):
         notes.append("TriggerTime 0 on every slice with a NominalInterval and no CardiacSynchronizationTechnique: "
                      "taken as gating at 0 % of the RR interval")
-    return _wrapped(trigger / rr_ms, "TriggerTime", trigger, "ms",
-                    f"the nominal RR interval ({_range(rr_ms, 'ms')})", notes, warn)
+    phases = _wrapped(trigger / rr_ms, "TriggerTime", trigger, "ms",
+                      f"the nominal RR interval ({_range(rr_ms, 'ms')})", notes, warn)
+    if phases is not None:
+        _check_percent(items, phases, notes, warn)
+    return phases
+
+
+def _check_percent(items, phases: np.ndarray, notes: list, warn) -> None:
+    """Warn when the slices' NominalPercentageOfCardiacPhase states other phases than their TriggerTime
+    (more than ``DISAGREE`` of the RR interval apart, circularly): one of the two is wrong."""
+    pct = _column(items, "nominal_cardiac_percent")
+    usable = np.isfinite(pct)
+    if not usable.any() or percent_not_gated(items):
+        return
+    gap = np.abs(phases[usable] - np.mod(pct[usable] / 100.0, 1.0))
+    off = np.minimum(gap, 1.0 - gap) > DISAGREE
+    if off.any():
+        message = (f"TriggerTime and NominalPercentageOfCardiacPhase disagree on {int(off.sum())} of {phases.size} "
+                   f"slice(s): TriggerTime gives phases {_range(phases[usable][off])}, the percentage says "
+                   f"{_range(pct[usable][off], '%')}; the TriggerTime phases are used; check which is right, "
+                   "or give R-peak times with --qrs or the phase with --cardiac-phase")
+        notes.append(message)
+        warn(message)
 
 
 def percent_phases(items, notes: list, warn) -> np.ndarray | None:
@@ -153,3 +186,28 @@ def percent_phases(items, notes: list, warn) -> np.ndarray | None:
     if _not_gated(items, "NominalPercentageOfCardiacPhase", percent_not_gated, notes):
         return None
     return _wrapped(pct / 100.0, "NominalPercentageOfCardiacPhase", pct, "%", "100 %", notes, warn)
+
+
+_PERCENT = re.compile(r"(?<![\d.])(\d{1,2}(?:\.\d+)?)\s*%")
+_BEST = re.compile(r"best\s*(diast|syst)", re.IGNORECASE)
+
+
+def free_text_hint(series) -> str:
+    """What the series description states of the phase in free text ("75%", "BestDiast"), as advice for a
+    CT whose phase is unknown, or "".  Free text is no gating tag and is not used as the phase; the text
+    itself is not repeated (a description can name the patient), only the values found."""
+    text = str(getattr(series, "description", "") or "")
+    values = sorted({float(v) for v in _PERCENT.findall(text)})
+    if len(values) == 1:
+        return (f". The series description states {values[0]:g} % (free text, not a gating tag, so not used): if "
+                f"that is the phase the CT was reconstructed at, give it to heartreg model or register with "
+                f"--cardiac-phase {values[0] / 100:g}")
+    if values:
+        return (". The series description states " + ", ".join(f"{v:g} %" for v in values) + " (free text, not "
+                "used): give the CT's phase to heartreg model or register with --cardiac-phase P")
+    best = _BEST.search(text)
+    if best:
+        kind = "diastolic" if best.group(1).lower() == "diast" else "systolic"
+        return (f". The series description names the scanner's automatic best {kind} phase without its value: "
+                "read it on the scanner's protocol and give it to heartreg model or register with --cardiac-phase P")
+    return ""

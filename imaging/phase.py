@@ -495,6 +495,6 @@ def compute_phase_report(volume, *, qrs_s=None, qrs_label="QRS file", ecg_record
         else ". Pass an R-peak file with --qrs FILE (CSV, column time_s, seconds after midnight)"
     )
     error = GatingError("no cardiac gating information for the slices" + (f" ({not_gated})" if not_gated else "")
-                        + "; looked for: " + "; ".join(notes) + advice)
+                        + "; looked for: " + "; ".join(notes) + advice + nominal.free_text_hint(volume.series))
     error.reason = not_gated  # a model records the phase as unknown, and why (heartreg.pipeline.open_study)
     raise error

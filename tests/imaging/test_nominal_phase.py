@@ -150,3 +150,47 @@ def test_percentages_over_100_are_warned(tmp_path):
                                            r"beyond 100 %"):
         report = compute_phase_report(load_study(folder))
     np.testing.assert_allclose(report.phases, np.mod((95 + np.arange(20)) / 100.0, 1.0))
+
+
+def test_trigger_time_and_percentage_that_disagree_are_warned(tmp_path):
+    """Gating audit: TriggerTime 300 ms of a nominal 800 ms RR interval (0.375) beside a NominalPercentageOfCardiacPhase
+    of 75 %: before, phase 0.375 with no word of the contradiction."""
+    folder = _series(tmp_path, technique="RETROSPECTIVE", trigger=300.0, interval=800, percent=75)
+    with pytest.warns(GatingWarning) as caught:
+        report = compute_phase_report(load_study(folder))
+    np.testing.assert_allclose(report.phases, 0.375)
+    message = ("TriggerTime and NominalPercentageOfCardiacPhase disagree on 20 of 20 slice(s): TriggerTime gives "
+               "phases 0.375, the percentage says 75 %; the TriggerTime phases are used; check which is right, "
+               "or give R-peak times with --qrs or the phase with --cardiac-phase")
+    assert [str(w.message) for w in caught] == [message] and message in report.notes
+
+
+@pytest.mark.parametrize("trigger, interval, rate", [(600.0, 800, None), (600.0, None, 75), (612.0, 800, None)])
+def test_trigger_time_and_percentage_that_agree_say_nothing(tmp_path, trigger, interval, rate):
+    """600 ms of 800 ms (or at 75 bpm) is 75 %: phase 0.75, no warning; a delay 1.5 % off is within tolerance."""
+    folder = _series(tmp_path, technique="RETROSPECTIVE", trigger=trigger, interval=interval, rate=rate, percent=75)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", GatingWarning)
+        report = compute_phase_report(load_study(folder))
+    np.testing.assert_allclose(report.phases, trigger / 800.0)
+
+
+@pytest.mark.parametrize("description, hint", [
+    ("Cardiac 0.75 Bv36 75%", "The series description states 75 % (free text, not a gating tag, so not used): if "
+                              "that is the phase the CT was reconstructed at, give it to heartreg model or register "
+                              "with --cardiac-phase 0.75"),
+    ("CorCTA BestDiast 0.6 I26f", "The series description names the scanner's automatic best diastolic phase "
+                                  "without its value: read it on the scanner's protocol and give it to heartreg model "
+                                  "or register with --cardiac-phase P"),
+])
+def test_a_phase_stated_only_in_free_text_is_named_with_what_to_give(tmp_path, capsys, description, hint):
+    """Gating audit: a series whose only phase statement is its description ("75%", Siemens' "BestDiast"): before,
+    'no cardiac gating information' and --qrs only, the stated phase not mentioned."""
+    folder = _series(tmp_path, trigger=None, description=description)
+    with pytest.raises(GatingError) as caught:
+        compute_phase_report(load_study(folder))
+    assert str(caught.value).endswith(hint)
+    assert main(["phases", str(folder), "-o", str(tmp_path / "out"), "-q"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.endswith(hint) and "Traceback" not in err
+    assert "Bv36" not in err and "CorCTA" not in err  # the free text itself is not repeated
