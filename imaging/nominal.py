@@ -200,14 +200,14 @@ def free_text_hint(series) -> str:
     values = sorted({float(v) for v in _PERCENT.findall(text)})
     if len(values) == 1:
         return (f". The series description states {values[0]:g} % (free text, not a gating tag, so not used): if "
-                f"that is the phase the CT was reconstructed at, give it to heartreg model or register with "
+                f"that is the phase the CT was reconstructed at, give it to heartreg register with "
                 f"--cardiac-phase {values[0] / 100:g}")
     if values:
         return (". The series description states " + ", ".join(f"{v:g} %" for v in values) + " (free text, not "
-                "used): give the CT's phase to heartreg model or register with --cardiac-phase P")
+                "used): give the CT's phase to heartreg register with --cardiac-phase P")
     best = _BEST.search(text)
     if best:
         kind = "diastolic" if best.group(1).lower() == "diast" else "systolic"
         return (f". The series description names the scanner's automatic best {kind} phase without its value: "
-                "read it on the scanner's protocol and give it to heartreg model or register with --cardiac-phase P")
+                "read it on the scanner's protocol and give it to heartreg register with --cardiac-phase P")
     return ""

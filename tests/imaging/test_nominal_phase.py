@@ -177,11 +177,11 @@ def test_trigger_time_and_percentage_that_agree_say_nothing(tmp_path, trigger, i
 
 @pytest.mark.parametrize("description, hint", [
     ("Cardiac 0.75 Bv36 75%", "The series description states 75 % (free text, not a gating tag, so not used): if "
-                              "that is the phase the CT was reconstructed at, give it to heartreg model or register "
-                              "with --cardiac-phase 0.75"),
+                              "that is the phase the CT was reconstructed at, give it to heartreg register with "
+                              "--cardiac-phase 0.75"),
     ("CorCTA BestDiast 0.6 I26f", "The series description names the scanner's automatic best diastolic phase "
-                                  "without its value: read it on the scanner's protocol and give it to heartreg model "
-                                  "or register with --cardiac-phase P"),
+                                  "without its value: read it on the scanner's protocol and give it to heartreg "
+                                  "register with --cardiac-phase P"),
 ])
 def test_a_phase_stated_only_in_free_text_is_named_with_what_to_give(tmp_path, capsys, description, hint):
     """Gating audit: a series whose only phase statement is its description ("75%", Siemens' "BestDiast"): before,
