@@ -244,3 +244,21 @@ def test_plus_poses_in_metres_are_refused(tmp_path):
         "probe, closer than two tools can be (1 mm): are the positions in metres? the format needs mm "
         "(multiply them by 1000)")
     assert 0.1 < distance < 0.6
+
+
+def test_a_plus_clock_reset_is_refused_not_sorted_in(tmp_path):
+    """PLUS restarted mid-recording: its clock went back and the later frames landed among the earlier ones.
+    The reader sorted them by timestamp, and with the PLUS clock 1.5 ms off the signals' (within the quarter
+    step) the first 300 samples silently took the later frames' poses, 1 ms from them (an audit)."""
+    folder, _, time_s = _plus_session(tmp_path, shift_s=0.0015)
+    seq = read_plus_sequence(folder / "track.igs.nrrd")
+    poses = {name: np.concatenate([seq.transform(name), _poses(np.random.default_rng(9), 300)])
+             for name in ("RobotToTracker", "ProbeToTracker")}
+    times = np.concatenate([seq.time_s, time_s[:300] + 0.001])  # frame 1500 on: the restarted clock
+    write_plus_sequence(folder / "track.igs.nrrd", times, poses)
+    with pytest.raises(SessionError) as info:
+        read_session(folder)
+    assert str(info.value) == (
+        f"{folder / 'track.igs.nrrd'}: Seq_Frame1500_Timestamp = {float(time_s[0] + 0.001)!r} is earlier than frame "
+        f"1499's {float(seq.time_s[-1])!r}: the PLUS clock went back (a restart?) and the frames after it are on another "
+        "clock; record again or split the file there")
