@@ -47,7 +47,7 @@ class PlusFileError(HeartregError, ValueError):
 
 @dataclass(frozen=True, eq=False)
 class PlusSequence:
-    """The tracking part of a PLUS sequence file, frames in timestamp order.
+    """The tracking part of a PLUS sequence file, frames in recording order.
 
     Attributes
     ----------
@@ -124,13 +124,13 @@ def read_plus_sequence(path) -> PlusSequence:
     Returns
     -------
     PlusSequence
-        Frames sorted by timestamp.
+        Frames in recording (frame number) order, timestamps strictly increasing.
 
     Raises
     ------
     PlusFileError
         Missing file, no frames, a frame without ``Timestamp``, repeated
-        timestamps, a transform that is not 16 finite numbers of a rigid pose,
+        timestamps or one earlier than its predecessor's (a clock reset), a transform that is not 16 finite numbers of a rigid pose,
         or a transform missing from some frames.
 
     Examples
@@ -185,12 +185,17 @@ def read_plus_sequence(path) -> PlusSequence:
         raise PlusFileError(f"{path}: Seq_Frame{bad:04d}_Timestamp = {times[bad]!r} is not a number") from None
     if not np.all(np.isfinite(t)):
         raise PlusFileError(f"{path}: a Timestamp is NaN or infinite")
-    order = np.argsort(t, kind="stable")
-    t = t[order]
-    if np.any(np.diff(t) <= 0):
-        k = int(np.argmax(np.diff(t) <= 0))
+    back = np.diff(t) < 0  # frames in recording order: a timestamp going back is a clock reset, not an order
+    if back.any():
+        k = int(np.argmax(back)) + 1
+        raise PlusFileError(
+            f"{path}: Seq_Frame{frames[k]:04d}_Timestamp = {float(t[k])!r} is earlier than frame {frames[k - 1]}'s "
+            f"{float(t[k - 1])!r}: the PLUS clock went back (a restart?) and the frames after it are on another "
+            "clock; record again or split the file there"
+        )
+    if np.any(np.diff(t) == 0):
+        k = int(np.argmax(np.diff(t) == 0))
         raise PlusFileError(f"{path}: two frames share the Timestamp {float(t[k])!r}; the recording is corrupt")
-    frames = [frames[i] for i in order]
     transforms, valid = {}, {}
     for name, values in poses.items():
         missing = [f for f in frames if f not in values]

@@ -74,6 +74,9 @@ MAX_CSV_BYTES = 500_000_000
 MAX_ABS = {"mm": 1e4, "s": 1e6, "mV": 1e3, "L/min": 1e3, "": 1e6}
 #: the median sample interval must match ``sample_rate_hz`` within this fraction.
 RATE_TOL = 0.05
+#: two tracked tools (robot sensor and chest probe; two staples) are never closer than this, mm: a record or
+#: fiducials closer are in metres, not the format's millimetres (a tracker export's unit, an audit).
+MIN_SEPARATION_MM = 1.0
 
 
 class SessionError(HeartregError, ValueError):

@@ -18,7 +18,8 @@ from scipy.spatial.transform import Rotation
 from hrcore.geometry import frozen
 from registration.plus import PlusFileError, read_plus_sequence
 from registration.session_format import (
-    FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, N_FIDUCIALS, PLUS_TIME_TOL,
+    FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, MIN_SEPARATION_MM,
+    N_FIDUCIALS, PLUS_TIME_TOL,
     PLUS_TRANSFORMS, POINT_COLUMNS, QUATERNION_TOL, RATE_TOL, SIGNAL_COLUMNS, FiducialTrace, PointRecord,
     SessionError, SessionNotFoundError,
 )
@@ -171,7 +172,21 @@ def _read_point(folder: Path, entry: dict, rate_hz: float, quaternion_tol: float
     q_robot = _unit_quaternions(data[:, 4:8], rel, "robot", quaternion_tol)
     q_probe = _unit_quaternions(data[:, 11:15], rel, "probe", quaternion_tol)
     T = _probe_from_robot(_matrices(q_robot), data[:, 1:4], _matrices(q_probe), data[:, 8:11])
+    _check_millimetres(T, rel)
     return _point_record(entry, rate_hz, data[:, 0], T, data[:, 15:18])
+
+
+def _check_millimetres(T_probe_from_robot: np.ndarray, rel: str) -> None:
+    """Refuse a record in metres: its robot sensor would sit within a millimetre of the chest probe."""
+    if not len(T_probe_from_robot):
+        return
+    distance = float(np.median(np.linalg.norm(T_probe_from_robot[:, :3, 3], axis=1)))
+    if distance < MIN_SEPARATION_MM:
+        raise SessionError(
+            f"{rel}: the robot sensor is a median {distance:.3g} mm from the reference probe, closer than two "
+            f"tools can be ({MIN_SEPARATION_MM:g} mm): are the positions in metres? the format needs mm "
+            "(multiply them by 1000)"
+        )
 
 
 def _check_clock(time_s: np.ndarray, rel: str, rate_hz: float) -> None:
@@ -233,6 +248,13 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
     k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
     far = np.abs(t_frames[k] - data[:, 0]) > PLUS_TIME_TOL / rate_hz
+    frame_step = float(np.median(np.diff(t_frames))) if n > 1 else 0.0
+    if far.any() and n > 1 and abs(frame_step * rate_hz - 1.0) > RATE_TOL:
+        raise SessionError(
+            f"{poses_rel}: its frames come every {frame_step:.4g} s ({1.0 / frame_step:.4g} Hz), the records "
+            f"every {1.0 / rate_hz:g} s (sample_rate_hz = {rate_hz:g}): each sample needs a pose of its own time; "
+            "record the poses at the signals' rate (a tracking-only PLUS capture, not the video's)"
+        )
     if far.any():
         row = int(np.argmax(far))
         raise SessionError(
@@ -247,6 +269,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
         data, k = data[ok], k[ok]
     Tr, Tp = T_robot[k], T_probe[k]
     T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
+    _check_millimetres(T, poses_rel)
     return _point_record(entry, rate_hz, data[:, 0], T, data[:, 1:4], n_invalid=int((~ok).sum()))
 
 
@@ -280,6 +303,12 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
         )
     _check_finite(data, rel, FIDUCIAL_COLUMNS)
     _check_magnitude(data, rel, FIDUCIAL_COLUMNS)
+    spread = float(np.ptp(data[:, 1:4], axis=0).max())
+    if spread < MIN_SEPARATION_MM:
+        raise SessionError(
+            f"{rel}: the 9 staples lie within {spread:.3g} mm of each other, closer than two staples can be "
+            f"({MIN_SEPARATION_MM:g} mm): are the positions in metres? the format needs mm (multiply them by 1000)"
+        )
     labels = data[:, 0]
     if not np.array_equal(labels, np.arange(1, N_FIDUCIALS + 1)):
         raise SessionError(

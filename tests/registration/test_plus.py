@@ -205,3 +205,60 @@ def test_phases_keep_their_clock_across_dropped_samples(tmp_path):
     assert np.abs(d).max() < 0.005 and ok.sum() > 0.9 * t.size
     # the starts of expiration too (the expiratory valve opens 1.5 s into each 4 s breath)
     np.testing.assert_allclose(onsets, 30000.0 + np.arange(1.5, 45.0, 4.0), atol=0.011)
+
+
+def _rewrite_poses(folder, keep=slice(None), scale=1.0):
+    """Write the session's PLUS file again: only the frames ``keep``, translations times ``scale``."""
+    seq = read_plus_sequence(folder / "track.igs.nrrd")
+    poses = {}
+    for name in ("RobotToTracker", "ProbeToTracker"):
+        T = np.array(seq.transform(name)[keep])
+        T[:, :3, 3] *= scale
+        poses[name] = T
+    write_plus_sequence(folder / "track.igs.nrrd", seq.time_s[keep], poses)
+
+
+def test_poses_at_the_video_rate_are_refused_as_such(tmp_path):
+    """An ultrasound capture's PLUS file holds a pose per video frame (every 3rd sample here, 33 Hz): the
+    refusal blamed the clock offset ('check the PLUS clock'), which no offset fixes (an audit)."""
+    folder, _, _ = _plus_session(tmp_path)
+    _rewrite_poses(folder, keep=slice(None, None, 3))
+    with pytest.raises(SessionError) as info:
+        read_session(folder)
+    assert str(info.value) == (
+        f"session {folder}: track.igs.nrrd: its frames come every 0.03 s (33.33 Hz), the records every 0.01 s "
+        "(sample_rate_hz = 100): each sample needs a pose of its own time; record the poses at the signals' "
+        "rate (a tracking-only PLUS capture, not the video's)")
+
+
+def test_plus_poses_in_metres_are_refused(tmp_path):
+    """A tracker exporting metres: the robot sat a fraction of a millimetre from the chest probe and the
+    registration ran on it to 'trust poor' without a word on units (an audit)."""
+    folder, T_true, _ = _plus_session(tmp_path)
+    _rewrite_poses(folder, scale=1e-3)
+    distance = np.linalg.norm(T_true[:3, 3]) / 1000
+    with pytest.raises(SessionError) as info:
+        read_session(folder)
+    assert str(info.value) == (
+        f"session {folder}: track.igs.nrrd: the robot sensor is a median {distance:.3g} mm from the reference "
+        "probe, closer than two tools can be (1 mm): are the positions in metres? the format needs mm "
+        "(multiply them by 1000)")
+    assert 0.1 < distance < 0.6
+
+
+def test_a_plus_clock_reset_is_refused_not_sorted_in(tmp_path):
+    """PLUS restarted mid-recording: its clock went back and the later frames landed among the earlier ones.
+    The reader sorted them by timestamp, and with the PLUS clock 1.5 ms off the signals' (within the quarter
+    step) the first 300 samples silently took the later frames' poses, 1 ms from them (an audit)."""
+    folder, _, time_s = _plus_session(tmp_path, shift_s=0.0015)
+    seq = read_plus_sequence(folder / "track.igs.nrrd")
+    poses = {name: np.concatenate([seq.transform(name), _poses(np.random.default_rng(9), 300)])
+             for name in ("RobotToTracker", "ProbeToTracker")}
+    times = np.concatenate([seq.time_s, time_s[:300] + 0.001])  # frame 1500 on: the restarted clock
+    write_plus_sequence(folder / "track.igs.nrrd", times, poses)
+    with pytest.raises(SessionError) as info:
+        read_session(folder)
+    assert str(info.value) == (
+        f"{folder / 'track.igs.nrrd'}: Seq_Frame1500_Timestamp = {float(time_s[0] + 0.001)!r} is earlier than frame "
+        f"1499's {float(seq.time_s[-1])!r}: the PLUS clock went back (a restart?) and the frames after it are on another "
+        "clock; record again or split the file there")

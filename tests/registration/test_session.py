@@ -215,10 +215,12 @@ def _rows(T_tracker_from_probe, T_tracker_from_robot, n=1200):
 
 _quaternion = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.2)
 _vector = st.lists(st.floats(-400, 400), min_size=3, max_size=3)
+#: the robot sensor is never within a millimetre of the chest probe (closer: a record in metres, refused)
+_separation = _vector.filter(lambda v: np.linalg.norm(v) >= 2.0)
 
 
 @settings(max_examples=25, deadline=None)
-@given(_quaternion, _vector, _quaternion, _vector)
+@given(_quaternion, _vector, _quaternion, _separation)
 def test_relative_pose_algebra(qp, tp, qr, tr):
     """Whatever the tracker poses, the reader returns inv(T_tracker_from_probe)
     @ T_tracker_from_robot, with scalar-first quaternions (w, x, y, z)."""
@@ -241,6 +243,7 @@ def test_scalar_first_is_not_scalar_last(tmp_path):
     recovered rotation is that turn (a reader taking (x, y, z, w) would not)."""
     T_r = np.eye(4)
     T_r[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    T_r[:3, 3] = (0.0, 0.0, 80.0)  # the robot on the heart, 80 mm below the probe
     _minimal_session(tmp_path, _rows(np.eye(4), T_r))
     line = (tmp_path / "points/point_000.csv").read_text().splitlines()[1].split(",")
     assert float(line[4]) == pytest.approx(np.sqrt(0.5))  # robot_qw
@@ -502,3 +505,39 @@ def test_two_points_sharing_one_file_are_refused(tmp_path):
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(SessionError, match=r"points\[2\]: file .* is also the record of point"):
         read_session(tmp_path / "session")
+
+
+def _to_metres(file: Path) -> None:
+    """Divide every ``*_mm`` column of a CSV file by 1000 (a tracker's export in metres)."""
+    lines = file.read_text().splitlines()
+    cols = [k for k, name in enumerate(lines[0].split(",")) if name.endswith("_mm")]
+    out = [lines[0]]
+    for line in lines[1:]:
+        cells = line.split(",")
+        for k in cols:
+            cells[k] = repr(float(cells[k]) / 1000)
+        out.append(",".join(cells))
+    file.write_text("\n".join(out) + "\n")
+
+
+def test_positions_in_metres_are_refused(copy, phantom):
+    """A record or the touched staples in metres: read as mm, the registration ran to 'trust poor' (robot
+    0.12 mm from the probe, staples within 0.1 mm) and never said units (an audit)."""
+    record = read_session(phantom[0]).points[0]
+    distance = float(np.median(np.linalg.norm(record.T_probe_from_robot[:, :3, 3], axis=1))) / 1000
+    _to_metres(copy / "points/point_000.csv")
+    with pytest.raises(SessionError) as info:
+        read_session(copy)
+    assert str(info.value) == (
+        f"session {copy}: points/point_000.csv: the robot sensor is a median {distance:.3g} mm from the "
+        "reference probe, closer than two tools can be (1 mm): are the positions in metres? the format needs "
+        "mm (multiply them by 1000)")
+    assert 0.01 < distance < 0.5
+    shutil.copy(phantom[0] / "points/point_000.csv", copy / "points/point_000.csv")
+    spread = float(np.ptp(read_session(copy).fiducials_probe_mm, axis=0).max()) / 1000
+    _to_metres(copy / "fiducials.csv")
+    with pytest.raises(SessionError) as info:
+        read_session(copy)
+    assert str(info.value) == (
+        f"session {copy}: fiducials.csv: the 9 staples lie within {spread:.3g} mm of each other, closer than two "
+        "staples can be (1 mm): are the positions in metres? the format needs mm (multiply them by 1000)")
