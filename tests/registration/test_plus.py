@@ -218,14 +218,19 @@ def _rewrite_poses(folder, keep=slice(None), scale=1.0):
     write_plus_sequence(folder / "track.igs.nrrd", seq.time_s[keep], poses)
 
 
+def _refused(folder) -> str:
+    """The one line ``read_session`` refuses ``folder`` with."""
+    with pytest.raises(SessionError) as info:
+        read_session(folder)
+    return str(info.value)
+
+
 def test_poses_at_the_video_rate_are_refused_as_such(tmp_path):
     """An ultrasound capture's PLUS file holds a pose per video frame (every 3rd sample here, 33 Hz): the
     refusal blamed the clock offset ('check the PLUS clock'), which no offset fixes (an audit)."""
     folder, _, _ = _plus_session(tmp_path)
     _rewrite_poses(folder, keep=slice(None, None, 3))
-    with pytest.raises(SessionError) as info:
-        read_session(folder)
-    assert str(info.value) == (
+    assert _refused(folder) == (
         f"session {folder}: track.igs.nrrd: its frames come every 0.03 s (33.33 Hz), the records every 0.01 s "
         "(sample_rate_hz = 100): each sample needs a pose of its own time; record the poses at the signals' "
         "rate (a tracking-only PLUS capture, not the video's)")
@@ -237,9 +242,7 @@ def test_plus_poses_in_metres_are_refused(tmp_path):
     folder, T_true, _ = _plus_session(tmp_path)
     _rewrite_poses(folder, scale=1e-3)
     distance = np.linalg.norm(T_true[:3, 3]) / 1000
-    with pytest.raises(SessionError) as info:
-        read_session(folder)
-    assert str(info.value) == (
+    assert _refused(folder) == (
         f"session {folder}: track.igs.nrrd: the robot sensor is a median {distance:.3g} mm from the reference "
         "probe, closer than two tools can be (1 mm): are the positions in metres? the format needs mm "
         "(multiply them by 1000)")
@@ -256,9 +259,7 @@ def test_a_plus_clock_reset_is_refused_not_sorted_in(tmp_path):
              for name in ("RobotToTracker", "ProbeToTracker")}
     times = np.concatenate([seq.time_s, time_s[:300] + 0.001])  # frame 1500 on: the restarted clock
     write_plus_sequence(folder / "track.igs.nrrd", times, poses)
-    with pytest.raises(SessionError) as info:
-        read_session(folder)
-    assert str(info.value) == (
+    assert _refused(folder) == (
         f"{folder / 'track.igs.nrrd'}: Seq_Frame1500_Timestamp = {float(time_s[0] + 0.001)!r} is earlier than frame "
         f"1499's {float(seq.time_s[-1])!r}: the PLUS clock went back (a restart?) and the frames after it are on another "
         "clock; record again or split the file there")

@@ -520,15 +520,20 @@ def _to_metres(file: Path) -> None:
     file.write_text("\n".join(out) + "\n")
 
 
+def _refused(folder) -> str:
+    """The one line ``read_session`` refuses ``folder`` with."""
+    with pytest.raises(SessionError) as info:
+        read_session(folder)
+    return str(info.value)
+
+
 def test_positions_in_metres_are_refused(copy, phantom):
     """A record or the touched staples in metres: read as mm, the registration ran to 'trust poor' (robot
     0.12 mm from the probe, staples within 0.1 mm) and never said units (an audit)."""
     record = read_session(phantom[0]).points[0]
     distance = float(np.median(np.linalg.norm(record.T_probe_from_robot[:, :3, 3], axis=1))) / 1000
     _to_metres(copy / "points/point_000.csv")
-    with pytest.raises(SessionError) as info:
-        read_session(copy)
-    assert str(info.value) == (
+    assert _refused(copy) == (
         f"session {copy}: points/point_000.csv: the robot sensor is a median {distance:.3g} mm from the "
         "reference probe, closer than two tools can be (1 mm): are the positions in metres? the format needs "
         "mm (multiply them by 1000)")
@@ -536,8 +541,6 @@ def test_positions_in_metres_are_refused(copy, phantom):
     shutil.copy(phantom[0] / "points/point_000.csv", copy / "points/point_000.csv")
     spread = float(np.ptp(read_session(copy).fiducials_probe_mm, axis=0).max()) / 1000
     _to_metres(copy / "fiducials.csv")
-    with pytest.raises(SessionError) as info:
-        read_session(copy)
-    assert str(info.value) == (
+    assert _refused(copy) == (
         f"session {copy}: fiducials.csv: the 9 staples lie within {spread:.3g} mm of each other, closer than two "
         "staples can be (1 mm): are the positions in metres? the format needs mm (multiply them by 1000)")
