@@ -309,7 +309,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("cohort", type=_path, help="cohort CSV (columns case, study, session, mask, options) or a folder "
                    "of study folders")
     p.add_argument("-o", "--out-dir", type=_path, required=True, help="output folder: one folder per case, "
-                   "summary.csv, index.html")
+                   "summary.csv, index.html; run again into it, a case whose inputs, options and heartreg version "
+                   "are unchanged is skipped")
     _add_cluster_options(p)
     p.add_argument("--num-parts", type=int, default=1, help="split the cohort into this many parts (array jobs)")
     p.add_argument("--part-id", type=int, default=0, help="the part to run, 0 .. NUM_PARTS-1")

@@ -252,3 +252,11 @@ def test_track_help_states_its_defaults(capsys):
     assert "0: any free; default: no server, nothing sent)" in text
     assert "most samples per second sent over OpenIGTLink (default 100; 0: all)" in text
     assert "before the stream starts (default 0)" in text
+
+
+def test_batch_help_says_a_run_again_skips_done_cases(capsys):
+    """The README says a batch run again into its folder skips the cases done before; --help did not (an audit)."""
+    with pytest.raises(SystemExit):
+        cli.main(["batch", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "run again into it, a case whose inputs, options and heartreg version are unchanged is skipped" in text
