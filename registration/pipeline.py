@@ -22,14 +22,13 @@ import numpy as np
 from hrcore.errors import HeartregError, UsageError
 from hrcore.geometry import apply_to_points, frozen
 from imaging.events import SignalError
-from imaging.respiration import expiration_onsets, respiration_phase
 from modeling.model import HeartModel
 from registration.fiducial import FiducialError, register_fiducials
 from registration.options import MIN_BEATS, MIN_BREATHS, RegistrationOptions
 from registration.icp import SurfaceIndex, icp
 from registration.plausibility import assess_coverage, assess_trust
 from registration.result import IcpReport, RegistrationResult
-from registration.point_models import fit_point_models, on_sample_clock
+from registration.point_models import fit_point_models, respiration_of
 from registration.session import Session
 from registration.slice_phase import point_cardiac_phases, predict_at_point_phases
 from registration.spatiotemporal import (
@@ -104,12 +103,7 @@ class _Chosen:
 
 def _trace_curve(trace, fid_model, phases, order):
     """The traced staples over the breath (:func:`registration.temporal.fiducial_curve`)."""
-    onsets = on_sample_clock(expiration_onsets(  # a trace's dropped samples leave gaps, as a point's
-        rate_hz=trace.rate_hz,
-        flow_exp_lpm=trace.flow_exp_lpm,
-        flow_insp_lpm=trace.flow_insp_lpm,
-    ), trace.time_s, trace.rate_hz)
-    phase_r = respiration_phase(trace.time_s, onsets)
+    phase_r, _ = respiration_of(trace)
     return fiducial_curve(trace.fiducial, trace.stylus_probe_mm, phase_r, fid_model, phases, order=order)
 
 

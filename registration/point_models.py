@@ -32,7 +32,7 @@ from registration.plausibility import outlier_samples
 from registration.result import PointFit
 from registration.session import PointRecord, Session
 
-__all__ = ["fit_point_models", "on_sample_clock", "point_phases"]
+__all__ = ["fit_point_models", "on_sample_clock", "point_phases", "respiration_of"]
 
 #: An R-R interval that holds a gap in the samples and lasts this many times the median R-R lost its beat in
 #: the gap (a dropout over the R): its samples get no cardiac phase (NaN, left out of the fit and counted).
@@ -116,11 +116,7 @@ def point_phases(record: PointRecord):
     """
     t = record.time_s
     peaks = on_sample_clock(detect_r_peaks(record.ecg_mv, record.rate_hz).times_s, t, record.rate_hz)
-    onsets = on_sample_clock(expiration_onsets(
-        rate_hz=record.rate_hz,
-        flow_exp_lpm=record.flow_exp_lpm,
-        flow_insp_lpm=record.flow_insp_lpm,
-    ), t, record.rate_hz)
+    phase_r, onsets = respiration_of(record)
     phase_c = cardiac_phase(t, peaks)
     # a beat in a gap is lost: the R-R interval around it spans two beats and its phases run at half speed
     gaps = t[:-1][np.diff(t) > 1.5 / record.rate_hz]
@@ -129,7 +125,16 @@ def point_phases(record: PointRecord):
         holds_gap = np.searchsorted(gaps, peaks[1:]) > np.searchsorted(gaps, peaks[:-1])
         for k in np.flatnonzero(holds_gap & (rr > LOST_BEAT_RR_RATIO * np.median(rr))):
             phase_c[(t >= peaks[k]) & (t < peaks[k + 1])] = np.nan
-    return phase_c, respiration_phase(t, onsets), peaks, onsets
+    return phase_c, phase_r, peaks, onsets
+
+
+def respiration_of(record) -> tuple[np.ndarray, np.ndarray]:
+    """Respiration phase per sample and starts of expiration (s) of a record with ``time_s``, ``rate_hz``
+    and airflows (a point's :class:`PointRecord`, the traced staples' ``FiducialTrace``), on its own clock
+    (:func:`on_sample_clock`: dropped samples leave gaps)."""
+    onsets = on_sample_clock(expiration_onsets(rate_hz=record.rate_hz, flow_exp_lpm=record.flow_exp_lpm,
+                                               flow_insp_lpm=record.flow_insp_lpm), record.time_s, record.rate_hz)
+    return respiration_phase(record.time_s, onsets), onsets
 
 
 def on_sample_clock(events_s, time_s, rate_hz: float) -> np.ndarray:

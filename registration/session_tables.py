@@ -248,14 +248,14 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
     k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
     far = np.abs(t_frames[k] - data[:, 0]) > PLUS_TIME_TOL / rate_hz
-    frame_step = float(np.median(np.diff(t_frames))) if n > 1 else 0.0
-    if far.any() and n > 1 and abs(frame_step * rate_hz - 1.0) > RATE_TOL:
-        raise SessionError(
-            f"{poses_rel}: its frames come every {frame_step:.4g} s ({1.0 / frame_step:.4g} Hz), the records "
-            f"every {1.0 / rate_hz:g} s (sample_rate_hz = {rate_hz:g}): each sample needs a pose of its own time; "
-            "record the poses at the signals' rate (a tracking-only PLUS capture, not the video's)"
-        )
     if far.any():
+        frame_step = float(np.median(np.diff(t_frames))) if n > 1 else 0.0
+        if n > 1 and abs(frame_step * rate_hz - 1.0) > RATE_TOL:  # not a clock offset: another rate
+            raise SessionError(
+                f"{poses_rel}: its frames come every {frame_step:.4g} s ({1.0 / frame_step:.4g} Hz), the records "
+                f"every {1.0 / rate_hz:g} s (sample_rate_hz = {rate_hz:g}): each sample needs a pose of its own "
+                "time; record the poses at the signals' rate (a tracking-only PLUS capture, not the video's)"
+            )
         row = int(np.argmax(far))
         raise SessionError(
             f"{rel}: row {row + 1} (time_s {float(data[row, 0]):.3f}) has no frame in {poses_rel} within "
