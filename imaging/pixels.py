@@ -233,12 +233,17 @@ def _padding(stored: np.ndarray, frame: _Frame) -> np.ndarray | None:
     return mask if mask.any() else None
 
 
+def _padding_as_air(hu: np.ndarray, stored: np.ndarray, frame: _Frame) -> np.ndarray:
+    """`hu` (rescaled from `stored`) with its padding at most OUTSIDE_HU, in place."""
+    if (pad := _padding(stored, frame)) is not None:
+        hu[pad] = np.minimum(hu[pad], OUTSIDE_HU)
+    return hu
+
+
 def _slice_hu_int(arr: np.ndarray, frame: _Frame) -> np.ndarray | None:
     """HU as int16 when it fits, else None; padding at most OUTSIDE_HU."""
     s, b = _rescale(frame)
-    hu = arr.astype(np.int32, copy=False) * int(round(s)) + int(round(b))
-    if (pad := _padding(arr, frame)) is not None:
-        hu[pad] = np.minimum(hu[pad], OUTSIDE_HU)
+    hu = _padding_as_air(arr.astype(np.int32, copy=False) * int(round(s)) + int(round(b)), arr, frame)
     if hu.size and (hu.min() < _INT16.min or hu.max() > _INT16.max):
         return None
     return hu.astype(np.int16)
@@ -280,10 +285,7 @@ def _read_hu_int16_into(dst: np.ndarray, frame: _Frame) -> bool:
 
 def _slice_hu_float(arr: np.ndarray, frame: _Frame) -> np.ndarray:
     s, b = _rescale(frame)
-    hu = arr.astype(np.float32) * np.float32(s) + np.float32(b)
-    if (pad := _padding(arr, frame)) is not None:
-        hu[pad] = np.minimum(hu[pad], np.float32(OUTSIDE_HU))
-    return hu
+    return _padding_as_air(arr.astype(np.float32) * np.float32(s) + np.float32(b), arr, frame)
 
 
 def _series_rescale(frames):
