@@ -127,6 +127,7 @@ def index_html(records, path, *, out_dir) -> Path:
         status = r.status + (" (earlier run)" if r.reused else "")
         detail = html.escape(r.error) if r.error else html.escape(" | ".join(r.notes))
         cls = {"failed": "failed", "not run": "notrun"}.get(r.status, "")
+        trust = html.escape(str(v.get("trust", "")))
         rows.append(
             f'<tr class="{cls}"><td>{thumb}</td><td>{link}</td><td>{html.escape(status)}</td>'
             f'<td class="num">{_fmt(v.get("phi_c"), ".4f")}</td>'
@@ -135,7 +136,7 @@ def index_html(records, path, *, out_dir) -> Path:
             f'<td class="num">{_fmt(v.get("phi_r"), ".2f")}</td>'
             f'<td class="num">{_fmt(v.get("rms_mm"), ".3f")}</td>'
             f'<td class="num">{_fmt(v.get("fre_mm"), ".2f")}</td>'
-            f'<td class="trust-{html.escape(str(v.get("trust", "")))}">{html.escape(str(v.get("trust", "")))}'
+            f'<td class="trust-{trust}">{trust}'
             f'{"<br>" + html.escape(v["trust_reasons"]) if v.get("trust_reasons") else ""}</td>'
             f'<td class="num">{_fmt(r.times_s.get("total"), ".1f")}</td>'
             f"<td>{detail}</td></tr>"
