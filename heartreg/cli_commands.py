@@ -217,9 +217,10 @@ def _open_model_input(args):
 
 
 def _cmd_model(args) -> int:
-    from modeling import build_heart_model, render_model_png, write_model
-    from modeling.ct_overlay import ct_panels, render_ct_png
+    from modeling import build_heart_model, write_model
+    from modeling.ct_overlay import ct_panels
     from modeling.model import JSON_FILE as MODEL_JSON
+    from modeling.render import render_model_pictures
 
     if _listed(args):
         return 0
@@ -264,8 +265,7 @@ def _cmd_model(args) -> int:
     with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite,
                        earlier=(MODEL_JSON,)) as staging:
         write_model(model, staging, overwrite=True)
-        render_model_png(model, staging / "model.png")  # matplotlib only: no OpenGL needed
-        render_ct_png(panels, staging / "model_ct.png")
+        render_model_pictures(model, panels, staging)  # matplotlib only: no OpenGL needed
     picture = f"{out / 'model.png'}, over the CT {out / 'model_ct.png'}"
     bar.update(1)
     bar.close()

@@ -169,8 +169,9 @@ def run_pipeline(
     top of the HTML report (the demo).
     """
     from imaging import write_phase_report
-    from modeling import build_heart_model, render_model_png, write_model
-    from modeling.ct_overlay import ct_panels, render_ct_png
+    from modeling import build_heart_model, write_model
+    from modeling.ct_overlay import ct_panels
+    from modeling.render import render_model_pictures
     from modeling.slice_phases import SlicePhases
     from registration import read_session
     from registration.pipeline import register_session, sweep_phases
@@ -212,10 +213,9 @@ def run_pipeline(
         )
         model_dir = write_model(build.model, staging / "model")
         paths["model"] = model_dir
-        paths["model_png"] = render_model_png(build.model, model_dir / "model.png")  # no OpenGL needed
         mesh = build.model.mesh_patient()
-        paths["model_ct_png"] = render_ct_png(
-            ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces), model_dir / "model_ct.png")
+        paths["model_png"], paths["model_ct_png"] = render_model_pictures(  # no OpenGL needed
+            build.model, ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces), model_dir)
         timings["model"] = time.perf_counter() - t
 
         t = time.perf_counter()

@@ -80,3 +80,31 @@ def test_plane_section_is_trimeshs():
         theirs = theirs[np.linalg.norm(theirs[:, 1] - theirs[:, 0], axis=1) > 0]
         assert ours.shape == theirs.shape and ours.shape[0] > 50
         assert canonical(ours) == canonical(theirs)
+
+
+def test_the_two_pictures_drawn_at_once_are_those_drawn_alone(tmp_path):
+    """render_model_pictures draws model_ct.png on a thread beside model.png: each is byte for byte what
+    it is drawn alone, and a model.png that cannot be drawn raises after model_ct.png is done."""
+    from modeling import make_heart_model, render_model_png
+    from modeling.render import render_model_pictures
+
+    shape = (40, 50, 60)
+    T = np.diag([2.0, 2.0, 2.0, 1.0])
+    k, j, i = np.mgrid[: shape[0], : shape[1], : shape[2]] * 2.0
+    heart = ((i - 60) / 30) ** 2 + ((j - 50) / 22) ** 2 + ((k - 40) / 26) ** 2 < 1
+    hu = np.where(heart, 60.0, -100.0).astype(np.float32)
+    mesh = mask_to_mesh(heart, T, target_faces=2000)
+    model = make_heart_model(mesh, cardiac_phase=0.7, cardiac_phase_source="test", base_hint=[0, 0, 1])
+    panels = ct_panels(hu, T, mesh.vertices, mesh.faces)
+    (tmp_path / "alone").mkdir()
+    (tmp_path / "both").mkdir()
+    render_model_png(model, tmp_path / "alone" / "model.png")
+    render_ct_png(panels, tmp_path / "alone" / "model_ct.png")
+    paths = render_model_pictures(model, panels, tmp_path / "both")
+    assert [p.name for p in paths] == ["model.png", "model_ct.png"]
+    for name in ("model.png", "model_ct.png"):
+        assert (tmp_path / "both" / name).read_bytes() == (tmp_path / "alone" / name).read_bytes(), name
+    (tmp_path / "bad").mkdir()
+    with pytest.raises(TypeError, match="HeartModel"):
+        render_model_pictures(object(), panels, tmp_path / "bad")
+    assert (tmp_path / "bad" / "model_ct.png").is_file()  # the other picture was finished, not abandoned
