@@ -80,6 +80,9 @@ class LabelMap:
                     f"{self.source} holds {self.labels.shape[0]} overlapping layers and no segment names; export "
                     "the heart alone (or as a label map) from 3D Slicer"
                 )
+            if isinstance(label, (int, np.integer)):  # a label value: the segment of that value, if only one
+                of_value = [name for name, (_, value) in self.segments.items() if value == label]
+                label = of_value[0] if len(of_value) == 1 else label
             if not isinstance(label, str) or label.lower() not in by_name:
                 raise LabelMapError(
                     f"{self.source} is a segmentation of {self.labels.shape[0]} overlapping layers: choose a "
@@ -138,6 +141,17 @@ def _read_nifti(path: Path) -> LabelMap:
     if conflict:
         raise LabelMapError(f"NIfTI label map {path}: {conflict}")
     names = _caret_label_names(img)
+    labels = _whole_labels(data, path)
+    unoriented = nifti_unoriented(img)
+    return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
+
+
+def _whole_labels(data, path) -> np.ndarray:
+    """A label map's voxels as int32 labels: float values rounded, NaN or infinite ones no label.
+
+    A float map (a probability map, or labels saved as float) is common in
+    NIfTI and NRRD alike; a NaN cast to int would be label -2147483648.
+    """
     if np.issubdtype(data.dtype, np.floating):
         finite = np.isfinite(data)
         if not finite.any():
@@ -147,8 +161,7 @@ def _read_nifti(path: Path) -> LabelMap:
     if not labels.any() and np.any(data):
         raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
                             f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
-    unoriented = nifti_unoriented(img)
-    return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
+    return labels
 
 
 def _caret_label_names(img) -> dict:
@@ -196,7 +209,7 @@ def _read_nrrd(path: Path) -> LabelMap:
             raise LabelMapError(f"{path}: segment {n} ({name!r}) has a bad layer or label value") from None
         segments[name] = where
     names = {value: name for name, (layer, value) in segments.items() if layer == 0} if data.ndim == 3 else {}
-    return LabelMap(np.round(data).astype(np.int32), T, str(path), names, segments)
+    return LabelMap(_whole_labels(data, path), T, str(path), names, segments)
 
 
 def label_map_kind(source) -> str:
@@ -249,7 +262,11 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
             f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}; give the heart's label "
             "map in one of these (an RT structure set: export it as a labelmap, e.g. from 3D Slicer)"
         ) from None
-    return LabelMap(labels, T, str(path), names)
+    segments = {}
+    if labels.ndim == 4:  # overlapping segments, one layer each where they overlap: chosen by name or number
+        layer_of = {int(v): n for n, layer in enumerate(labels) for v in np.unique(layer) if v}
+        segments = {(names.get(v) or f"segment {v}"): (n, v) for v, n in sorted(layer_of.items())}
+    return LabelMap(labels, T, str(path), names, segments)
 
 
 def _no_overlap(label, label_map) -> LabelMapError:
