@@ -42,6 +42,9 @@ def read_dicom_seg(path):
         ``(i, j, k, 1)`` to patient LPS mm.
     names : dict of int to str
         Segment number to (0062,0005) *Segment Label*.
+    frame_of_reference_uid : str
+        (0020,0052) *Frame of Reference UID*, '' when absent: a SEG shares it
+        with the images it was drawn on.
 
     Raises
     ------
@@ -104,4 +107,4 @@ def read_dicom_seg(path):
     T[:3, 1] = col_dir * row_mm
     T[:3, 2] = normal * spacing
     T[:3, 3] = origin
-    return labels, T, names
+    return labels, T, names, str(ds.get("FrameOfReferenceUID", ""))

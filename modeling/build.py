@@ -23,7 +23,7 @@ from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
-from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_label_map
+from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, other_frame, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
@@ -312,6 +312,10 @@ def build_heart_model(
         lumen = T_lumen = None
         mask_source = f"label map ({label_map_kind(label_map.source)})" + (f", label {label}" if label is not None else "")
         seg_params = {}
+        if other_frame(label_map, volume):
+            fallback(f"{mask_source}: drawn in another frame of reference than the CT's (another study or "
+                     "acquisition?): it is placed by its patient coordinates, which need not be this CT's; check the "
+                     "model lies on this heart")
     else:
         seg = segment_heart(volume.hu, T, **(segmentation or {}))
         mask, lumen, T_lumen = seg.mask, seg.vessel_lumen, seg.T_patient_from_lumen

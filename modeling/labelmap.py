@@ -21,7 +21,7 @@ from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 from imaging.volume_file import degenerate_affine, load_nifti, nifti_lps_affine, nifti_misnamed, nifti_unoriented
 
-__all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
+__all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid", "other_frame"]
 
 
 class LabelMapError(HeartregError, ValueError):
@@ -54,6 +54,8 @@ class LabelMap:
     segments: dict = field(default_factory=dict)
     #: a NIfTI header without orientation (qform_code and sform_code 0): placed where nibabel guesses
     unoriented: bool = False
+    #: a DICOM SEG's Frame of Reference UID ('' for other files, which carry none)
+    frame_of_reference_uid: str = ""
 
     def __post_init__(self):
         if problem := degenerate_affine(self.T_patient_from_voxel):  # else: "made on another study?"
@@ -256,7 +258,7 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     from imaging.seg import read_dicom_seg
 
     try:
-        labels, T, names = read_dicom_seg(path)
+        labels, T, names, frame = read_dicom_seg(path)
     except ValueError as exc:
         raise LabelMapError(
             f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}; give the heart's label "
@@ -266,7 +268,16 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     if labels.ndim == 4:  # overlapping segments, one layer each where they overlap: chosen by name or number
         layer_of = {int(v): n for n, layer in enumerate(labels) for v in np.unique(layer) if v}
         segments = {(names.get(v) or f"segment {v}"): (n, v) for v, n in sorted(layer_of.items())}
-    return LabelMap(labels, T, str(path), names, segments)
+    return LabelMap(labels, T, str(path), names, segments, frame_of_reference_uid=frame)
+
+
+def other_frame(label_map: LabelMap, volume) -> bool:
+    """Whether a DICOM SEG was drawn in another frame of reference than a DICOM CT's (another study or
+    acquisition): its patient coordinates then need not be the CT's, though it may overlap the CT anyway.
+    A volume file (NIfTI, NRRD) has no frame of reference to compare."""
+    from_dicom = bool(volume.slices) and bool(volume.slices[0].sop_instance_uid)
+    return bool(label_map.frame_of_reference_uid and from_dicom
+                and label_map.frame_of_reference_uid != volume.series.frame_of_reference_uid)
 
 
 def _no_overlap(label, label_map) -> LabelMapError:

@@ -74,7 +74,7 @@ def test_nrrd_lps_and_ras_gzip(tmp_path):
         _check(read_label_map(path))
 
 
-def _write_seg(path, T, labels, more=()):
+def _write_seg(path, T, labels, more=(), frame_uid=None):
     """A minimal binary DICOM SEG of one segment (number 3, "Heart") on the grid T; ``more``: further segments,
     ``(number, label, mask)``, which may overlap it."""
     segments = [(3, "Heart", labels > 0), *more]
@@ -87,6 +87,8 @@ def _write_seg(path, T, labels, more=()):
     ds.SOPClassUID = SEG_SOP_CLASS
     ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID
     ds.Modality = "SEG"
+    if frame_uid:
+        ds.FrameOfReferenceUID = frame_uid
     ds.SegmentationType = "BINARY"
     ds.Rows, ds.Columns = labels.shape[1], labels.shape[2]
     ds.NumberOfFrames = len(frames)
@@ -178,6 +180,30 @@ def test_nrrd_float_label_map_nan_and_probability(tmp_path):
     with pytest.raises(LabelMapError, match=r"p.nrrd holds no whole-number label: its values \(0 to 0.4\) round to 0 "
                                             r"\(a probability map\? threshold it at 0.5 first\)"):
         read_label_map(tmp_path / "p.nrrd")
+
+
+def test_a_dicom_seg_of_another_frame_of_reference(tmp_path):
+    """A SEG drawn on another study lands by its patient coordinates, which need not be the CT's: its Frame of
+    Reference UID differs from the DICOM CT's, and was never compared (audit aud_masks: meshed without a word)."""
+    from imaging import load_study
+    from imaging.volume_file import read_volume_file
+    from modeling.labelmap import other_frame
+
+    from .realct import write_ct_series
+
+    T, shape = _source_T()
+    labels = _ball_labels(T, shape)
+    ct = load_study(write_ct_series(np.where(labels > 0, 300, -100)[::4], T @ np.diag([1.0, 1.0, 4.0, 1.0]),
+                                    tmp_path / "ct"))
+    found = {}
+    for name, frame in (("same", ct.series.frame_of_reference_uid), ("other", generate_uid()), ("none", None)):
+        _write_seg(tmp_path / f"{name}.dcm", T, labels, frame_uid=frame)
+        found[name] = other_frame(read_label_map(tmp_path / f"{name}.dcm"), ct)
+    assert found == {"same": False, "other": True, "none": False}
+    import nibabel as nib
+
+    nib.save(nib.Nifti1Image(np.zeros((4, 4, 4), np.int16), np.eye(4)), str(tmp_path / "ct.nii.gz"))
+    assert not other_frame(read_label_map(tmp_path / "other.dcm"), read_volume_file(tmp_path / "ct.nii.gz"))
 
 
 def test_unknown_file_and_label(tmp_path):
