@@ -105,11 +105,6 @@ def _other_pieces(mask, T) -> str:
             "ml), which is left out")
 
 
-def _label_ml(label_map, label) -> float:
-    chosen, _ = label_map.select(label)
-    return float(np.count_nonzero(chosen)) * abs(float(np.linalg.det(label_map.T_patient_from_voxel[:3, :3]))) / 1000.0
-
-
 def _check_mask_volume(mask, T, source: str, min_ml: float, *, external, notes: list, source_ml=None) -> float:
     """Refuse a mask far smaller than a heart; note a label map partly outside the CT; its volume, ml.
 
@@ -312,10 +307,8 @@ def build_heart_model(
         lumen = T_lumen = None
         mask_source = f"label map ({label_map_kind(label_map.source)})" + (f", label {label}" if label is not None else "")
         seg_params = {}
-        if other_frame(label_map, volume):
-            fallback(f"{mask_source}: drawn in another frame of reference than the CT's (another study or "
-                     "acquisition?): it is placed by its patient coordinates, which need not be this CT's; check the "
-                     "model lies on this heart")
+        if elsewhere := other_frame(label_map, volume):
+            fallback(f"{mask_source}: {elsewhere}")
     else:
         seg = segment_heart(volume.hu, T, **(segmentation or {}))
         mask, lumen, T_lumen = seg.mask, seg.vessel_lumen, seg.T_patient_from_lumen
@@ -327,7 +320,7 @@ def build_heart_model(
             else:
                 notes.append(note)
     mask_ml = _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path, notes=notes,
-                                 source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+                                 source_ml=label_map.volume_ml(label) if mask_path is not None else None)
     cut = _cut_by_field_of_view(mask, T)
     if not HEART_ML[0] <= mask_ml <= HEART_ML[1]:
         fallback(

@@ -124,6 +124,11 @@ class LabelMap:
             )
         return self.labels == label, f"label {label}"
 
+    def volume_ml(self, label=None) -> float:
+        """The volume of one label (as :meth:`select` chooses it) on the label map's own grid, ml."""
+        chosen, _ = self.select(label)
+        return float(np.count_nonzero(chosen)) * abs(float(np.linalg.det(self.T_patient_from_voxel[:3, :3]))) / 1000.0
+
 
 def _read_nifti(path: Path) -> LabelMap:
     if misnamed := nifti_misnamed(path):
@@ -271,13 +276,16 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     return LabelMap(labels, T, str(path), names, segments, frame_of_reference_uid=frame)
 
 
-def other_frame(label_map: LabelMap, volume) -> bool:
-    """Whether a DICOM SEG was drawn in another frame of reference than a DICOM CT's (another study or
-    acquisition): its patient coordinates then need not be the CT's, though it may overlap the CT anyway.
-    A volume file (NIfTI, NRRD) has no frame of reference to compare."""
+def other_frame(label_map: LabelMap, volume) -> str:
+    """What to say of a DICOM SEG drawn in another frame of reference than a DICOM CT's (another study or
+    acquisition), '' otherwise: its patient coordinates need not be the CT's, though it may overlap the CT
+    anyway.  A volume file (NIfTI, NRRD) has no frame of reference to compare."""
     from_dicom = bool(volume.slices) and bool(volume.slices[0].sop_instance_uid)
-    return bool(label_map.frame_of_reference_uid and from_dicom
-                and label_map.frame_of_reference_uid != volume.series.frame_of_reference_uid)
+    if not (label_map.frame_of_reference_uid and from_dicom
+            and label_map.frame_of_reference_uid != volume.series.frame_of_reference_uid):
+        return ""
+    return ("drawn in another frame of reference than the CT's (another study or acquisition?): it is placed by its "
+            "patient coordinates, which need not be this CT's; check the model lies on this heart")
 
 
 def _no_overlap(label, label_map) -> LabelMapError:

@@ -198,7 +198,7 @@ def test_a_dicom_seg_of_another_frame_of_reference(tmp_path):
     found = {}
     for name, frame in (("same", ct.series.frame_of_reference_uid), ("other", generate_uid()), ("none", None)):
         _write_seg(tmp_path / f"{name}.dcm", T, labels, frame_uid=frame)
-        found[name] = other_frame(read_label_map(tmp_path / f"{name}.dcm"), ct)
+        found[name] = bool(other_frame(read_label_map(tmp_path / f"{name}.dcm"), ct))
     assert found == {"same": False, "other": True, "none": False}
     import nibabel as nib
 
