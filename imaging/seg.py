@@ -4,7 +4,7 @@ Reads Segmentation Storage (1.2.840.10008.5.1.4.1.1.66.4) instances, binary or
 fractional, with the plane position of every frame in
 (5200,9230) *Per-frame Functional Groups Sequence* and the orientation and pixel
 spacing in the shared (or per-frame) groups.  Frames of segment ``n`` paint label
-``n``; a later segment overwrites an earlier one where they overlap.
+``n``; segments that overlap are kept in separate label layers.
 """
 
 from __future__ import annotations
@@ -36,10 +36,15 @@ def read_dicom_seg(path):
     -------
     labels : (n_k, n_j, n_i) int32
         Indexed ``[k, j, i]``; 0 is background, n the segment number.
+        ``(n_layers, n_k, n_j, n_i)`` when segments overlap: each segment in
+        the first layer where it overlaps no other.
     T_patient_from_voxel : (4, 4) float64
         ``(i, j, k, 1)`` to patient LPS mm.
     names : dict of int to str
         Segment number to (0062,0005) *Segment Label*.
+    frame_of_reference_uid : str
+        (0020,0052) *Frame of Reference UID*, '' when absent: a SEG shares it
+        with the images it was drawn on.
 
     Raises
     ------
@@ -82,13 +87,24 @@ def read_dicom_seg(path):
     else:
         spacing = float(measures.get("SpacingBetweenSlices", measures.get("SliceThickness", 1.0)))
     k_of_frame = np.round((position - unique[0]) / spacing).astype(int)
-    labels = np.zeros((k_of_frame.max() + 1,) + pixels.shape[1:], np.int32)
-    for f in np.argsort(segment, kind="stable"):
-        labels[k_of_frame[f]][pixels[f]] = segment[f]
+    # Segments may overlap (a heart and its left ventricle): in one label volume the shared voxels would go to the
+    # later segment only, and the heart chosen would miss them.  Each segment is painted in the first layer where
+    # it overlaps no other, as 3D Slicer keeps overlapping segments.
+    layers = []
+    for number in np.unique(segment):
+        frames = np.flatnonzero(segment == number)
+        free = (layer for layer in layers if not any(layer[k_of_frame[f]][pixels[f]].any() for f in frames))
+        layer = next(free, None)
+        if layer is None:
+            layer = np.zeros((k_of_frame.max() + 1,) + pixels.shape[1:], np.int32)
+            layers.append(layer)
+        for f in frames:
+            layer[k_of_frame[f]][pixels[f]] = number
+    labels = layers[0] if len(layers) == 1 else np.stack(layers)
     origin = ipp[np.argmin(position)]
     T = np.eye(4)
     T[:3, 0] = row_dir * col_mm
     T[:3, 1] = col_dir * row_mm
     T[:3, 2] = normal * spacing
     T[:3, 3] = origin
-    return labels, T, names
+    return labels, T, names, str(ds.get("FrameOfReferenceUID", ""))

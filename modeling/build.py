@@ -23,7 +23,7 @@ from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
-from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, read_label_map
+from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, other_frame, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
@@ -103,11 +103,6 @@ def _other_pieces(mask, T) -> str:
         return ""
     return (f"the mask holds {n} separate pieces, {rest:.1f} ml of it outside the largest ({sizes.max() * voxel_ml:.0f} "
             "ml), which is left out")
-
-
-def _label_ml(label_map, label) -> float:
-    chosen, _ = label_map.select(label)
-    return float(np.count_nonzero(chosen)) * abs(float(np.linalg.det(label_map.T_patient_from_voxel[:3, :3]))) / 1000.0
 
 
 def _check_mask_volume(mask, T, source: str, min_ml: float, *, external, notes: list, source_ml=None) -> float:
@@ -312,6 +307,8 @@ def build_heart_model(
         lumen = T_lumen = None
         mask_source = f"label map ({label_map_kind(label_map.source)})" + (f", label {label}" if label is not None else "")
         seg_params = {}
+        if elsewhere := other_frame(label_map, volume):
+            fallback(f"{mask_source}: {elsewhere}")
     else:
         seg = segment_heart(volume.hu, T, **(segmentation or {}))
         mask, lumen, T_lumen = seg.mask, seg.vessel_lumen, seg.T_patient_from_lumen
@@ -323,7 +320,7 @@ def build_heart_model(
             else:
                 notes.append(note)
     mask_ml = _check_mask_volume(mask, T, mask_source, min_heart_ml, external=mask_path, notes=notes,
-                                 source_ml=_label_ml(label_map, label) if mask_path is not None else None)
+                                 source_ml=label_map.volume_ml(label) if mask_path is not None else None)
     cut = _cut_by_field_of_view(mask, T)
     if not HEART_ML[0] <= mask_ml <= HEART_ML[1]:
         fallback(

@@ -21,7 +21,7 @@ from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 from imaging.volume_file import degenerate_affine, load_nifti, nifti_lps_affine, nifti_misnamed, nifti_unoriented
 
-__all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid"]
+__all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid", "other_frame"]
 
 
 class LabelMapError(HeartregError, ValueError):
@@ -54,6 +54,8 @@ class LabelMap:
     segments: dict = field(default_factory=dict)
     #: a NIfTI header without orientation (qform_code and sform_code 0): placed where nibabel guesses
     unoriented: bool = False
+    #: a DICOM SEG's Frame of Reference UID ('' for other files, which carry none)
+    frame_of_reference_uid: str = ""
 
     def __post_init__(self):
         if problem := degenerate_affine(self.T_patient_from_voxel):  # else: "made on another study?"
@@ -80,6 +82,9 @@ class LabelMap:
                     f"{self.source} holds {self.labels.shape[0]} overlapping layers and no segment names; export "
                     "the heart alone (or as a label map) from 3D Slicer"
                 )
+            if isinstance(label, (int, np.integer)):  # a label value: the segment of that value, if only one
+                of_value = [name for name, (_, value) in self.segments.items() if value == label]
+                label = of_value[0] if len(of_value) == 1 else label
             if not isinstance(label, str) or label.lower() not in by_name:
                 raise LabelMapError(
                     f"{self.source} is a segmentation of {self.labels.shape[0]} overlapping layers: choose a "
@@ -119,6 +124,11 @@ class LabelMap:
             )
         return self.labels == label, f"label {label}"
 
+    def volume_ml(self, label=None) -> float:
+        """The volume of one label (as :meth:`select` chooses it) on the label map's own grid, ml."""
+        chosen, _ = self.select(label)
+        return float(np.count_nonzero(chosen)) * abs(float(np.linalg.det(self.T_patient_from_voxel[:3, :3]))) / 1000.0
+
 
 def _read_nifti(path: Path) -> LabelMap:
     if misnamed := nifti_misnamed(path):
@@ -138,6 +148,17 @@ def _read_nifti(path: Path) -> LabelMap:
     if conflict:
         raise LabelMapError(f"NIfTI label map {path}: {conflict}")
     names = _caret_label_names(img)
+    labels = _whole_labels(data, path)
+    unoriented = nifti_unoriented(img)
+    return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
+
+
+def _whole_labels(data, path) -> np.ndarray:
+    """A label map's voxels as int32 labels: float values rounded, NaN or infinite ones no label.
+
+    A float map (a probability map, or labels saved as float) is common in
+    NIfTI and NRRD alike; a NaN cast to int would be label -2147483648.
+    """
     if np.issubdtype(data.dtype, np.floating):
         finite = np.isfinite(data)
         if not finite.any():
@@ -147,8 +168,7 @@ def _read_nifti(path: Path) -> LabelMap:
     if not labels.any() and np.any(data):
         raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
                             f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
-    unoriented = nifti_unoriented(img)
-    return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
+    return labels
 
 
 def _caret_label_names(img) -> dict:
@@ -196,7 +216,7 @@ def _read_nrrd(path: Path) -> LabelMap:
             raise LabelMapError(f"{path}: segment {n} ({name!r}) has a bad layer or label value") from None
         segments[name] = where
     names = {value: name for name, (layer, value) in segments.items() if layer == 0} if data.ndim == 3 else {}
-    return LabelMap(np.round(data).astype(np.int32), T, str(path), names, segments)
+    return LabelMap(_whole_labels(data, path), T, str(path), names, segments)
 
 
 def label_map_kind(source) -> str:
@@ -243,13 +263,29 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     from imaging.seg import read_dicom_seg
 
     try:
-        labels, T, names = read_dicom_seg(path)
+        labels, T, names, frame = read_dicom_seg(path)
     except ValueError as exc:
         raise LabelMapError(
             f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}; give the heart's label "
             "map in one of these (an RT structure set: export it as a labelmap, e.g. from 3D Slicer)"
         ) from None
-    return LabelMap(labels, T, str(path), names)
+    segments = {}
+    if labels.ndim == 4:  # overlapping segments, one layer each where they overlap: chosen by name or number
+        layer_of = {int(v): n for n, layer in enumerate(labels) for v in np.unique(layer) if v}
+        segments = {(names.get(v) or f"segment {v}"): (n, v) for v, n in sorted(layer_of.items())}
+    return LabelMap(labels, T, str(path), names, segments, frame_of_reference_uid=frame)
+
+
+def other_frame(label_map: LabelMap, volume) -> str:
+    """What to say of a DICOM SEG drawn in another frame of reference than a DICOM CT's (another study or
+    acquisition), '' otherwise: its patient coordinates need not be the CT's, though it may overlap the CT
+    anyway.  A volume file (NIfTI, NRRD) has no frame of reference to compare."""
+    from_dicom = bool(volume.slices) and bool(volume.slices[0].sop_instance_uid)
+    if not (label_map.frame_of_reference_uid and from_dicom
+            and label_map.frame_of_reference_uid != volume.series.frame_of_reference_uid):
+        return ""
+    return ("drawn in another frame of reference than the CT's (another study or acquisition?): it is placed by its "
+            "patient coordinates, which need not be this CT's; check the model lies on this heart")
 
 
 def _no_overlap(label, label_map) -> LabelMapError:
