@@ -195,6 +195,7 @@ def _open_model_input(args):
     none: its phase is then recorded as unknown).
     """
     from imaging.volume_file import is_nifti_path, is_volume_file, read_volume_file
+    from modeling.options import MODEL_MEMORY_FACTOR
 
     from heartreg.pipeline import open_study, refuse_one_image
 
@@ -205,7 +206,7 @@ def _open_model_input(args):
         return read_volume_file(args.study_dir), None, f"{article} {kind} volume has no slice clock", None
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
-        warn=lambda msg: print(msg, file=sys.stderr), phase_required=False,
+        warn=lambda msg: print(msg, file=sys.stderr), phase_required=False, memory_factor=MODEL_MEMORY_FACTOR,
     )
     refuse_one_image(args.study_dir, volume)
     if isinstance(report, str):

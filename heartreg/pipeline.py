@@ -78,7 +78,8 @@ def refuse_one_image(study_dir, volume) -> None:
                          "holds the whole CT series")
 
 
-def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None, phase_required: bool = True):
+def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn=None, phase_required: bool = True,
+               memory_factor: float = 1.0):
     """Load a study's volume and its cardiac phase report: ``imaging.load_study``
     then ``imaging.compute_phase_report`` (which reads the study's ECG waveforms
     itself), with the user's R-peak file if given.
@@ -103,10 +104,14 @@ def open_study(study_dir, *, series=None, qrs=None, progress: bool = False, warn
     report : imaging.PhaseReport, or str
         The reason the phase is unknown, when ``phase_required`` is false and
         no R-peak source times the slices.
+    memory_factor : float
+        Passed to ``imaging.load_study``: the caller's peak memory in multiples of
+        the volume's int16 bytes (a series needing more than there is is refused).
     """
     from imaging import compute_phase_report, load_study, read_qrs_file
 
-    volume = load_study(study_dir, series=series, progress=progress, prefer_gated=True)
+    volume = load_study(study_dir, series=series, progress=progress, prefer_gated=True,
+                        memory_factor=memory_factor)
     qrs_s = read_qrs_file(qrs) if qrs else None
     from imaging import GatingError
 
@@ -171,6 +176,7 @@ def run_pipeline(
     from imaging import write_phase_report
     from modeling import build_heart_model, write_model
     from modeling.ct_overlay import ct_panels
+    from modeling.options import MODEL_MEMORY_FACTOR
     from modeling.render import render_model_pictures
     from modeling.slice_phases import SlicePhases
     from registration import read_session
@@ -193,7 +199,8 @@ def run_pipeline(
     ) as staging:
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")
-        volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log)
+        volume, report = open_study(study_dir, series=series, qrs=qrs, progress=progress, warn=log,
+                                    memory_factor=MODEL_MEMORY_FACTOR)  # the model is built from it
         refuse_one_image(study_dir, volume)
         session = read_session(session_dir)  # fail early on a bad session, before the slow work
         extra = phase_report_extra(volume, study_dir)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import ctypes
 import functools
 
-__all__ = ["release_free_memory"]
+__all__ = ["available_memory_bytes", "release_free_memory"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -62,3 +62,40 @@ def release_free_memory() -> bool:
         return False
     fn = _malloc_trim()
     return bool(fn(0)) if fn is not None else False
+
+
+def _cgroup_room() -> int | None:
+    """Bytes the process's cgroup (v2) may still take, or None without a limit."""
+    try:
+        with open("/sys/fs/cgroup/memory.max") as f:
+            limit = f.read().strip()
+        if limit == "max":
+            return None
+        with open("/sys/fs/cgroup/memory.current") as f:
+            return max(0, int(limit) - int(f.read()))
+    except (OSError, ValueError):
+        return None
+
+
+def available_memory_bytes() -> int | None:
+    """Memory a new allocation can take without swapping or the OOM killer, in bytes.
+
+    The kernel's ``MemAvailable`` (free memory and the page cache it can drop),
+    capped by the container's cgroup limit when there is one.  With Linux's
+    overcommit a large ``np.empty`` succeeds whatever this says, and the
+    process is killed minutes later as it fills the array: a command that
+    knows how much it will need asks here first.
+
+    Returns
+    -------
+    int or None
+        None where it cannot be told (not Linux): then nothing is refused.
+    """
+    try:
+        with open("/proc/meminfo") as f:
+            free = next((int(line.split()[1]) * 1024 for line in f if line.startswith("MemAvailable:")), None)
+    except (OSError, ValueError):
+        free = None
+    room = _cgroup_room()
+    known = [b for b in (free, room) if b is not None]
+    return min(known) if known else None

@@ -21,6 +21,8 @@ import warnings
 
 import numpy as np
 
+from hrcore.memory import available_memory_bytes
+
 from .grouping import _LOADABLE, SeriesSummary, StudyWarning, _Group, _scan_groups
 from .nominal import percent_not_gated, trigger_not_gated
 from .pixels import _assemble
@@ -222,7 +224,8 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
 
 
 def load_study(
-    path, *, series=None, progress: bool = False, resample: bool = True, prefer_gated: bool = False
+    path, *, series=None, progress: bool = False, resample: bool = True, prefer_gated: bool = False,
+    memory_factor: float = 1.0,
 ) -> Volume:
     """Load one image stack of a DICOM study as a `Volume`.
 
@@ -243,6 +246,11 @@ def load_study(
         (GE R-peak stamps, the study's ECG waveform, TriggerTime, nominal phase)
         over a larger one that cannot (for the commands that need a phase); the
         note says which was taken and which were passed over.
+    memory_factor : float
+        The caller's peak memory in multiples of the volume's bytes as int16
+        (``heartreg model``: :data:`modeling.options.MODEL_MEMORY_FACTOR`); a
+        series needing more than the memory available is refused with a
+        `SeriesError` before any pixel is read (1: the volume alone).
 
     Returns
     -------
@@ -255,7 +263,8 @@ def load_study(
     StudyError
         Nothing under `path` is a DICOM image.
     SeriesError
-        The requested series is unknown, or its geometry cannot be handled.
+        The requested series is unknown, or its geometry cannot be handled, or it
+        needs more memory than is available.
     imaging.pixels.DecoderUnavailableError
         A compressed transfer syntax has no installed decoder (names the package).
     imaging.pixels.PixelDataError
@@ -285,6 +294,7 @@ def load_study(
         notes.append(summary.reason)
     plan = _plan_geometry(list(group.frames), label=label, resample=resample)
     notes.extend(plan.notes)
+    _check_memory(plan, label, memory_factor)
     hu, pixel_notes = _assemble(plan, progress=progress)
     notes.extend(pixel_notes)
     if plan.resample_k or plan.resample_plane or any("RescaleSlope" in n for n in pixel_notes):
@@ -335,4 +345,27 @@ def load_study(
             and o.sop_class_uid.startswith("1.2.840.10008.5.1.4.1.1.9.1.")
         ),
         selection=why,
+    )
+
+
+def _check_memory(plan, label: str, factor: float) -> None:
+    """Refuse, in one line, a series whose reading and processing need more memory than there is.
+
+    Said before the slow work: Linux overcommits, so the volume's array is
+    allocated whatever its size and the process is killed (no message, nothing
+    written) once reading its slices has filled the memory, minutes later.
+    """
+    rows, cols = plan.grid_shape or (plan.frames[0].rows, plan.frames[0].columns)
+    int16_bytes = 2 * plan.n_out * rows * cols
+    resampled = plan.resample_k or plan.resample_plane  # stored as float32 (_assemble)
+    need = max(factor * int16_bytes, 2 * int16_bytes if resampled else int16_bytes)
+    free = available_memory_bytes()
+    if free is None or need <= free:
+        return
+    gb = 2.0**30
+    share = "" if factor == 1 else f" ({factor:g}x its {int16_bytes / gb:.3g} GB as int16)"
+    raise SeriesError(
+        f"series {label}: {cols} x {rows} x {plan.n_out} voxels need about {need / gb:.3g} GB of memory{share}, "
+        f"and {free / gb:.3g} GB is available; free memory, or give a reconstruction with fewer voxels "
+        "(thicker slices, a smaller matrix, or a field of view cropped to the heart)"
     )

@@ -19,12 +19,15 @@ from types import MappingProxyType
 from hrcore.errors import UsageError
 from hrcore.options import OptionsRecord
 
-__all__ = ["AUTO", "MIN_HEART_ML", "ModelOptions"]
+__all__ = ["AUTO", "MIN_HEART_ML", "MODEL_MEMORY_FACTOR", "ModelOptions"]
 
 #: ``expected_fiducials`` value: take the markers found on the skin, however many (none: a warning).
 AUTO = "auto"
 #: an adult heart (epicardial surface) holds some 300-1000 ml; a mask below this is not one.
 MIN_HEART_ML = 100.0
+#: a heart model's peak memory, in multiples of the CT's bytes as int16 (the project's bound; measured 1.7-2.9x
+#: from 512 x 512 x 40 to 1024 x 1024 x 300 and 512 x 512 x 900): a CT needing more than there is is refused first
+MODEL_MEMORY_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
