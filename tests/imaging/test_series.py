@@ -539,6 +539,41 @@ def test_syntax_without_decoder_names_the_package(tmp_path, monkeypatch):
         load_study(tmp_path)
 
 
+def test_twelve_bit_jpeg_extended_names_its_syntax_not_a_corrupt_file(tmp_path):
+    """A valid JPEG Extended file of 12-bit samples (older CT exports; written here by
+    python-gdcm): pydicom's gdcm and pillow plugins decode 8-bit JPEG Extended only and
+    heartreg does not use the GPL libjpeg, so nothing installed reads it.  The line names
+    the syntax and the converters; it used to say "cannot decode pixel data (RuntimeError:
+    ...); the file may be truncated or corrupt: remove it or re-export the series"."""
+    gdcm = pytest.importorskip("gdcm")
+
+    def twelve_bits(ds, k):
+        ds.BitsStored, ds.HighBit = 12, 11
+
+    files = fac.write_ct_series(tmp_path, n_slices=2, extra=twelve_bits)
+    for f in files:
+        reader = gdcm.ImageReader()
+        reader.SetFileName(str(f))
+        assert reader.Read()
+        change = gdcm.ImageChangeTransferSyntax()
+        change.SetTransferSyntax(gdcm.TransferSyntax(gdcm.TransferSyntax.JPEGExtendedProcess2_4))
+        change.SetInput(reader.GetImage())
+        assert change.Change()
+        writer = gdcm.ImageWriter()
+        writer.SetFileName(str(f))
+        writer.SetFile(reader.GetFile())
+        writer.SetImage(change.GetOutput())
+        assert writer.Write()
+    ds = pydicom.dcmread(files[0])
+    assert (ds.file_meta.TransferSyntaxUID, ds.BitsStored) == ("1.2.840.10008.1.2.4.51", 12)
+    with pytest.raises(DecoderUnavailableError) as err:
+        load_study(tmp_path)
+    text = str(err.value)
+    assert "slice_000.dcm: transfer syntax 1.2.840.10008.1.2.4.51 (JPEG Extended" in text
+    assert "12-bit samples" in text and "dcmdjpeg" in text and "gdcmconv --raw" in text
+    assert "corrupt" not in text and "\n" not in text
+
+
 # ------------------------------------------------------------- bad input
 
 
