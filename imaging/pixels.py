@@ -62,8 +62,17 @@ class DecoderUnavailableError(HeartregError, RuntimeError):
     """No installed pixel-data decoder handles a file's transfer syntax."""
 
 
-def _choose_plugin(ts: str, path: str) -> str:
-    """The pydicom decoding plugin to use for `ts` ('' = pydicom's choice)."""
+#: (0002,0010) JPEG Extended (process 2 & 4): 8- or 12-bit samples.
+_JPEG_EXTENDED = "1.2.840.10008.1.2.4.51"
+
+
+def _choose_plugin(ts: str, path: str, bits_stored: int = 8) -> str:
+    """The pydicom decoding plugin to use for `ts` ('' = pydicom's choice).
+
+    `bits_stored` is the file's (0028,0101) Bits Stored: pydicom's gdcm and pillow
+    plugins refuse JPEG Extended beyond 8 bits, which leaves a 12-bit file (older CT
+    exports) to the GPL libjpeg alone; without this its refusal read as a corrupt file.
+    """
     from pydicom.pixels import get_decoder
 
     try:
@@ -78,6 +87,13 @@ def _choose_plugin(ts: str, path: str) -> str:
     plugins = list(decoder.available_plugins)
     if ts in _GPL_LIBJPEG_SYNTAXES:
         plugins = [p for p in plugins if p != "pylibjpeg"]
+    if ts == _JPEG_EXTENDED and bits_stored != 8:
+        raise DecoderUnavailableError(
+            f"{path}: transfer syntax {ts} ({decoder.UID.name}) with {bits_stored}-bit samples: no installable "
+            "decoder heartreg uses reads it (pillow and python-gdcm decode 8-bit JPEG Extended only; "
+            "pylibjpeg-libjpeg is GPL); convert the study to an uncompressed syntax first, e.g. with dcmtk's "
+            "`dcmdjpeg` or GDCM's `gdcmconv --raw`"
+        )
     if not plugins:
         hint = _INSTALL_HINT.get(ts, "a pydicom pixel-data plugin for it")
         raise DecoderUnavailableError(
@@ -329,7 +345,7 @@ def _assemble(plan: _Plan, *, progress: bool = False) -> tuple[np.ndarray, tuple
     plugins = {}
     for f in frames:
         if f.transfer_syntax_uid not in plugins:
-            plugins[f.transfer_syntax_uid] = _choose_plugin(f.transfer_syntax_uid, f.path)
+            plugins[f.transfer_syntax_uid] = _choose_plugin(f.transfer_syntax_uid, f.path, f.bits_stored)
     notes: list[str] = []
     frames, rescale_note = _series_rescale(frames)
     if rescale_note:

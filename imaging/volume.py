@@ -312,10 +312,12 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
                 if n_missing and np.allclose(gaps / m, np.round(gaps / m), atol=0.05)
                 else "uneven slice spacing"
             )
+            # a note is printed as a warning: the files by name, as the grouping's notes (a study's
+            # folders can be named after the patient), not by path
             notes.append(
                 f"{what}: gaps from {gaps.min():.3f} to {gaps.max():.3f} mm (median "
-                f"{m:.3f} mm, largest between {frames[worst].path} and "
-                f"{frames[worst + 1].path}); resampled linearly along the slice normal "
+                f"{m:.3f} mm, largest between {os.path.basename(frames[worst].path)} and "
+                f"{os.path.basename(frames[worst + 1].path)}); resampled linearly along the slice normal "
                 f"onto a regular grid at {m:.3f} mm"
             )
         else:
@@ -336,7 +338,7 @@ def _plan_geometry(frames: list[_Frame], *, label: str, resample: bool = True) -
         notes.append(
             f"sheared stack (gantry tilt or shifted slices): ImagePositionPatient steps are "
             f"not along the slice normal; in-plane offsets up to {shear_mm.max():.3f} mm "
-            f"(file {frames[worst].path}), about {tilt:.2f} deg"
+            f"(file {os.path.basename(frames[worst].path)}), about {tilt:.2f} deg"
             + (f", GantryDetectorTilt {gantry:g} deg" if gantry else "")
             + "; each slice resampled in-plane (linear) onto an orthogonal grid widened to "
             "the bounding box of every slice's pixels (no acquired pixel dropped; GRID), voxels "

@@ -390,6 +390,30 @@ def test_missing_slice_is_resampled(tmp_path):
     assert any("1 missing slice(s)" in n and "2.000 mm" in n for n in vol.notes)
 
 
+def test_resampling_notes_name_files_without_their_folder(tmp_path):
+    """The notes of a missing slice, of uneven spacing and of a sheared stack are
+    printed as warnings: they name the files, not the study's folders (a folder can
+    be named after the patient; the grouping's notes did so already).  Until this
+    audit they gave the full path, e.g. 'largest between /data/DOE_JANE/ct/slice_006.dcm
+    and ...'."""
+    folder = tmp_path / "DOE_JANE_PID123"
+    fac.write_ct_series(folder / "missing", skip=(7,))
+    z = 2.0 * np.arange(20)
+    z[5:] += 0.6
+    fac.write_ct_series(folder / "uneven", positions=[(-16.0, -16.0, -20.0 + v) for v in z])
+    fac.write_ct_series(folder / "tilted", shear_mm=(0.0, 0.7, 0.0))
+    for sub, what, named in [("missing", "missing slice", "slice_006.dcm and slice_008.dcm"),
+                             ("uneven", "uneven slice spacing", "slice_004.dcm and slice_005.dcm"),
+                             ("tilted", "sheared stack", "(file slice_019.dcm)")]:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            vol = load_study(folder / sub)
+        note = next(n for n in vol.notes if what in n)
+        assert named in note, note
+        printed = " ".join(str(w.message) for w in caught)
+        assert what in printed and "DOE_JANE" not in printed and str(tmp_path) not in printed
+
+
 def test_missing_slice_refused_when_resampling_off(tmp_path):
     fac.write_ct_series(tmp_path, skip=(7,))
     with pytest.raises(SeriesError, match="not a regular orthogonal stack.*missing slice"):
@@ -537,6 +561,41 @@ def test_syntax_without_decoder_names_the_package(tmp_path, monkeypatch):
         ds.save_as(f, enforce_file_format=True)
     with pytest.raises(DecoderUnavailableError, match=r"slice_000.dcm.*install python-gdcm"):
         load_study(tmp_path)
+
+
+def test_twelve_bit_jpeg_extended_names_its_syntax_not_a_corrupt_file(tmp_path):
+    """A valid JPEG Extended file of 12-bit samples (older CT exports; written here by
+    python-gdcm): pydicom's gdcm and pillow plugins decode 8-bit JPEG Extended only and
+    heartreg does not use the GPL libjpeg, so nothing installed reads it.  The line names
+    the syntax and the converters; it used to say "cannot decode pixel data (RuntimeError:
+    ...); the file may be truncated or corrupt: remove it or re-export the series"."""
+    gdcm = pytest.importorskip("gdcm")
+
+    def twelve_bits(ds, k):
+        ds.BitsStored, ds.HighBit = 12, 11
+
+    files = fac.write_ct_series(tmp_path, n_slices=2, extra=twelve_bits)
+    for f in files:
+        reader = gdcm.ImageReader()
+        reader.SetFileName(str(f))
+        assert reader.Read()
+        change = gdcm.ImageChangeTransferSyntax()
+        change.SetTransferSyntax(gdcm.TransferSyntax(gdcm.TransferSyntax.JPEGExtendedProcess2_4))
+        change.SetInput(reader.GetImage())
+        assert change.Change()
+        writer = gdcm.ImageWriter()
+        writer.SetFileName(str(f))
+        writer.SetFile(reader.GetFile())
+        writer.SetImage(change.GetOutput())
+        assert writer.Write()
+    ds = pydicom.dcmread(files[0])
+    assert (ds.file_meta.TransferSyntaxUID, ds.BitsStored) == ("1.2.840.10008.1.2.4.51", 12)
+    with pytest.raises(DecoderUnavailableError) as err:
+        load_study(tmp_path)
+    text = str(err.value)
+    assert "slice_000.dcm: transfer syntax 1.2.840.10008.1.2.4.51 (JPEG Extended" in text
+    assert "12-bit samples" in text and "dcmdjpeg" in text and "gdcmconv --raw" in text
+    assert "corrupt" not in text and "\n" not in text
 
 
 # ------------------------------------------------------------- bad input
