@@ -65,8 +65,10 @@ def _usage_error_in_one_line(parser) -> None:
 def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     """``warning: MESSAGE``, on a line of its own: after a progress bar's text when a bar is drawn (it ran on
     from it, 'model:   0%| ... mask]warning: ...', an audit; the bar is drawn again below it)."""
+    from hrcore.redact import pseudonymize_uids
+
     bars = getattr(getattr(sys.modules.get("tqdm"), "tqdm", None), "_instances", ())
-    return ("\n" if bars else "") + f"warning: {message}\n"
+    return ("\n" if bars else "") + f"warning: {pseudonymize_uids(str(message))}\n"  # no study's UID printed
 
 
 class Terminated(KeyboardInterrupt):

@@ -16,6 +16,14 @@ from pathlib import Path
 from hrcore.errors import UsageError
 
 
+def _note(msg: str) -> None:
+    """A reader's note on the terminal, with the study's DICOM UIDs as their pseudonyms, as in every output
+    (:mod:`hrcore.redact`)."""
+    from hrcore.redact import pseudonymize_uids
+
+    print(pseudonymize_uids(msg), file=sys.stderr)
+
+
 def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
@@ -73,7 +81,7 @@ def _open_study(args):
 
     return open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
-        warn=lambda msg: print(msg, file=sys.stderr),
+        warn=_note,
     )
 
 
@@ -206,7 +214,7 @@ def _open_model_input(args):
         return read_volume_file(args.study_dir), None, f"{article} {kind} volume has no slice clock", None
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
-        warn=lambda msg: print(msg, file=sys.stderr), phase_required=False, memory_factor=MODEL_MEMORY_FACTOR,
+        warn=_note, phase_required=False, memory_factor=MODEL_MEMORY_FACTOR,
     )
     refuse_one_image(args.study_dir, volume)
     if isinstance(report, str):

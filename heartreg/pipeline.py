@@ -191,7 +191,10 @@ def run_pipeline(
     if registration_options is not None:
         sweep_phases(registration_options.phase_step)  # --step refused now, not after the phases and the model
     timings = {}
-    log = (lambda msg: print(msg, file=sys.stderr)) if progress else (lambda msg: None)
+    from hrcore.redact import pseudonymize_uids
+
+    # notes on the terminal name the study's DICOM UIDs by their pseudonyms, as every output
+    log = (lambda msg: print(pseudonymize_uids(msg), file=sys.stderr)) if progress else (lambda msg: None)
     # everything is written into a staging folder and moved into place at the end
     # (one rename when OUT_DIR is new): a failure or a signal leaves OUT_DIR as it was
     with staged_output(

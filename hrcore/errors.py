@@ -84,9 +84,14 @@ def os_error_message(exc: OSError, *, what: str = "") -> str:
 
 def refusal_line(exc: BaseException) -> str | None:
     """The one line a command prints for a refusal (a :class:`HeartregError` or an
-    OS error, translated); None for anything else, which is a bug."""
+    OS error, translated); None for anything else, which is a bug.
+
+    The study's DICOM UIDs in it are their pseudonyms (:func:`hrcore.redact.pseudonymize_uids`):
+    the line is printed, and ``heartreg batch`` writes it into its records."""
+    from hrcore.redact import pseudonymize_uids
+
     if isinstance(exc, OSError) and getattr(root_os_error(exc), "strerror", None):
-        return os_error_message(exc)
+        return pseudonymize_uids(os_error_message(exc))
     if isinstance(exc, (HeartregError, OSError)):
-        return " ".join(str(exc).split()) or type(exc).__name__
+        return pseudonymize_uids(" ".join(str(exc).split())) or type(exc).__name__
     return None

@@ -22,6 +22,7 @@ import warnings
 import numpy as np
 
 from hrcore.memory import available_memory_bytes
+from hrcore.redact import pseudonym_uid
 
 from .grouping import _LOADABLE, SeriesSummary, StudyWarning, _Group, _scan_groups
 from .nominal import percent_not_gated, trigger_not_gated
@@ -195,9 +196,12 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
     if isinstance(series, (int, np.integer)):
         matches = [g for g in groups if g.summary.index == int(series)]
     else:
-        matches = [g for g in groups if g.summary.uid == series.strip()]
+        # the UID, or its pseudonym: what the commands print in its place (hrcore.redact)
+        matches = [g for g in groups if series.strip() in (g.summary.uid, pseudonym_uid(g.summary.uid))]
     if not matches:
-        raise SeriesError(f"series {series!r} not found; the study holds: " + _choices(groups))
+        # a UID given is not echoed: the line prints pseudonyms in place of UIDs, and its own would read as another
+        missing = f"series {series!r} not found" if isinstance(series, (int, np.integer)) else "no series has the UID given"
+        raise SeriesError(f"{missing}; the study holds: " + _choices(groups))
     if len(matches) > 1:
         usable = [g for g in matches if g.summary.kind in _LOADABLE]
         if len(usable) == 1:
@@ -234,8 +238,10 @@ def load_study(
     path : str or os.PathLike
         A study folder (searched recursively, any file names) or a single file.
     series : int, str, SeriesSummary or None
-        Index from `list_series`, or a Series Instance UID. None picks the axial CT
-        stack with the most slices (not a localizer) and says why in ``notes``.
+        Index from `list_series`, or a Series Instance UID (or its pseudonym,
+        :func:`hrcore.redact.pseudonym_uid`, which the commands print in its place).
+        None picks the axial CT stack with the most slices (not a localizer) and
+        says why in ``notes``.
     progress : bool
         Progress bars on stderr.
     resample : bool

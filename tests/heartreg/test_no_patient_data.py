@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import json
 import struct
+import subprocess
+import sys
 import zlib
 from pathlib import Path
 
@@ -173,6 +175,40 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path, capsys):
     assert f"[0] {series}  CT" in capsys.readouterr().out
     assert main(["phases", str(ct), "--series", series, "-o", str(tmp_path / "chosen"), "-q"]) == 0
     assert json.loads((tmp_path / "chosen" / "phases.json").read_text())["series_instance_uid"] == pseudonym_uid(series)
+
+
+def test_warnings_and_refusals_print_pseudonyms(sample_case, tmp_path, capsys):
+    """What the readers say on the terminal names a series by its pseudonym, as the outputs do: two equally good
+    copies of the CT series (a re-export) are warned of, an unknown --series is refused with the series held,
+    and --series takes the pseudonym printed (an audit found both lines printing the study's raw UIDs)."""
+    case, _ = sample_case
+    study = tmp_path / "study"
+    study.mkdir()
+    uids = {}
+    for copy in ("a", "b"):
+        series_uid = pydicom.uid.generate_uid()
+        for f in sorted((case / "ct").iterdir()):
+            ds = pydicom.dcmread(f)
+            if ds.Modality != "CT":
+                continue
+            ds.SeriesInstanceUID = series_uid
+            ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = pydicom.uid.generate_uid()
+            ds.save_as(study / f"{copy}_{f.name}")
+            uids.update({str(ds.StudyInstanceUID): "study", series_uid: f"series {copy}"})
+    # as a user runs it (in-process, pytest would take the warnings before the command's printer does)
+    run = subprocess.run([sys.executable, "-m", "heartreg", "model", str(study), "-o", str(tmp_path / "model"), "-q"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "2 CT series are equally good candidates ([0], [1]); used [0] 2.25." in run.stderr
+    assert [uids[u] for u in uids if u in run.stdout + run.stderr] == []
+    assert main(["model", str(study), "--series", "1.2.3.4.5.6", "-o", str(tmp_path / "other"), "-q"]) == 1
+    refused = capsys.readouterr().err
+    assert "error: no series has the UID given; the study holds: [0] 2.25." in refused
+    assert [uids[u] for u in uids if u in refused] == []
+    second = next(u for u, what in uids.items() if what == "series b")
+    assert main(["model", str(study), "--series", pseudonym_uid(second), "-o", str(tmp_path / "b"), "-q"]) == 0
+    source = json.loads((tmp_path / "b" / "model.json").read_text())["source"]
+    assert source["series_instance_uid"] == pseudonym_uid(second)
 
 
 @pytest.mark.parametrize("needle", [FOLDER, PATIENT_ID])

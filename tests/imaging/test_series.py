@@ -292,7 +292,7 @@ def test_series_selectable_by_index_and_uid(mixed):
 
 
 def test_unknown_series_lists_choices(mixed):
-    with pytest.raises(SeriesError, match=r"(?s)not found.*\[0\].*\[2\]") as err:
+    with pytest.raises(SeriesError, match=r"(?s)no series has the UID given.*\[0\].*\[2\]") as err:
         load_study(mixed, series="1.2.3.4")
     assert "Scout" not in str(err.value)  # the descriptions (free text) are for --list-series only
     with pytest.raises(SeriesError, match="not found"):
