@@ -25,6 +25,7 @@ from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, other_frame, read_label_map
 from modeling.mesh import vertex_normals
+from modeling.metal import metal_near_heart
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
@@ -337,6 +338,8 @@ def build_heart_model(
     if cut:
         fallback(f"the heart is cut by the CT's field of view ({cut}): the model ends flat there and misses what "
                  "lies beyond; reconstruct a wider field of view if that side matters")
+    if metal := metal_near_heart(volume.hu, mask, T):
+        fallback(metal)
     if trim_vessels is None:
         trim_vessels = mask_path is None
         pool_hu, arterial_hu = seg_params.get("pool_hu"), seg_params.get("blood_hu", [None])[0]

@@ -129,3 +129,9 @@ def principal_axis(mask, T_patient_from_voxel) -> np.ndarray:
     T = np.asarray(T_patient_from_voxel, dtype=float)
     p = np.argwhere(mask)[:, ::-1] @ T[:3, :3].T + T[:3, 3]
     return np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2][0]
+
+
+#: A pacing lead's course in ``ct_cropped.nii.gz`` (voxel k, j, i), picked on its slices: down the superior vena
+#: cava from the field of view's top, through the right atrium and the tricuspid valve to the right ventricle's apex.
+LEAD_KJI = ((111, 55, 30), (95, 56, 30), (75, 52, 31), (62, 47, 31), (52, 40, 36), (44, 32, 45), (35, 23, 60),
+            (27, 20, 72))
