@@ -10,10 +10,9 @@ sees where the time goes.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -25,7 +24,7 @@ from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, other_frame, read_label_map
 from modeling.mesh import vertex_normals
-from modeling.metal import metal_near_heart
+from modeling.metal import metal_in_chest, metal_near_heart
 from modeling.model import HeartModel, make_heart_model
 from modeling.options import AUTO, MIN_HEART_ML, ModelOptions
 from modeling.segment import SegmentationError, segment_heart
@@ -311,7 +310,10 @@ def build_heart_model(
         if elsewhere := other_frame(label_map, volume):
             fallback(f"{mask_source}: {elsewhere}")
     else:
-        seg = segment_heart(volume.hu, T, **(segmentation or {}))
+        try:
+            seg = segment_heart(volume.hu, T, **(segmentation or {}))
+        except SegmentationError as exc:  # a lead's streaks part the blood pool: say so, not only the contrast
+            raise SegmentationError(f"{exc}{metal_in_chest(volume.hu, T)}") from None
         mask, lumen, T_lumen = seg.mask, seg.vessel_lumen, seg.T_patient_from_lumen
         mask_source = "automatic segmentation"
         seg_params = seg.parameters
@@ -482,10 +484,8 @@ def build_heart_model(
     )
     apex = -model.frame.axes_patient[:, 2]
     if apex[0] < -APEX_RIGHT_MAX or apex @ APEX_LAI_LPS <= 0:  # to the patient's right, or away from L-A-I
-        fallback(
-            f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
-            "as usual: check the model (dextrocardia, or a segmentation error)"
-        )
+        fallback(f"the apex points {np.round(apex, 2).tolist()} (LPS), not towards patient left-anterior-inferior "
+                 "as usual: check the model (dextrocardia, or a segmentation error)")
     if frame_warning := model.frame.convergence_warning():
         fallback(frame_warning)
     notes.append(
@@ -493,8 +493,6 @@ def build_heart_model(
          "usual orientation": "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)",
          "cross-section": "heart frame: base at the broader end"}[base_rule]
     )
-    model = dataclasses.replace(
-        model, parameters={**dict(model.parameters), "notes": list(notes), "warnings": list(fallbacks)}
-    )
+    model = replace(model, parameters={**dict(model.parameters), "notes": list(notes), "warnings": list(fallbacks)})
     done("frame")
     return ModelBuild(model, fiducials, mask_source, timings, tuple(notes))

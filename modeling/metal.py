@@ -25,7 +25,7 @@ import numpy as np
 from modeling.coarse import mask_box
 from modeling.distance import distance_mm
 
-__all__ = ["METAL_HU", "METAL_REACH_MM", "METAL_MIN_MM3", "metal_near_heart"]
+__all__ = ["METAL_HU", "METAL_REACH_MM", "METAL_MIN_MM3", "LEAD_MIN_MM", "metal_in_chest", "metal_near_heart"]
 
 #: HU at and above which a voxel is metal (a 12-bit reconstruction saturates at 3071).
 METAL_HU = 3000.0
@@ -34,6 +34,9 @@ METAL_HU = 3000.0
 METAL_REACH_MM = 5.0
 #: Less metal than this (mm^3) is not a lead: a 2 mm wire over 5 mm holds about 15.
 METAL_MIN_MM3 = 15.0
+#: A piece of metal at least this long (mm) is a lead's wire: the simulated lead's spans 129 mm, the real CT's
+#: pieces (stent struts, sternal wires, its densest contrast) 20 mm at most.
+LEAD_MIN_MM = 40.0
 
 
 def metal_near_heart(hu, mask, T_patient_from_voxel) -> str:
@@ -78,3 +81,36 @@ def metal_near_heart(hu, mask, T_patient_from_voxel) -> str:
     return (f"metal in or beside the heart ({mm3:.0f} mm^3 above {METAL_HU:.0f} HU within {METAL_REACH_MM:g} mm of "
             "it: a pacing or defibrillator lead?): its streaks can part or shrink the chambers; check the model "
             "over the CT (model_ct.png)")
+
+
+def metal_in_chest(hu, T_patient_from_voxel) -> str:
+    """What a refusal adds when the CT holds a lead-like piece of metal ('' when none): "; ..." naming its length.
+
+    A segmentation that finds no blood pool blames weak contrast; a lead's streaks part the pool as well (the
+    real CT with a simulated defibrillator lead: "no heart-sized region").  A piece of metal
+    (:data:`METAL_HU`, 26-connected) spanning :data:`LEAD_MIN_MM` or more is said.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> hu = np.zeros((60, 20, 20), np.int16)
+    >>> metal_in_chest(hu, np.eye(4))
+    ''
+    >>> hu[5:55, 10, 10] = 3071
+    >>> metal_in_chest(hu, np.eye(4))[:40]
+    '; the CT holds metal (a piece 50 mm long'
+    """
+    from scipy import ndimage
+
+    metal = np.asarray(hu) >= METAL_HU
+    box = mask_box(metal)
+    if box is None:
+        return ""
+    labels, _ = ndimage.label(metal[box], structure=np.ones((3, 3, 3), bool))
+    spacing = np.linalg.norm(np.asarray(T_patient_from_voxel, dtype=float)[:3, :3], axis=0)[::-1]  # k, j, i
+    longest = max(float(np.max([(s.stop - s.start) * d for s, d in zip(found, spacing)]))
+                  for found in ndimage.find_objects(labels))
+    if longest < LEAD_MIN_MM:
+        return ""
+    return (f"; the CT holds metal (a piece {longest:.0f} mm long above {METAL_HU:.0f} HU: a pacing or "
+            "defibrillator lead?), whose streaks can part the blood pool as well")

@@ -770,9 +770,10 @@ def test_a_mask_in_two_pieces_is_said(realct, tmp_path):
     assert any("separate pieces" in w for w in build.model.parameters["warnings"])  # and in model.json
 
 
-def _streaked(tmp_path, slices, change) -> object:
+def _streaked(tmp_path, slices, change, lead: bool = False) -> object:
     """The real CT with three lines through the heart's centre in each of ``slices`` (a session-19 hunt's),
-    each line's voxels changed by ``change`` (HU -> HU), read back as a volume."""
+    each line's voxels changed by ``change`` (HU -> HU), and with ``lead`` a lead's wire (:func:`_with_lead`),
+    read back as a volume."""
     ct = nib.load(str(REALCT / "ct_cropped.nii.gz"))
     data = np.asanyarray(ct.dataobj).astype(np.int32)  # [i, j, k], RAS
     t = np.linspace(-80, 80, 400)
@@ -782,8 +783,19 @@ def _streaked(tmp_path, slices, change) -> object:
             j = np.rint(51 + t * np.sin(angle + k * 0.05)).astype(int)
             ok = (i >= 0) & (i < data.shape[0]) & (j >= 0) & (j < data.shape[1])
             data[i[ok], j[ok], k] = change(data[i[ok], j[ok], k])
+    if lead:
+        _with_lead(data)
     nib.save(nib.Nifti1Image(data.clip(-1024, 3071).astype(np.int16), ct.affine), str(tmp_path / "streaks.nii.gz"))
     return read_nifti_volume(tmp_path / "streaks.nii.gz")
+
+
+def _with_lead(data) -> None:
+    """Paint a pacing lead's wire (3071 HU, one voxel thick) along ``LEAD_KJI`` into ``data[i, j, k]``."""
+    points = np.asarray(LEAD_KJI, float)
+    for a, b in zip(points[:-1], points[1:]):
+        for t in np.linspace(0.0, 1.0, int(4 * np.linalg.norm(b - a)) + 1):
+            k, j, i = np.rint(a + t * (b - a)).astype(int)
+            data[i, j, k] = 3071
 
 
 def test_a_lead_beside_the_heart_is_said(tmp_path, auto_model):
@@ -795,11 +807,7 @@ def test_a_lead_beside_the_heart_is_said(tmp_path, auto_model):
     assert not any("metal in or beside the heart" in w for w in auto_model[1])
     ct = nib.load(str(REALCT / "ct_cropped.nii.gz"))
     data = np.asanyarray(ct.dataobj).astype(np.int16)  # [i, j, k]
-    points = np.asarray(LEAD_KJI, float)
-    for a, b in zip(points[:-1], points[1:]):
-        for t in np.linspace(0.0, 1.0, int(4 * np.linalg.norm(b - a)) + 1):
-            k, j, i = np.rint(a + t * (b - a)).astype(int)
-            data[i, j, k] = 3071
+    _with_lead(data)
     nib.save(nib.Nifti1Image(data, ct.affine), str(tmp_path / "lead.nii.gz"))
     volume = read_nifti_volume(tmp_path / "lead.nii.gz")
     with pytest.warns(ModelingWarning, match=r"metal in or beside the heart \((\d+) mm\^3 above 3000 HU within 5 mm "
@@ -838,6 +846,20 @@ def test_a_seed_in_contrast_blood_finds_its_pool(tmp_path):
     seg = segment_heart(volume.hu, volume.T_patient_from_voxel, seed_patient_mm=seed)
     assert "blood pool: the contrast blood around the given point (above 200 HU)" in seg.notes
     assert seg.parameters["contrast"] is True and seg.volume_ml >= 200.0, seg.volume_ml
+
+
+def test_a_refusal_says_a_lead_may_be_why(tmp_path):
+    """Streaks part the blood pool (dark lines every 9 mm) and a lead's wire runs through the right heart: the
+    refusal names the lead as a likely cause, which 'no blood pool was found: with contrast too weak...' did
+    not (a simulated defibrillator lead's scan gave only that); without the wire it says nothing of metal."""
+    with pytest.raises(SegmentationError, match=r"no heart-sized region.*; the CT holds metal \(a piece 1[0-9]{2} mm "
+                                                r"long above 3000 HU: a pacing or defibrillator lead\?\)"):
+        build_heart_model(_streaked(tmp_path, range(30, 90, 6), lambda hu: hu - 600, lead=True), cardiac_phase=None,
+                          cardiac_phase_source="none", target_faces=4000)
+    with pytest.raises(SegmentationError, match="no heart-sized region") as plain:
+        build_heart_model(_streaked(tmp_path, range(30, 90, 6), lambda hu: hu - 600), cardiac_phase=None,
+                          cardiac_phase_source="none", target_faces=4000)
+    assert "metal" not in str(plain.value)
 
 
 @pytest.mark.parametrize("spacing_mm", [1.0, 2.0])
