@@ -186,11 +186,12 @@ def test_model_picture_failure_leaves_no_half_model(case, tmp_path, monkeypatch,
     """The picture is drawn inside the staging folder: when it fails, there is no
     folder with heart.ply and model.json but no model.png."""
     import modeling
+    import modeling.render
 
     def broken(model, path, **kw):
         raise OSError(28, "No space left on device", str(path))
 
-    monkeypatch.setattr(modeling, "render_model_png", broken)
+    monkeypatch.setattr(modeling.render, "render_model_png", broken)  # as render_model_pictures calls it
     monkeypatch.setattr(modeling, "offscreen_available", lambda: True)
     out = tmp_path / "model"
     assert main(["model", str(case["ct"]), "-o", str(out), "-q", "--faces", "2000"]) == 1
