@@ -157,6 +157,9 @@ def load_nifti(path):
     its own logger (``pixdim[1,2,3] should be non-zero; setting 0 dims to
     1``): the fixes come back instead, for the caller to judge.  Raises
     whatever nibabel raises for a file it cannot read.
+
+    Trailing axes of length one are dropped (``x, y, z, 1`` or ``x, y, z, 1, 1``:
+    one time point, one component, as some tools write a 3-D volume).
     """
     import logging
 
@@ -173,7 +176,10 @@ def load_nifti(path):
     logger.handlers[:] = [catch]
     try:
         img = nib.load(str(path))
-        return img, np.asarray(img.dataobj), fixes
+        data = np.asarray(img.dataobj)
+        while data.ndim > 3 and data.shape[-1] == 1:
+            data = data[..., 0]
+        return img, data, fixes
     finally:
         logger.handlers[:] = kept
 
@@ -227,8 +233,6 @@ def read_nifti_volume(path) -> Volume:
     if unoriented and any("pixdim" in fix for fix in fixes):  # its voxels would be 1 mm for want of any size
         raise SeriesError(f"NIfTI file {path} gives its voxels no size (pixdim 0) and no orientation (no qform or "
                           "sform): write the file with its voxel size and orientation")
-    if data.ndim == 4 and data.shape[3] == 1:
-        data = data[..., 0]
     if data.ndim != 3:
         raise SeriesError(f"NIfTI file {path} must hold a 3-D volume, got shape {data.shape}")
     T, conflict = nifti_lps_affine(img)

@@ -140,8 +140,6 @@ def _read_nifti(path: Path) -> LabelMap:
         img, data, _ = load_nifti(path)  # nibabel's mends of the header not printed
     except Exception as exc:  # nibabel raises many types for bad files
         raise LabelMapError(f"cannot read NIfTI label map {path}: {exc}") from None
-    if data.ndim == 4 and data.shape[3] == 1:
-        data = data[..., 0]
     if data.ndim != 3:
         raise LabelMapError(f"label map {path} must be 3-D, got shape {data.shape}")
     T, conflict = nifti_lps_affine(img)

@@ -103,6 +103,24 @@ def test_bad_files(tmp_path):
         read_nifti_volume(tmp_path / "junk.nii")
 
 
+@pytest.mark.parametrize("trailing", [(1,), (1, 1)])
+def test_a_volume_with_trailing_axes_of_one_is_the_volume(tmp_path, trailing):
+    """Some tools write a 3-D volume as x, y, z, 1 (one time point) or x, y, z, 1, 1 (one component): it is read as
+    the 3-D volume, the CT and a label map alike (x, y, z, 1, 1 was refused as 'must hold a 3-D volume');
+    x, y, z, 2 is still refused."""
+    from modeling.labelmap import read_label_map
+
+    data = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
+    flat = read_nifti_volume(_save(tmp_path / "ct.nii.gz", data, np.eye(4)))
+    padded = read_nifti_volume(_save(tmp_path / "ct5.nii.gz", data.reshape(data.shape + trailing), np.eye(4)))
+    np.testing.assert_array_equal(padded.hu, flat.hu)
+    mask = (data > 60).astype(np.uint8)
+    labels = read_label_map(_save(tmp_path / "mask5.nii.gz", mask.reshape(mask.shape + trailing), np.eye(4)))
+    np.testing.assert_array_equal(labels.labels, mask.transpose(2, 1, 0))
+    with pytest.raises(SeriesError, match="3-D volume"):
+        read_nifti_volume(_save(tmp_path / "two.nii.gz", np.zeros((3, 3, 3, 2, 1), np.int16), np.eye(4)))
+
+
 def test_voxels_not_a_number_are_air_with_a_warning(tmp_path):
     import nibabel as nib
 
