@@ -142,6 +142,13 @@ def _split_duplicates(frames: list[_Frame]) -> tuple[list[tuple[str, list[_Frame
     return [("", frames)], ""
 
 
+def _repeat_text(path: str, first: str) -> str:
+    """``NAME repeats OTHER`` by file names (a study's folders can be named after the patient); two copies of one
+    name (two exports merged) are told apart by saying so ('ct0030.dcm repeats ct0030.dcm' read as a mistake)."""
+    name, other = os.path.basename(path), os.path.basename(first)
+    return f"{name} repeats " + ("the file of that name in another folder" if name == other else other)
+
+
 #: Below this share of images at a repeated position, the repeats are strays
 #: (a resent or duplicated file), not a multi-phase series to split.
 STRAY_REPEAT_SHARE = 0.25
@@ -299,7 +306,7 @@ def _group(found: _Scan) -> tuple[list[_Group], list[str]]:
                     message = (
                         f"series {uid}: {len(repeated)} image(s) repeat the position of another and "
                         f"were ignored: "
-                        + "; ".join(f"{os.path.basename(a)} repeats {os.path.basename(b)}" for a, b in repeated[:4])
+                        + "; ".join(_repeat_text(a, b) for a, b in repeated[:4])
                     )
                     notes.append(message)
                     warnings.warn(message, StudyWarning, stacklevel=3)

@@ -912,6 +912,16 @@ def test_a_stray_repeated_position_is_dropped_not_split(tmp_path):
     assert any("1 missing slice(s)" in m for m in messages)  # the hole it leaves
     assert vol.hu.shape[0] == 20 and len(vol.slices) == 19
     assert vol.resampled
+    # the same image resent under the same file name into another folder (two exports merged): said so, not
+    # "slice_011.dcm repeats slice_011.dcm"
+    (tmp_path / "resent").mkdir()
+    (tmp_path / "slice_011.dcm").rename(tmp_path / "resent" / "slice_011.dcm")
+    (tmp_path / "slice_010.dcm").rename(tmp_path / "slice_011.dcm")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_study(tmp_path)
+    assert any(re.search(r"slice_011.dcm repeats the file of that name in another folder", str(w.message))
+               for w in caught), [str(w.message) for w in caught]
 
 
 def test_zero_rescale_slope_is_a_clear_error(tmp_path):
