@@ -114,8 +114,12 @@ class LabelMap:
         if label is None:
             if values.size > 1:
                 named = ", ".join(f"{v}{' (' + self.names[v] + ')' if v in self.names else ''}" for v in values[:20])
+                # a probability map stored in percent or in bytes (0-100, 0-255): many values, none named
+                ramp = not self.names and values.size > 20 and values[-1] <= 255
                 raise LabelMapError(
-                    f"label map {self.source} holds several labels ({named}); choose one with --label N"
+                    f"label map {self.source} holds several labels ({named}{', ...' if values.size > 20 else ''}); "
+                    "choose one with --label N" + ("; or is it a probability map (in percent or 0-255)? threshold it "
+                                                   "to a 0/1 mask first" if ramp else "")
                 )
             label = int(values[0])
         elif label not in values:

@@ -222,6 +222,23 @@ def test_unknown_file_and_label(tmp_path):
     assert pydicom.__version__  # pydicom wrote and read the SEG above
 
 
+def test_a_probability_map_in_percent_is_named_as_one():
+    """A map of 0-100 (a probability in percent, as some tools save it in bytes) is no label map of a few labels:
+    the refusal asks whether it is a probability map to threshold (it listed 20 'labels' and said --label N);
+    a label map of a few labels is refused as before."""
+    from modeling.labelmap import LabelMap
+
+    T, shape = _source_T()
+    k = np.arange(shape[0])[:, None, None] * np.ones(shape)
+    percent = np.rint(100.0 * k / (shape[0] - 1)).astype(np.int32)  # 0..100 along k
+    with pytest.raises(LabelMapError, match=r"holds several labels \(3, 5, .*, \.\.\.\); choose one with --label N; "
+                                            r"or is it a probability map \(in percent or 0-255\)\? threshold it"):
+        LabelMap(percent, T, "p.nii.gz", {}).select(None)
+    few = np.where(k < 3, 1, np.where(k < 6, 2, 7)).astype(np.int32)
+    with pytest.raises(LabelMapError, match=r"holds several labels \(1, 2, 7\); choose one with --label N$"):
+        LabelMap(few, T, "few.nii.gz", {}).select(None)
+
+
 @pytest.mark.parametrize("edit", ["nan", "zero"])
 def test_a_degenerate_affine_is_said(tmp_path, edit):
     """A NIfTI mask whose affine holds a NaN or zero axes was refused as 'made on another study?' (after a
