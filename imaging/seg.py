@@ -82,10 +82,13 @@ def read_dicom_seg(path):
     )
     position = ipp @ normal
     unique = np.unique(np.round(position, 3))
-    if len(unique) > 1:
-        spacing = float(np.median(np.diff(unique)))
-    else:
-        spacing = float(measures.get("SpacingBetweenSlices", measures.get("SliceThickness", 1.0)))
+    # A SEG holds no empty frames: its positions can skip slices (two segments apart, a structure drawn on every
+    # few slices), so their median gap is not the slices' spacing.  (0018,0088) Spacing Between Slices is, where
+    # every gap is a whole number of it; else (0018,0050) Slice Thickness where so; else the smallest gap.
+    gaps = np.diff(unique)
+    stated = [float(measures.get(key, 0) or 0) for key in ("SpacingBetweenSlices", "SliceThickness")]
+    fitting = [d for d in stated if d > 0 and np.allclose(gaps / d, np.round(gaps / d), atol=0.05)]
+    spacing = fitting[0] if fitting else float(gaps.min()) if gaps.size else (max(stated) or 1.0)
     k_of_frame = np.round((position - unique[0]) / spacing).astype(int)
     # Segments may overlap (a heart and its left ventricle): in one label volume the shared voxels would go to the
     # later segment only, and the heart chosen would miss them.  Each segment is painted in the first layer where

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points
@@ -339,8 +338,14 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     pts = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(float)
     T_src_from_vol = np.linalg.inv(label_map.T_patient_from_voxel) @ T_vol
     src_ijk = apply_to_points(T_src_from_vol, pts)
-    values = ndimage.map_coordinates(src.astype(np.uint8), src_ijk[:, ::-1].T, order=0, mode="constant", cval=0)
-    sub = values.reshape(ii.shape).astype(bool).transpose(2, 1, 0)  # (k, j, i)
+    # nearest voxel, rounded here: map_coordinates (order 0, mode "constant") took a point a rounding error
+    # below the map's first slice for outside it, and a label map cropped to its label (a SEG, whose first frame
+    # is the label's first slice; a Slicer segment's extent) lost that slice
+    nearest = np.rint(src_ijk[:, ::-1]).astype(np.int64)  # (k, j, i)
+    inside = np.all((nearest >= 0) & (nearest < np.array(src.shape)), axis=1)
+    values = np.zeros(len(nearest), bool)
+    values[inside] = src[tuple(nearest[inside].T)]
+    sub = values.reshape(ii.shape).transpose(2, 1, 0)  # (k, j, i)
     mask[box_lo[2] : box_hi[2], box_lo[1] : box_hi[1], box_lo[0] : box_hi[0]] = sub
     if not mask.any():
         raise _no_overlap(label, label_map)

@@ -137,6 +137,26 @@ def test_dicom_seg(tmp_path):
     _check(label_map)
 
 
+@pytest.mark.parametrize("spacing_given", [True, False])
+def test_a_dicom_seg_with_frames_apart_keeps_its_slices(tmp_path, spacing_given):
+    """A SEG holds no empty frames: two segments three slices apart (or a structure drawn on every third slice)
+    leave gaps between its positions, whose median was taken as the slices' spacing (the segments moved and
+    stretched).  Spacing Between Slices decides where given, else Slice Thickness (each where every gap is a
+    whole number of it)."""
+    T, shape = _source_T()
+    k = np.indices(shape)[0]
+    heart = (_ball_labels(T, shape) > 0) & (k % 3 == 0)  # drawn on every third slice
+    _write_seg(tmp_path / "seg.dcm", T, heart.astype(np.int32), [(4, "Apart", (k == 37) & (np.indices(shape)[1] < 4))])
+    if not spacing_given:
+        ds = pydicom.dcmread(tmp_path / "seg.dcm")
+        del ds.SharedFunctionalGroupsSequence[0].PixelMeasuresSequence[0].SpacingBetweenSlices
+        ds.save_as(tmp_path / "seg.dcm")
+    label_map = read_label_map(tmp_path / "seg.dcm")
+    np.testing.assert_allclose(label_map.T_patient_from_voxel[:3, 2], T[:3, 2], atol=1e-6)
+    assert np.array_equal(mask_on_grid(label_map, shape, T, label="Heart"), heart)  # its first slice kept too
+    assert np.array_equal(mask_on_grid(label_map, shape, T, label="Apart"), (k == 37) & (np.indices(shape)[1] < 4))
+
+
 def test_dicom_seg_with_overlapping_segments(tmp_path):
     """A SEG of the heart and its left ventricle (audit aud_masks): the segments were painted into one label
     volume, the later over the earlier, so ``--label Heart`` lost the ventricle's voxels without a word (the real
