@@ -152,8 +152,8 @@ def _cases(hu, T, reference, only=None):
     yield "cropped 2 cm at the top", hu[:top], T
     spacing = float(np.linalg.norm(T[:3, 0]))
     for name, radius, mu, photons in LEADS:
-        if only and not any(name.startswith(o) for o in only):
-            continue  # a simulated scan takes half a minute: only when asked for
+        if not (only and any(name.startswith(o) for o in only)):
+            continue  # a simulated scan takes half a minute: only when asked for (--only pacing ICD)
         frac = _lead_fraction(hu.shape, LEAD_KJI, spacing, radius)
         yield name, _scanned_with_metal(hu, frac, spacing, metal_mu_per_mm=mu, photons=photons), T
 

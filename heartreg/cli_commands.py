@@ -103,8 +103,10 @@ def _listed(args) -> bool:
     if args.list_series:
         if is_volume_file(args.study_dir):
             raise UsageError(f"{args.study_dir} is a volume file, one series: --list-series lists a DICOM folder's")
-        for s in list_series(args.study_dir):
-            print(f"[{s.index}] {s.uid}  {s.modality:<3} {s.n_slices:>4} images  {s.orientation:<8} {s.description!r}  "
+        from hrcore.redact import pseudonym_uid
+
+        for s in list_series(args.study_dir):  # the UID to choose by, and the pseudonym the other lines print
+            print(f"[{s.index}] {s.uid} ({pseudonym_uid(s.uid)})  {s.modality:<3} {s.n_slices:>4} images  {s.orientation:<8} {s.description!r}  "
                   f"{s.kind}{('  ' + s.cardiac) if s.cardiac else ''}{(' - ' + s.reason) if s.reason else ''}")
         return True
     if args.out_dir is None:

@@ -64,17 +64,49 @@ def release_free_memory() -> bool:
     return bool(fn(0)) if fn is not None else False
 
 
+#: The process's cgroups, one line per hierarchy (``0::/path`` for v2).
+_PROC_CGROUP = "/proc/self/cgroup"
+#: Where each cgroup version keeps its memory files: (root, limit, usage, the droppable file cache in memory.stat).
+_CGROUP_FILES = {
+    "v2": ("/sys/fs/cgroup", "memory.max", "memory.current", "inactive_file"),
+    "v1": ("/sys/fs/cgroup/memory", "memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file"),
+}
+
+
 def _cgroup_room() -> int | None:
-    """Bytes the process's cgroup (v2) may still take, or None without a limit."""
+    """Bytes the process's cgroup may still take, or None without a limit.
+
+    The tightest limit from the process's own cgroup (``/proc/self/cgroup``; v2, or v1's memory controller)
+    up to the root, less what that cgroup holds but the page cache it can drop (``inactive_file``): a
+    container whose file cache grew to its limit has that room still.
+    """
+    from pathlib import Path
+
     try:
-        with open("/sys/fs/cgroup/memory.max") as f:
-            limit = f.read().strip()
-        if limit == "max":
-            return None
-        with open("/sys/fs/cgroup/memory.current") as f:
-            return max(0, int(limit) - int(f.read()))
-    except (OSError, ValueError):
+        lines = Path(_PROC_CGROUP).read_text().splitlines()
+    except OSError:
         return None
+    rooms = []
+    for line in lines:
+        _, controllers, own = line.split(":", 2)
+        version = "v2" if controllers == "" else "v1" if "memory" in controllers.split(",") else None
+        if version is None:
+            continue
+        root, limit_file, usage_file, cache_key = _CGROUP_FILES[version]
+        folder = Path(root) / own.strip().lstrip("/")
+        for cgroup in (folder, *folder.parents):
+            if not str(cgroup).startswith(root):
+                break
+            try:
+                limit = (cgroup / limit_file).read_text().strip()
+                if limit == "max" or int(limit) >= 1 << 60:  # no limit (v1 writes a number near 2^63)
+                    continue
+                stat = dict(line.split()[:2] for line in (cgroup / "memory.stat").read_text().splitlines())
+                usage = int((cgroup / usage_file).read_text())
+                rooms.append(max(0, int(limit) - usage + int(stat.get(cache_key, 0))))
+            except (OSError, ValueError):
+                continue
+    return min(rooms) if rooms else None
 
 
 def available_memory_bytes() -> int | None:

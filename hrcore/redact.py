@@ -28,12 +28,15 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["file_namer", "pseudonym_uid", "pseudonymize_uids", "UID_IN_TEXT"]
+__all__ = ["file_namer", "pseudonym_uid", "pseudonymize_uids", "PSEUDONYM_IN_TEXT", "UID_IN_TEXT"]
 
 #: Most files looked at below a study (a study of 10 000 slices stays well below).
 MAX_FILES = 100_000
 #: A DICOM UID inside a text: dotted digits, at least five components (a version "1.2.3" is none).
 UID_IN_TEXT = re.compile(r"(?<![\w.])\d+(?:\.\d+){4,}(?![\w.])")
+#: A pseudonym inside a text (:func:`pseudonym_uid`: ``2.25.`` and a decimal integer), which UID_IN_TEXT's
+#: five components do not match.
+PSEUDONYM_IN_TEXT = re.compile(r"(?<![\w.])2\.25\.\d+(?![\w.])")
 #: The root of the UIDs the DICOM standard defines (SOP classes, transfer syntaxes): they name no study.
 STANDARD_ROOT = "1.2.840.10008."
 

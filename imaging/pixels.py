@@ -87,7 +87,7 @@ def _choose_plugin(ts: str, path: str, bits_stored: int = 8) -> str:
     plugins = list(decoder.available_plugins)
     if ts in _GPL_LIBJPEG_SYNTAXES:
         plugins = [p for p in plugins if p != "pylibjpeg"]
-    if ts == _JPEG_EXTENDED and bits_stored != 8:
+    if ts == _JPEG_EXTENDED and bits_stored > 8:
         raise DecoderUnavailableError(
             f"{path}: transfer syntax {ts} ({decoder.UID.name}) with {bits_stored}-bit samples: no installable "
             "decoder heartreg uses reads it (pillow and python-gdcm decode 8-bit JPEG Extended only; "

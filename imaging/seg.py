@@ -35,7 +35,7 @@ def read_dicom_seg(path):
     Returns
     -------
     labels : (n_k, n_j, n_i) int32
-        Indexed ``[k, j, i]``; 0 is background, n the segment number.
+        Indexed ``[k, j, i]``, uint16; 0 is background, n the segment number.
         ``(n_layers, n_k, n_j, n_i)`` when segments overlap: each segment in
         the first layer where it overlaps no other.
     T_patient_from_voxel : (4, 4) float64
@@ -45,6 +45,8 @@ def read_dicom_seg(path):
     frame_of_reference_uid : str
         (0020,0052) *Frame of Reference UID*, '' when absent: a SEG shares it
         with the images it was drawn on.
+    layer_of : dict of int to int
+        Segment number to its layer (all 0 when no segments overlap).
 
     Raises
     ------
@@ -91,23 +93,30 @@ def read_dicom_seg(path):
     spacing = fitting[0] if fitting else float(gaps.min()) if gaps.size else (max(stated) or 1.0)
     k_of_frame = np.round((position - unique[0]) / spacing).astype(int)
     # Segments may overlap (a heart and its left ventricle): in one label volume the shared voxels would go to the
-    # later segment only, and the heart chosen would miss them.  Each segment is painted in the first layer where
-    # it overlaps no other, as 3D Slicer keeps overlapping segments.
-    layers = []
+    # later segment only, and the heart chosen would miss them.  Each segment goes to the first layer where it
+    # overlaps no other, as 3D Slicer keeps overlapping segments; the layers are chosen on their occupancy (bool)
+    # first, then painted once (a layer per segment as int32, stacked, took 6 s and 700 MB for two on 512 x 512)
+    shape = (int(k_of_frame.max()) + 1,) + pixels.shape[1:]
+    taken: list[np.ndarray] = []
+    layer_of: dict[int, int] = {}
     for number in np.unique(segment):
         frames = np.flatnonzero(segment == number)
-        free = (layer for layer in layers if not any(layer[k_of_frame[f]][pixels[f]].any() for f in frames))
-        layer = next(free, None)
-        if layer is None:
-            layer = np.zeros((k_of_frame.max() + 1,) + pixels.shape[1:], np.int32)
-            layers.append(layer)
+        layer = next((n for n, occupied in enumerate(taken)
+                      if not any(occupied[k_of_frame[f]][pixels[f]].any() for f in frames)), len(taken))
+        if layer == len(taken):
+            taken.append(np.zeros(shape, bool))
         for f in frames:
-            layer[k_of_frame[f]][pixels[f]] = number
-    labels = layers[0] if len(layers) == 1 else np.stack(layers)
+            taken[layer][k_of_frame[f]] |= pixels[f]
+        layer_of[int(number)] = layer
+    del taken
+    n_layers = len(set(layer_of.values()))
+    labels = np.zeros(((n_layers,) if n_layers > 1 else ()) + shape, np.uint16)  # SegmentNumber is a US
+    for f in range(n_frames):
+        (labels[layer_of[int(segment[f])]] if labels.ndim == 4 else labels)[k_of_frame[f]][pixels[f]] = segment[f]
     origin = ipp[np.argmin(position)]
     T = np.eye(4)
     T[:3, 0] = row_dir * col_mm
     T[:3, 1] = col_dir * row_mm
     T[:3, 2] = normal * spacing
     T[:3, 3] = origin
-    return labels, T, names, str(ds.get("FrameOfReferenceUID", ""))
+    return labels, T, names, str(ds.get("FrameOfReferenceUID", "")), layer_of

@@ -105,6 +105,16 @@ def _gating(group: _Group, ecg_studies: set) -> str:
     return ""
 
 
+def _one_scan(groups: list[_Group]) -> bool:
+    """Whether the series are reconstructions of one scan: the same cardiac phase and the same slice positions
+    (several phases of a gated study are told apart by their phase, not by their images' texture)."""
+    def signature(g):
+        positions = sorted(np.round(f.ipp, 1) @ (0.0, 0.0, 1.0) for f in g.frames if f.ipp is not None)
+        return g.summary.cardiac, (positions[0], positions[-1]) if positions else None
+
+    return len({signature(g) for g in groups}) == 1
+
+
 def _texture_hu(group: _Group) -> float | None:
     """How far neighbouring voxels of soft tissue (-100 to 300 HU) differ in the series' middle image, median HU.
 
@@ -152,7 +162,7 @@ def _select(groups: list[_Group], series, *, prefer_gated: bool = False, ecg_stu
 
         ranked.sort(key=lambda g: (*rank(g), g.summary.index))
         tied = [g for g in ranked if rank(g) == rank(ranked[0])]
-        texture = {id(g): _texture_hu(g) for g in tied} if len(tied) > 1 else {}
+        texture = {id(g): _texture_hu(g) for g in tied} if len(tied) > 1 and _one_scan(tied) else {}
         if texture:  # as good by their size: the smoother reconstruction (a soft-tissue kernel, not a lung one)
             tied.sort(key=lambda g: (texture[id(g)] is None, texture[id(g)] or 0.0, g.summary.index))
             ranked = tied + ranked[len(tied):]

@@ -313,7 +313,7 @@ def build_heart_model(
         try:
             seg = segment_heart(volume.hu, T, **(segmentation or {}))
         except SegmentationError as exc:  # a lead's streaks part the blood pool: say so, not only the contrast
-            raise SegmentationError(f"{exc}{metal_in_chest(volume.hu, T)}") from None
+            raise SegmentationError(f"{exc}{metal_in_chest(volume.hu, T, refusal=str(exc))}") from exc
         mask, lumen, T_lumen = seg.mask, seg.vessel_lumen, seg.T_patient_from_lumen
         mask_source = "automatic segmentation"
         seg_params = seg.parameters

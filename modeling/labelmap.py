@@ -264,7 +264,7 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
     from imaging.seg import read_dicom_seg
 
     try:
-        labels, T, names, frame = read_dicom_seg(path)
+        labels, T, names, frame, layer_of = read_dicom_seg(path)
     except ValueError as exc:
         raise LabelMapError(
             f"{path} is neither NIfTI (.nii/.nii.gz), NRRD (.nrrd) nor a DICOM SEG: {exc}; give the heart's label "
@@ -272,7 +272,6 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
         ) from None
     segments = {}
     if labels.ndim == 4:  # overlapping segments, one layer each where they overlap: chosen by name or number
-        layer_of = {int(v): n for n, layer in enumerate(labels) for v in np.unique(layer) if v}
         segments = {(names.get(v) or f"segment {v}"): (n, v) for v, n in sorted(layer_of.items())}
     return LabelMap(labels, T, str(path), names, segments, frame_of_reference_uid=frame)
 
@@ -282,8 +281,9 @@ def other_frame(label_map: LabelMap, volume) -> str:
     acquisition), '' otherwise: its patient coordinates need not be the CT's, though it may overlap the CT
     anyway.  A volume file (NIfTI, NRRD) has no frame of reference to compare."""
     from_dicom = bool(volume.slices) and bool(volume.slices[0].sop_instance_uid)
-    if not (label_map.frame_of_reference_uid and from_dicom
-            and label_map.frame_of_reference_uid != volume.series.frame_of_reference_uid):
+    ct_frame = volume.series.frame_of_reference_uid
+    if not (label_map.frame_of_reference_uid and from_dicom and ct_frame  # a CT without one: nothing to compare
+            and label_map.frame_of_reference_uid != ct_frame):
         return ""
     return ("drawn in another frame of reference than the CT's (another study or acquisition?): it is placed by its "
             "patient coordinates, which need not be this CT's; check the model lies on this heart")

@@ -25,7 +25,8 @@ import numpy as np
 from modeling.coarse import mask_box
 from modeling.distance import distance_mm
 
-__all__ = ["METAL_HU", "METAL_REACH_MM", "METAL_MIN_MM3", "LEAD_MIN_MM", "metal_in_chest", "metal_near_heart"]
+__all__ = ["METAL_HU", "METAL_REACH_MM", "METAL_MIN_MM3", "LEAD_MIN_MM", "PARTED_POOL", "metal_in_chest",
+           "metal_near_heart"]
 
 #: HU at and above which a voxel is metal (a 12-bit reconstruction saturates at 3071).
 METAL_HU = 3000.0
@@ -83,12 +84,21 @@ def metal_near_heart(hu, mask, T_patient_from_voxel) -> str:
             "over the CT (model_ct.png)")
 
 
-def metal_in_chest(hu, T_patient_from_voxel) -> str:
+#: Refusals of the segmentation that a lead's streaks can cause (the blood pool parted).
+PARTED_POOL = ("no heart-sized region", "no contrast blood pool", "smaller than a heart")
+
+
+def metal_in_chest(hu, T_patient_from_voxel, refusal: str | None = None) -> str:
     """What a refusal adds when the CT holds a lead-like piece of metal ('' when none): "; ..." naming its length.
+
+    ``refusal``, the segmentation's message: only one of :data:`PARTED_POOL` is given the addition (a seed
+    outside the volume has nothing to do with metal).
 
     A segmentation that finds no blood pool blames weak contrast; a lead's streaks part the pool as well (the
     real CT with a simulated defibrillator lead: "no heart-sized region").  A piece of metal
-    (:data:`METAL_HU`, 26-connected) spanning :data:`LEAD_MIN_MM` or more is said.
+    (:data:`METAL_HU`, 26-connected) whose box's diagonal spans :data:`LEAD_MIN_MM` or more is said.  The
+    pieces are found among the metal voxels alone (a few thousand): electrodes or staples spread over the
+    chest would make a labelled box of the whole CT.
 
     Examples
     --------
@@ -98,18 +108,26 @@ def metal_in_chest(hu, T_patient_from_voxel) -> str:
     ''
     >>> hu[5:55, 10, 10] = 3071
     >>> metal_in_chest(hu, np.eye(4))[:40]
-    '; the CT holds metal (a piece 50 mm long'
+    '; the CT holds metal (a piece 49 mm long'
     """
-    from scipy import ndimage
-
-    metal = np.asarray(hu) >= METAL_HU
-    box = mask_box(metal)
-    if box is None:
+    if refusal is not None and not any(words in refusal for words in PARTED_POOL):
         return ""
-    labels, _ = ndimage.label(metal[box], structure=np.ones((3, 3, 3), bool))
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    kji = np.argwhere(np.asarray(hu) >= METAL_HU)
+    if len(kji) < 2:
+        return ""
+    pairs = cKDTree(kji).query_pairs(np.sqrt(3.0) + 1e-6, output_type="ndarray")  # 26-neighbours
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(kji), len(kji)))
+    _, piece = connected_components(graph, directed=False)
     spacing = np.linalg.norm(np.asarray(T_patient_from_voxel, dtype=float)[:3, :3], axis=0)[::-1]  # k, j, i
-    longest = max(float(np.max([(s.stop - s.start) * d for s, d in zip(found, spacing)]))
-                  for found in ndimage.find_objects(labels))
+    order = np.argsort(piece, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(piece[order]) > 0])
+    lo = np.minimum.reduceat(kji[order], starts, axis=0)
+    hi = np.maximum.reduceat(kji[order], starts, axis=0)
+    longest = float(np.linalg.norm((hi - lo) * spacing, axis=1).max())
     if longest < LEAD_MIN_MM:
         return ""
     return (f"; the CT holds metal (a piece {longest:.0f} mm long above {METAL_HU:.0f} HU: a pacing or "

@@ -136,14 +136,15 @@ def _redact(text: str, pairs) -> str:
 
 def _without_file_names(case: Case):
     """A function dropping the names of the case's input files from a text (they can name the patient)."""
-    from hrcore.redact import UID_IN_TEXT, file_namer
+    from hrcore.redact import PSEUDONYM_IN_TEXT, UID_IN_TEXT, file_namer
 
     namers = [file_namer(p) for role, p in case.inputs.items() if p and role != "session"]
 
     def clean(text: str) -> str:
         for namer in namers:
             text = namer(text)
-        return UID_IN_TEXT.sub("<uid>", text)  # a series' UID (or its pseudonym): summary.csv holds none
+        # a series' UID, or its pseudonym (the refusals print them): summary.csv holds none
+        return PSEUDONYM_IN_TEXT.sub("<uid>", UID_IN_TEXT.sub("<uid>", text))
 
     return clean
 

@@ -426,6 +426,8 @@ def test_notes_written_name_no_file_and_no_uid(tmp_path):
     clean = _without_file_names(case)
     assert clean("series [0] 1.2.826.0.1.3680043.8.498.1: skipped <study>/SMITHERS_WAYLON.CT.0005.dcm") == \
         "series [0] <uid>: skipped <study>/a file"
+    # nor its pseudonym, which the refusals now print in the UID's place
+    assert clean("used [0] 2.25.203301141038854865093112567078745046446: choose") == "used [0] <uid>: choose"
 
 
 def test_a_folder_of_other_files_is_no_output_folder(tmp_path, sample_case):

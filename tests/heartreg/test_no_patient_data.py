@@ -172,7 +172,7 @@ def test_no_patient_data_in_any_output(sample_case, tmp_path, capsys):
         assert f"chose series [0] {pseudonym_uid(series)}: axial CT" in written["volume_notes"][0]
     # the listing a user picks a series from shows the study's own UIDs, and --series takes them
     assert main(["phases", str(ct), "--list-series"]) == 0
-    assert f"[0] {series}  CT" in capsys.readouterr().out
+    assert f"[0] {series} ({pseudonym_uid(series)})  CT" in capsys.readouterr().out  # and the pseudonym printed
     assert main(["phases", str(ct), "--series", series, "-o", str(tmp_path / "chosen"), "-q"]) == 0
     assert json.loads((tmp_path / "chosen" / "phases.json").read_text())["series_instance_uid"] == pseudonym_uid(series)
 

@@ -50,3 +50,31 @@ def test_the_start_environment_decides_not_the_current_one(monkeypatch):
     code = "import hrcore.memory as m; print(m._glibc_trims_by_itself())"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "True"  # a process started with it
+
+
+@pytest.mark.parametrize("version", ["v2", "v1"])
+def test_the_cgroups_tightest_room_counts_its_droppable_cache(tmp_path, monkeypatch, version):
+    """A container's limit, from the process's own cgroup up (the parent's tighter here), less what it holds but
+    its inactive file cache (a review: the file cache that grew to the limit read as no room; only the root's
+    v2 files were read)."""
+    import hrcore.memory as memory
+
+    root = tmp_path / "cgroup"
+    own = root / "slice" / "job"
+    own.mkdir(parents=True)
+    limit, usage, cache = ("memory.max", "memory.current", "inactive_file") if version == "v2" else (
+        "memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
+    for folder, bytes_limit, used, dropped in ((own, 8 << 30, 6 << 30, 3 << 30), (root / "slice", 4 << 30, 3 << 30, 1 << 30)):
+        (folder / limit).write_text(f"{bytes_limit}\n")
+        (folder / usage).write_text(f"{used}\n")
+        (folder / "memory.stat").write_text(f"anon 123\n{cache} {dropped}\n")
+    (root / limit).write_text("max\n" if version == "v2" else "9223372036854771712\n")
+    proc = tmp_path / "cgroup.txt"
+    proc.write_text("0::/slice/job\n" if version == "v2" else "4:memory:/slice/job\n3:cpu:/\n")
+    monkeypatch.setattr(memory, "_PROC_CGROUP", str(proc))
+    files = dict(memory._CGROUP_FILES)
+    files[version] = (str(root), *files[version][1:])
+    monkeypatch.setattr(memory, "_CGROUP_FILES", files)
+    assert memory._cgroup_room() == (4 << 30) - (3 << 30) + (1 << 30)  # the parent's: 2 GB, not the job's 5
+    proc.write_text("0::/\n" if version == "v2" else "4:memory:/\n")
+    assert memory._cgroup_room() is None  # the root's limit is none

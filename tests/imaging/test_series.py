@@ -1007,3 +1007,25 @@ def test_of_two_reconstructions_alike_the_smoother_is_taken(tmp_path):
     listed = {s.index: s for s in list_series(tmp_path)}
     assert listed[0].description == listed[1].description  # nothing but the pixels tells them apart here
     assert not np.array_equal(load_study(tmp_path, series=0).hu, soft.hu)
+
+
+def test_phases_of_a_gated_study_are_not_told_apart_by_texture(tmp_path):
+    """Two phases of a gated study, alike in size (each its own series, the noisier first): no texture decides
+    between them (it would choose a phase by its image's noise), the lower index is taken as before."""
+    rng = np.random.default_rng(4)
+    study = pydicom.uid.generate_uid()
+
+    def phase(pct, noise):
+        def tag(ds, k):
+            ds.NominalPercentageOfCardiacPhase = pct
+            if noise:
+                stored = np.frombuffer(ds.PixelData, np.uint16).astype(np.int32)
+                ds.PixelData = np.clip(stored + rng.normal(0.0, 40.0, stored.shape).round(), 0,
+                                       4095).astype(np.uint16).tobytes()
+        return tag
+
+    fac.write_ct_series(tmp_path / "p40", series_number=2, study_uid=study, extra=phase(40.0, True))
+    fac.write_ct_series(tmp_path / "p70", series_number=3, study_uid=study, extra=phase(70.0, False))
+    with pytest.warns(StudyWarning, match=r"equally good candidates \(\[0\], \[1\]\); used \[0\] [\d.]+: choose"):
+        volume = load_study(tmp_path)
+    np.testing.assert_array_equal(volume.hu, load_study(tmp_path / "p40").hu)
