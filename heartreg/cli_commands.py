@@ -213,7 +213,8 @@ def _open_model_input(args):
         kind, article = ("NIfTI", "a") if is_nifti_path(args.study_dir) else ("NRRD", "an")
         if args.qrs is not None or args.series is not None:
             raise UsageError(f"--qrs and --series apply to DICOM studies, not to the {kind} file {args.study_dir}")
-        return read_volume_file(args.study_dir), None, f"{article} {kind} volume has no slice clock", None
+        return (read_volume_file(args.study_dir, memory_factor=MODEL_MEMORY_FACTOR), None,
+                f"{article} {kind} volume has no slice clock", None)
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
         warn=_note, phase_required=False, memory_factor=MODEL_MEMORY_FACTOR,

@@ -21,13 +21,12 @@ import warnings
 
 import numpy as np
 
-from hrcore.memory import available_memory_bytes
 from hrcore.redact import pseudonym_uid
 
 from .grouping import _LOADABLE, SeriesSummary, StudyWarning, _Group, _scan_groups
 from .nominal import percent_not_gated, trigger_not_gated
 from .pixels import _assemble, _choose_plugin, _decode, _slice_hu_float
-from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _files_text, _plan_geometry
+from .volume import SeriesError, SeriesInfo, SliceInfo, Volume, _files_text, _plan_geometry, check_memory
 
 logger = logging.getLogger(__name__)
 
@@ -339,7 +338,9 @@ def load_study(
         notes.append(summary.reason)
     plan = _plan_geometry(list(group.frames), label=label, resample=resample)
     notes.extend(plan.notes)
-    _check_memory(plan, label, memory_factor)
+    rows, cols = plan.grid_shape or (plan.frames[0].rows, plan.frames[0].columns)
+    check_memory((cols, rows, plan.n_out), memory_factor, f"series {label}",
+                 float32=bool(plan.resample_k or plan.resample_plane))  # stored as float32 (_assemble)
     hu, pixel_notes = _assemble(plan, progress=progress)
     notes.extend(pixel_notes)
     if plan.resample_k or plan.resample_plane or any("RescaleSlope" in n for n in pixel_notes):
@@ -390,27 +391,4 @@ def load_study(
             and o.sop_class_uid.startswith("1.2.840.10008.5.1.4.1.1.9.1.")
         ),
         selection=why,
-    )
-
-
-def _check_memory(plan, label: str, factor: float) -> None:
-    """Refuse, in one line, a series whose reading and processing need more memory than there is.
-
-    Said before the slow work: Linux overcommits, so the volume's array is
-    allocated whatever its size and the process is killed (no message, nothing
-    written) once reading its slices has filled the memory, minutes later.
-    """
-    rows, cols = plan.grid_shape or (plan.frames[0].rows, plan.frames[0].columns)
-    int16_bytes = 2 * plan.n_out * rows * cols
-    resampled = plan.resample_k or plan.resample_plane  # stored as float32 (_assemble)
-    need = max(factor * int16_bytes, 2 * int16_bytes if resampled else int16_bytes)
-    free = available_memory_bytes()
-    if free is None or need <= free:
-        return
-    gb = 2.0**30
-    share = "" if factor == 1 else f" ({factor:g}x its {int16_bytes / gb:.3g} GB as int16)"
-    raise SeriesError(
-        f"series {label}: {cols} x {rows} x {plan.n_out} voxels need about {need / gb:.3g} GB of memory{share}, "
-        f"and {free / gb:.3g} GB is available; free memory, or give a reconstruction with fewer voxels "
-        "(thicker slices, a smaller matrix, or a field of view cropped to the heart)"
     )

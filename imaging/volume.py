@@ -57,6 +57,47 @@ class SeriesError(HeartregError, ValueError):
     """A series cannot be turned into a volume (geometry, selection, content)."""
 
 
+def check_memory(shape_ijk, factor: float, what: str, *, float32: bool = False) -> None:
+    """Refuse, in one line, a volume whose reading and processing need more memory than there is.
+
+    Said before the slow work: Linux overcommits, so the volume's array is
+    allocated whatever its size and the process is killed (no message, nothing
+    written) once reading its slices has filled the memory, minutes later.
+
+    Parameters
+    ----------
+    shape_ijk : (3,) int
+        Columns, rows and slices.
+    factor : float
+        The caller's peak memory in multiples of the volume's bytes as int16 (1: the volume alone).
+    what : str
+        The volume, for the message (``series [0] 2.25...``, ``NIfTI file ct.nii.gz``).
+    float32 : bool
+        Held as float32 (a resampled series): at least twice the int16 bytes.
+
+    Raises
+    ------
+    SeriesError
+        More than the memory available (:func:`hrcore.memory.available_memory_bytes`; nothing is refused
+        where that cannot be told).
+    """
+    from hrcore.memory import available_memory_bytes
+
+    cols, rows, n = (int(v) for v in shape_ijk)
+    int16_bytes = 2 * cols * rows * n
+    need = max(factor * int16_bytes, 2 * int16_bytes if float32 else int16_bytes)
+    free = available_memory_bytes()
+    if free is None or need <= free:
+        return
+    gb = 2.0**30
+    share = "" if factor == 1 else f" ({factor:g}x its {int16_bytes / gb:.3g} GB as int16)"
+    raise SeriesError(
+        f"{what}: {cols} x {rows} x {n} voxels need about {need / gb:.3g} GB of memory{share}, "
+        f"and {free / gb:.3g} GB is available; free memory, or give a reconstruction with fewer voxels "
+        "(thicker slices, a smaller matrix, or a field of view cropped to the heart)"
+    )
+
+
 @dataclass(frozen=True)
 class SliceInfo:
     """One acquired image of the volume, in ascending position along the normal.

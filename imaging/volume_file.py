@@ -25,7 +25,7 @@ from hrcore.redact import pseudonym_uid
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 from imaging.files import gzip_damage, is_analyze_header
 from imaging.grouping import StudyWarning
-from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume
+from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume, check_memory
 
 __all__ = ["nifti_lps_affine", "nifti_unit", "is_nifti_path", "is_nrrd_path", "is_volume_file", "read_nifti_volume", "read_nrrd_volume",
            "read_volume_file"]
@@ -45,8 +45,12 @@ def is_volume_file(path) -> bool:
     return is_nifti_path(path) or is_nrrd_path(path)
 
 
-def read_volume_file(path) -> Volume:
+def read_volume_file(path, memory_factor: float = 1.0) -> Volume:
     """Read a NIfTI or NRRD CT volume (by its name's ending) as an LPS :class:`imaging.Volume`.
+
+    ``memory_factor``: the caller's peak memory in multiples of the volume's int16 bytes; a volume needing
+    more than the memory available is refused from its header, before its voxels are read
+    (:func:`imaging.volume.check_memory`, as ``load_study``).
 
     Examples
     --------
@@ -59,7 +63,27 @@ def read_volume_file(path) -> Volume:
     >>> read_volume_file(path).notes[0]
     'NIfTI input: affine taken as RAS (NIfTI convention) and converted to LPS; no slice clock'
     """
+    if (shape := _stored_shape(path)) is not None:
+        check_memory(shape, memory_factor, f"{'NRRD' if is_nrrd_path(path) else 'NIfTI'} file {path}")
     return read_nrrd_volume(path) if is_nrrd_path(path) else read_nifti_volume(path)
+
+
+def _stored_shape(path) -> tuple[int, int, int] | None:
+    """The volume's (columns, rows, slices) from its header alone; None where the header cannot tell (the
+    reader then says what is wrong)."""
+    try:
+        if is_nrrd_path(path):
+            with open(path, "rb") as f:
+                head = f.read(1 << 16).decode("utf-8", "replace")
+            sizes = [int(v) for v in next(line.split(":", 1)[1].split() for line in head.splitlines()
+                                           if line.lower().startswith("sizes:"))]
+        else:
+            import nibabel as nib
+
+            sizes = [int(v) for v in nib.load(str(path)).shape]  # the header only: the voxels load lazily
+    except Exception:  # noqa: BLE001 - a bad file is refused by its reader, in its words
+        return None
+    return tuple(sizes[-3:]) if len(sizes) >= 3 else None
 
 
 def _uid(digest: str, what: str) -> str:

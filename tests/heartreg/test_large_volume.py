@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+import hrcore.memory
 from heartreg import cli
 from imaging.series import load_study
 from imaging.volume import SeriesError
@@ -38,7 +39,7 @@ def memory(monkeypatch):
     monkeypatch.setattr(series_module, "_assemble", counting_assemble)
 
     def set_available(n_bytes):
-        monkeypatch.setattr(series_module, "available_memory_bytes", lambda: n_bytes)
+        monkeypatch.setattr(hrcore.memory, "available_memory_bytes", lambda: n_bytes)
         return reads
 
     return set_available
@@ -71,3 +72,32 @@ def test_the_model_command_refuses_a_too_large_ct_in_one_line(memory, tmp_path, 
     assert err.count("\n") == 1 and err.startswith("heartreg model: error: series [0] ")
     assert "give a reconstruction with fewer voxels" in err
     assert reads == [] and not out.exists()
+
+
+@pytest.mark.parametrize("kind", ["nii.gz", "nrrd"])
+def test_a_volume_file_too_large_is_refused_from_its_header(memory, tmp_path, capsys, kind, monkeypatch):
+    """A NIfTI or NRRD CT needing more than the memory is refused as a DICOM series is, from its header before
+    its voxels are read (an audit: volume files were read whole whatever their size)."""
+    import numpy as np
+
+    import imaging.volume_file as volume_file
+
+    memory(MODEL_MEMORY_FACTOR * 2 * 40 * 30 * 20 - 1)
+    data = np.full((40, 30, 20), -1000, np.int16)  # i, j, k
+    path = tmp_path / f"ct.{kind}"
+    if kind == "nrrd":
+        header = ("NRRD0004\ntype: short\ndimension: 3\nspace: left-posterior-superior\nsizes: 40 30 20\n"
+                  "space directions: (1,0,0) (0,1,0) (0,0,2)\nkinds: domain domain domain\nendian: little\n"
+                  "encoding: raw\nspace origin: (0,0,0)\n\n")
+        path.write_bytes(header.encode() + data.transpose(2, 1, 0).tobytes())
+    else:
+        import nibabel as nib
+
+        nib.save(nib.Nifti1Image(data, np.diag([1.0, 1.0, 2.0, 1.0])), str(path))
+    read = []
+    monkeypatch.setattr(volume_file, "read_nifti_volume", lambda p: read.append(p))
+    monkeypatch.setattr(volume_file, "read_nrrd_volume", lambda p: read.append(p))
+    assert cli.main(["model", str(path), "-o", str(tmp_path / "model"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "40 x 30 x 20 voxels need about" in err and "GB is available" in err, err
+    assert read == [] and not (tmp_path / "model").exists()
