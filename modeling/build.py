@@ -22,7 +22,7 @@ from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
-from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, other_frame, read_label_map
+from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, on_air, other_frame, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.metal import metal_in_chest, metal_near_heart
 from modeling.model import HeartModel, make_heart_model
@@ -307,7 +307,7 @@ def build_heart_model(
         lumen = T_lumen = None
         mask_source = f"label map ({label_map_kind(label_map.source)})" + (f", label {label}" if label is not None else "")
         seg_params = {}
-        if elsewhere := other_frame(label_map, volume):
+        if elsewhere := other_frame(label_map, volume) or on_air(mask, volume.hu):
             fallback(f"{mask_source}: {elsewhere}")
     else:
         try:
