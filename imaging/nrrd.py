@@ -1,8 +1,9 @@
 """NRRD files, 3D Slicer's own format: the voxels and their affine in LPS.
 
 One reader for CT volumes (:func:`imaging.volume_file.read_nrrd_volume`) and
-label maps (:mod:`modeling.labelmap`).  Attached headers only (``.nrrd``;
-a detached ``.nhdr`` is refused), raw, gzip or bzip2 encoding; 3-D, or 4-D with
+label maps (:mod:`modeling.labelmap`).  An attached header (``.nrrd``) or a
+detached one (``.nhdr`` naming one data file, as ITK and 3D Slicer write it;
+a list of files is refused), raw, gzip or bzip2 encoding; 3-D, or 4-D with
 a leading ``list`` axis (a 3D Slicer segmentation whose segments overlap keeps
 one label layer per entry); the ``space`` may be LPS, RAS or LAS (Slicer writes
 LPS), and ``space directions`` and ``space origin`` give the affine of voxel
@@ -57,6 +58,19 @@ def _vector(text: str) -> list[float]:
     return [float(x) for x in text.strip().strip("()").split(",")]
 
 
+def _data_file(header: Path, name: str) -> bytes:
+    """The bytes of a detached header's one data file (a name relative to the header's folder, or absolute)."""
+    parts = name.split()
+    if len(parts) != 1 or parts[0].upper() == "LIST":  # "LIST", or a format string with its index range
+        raise NrrdError(f"NRRD header {header} spreads its data over several files ({name[:60]!r}); save the "
+                        "volume as a single .nrrd")
+    data = Path(parts[0]) if Path(parts[0]).is_absolute() else header.parent / parts[0]
+    if not data.is_file():
+        raise NrrdError(f"NRRD header {header} names its data file {parts[0]}, which is not beside it; copy the "
+                        "two files together")
+    return data.read_bytes()
+
+
 def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     """The voxels, ``T_patient_from_voxel`` (LPS) and header fields of an NRRD file.
 
@@ -72,8 +86,9 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     Raises
     ------
     NrrdError
-        Not an NRRD file with an attached header, a missing or bad field, not
-        3-D (or 4-D with a list axis), an unsupported encoding or a truncated body.
+        Not an NRRD file (an attached header, or a detached one beside its one
+        data file), a missing or bad field, not 3-D (or 4-D with a list axis),
+        an unsupported encoding or a truncated body.
     """
     path = Path(path)
     raw = path.read_bytes()
@@ -86,9 +101,8 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
             continue
         key, _, value = line.partition(":")
         fields[key.strip().lower()] = value.lstrip("=").strip()
-    if "data file" in fields or "datafile" in fields:
-        raise NrrdError(f"NRRD file {path} has a detached data file; save it as a single .nrrd")
-    if blank is None:
+    detached = fields.get("data file", fields.get("datafile"))
+    if detached is None and blank is None:
         raise NrrdError(f"{path} is not an NRRD file with an attached header (no empty line ends its header)")
     if fields.get("type", "").lower() not in _TYPES:
         raise NrrdError(f"NRRD file {path}: voxel type {fields.get('type', '(none)')!r} is not read; save it as an "
@@ -116,7 +130,7 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     if len(sizes) - layered != 3 or len(directions) != 3 or any(len(d) != 3 for d in directions) or len(origin) != 3:
         raise NrrdError(f"NRRD file {path} must hold a 3-D volume in 3-D space, got sizes {sizes}")
     encoding = fields.get("encoding", "raw").lower()
-    body = memoryview(raw)[blank.end():]  # no copy of the raw data
+    body = memoryview(raw)[blank.end():] if detached is None else _data_file(path, detached)  # no copy of the data
     try:
         if encoding in ("gzip", "gz"):
             body = gzip.decompress(body)

@@ -201,6 +201,15 @@ def test_nrrd_voxels_land_where_the_header_puts_them(tmp_path, space, encoding):
     nifti = read_nifti_volume(_save(tmp_path / "ct.nii.gz", data, A))
     assert np.array_equal(nifti.hu, volume.hu)
     np.testing.assert_allclose(nifti.T_patient_from_voxel, T, atol=1e-6)
+    # the same file split as ITK writes it, a detached header beside its data file (was refused)
+    attached = path.read_bytes()
+    end = attached.index(b"\n\n") + 2
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "ct.nhdr").write_bytes(attached[:end - 1] + b"data file: ct.raw\n")
+    (tmp_path / "sub" / "ct.raw").write_bytes(attached[end:])
+    detached = read_volume_file(tmp_path / "sub" / "ct.nhdr")
+    assert np.array_equal(detached.hu, volume.hu)
+    np.testing.assert_allclose(detached.T_patient_from_voxel, T)
 
 
 def test_bad_nrrd_files(tmp_path):
@@ -211,8 +220,12 @@ def test_bad_nrrd_files(tmp_path):
     (tmp_path / "junk.nrrd").write_bytes(b"not an nrrd")
     with pytest.raises(SeriesError, match="is not an NRRD file"):
         read_nrrd_volume(tmp_path / "junk.nrrd")
-    (tmp_path / "ct.nhdr").write_bytes(b"NRRD0004\ntype: short\nsizes: 2 2 2\ndata file: ct.raw\n")
-    with pytest.raises(SeriesError, match="has a detached data file; save it as a single .nrrd"):
+    head = b"NRRD0004\ntype: short\nsizes: 2 2 2\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n"
+    (tmp_path / "ct.nhdr").write_bytes(head + b"data file: ct.raw\n")
+    with pytest.raises(SeriesError, match="names its data file ct.raw, which is not beside it; copy the two files"):
+        read_volume_file(tmp_path / "ct.nhdr")
+    (tmp_path / "ct.nhdr").write_bytes(head + b"data file: LIST\nct1.raw\n")
+    with pytest.raises(SeriesError, match="spreads its data over several files"):
         read_volume_file(tmp_path / "ct.nhdr")
     good = _save_nrrd(tmp_path / "ct.nrrd", np.zeros((4, 4, 4), np.int16), np.eye(3), (0, 0, 0), encoding="raw")
     (tmp_path / "short.nrrd").write_bytes(good.read_bytes()[:-10])

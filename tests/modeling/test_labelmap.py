@@ -426,9 +426,13 @@ def test_header_conflicts_and_other_nrrd_forms(tmp_path):
               f"space origin: ({T[0, 3]:.6f},{T[1, 3]:.6f},{T[2, 3]:.6f})\n")
     (tmp_path / "ball64.nrrd").write_bytes(header.format("int64").encode() + b"\n" + labels.astype("<i8").tobytes())
     _check(read_label_map(tmp_path / "ball64.nrrd"))
-    (tmp_path / "ball.nhdr").write_text(header.format("uint8") + "data file: ball.raw\n")
-    with pytest.raises(LabelMapError, match=r"ball.nhdr has a detached data file; save it as a single .nrrd"):
-        read_label_map(tmp_path / "ball.nhdr")
+    # a detached header (ITK's and Slicer's .nhdr) beside its data file, gzip-encoded (was refused)
+    import gzip
+
+    (tmp_path / "ball.nhdr").write_text(header.format("uint8").replace("encoding: raw", "encoding: gzip")
+                                        + "data file: ball.raw.gz\n")
+    (tmp_path / "ball.raw.gz").write_bytes(gzip.compress(labels.astype(np.uint8).tobytes()))
+    _check(read_label_map(tmp_path / "ball.nhdr"))
     (tmp_path / "odd.nrrd").write_bytes(header.format("block").encode() + b"\n" + labels.tobytes())
     with pytest.raises(LabelMapError, match=r"odd.nrrd: voxel type 'block' is not read"):
         read_label_map(tmp_path / "odd.nrrd")
