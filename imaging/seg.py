@@ -1,7 +1,8 @@
 """DICOM Segmentation (SEG) objects as a label volume with its affine.
 
 Reads Segmentation Storage (1.2.840.10008.5.1.4.1.1.66.4) instances, binary or
-fractional, with the plane position of every frame in
+fractional, and Label Map Segmentation Storage (...66.7, DICOM 2024: one frame per
+plane, each pixel its segment's number), with the plane position of every frame in
 (5200,9230) *Per-frame Functional Groups Sequence* and the orientation and pixel
 spacing in the shared (or per-frame) groups.  Frames of segment ``n`` paint label
 ``n``; segments that overlap are kept in separate label layers.
@@ -13,9 +14,10 @@ import numpy as np
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-__all__ = ["SEG_SOP_CLASS", "read_dicom_seg"]
+__all__ = ["LABEL_MAP_SEG_SOP_CLASS", "SEG_SOP_CLASS", "read_dicom_seg"]
 
 SEG_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.66.4"
+LABEL_MAP_SEG_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.66.7"
 
 
 def _group(ds, frame_index: int, keyword: str):
@@ -34,8 +36,8 @@ def read_dicom_seg(path):
 
     Returns
     -------
-    labels : (n_k, n_j, n_i) int32
-        Indexed ``[k, j, i]``, uint16; 0 is background, n the segment number.
+    labels : (n_k, n_j, n_i) uint16
+        Indexed ``[k, j, i]``; 0 is background, n the segment number.
         ``(n_layers, n_k, n_j, n_i)`` when segments overlap: each segment in
         the first layer where it overlaps no other.
     T_patient_from_voxel : (4, 4) float64
@@ -59,12 +61,15 @@ def read_dicom_seg(path):
         raise ValueError("not a DICOM file (no DICOM file meta header)") from None
     except OSError as exc:
         raise ValueError(f"not a readable file ({exc.strerror or exc})") from None
-    if str(ds.get("SOPClassUID", "")) != SEG_SOP_CLASS:
+    if str(ds.get("SOPClassUID", "")) not in (SEG_SOP_CLASS, LABEL_MAP_SEG_SOP_CLASS):
         raise ValueError(f"SOP class {ds.get('SOPClassUID', 'missing')} is not Segmentation Storage")
     pixels = ds.pixel_array
     if pixels.ndim == 2:
         pixels = pixels[None]
-    if ds.get("SegmentationType", "BINARY") == "FRACTIONAL":
+    numbers = None  # a label map's frames: every pixel its segment's number (no overlap possible)
+    if ds.get("SegmentationType", "") == "LABELMAP" or str(ds.SOPClassUID) == LABEL_MAP_SEG_SOP_CLASS:
+        numbers, pixels = pixels.astype(np.uint16), pixels > 0
+    elif ds.get("SegmentationType", "BINARY") == "FRACTIONAL":
         pixels = pixels >= 0.5 * float(ds.get("MaximumFractionalValue", 255))
     else:
         pixels = pixels > 0
@@ -79,7 +84,7 @@ def read_dicom_seg(path):
     ipp = np.array(
         [_group(ds, f, "PlanePositionSequence").ImagePositionPatient for f in range(n_frames)], dtype=float
     )
-    segment = np.array(
+    segment = np.zeros(n_frames, int) if numbers is not None else np.array(
         [int(_group(ds, f, "SegmentIdentificationSequence").ReferencedSegmentNumber) for f in range(n_frames)]
     )
     position = ipp @ normal
@@ -112,7 +117,10 @@ def read_dicom_seg(path):
     n_layers = len(set(layer_of.values()))
     labels = np.zeros(((n_layers,) if n_layers > 1 else ()) + shape, np.uint16)  # SegmentNumber is a US
     for f in range(n_frames):
-        (labels[layer_of[int(segment[f])]] if labels.ndim == 4 else labels)[k_of_frame[f]][pixels[f]] = segment[f]
+        plane = (labels[layer_of[int(segment[f])]] if labels.ndim == 4 else labels)[k_of_frame[f]]
+        plane[pixels[f]] = segment[f] if numbers is None else numbers[f][pixels[f]]
+    if numbers is not None:  # one layer, every segment in it
+        layer_of = {number: 0 for number in names}
     origin = ipp[np.argmin(position)]
     T = np.eye(4)
     T[:3, 0] = row_dir * col_mm

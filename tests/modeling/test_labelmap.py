@@ -157,6 +157,38 @@ def test_a_dicom_seg_with_frames_apart_keeps_its_slices(tmp_path, spacing_given)
     assert np.array_equal(mask_on_grid(label_map, shape, T, label="Apart"), (k == 37) & (np.indices(shape)[1] < 4))
 
 
+def test_a_label_map_dicom_seg(tmp_path):
+    """DICOM's Label Map Segmentation (1.2.840.10008.5.1.4.1.1.66.7, 2024; highdicom writes it): one frame per
+    plane, each pixel its segment's number; read as a label map with its names (it was 'not Segmentation
+    Storage')."""
+    from imaging.seg import LABEL_MAP_SEG_SOP_CLASS
+
+    T, shape = _source_T()
+    heart = _ball_labels(T, shape) > 0
+    labels = np.where(heart, 3, 0).astype(np.uint8)
+    labels[:3, :3, :3] = 5  # another segment apart
+    _write_seg(tmp_path / "seg.dcm", T, labels.astype(np.int32))  # its geometry and segments, as a binary SEG
+    ds = pydicom.dcmread(tmp_path / "seg.dcm")
+    ds.SOPClassUID = ds.file_meta.MediaStorageSOPClassUID = LABEL_MAP_SEG_SOP_CLASS
+    ds.SegmentationType = "LABELMAP"
+    seg = Dataset()
+    seg.SegmentNumber, seg.SegmentLabel = 5, "Aorta"
+    ds.SegmentSequence.append(seg)
+    planes = [k for k in range(shape[0]) if labels[k].any()]
+    ds.NumberOfFrames = len(planes)
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
+    for item, k in zip(ds.PerFrameFunctionalGroupsSequence, planes):  # one frame per plane, no segment reference
+        item.PlanePositionSequence[0].ImagePositionPatient = [float(v) for v in T[:3, 3] + k * T[:3, 2]]
+        del item.SegmentIdentificationSequence
+    del ds.PerFrameFunctionalGroupsSequence[len(planes):]
+    ds.PixelData = labels[planes].tobytes()
+    ds.save_as(tmp_path / "labelmap.dcm", enforce_file_format=True)
+    label_map = read_label_map(tmp_path / "labelmap.dcm")
+    assert label_map.names == {3: "Heart", 5: "Aorta"}
+    _check(label_map, label="Heart")
+    assert np.array_equal(mask_on_grid(label_map, shape, T, label=5), labels == 5)
+
+
 def test_dicom_seg_with_overlapping_segments(tmp_path):
     """A SEG of the heart and its left ventricle (audit aud_masks): the segments were painted into one label
     volume, the later over the earlier, so ``--label Heart`` lost the ventricle's voxels without a word (the real
