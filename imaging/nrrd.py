@@ -21,7 +21,7 @@ import numpy as np
 
 from hrcore.errors import HeartregError
 
-__all__ = ["NrrdError", "is_nrrd_path", "read_nrrd"]
+__all__ = ["NrrdError", "is_nrrd_path", "read_nrrd", "read_nrrd_header"]
 
 _TYPES = {
     "uchar": "u1", "unsigned char": "u1", "uint8": "u1", "uint8_t": "u1",
@@ -58,6 +58,33 @@ def _vector(text: str) -> list[float]:
     return [float(x) for x in text.strip().strip("()").split(",")]
 
 
+def _header(raw: bytes, path) -> tuple[dict, re.Match | None]:
+    """The header fields (keys lower-cased) of an NRRD file's bytes (its first MB will do), and the empty line
+    that ends an attached header (None where none does: a detached header, or no NRRD)."""
+    if not raw.startswith(b"NRRD"):
+        raise NrrdError(f"{path} is not an NRRD file")
+    blank = re.search(rb"\r?\n\r?\n", raw[:1 << 20])  # the header ends at its first empty line
+    fields = {}
+    for line in raw[: len(raw) if blank is None else blank.start()].decode("utf-8", "replace").splitlines()[1:]:
+        if line.startswith("#") or ":" not in line:
+            continue
+        key, _, value = line.partition(":")
+        fields[key.strip().lower()] = value.lstrip("=").strip()
+    return fields, blank
+
+
+def read_nrrd_header(path) -> dict:
+    """An NRRD file's header fields alone (keys lower-cased), read from its first MB: the voxels are not read.
+
+    Raises
+    ------
+    NrrdError
+        Not an NRRD file.  OSError: the file cannot be read.
+    """
+    with open(path, "rb") as f:
+        return _header(f.read(1 << 20), path)[0]
+
+
 def _data_file(header: Path, name: str) -> bytes:
     """The bytes of a detached header's one data file (a name relative to the header's folder, or absolute)."""
     parts = name.split()
@@ -92,15 +119,7 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
     """
     path = Path(path)
     raw = path.read_bytes()
-    blank = re.search(rb"\r?\n\r?\n", raw[:1 << 20])  # the header ends at its first empty line
-    if not raw.startswith(b"NRRD"):
-        raise NrrdError(f"{path} is not an NRRD file")
-    fields = {}
-    for line in raw[: len(raw) if blank is None else blank.start()].decode("utf-8", "replace").splitlines()[1:]:
-        if line.startswith("#") or ":" not in line:
-            continue
-        key, _, value = line.partition(":")
-        fields[key.strip().lower()] = value.lstrip("=").strip()
+    fields, blank = _header(raw, path)
     detached = fields.get("data file", fields.get("datafile"))
     if detached is None and blank is None:
         raise NrrdError(f"{path} is not an NRRD file with an attached header (no empty line ends its header)")

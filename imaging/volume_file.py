@@ -22,7 +22,7 @@ import numpy as np
 
 from hrcore.geometry import apply_to_points
 from hrcore.redact import pseudonym_uid
-from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
+from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd, read_nrrd_header
 from imaging.files import gzip_damage, is_analyze_header
 from imaging.grouping import StudyWarning
 from imaging.volume import OUTSIDE_HU, SeriesError, SeriesInfo, SliceInfo, Volume, check_memory
@@ -72,18 +72,15 @@ def _stored_shape(path) -> tuple[int, int, int] | None:
     """The volume's (columns, rows, slices) from its header alone; None where the header cannot tell (the
     reader then says what is wrong)."""
     try:
-        if is_nrrd_path(path):
-            with open(path, "rb") as f:
-                head = f.read(1 << 16).decode("utf-8", "replace")
-            sizes = [int(v) for v in next(line.split(":", 1)[1].split() for line in head.splitlines()
-                                           if line.lower().startswith("sizes:"))]
-        else:
+        if is_nrrd_path(path):  # the spatial axes last (a list axis first)
+            sizes = [int(v) for v in read_nrrd_header(path)["sizes"].split()][-3:]
+        else:  # the spatial axes first (x, y, z, then time or components)
             import nibabel as nib
 
-            sizes = [int(v) for v in nib.load(str(path)).shape]  # the header only: the voxels load lazily
+            sizes = [int(v) for v in nib.load(str(path)).shape][:3]  # the header only: the voxels load lazily
     except Exception:  # noqa: BLE001 - a bad file is refused by its reader, in its words
         return None
-    return tuple(sizes[-3:]) if len(sizes) >= 3 else None
+    return tuple(sizes) if len(sizes) == 3 else None
 
 
 def _uid(digest: str, what: str) -> str:

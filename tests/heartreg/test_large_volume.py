@@ -74,7 +74,7 @@ def test_the_model_command_refuses_a_too_large_ct_in_one_line(memory, tmp_path, 
     assert reads == [] and not out.exists()
 
 
-@pytest.mark.parametrize("kind", ["nii.gz", "nrrd"])
+@pytest.mark.parametrize("kind", ["nii.gz", "nrrd", "4d.nii.gz"])
 def test_a_volume_file_too_large_is_refused_from_its_header(memory, tmp_path, capsys, kind, monkeypatch):
     """A NIfTI or NRRD CT needing more than the memory is refused as a DICOM series is, from its header before
     its voxels are read (an audit: volume files were read whole whatever their size)."""
@@ -93,7 +93,9 @@ def test_a_volume_file_too_large_is_refused_from_its_header(memory, tmp_path, ca
     else:
         import nibabel as nib
 
-        nib.save(nib.Nifti1Image(data, np.diag([1.0, 1.0, 2.0, 1.0])), str(path))
+        # x, y, z, 1 (one time point) is read as the 3-D volume: its size is that of its first three axes
+        nib.save(nib.Nifti1Image(data[..., None] if kind.startswith("4d") else data, np.diag([1.0, 1.0, 2.0, 1.0])),
+                 str(path))
     read = []
     monkeypatch.setattr(volume_file, "read_nifti_volume", lambda p: read.append(p))
     monkeypatch.setattr(volume_file, "read_nrrd_volume", lambda p: read.append(p))
