@@ -107,9 +107,8 @@ def _gating(group: _Group, ecg_studies: set) -> str:
 def _one_scan(groups: list[_Group]) -> bool:
     """Whether the series are reconstructions of one scan: the same cardiac phase and the same slice positions
     (several phases of a gated study are told apart by their phase, not by their images' texture)."""
-    def signature(g):
-        positions = sorted(np.round(f.ipp, 1) @ (0.0, 0.0, 1.0) for f in g.frames if f.ipp is not None)
-        return g.summary.cardiac, (positions[0], positions[-1]) if positions else None
+    def signature(g):  # its slices' positions (any orientation: not their height alone), to 0.1 mm
+        return g.summary.cardiac, frozenset(tuple(np.round(f.ipp, 1)) for f in g.frames if f.ipp is not None)
 
     return len({signature(g) for g in groups}) == 1
 
