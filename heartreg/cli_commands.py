@@ -16,14 +16,6 @@ from pathlib import Path
 from hrcore.errors import UsageError
 
 
-def _note(msg: str) -> None:
-    """A reader's note on the terminal, with the study's DICOM UIDs as their pseudonyms, as in every output
-    (:mod:`hrcore.redact`)."""
-    from hrcore.redact import pseudonymize_uids
-
-    print(pseudonymize_uids(msg), file=sys.stderr)
-
-
 def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
@@ -77,11 +69,11 @@ def _cmd_phantom(args) -> int:
 
 def _open_study(args):
     """Load the study's volume and compute its phase report (shared by commands)."""
-    from heartreg.pipeline import open_study
+    from heartreg.pipeline import open_study, print_note
 
     return open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
-        warn=_note,
+        warn=print_note,
     )
 
 
@@ -207,7 +199,7 @@ def _open_model_input(args):
     from imaging.volume_file import is_nifti_path, is_volume_file, read_volume_file
     from modeling.options import MODEL_MEMORY_FACTOR
 
-    from heartreg.pipeline import open_study, refuse_one_image
+    from heartreg.pipeline import open_study, print_note, refuse_one_image
 
     if is_volume_file(args.study_dir):
         kind, article = ("NIfTI", "a") if is_nifti_path(args.study_dir) else ("NRRD", "an")
@@ -217,7 +209,7 @@ def _open_model_input(args):
                 f"{article} {kind} volume has no slice clock", None)
     volume, report = open_study(
         args.study_dir, series=args.series, qrs=args.qrs, progress=not args.quiet,
-        warn=_note, phase_required=False, memory_factor=MODEL_MEMORY_FACTOR,
+        warn=print_note, phase_required=False, memory_factor=MODEL_MEMORY_FACTOR,
     )
     refuse_one_image(args.study_dir, volume)
     if isinstance(report, str):

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from hrcore.errors import UsageError
 
-__all__ = ["PARTS", "PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "run_pipeline"]
+__all__ = ["PARTS", "PipelineResult", "check_out_dir", "open_study", "phase_report_extra", "print_note", "run_pipeline"]
 
 #: what a run writes into OUT_DIR (anything else there is left alone).
 PARTS = ("phases", "model", "registration", "report.html")
@@ -68,6 +68,14 @@ def phase_report_extra(volume, study_dir) -> dict:
         "series_instance_uid": pseudonym_uid(volume.series.series_instance_uid),
         "volume_notes": notes,
     }
+
+
+def print_note(msg: str) -> None:
+    """A note on the terminal (stderr), with the study's DICOM UIDs as their pseudonyms, as in every output
+    (:mod:`hrcore.redact`): the readers' notes name a series by its UID."""
+    from hrcore.redact import pseudonymize_uids
+
+    print(pseudonymize_uids(msg), file=sys.stderr)
 
 
 def refuse_one_image(study_dir, volume) -> None:
@@ -191,10 +199,7 @@ def run_pipeline(
     if registration_options is not None:
         sweep_phases(registration_options.phase_step)  # --step refused now, not after the phases and the model
     timings = {}
-    from hrcore.redact import pseudonymize_uids
-
-    # notes on the terminal name the study's DICOM UIDs by their pseudonyms, as every output
-    log = (lambda msg: print(pseudonymize_uids(msg), file=sys.stderr)) if progress else (lambda msg: None)
+    log = print_note if progress else (lambda msg: None)
     # everything is written into a staging folder and moved into place at the end
     # (one rename when OUT_DIR is new): a failure or a signal leaves OUT_DIR as it was
     with staged_output(
