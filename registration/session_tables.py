@@ -19,7 +19,7 @@ from hrcore.geometry import frozen
 from registration.plus import PlusFileError, read_plus_sequence
 from registration.session_format import (
     FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, MIN_SEPARATION_MM,
-    N_FIDUCIALS, PLUS_TIME_TOL,
+    MAX_FRAME_GAP, MIN_TRACKER_RATE_HZ, N_FIDUCIALS, PLUS_TIME_TOL,
     PLUS_TRANSFORMS, POINT_COLUMNS, QUATERNION_TOL, RATE_TOL, SIGNAL_COLUMNS, FiducialTrace, PointRecord,
     SessionError, SessionNotFoundError,
 )
@@ -241,21 +241,26 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
         T_robot, T_probe = (seq.transform(name) for name in PLUS_TRANSFORMS)
     except PlusFileError as exc:
         raise SessionError(str(exc)) from None
-    # each sample takes the frame nearest in time, which must be within a quarter step
-    t_frames = seq.time_s + float(offset)
-    t, n = data[:, 0], len(t_frames)
+    t_frames, t = seq.time_s + float(offset), data[:, 0]
+    step = float(np.median(np.diff(t_frames))) if len(t_frames) > 1 else 0.0
+    if step > 0 and abs(step * rate_hz - 1.0) > RATE_TOL:  # the tracker at its own rate: poses between frames
+        T, have = _poses_between_frames(t_frames, T_robot, T_probe, seq.valid, t, step, rel, poses_rel)
+        note = (f"poses interpolated from the PLUS sequence's {1.0 / step:.3g} Hz frames to the samples' "
+                f"{rate_hz:g} Hz (translation linear, rotation along the shortest arc)")
+        if note not in notes:  # once per sequence rate, not per point
+            notes.append(note)
+        if not have.all():
+            notes.append(f"point {entry['id']}: {int((~have).sum())} of {len(have)} samples dropped, no tracked "
+                         f"pose within {MAX_FRAME_GAP:g} frame steps of them in its PLUS sequence")
+        _check_millimetres(T, poses_rel)
+        return _point_record(entry, rate_hz, t[have], T, data[have, 1:4], n_invalid=int((~have).sum()))
+    # at the signals' rate each sample takes the frame nearest in time, which must be within a quarter step
+    n = len(t_frames)
     after = np.searchsorted(t_frames, t)
     lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
     k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
-    far = np.abs(t_frames[k] - data[:, 0]) > PLUS_TIME_TOL / rate_hz
+    far = np.abs(t_frames[k] - t) > PLUS_TIME_TOL / rate_hz
     if far.any():
-        frame_step = float(np.median(np.diff(t_frames))) if n > 1 else 0.0
-        if n > 1 and abs(frame_step * rate_hz - 1.0) > RATE_TOL:  # not a clock offset: another rate
-            raise SessionError(
-                f"{poses_rel}: its frames come every {frame_step:.4g} s ({1.0 / frame_step:.4g} Hz), the records "
-                f"every {1.0 / rate_hz:g} s (sample_rate_hz = {rate_hz:g}): each sample needs a pose of its own "
-                "time; record the poses at the signals' rate (a tracking-only PLUS capture, not the video's)"
-            )
         row = int(np.argmax(far))
         raise SessionError(
             f"{rel}: row {row + 1} (time_s {float(data[row, 0]):.3f}) has no frame in {poses_rel} within "
@@ -271,6 +276,60 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     T = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
     _check_millimetres(T, poses_rel)
     return _point_record(entry, rate_hz, data[:, 0], T, data[:, 1:4], n_invalid=int((~ok).sum()))
+
+
+def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses_rel):
+    """``T_probe_from_robot`` at the sample times ``t`` from a tracker's frames at its own rate.
+
+    Each frame's relative pose (both tools seen) is interpolated to the samples
+    between it and the next such frame, when they are at most
+    :data:`MAX_FRAME_GAP` median frame steps apart (one lost frame is bridged, a
+    longer dropout is not): translation linearly, rotation along the shortest
+    arc (slerp).  A sample at a frame's time takes that frame's pose as read.
+
+    Returns
+    -------
+    T : (m, 4, 4) float64
+        Poses of the samples that have one.
+    have : (n,) bool
+        Which samples have a pose.
+    """
+    rate = 1.0 / step
+    if rate < MIN_TRACKER_RATE_HZ:
+        raise SessionError(
+            f"{poses_rel}: its frames come every {step:.4g} s ({rate:.3g} Hz), too seldom for the heartbeat's "
+            f"motion (its fifth harmonic is at 7.5 Hz at 90 beats/min); record the robot and the probe at "
+            f"{MIN_TRACKER_RATE_HZ:g} Hz or more (a tracking-only PLUS capture, not the video's frames)"
+        )
+    seen = valid[PLUS_TRANSFORMS[0]] & valid[PLUS_TRANSFORMS[1]]
+    tf = t_frames[seen]
+    Tr, Tp = T_robot[seen], T_probe[seen]
+    T_f = _probe_from_robot(Tr[:, :3, :3], Tr[:, :3, 3], Tp[:, :3, :3], Tp[:, :3, 3])
+    lo = np.searchsorted(tf, t, side="right") - 1  # the last frame at or before each sample
+    at_frame = (lo >= 0) & (tf[np.clip(lo, 0, None)] == t) if tf.size else np.zeros(t.shape, bool)
+    between = (lo >= 0) & (lo < tf.size - 1)
+    lo_c, hi_c = np.clip(lo, 0, max(tf.size - 2, 0)), np.clip(lo + 1, 0, max(tf.size - 1, 0))
+    gap = tf[hi_c] - tf[lo_c] if tf.size > 1 else np.zeros(t.shape)
+    between &= gap <= MAX_FRAME_GAP * step
+    have = at_frame | between
+    if not have.any():
+        span = f"{float(tf[0]):.3f}-{float(tf[-1]):.3f} s" if tf.size else "no frame with both tools seen"
+        raise SessionError(
+            f"{rel}: no sample (time_s {float(t[0]):.3f}-{float(t[-1]):.3f}) lies between tracked frames of "
+            f"{poses_rel} ({span}); check the PLUS clock (session.json 'poses_time_offset_s')"
+        )
+    # a sample at a frame's time takes that frame's pose as read; the others the arc from the frame before
+    start = np.where(at_frame, np.clip(lo, 0, None), lo_c)[have]
+    exact = at_frame[have]
+    w = ((t[have] - tf[start]) / np.where(exact, 1.0, gap[have]))[:, None]
+    R0 = Rotation.from_matrix(T_f[start, :3, :3])
+    arc = (R0.inv() * Rotation.from_matrix(T_f[hi_c[have], :3, :3])).as_rotvec()
+    T = T_f[start].copy()
+    moved = ~exact
+    if moved.any():
+        T[moved, :3, :3] = (R0[moved] * Rotation.from_rotvec(w[moved] * arc[moved])).as_matrix()
+        T[moved, :3, 3] = (1.0 - w[moved]) * T_f[start[moved], :3, 3] + w[moved] * T_f[hi_c[have][moved], :3, 3]
+    return T, have
 
 
 def _matrices(q_wxyz: np.ndarray) -> np.ndarray:

@@ -132,8 +132,18 @@ def _poses(table: np.ndarray) -> np.ndarray:
     return T
 
 
+def _tracker_rows(time_s: np.ndarray, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
+    """Indices of the rows nearest to a tracker's frame times (``1 / rate_hz`` apart, jittered)."""
+    step = 1.0 / rate_hz
+    nominal = np.arange(time_s[0], time_s[-1], step)
+    nominal = nominal + rng.uniform(-0.2, 0.2, nominal.size) * step
+    after = np.clip(np.searchsorted(time_s, nominal), 1, time_s.size - 1)
+    nearest = np.where(nominal - time_s[after - 1] <= time_s[after] - nominal, after - 1, after)
+    return np.unique(nearest)
+
+
 def write_plus_session(session_dir, out_dir, *, sequence_name: str = "tracking.seq.mha",
-                       overwrite: bool = False) -> Path:
+                       tracker_rate_hz: float | None = None, seed: int = 0, overwrite: bool = False) -> Path:
     """Write the phantom's CSV session ``session_dir`` again with its poses in a PLUS file.
 
     ``out_dir`` receives ``session.json`` (each point with ``poses``),
@@ -141,6 +151,12 @@ def write_plus_session(session_dir, out_dir, *, sequence_name: str = "tracking.s
     the CSV session's text), the sequence file ``sequence_name`` (all records'
     frames, in time order) and ``fiducials.csv``.  Written in a temporary
     folder beside ``out_dir`` and renamed into place.
+
+    With ``tracker_rate_hz`` the tracker runs at its own rate, as real ones do
+    (an optical tracker at 40-60 Hz beside signals at 100 Hz or more): each
+    record's frames are its rows nearest to times ``1 / tracker_rate_hz``
+    apart, each jittered by up to a fifth of that step (``seed``), so a frame's
+    timestamp and pose are the row's exactly and the rows between have none.
 
     Returns
     -------
@@ -157,6 +173,7 @@ def write_plus_session(session_dir, out_dir, *, sequence_name: str = "tracking.s
         os.chmod(tmp, 0o755)
         (tmp / "points").mkdir()
         times, poses = [], {name: [] for name in PLUS_TRANSFORMS}
+        rng = np.random.default_rng([int(seed), 0x9105])
         for entry in meta["points"]:
             text = (src / entry["file"]).read_text(encoding="utf-8").splitlines()
             names = text[0].split(",")
@@ -168,6 +185,8 @@ def write_plus_session(session_dir, out_dir, *, sequence_name: str = "tracking.s
             )
             table = np.array([[float(r[names.index(c)]) for c in ("time_s",) + _POSE_COLUMNS["RobotToTracker"]
                                + _POSE_COLUMNS["ProbeToTracker"]] for r in rows]).reshape(-1, 15)
+            if tracker_rate_hz is not None:
+                table = table[_tracker_rows(table[:, 0], float(tracker_rate_hz), rng)]
             times.append(table[:, 0])
             poses["RobotToTracker"].append(_poses(table[:, 1:8]))
             poses["ProbeToTracker"].append(_poses(table[:, 8:15]))
