@@ -52,7 +52,7 @@ SIGNAL_COLUMNS = ("time_s", "ecg_mv", "flow_insp_lpm", "flow_exp_lpm")
 PLUS_TRANSFORMS = ("RobotToTracker", "ProbeToTracker")
 #: a PLUS frame matches a sample when their times differ by at most this share of a step.
 PLUS_TIME_TOL = 0.25
-#: a tracker at another rate than the signals': its poses are interpolated between frames at most this many
+#: a tracker on its own rate or clock: its poses are interpolated between frames at most this many
 #: median frame steps apart (one lost frame is bridged), and it must run at this rate or faster (Hz): the
 #: heartbeat's fifth harmonic, the motion model's highest, is 7.5 Hz at 90 beats/min.
 MAX_FRAME_GAP = 2.5

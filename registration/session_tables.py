@@ -242,8 +242,13 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     except PlusFileError as exc:
         raise SessionError(str(exc)) from None
     t_frames, t = seq.time_s + float(offset), data[:, 0]
-    step = float(np.median(np.diff(t_frames))) if len(t_frames) > 1 else 0.0
-    if step > 0 and abs(step * rate_hz - 1.0) > RATE_TOL:  # the tracker at its own rate: poses between frames
+    n = len(t_frames)
+    after = np.searchsorted(t_frames, t)
+    lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
+    k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
+    if np.any(np.abs(t_frames[k] - t) > PLUS_TIME_TOL / rate_hz):
+        # the tracker on its own rate or clock: each sample's pose between the frames around it
+        step = float(np.median(np.diff(t_frames))) if n > 1 else np.inf
         T, have = _poses_between_frames(t_frames, T_robot, T_probe, seq.valid, t, step, rel, poses_rel)
         note = (f"poses interpolated from the PLUS sequence's {1.0 / step:.3g} Hz frames to the samples' "
                 f"{rate_hz:g} Hz (translation linear, rotation along the shortest arc)")
@@ -254,19 +259,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
                          f"pose within {MAX_FRAME_GAP:g} frame steps of them in its PLUS sequence")
         _check_millimetres(T, poses_rel)
         return _point_record(entry, rate_hz, t[have], T, data[have, 1:4], n_invalid=int((~have).sum()))
-    # at the signals' rate each sample takes the frame nearest in time, which must be within a quarter step
-    n = len(t_frames)
-    after = np.searchsorted(t_frames, t)
-    lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
-    k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
-    far = np.abs(t_frames[k] - t) > PLUS_TIME_TOL / rate_hz
-    if far.any():
-        row = int(np.argmax(far))
-        raise SessionError(
-            f"{rel}: row {row + 1} (time_s {float(data[row, 0]):.3f}) has no frame in {poses_rel} within "
-            f"{PLUS_TIME_TOL / rate_hz:g} s ({int(far.sum())} such rows); check the PLUS clock "
-            "(session.json 'poses_time_offset_s')"
-        )
+    # a frame at every sample's time (within a quarter step): each sample takes it as written
     ok = seq.valid[PLUS_TRANSFORMS[0]][k] & seq.valid[PLUS_TRANSFORMS[1]][k]
     if not ok.all():
         notes.append(f"point {entry['id']}: {int((~ok).sum())} of {len(ok)} samples dropped, "
@@ -279,7 +272,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
 
 
 def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses_rel):
-    """``T_probe_from_robot`` at the sample times ``t`` from a tracker's frames at its own rate.
+    """``T_probe_from_robot`` at the sample times ``t`` from a tracker's frames on its own rate or clock.
 
     Each frame's relative pose (both tools seen) is interpolated to the samples
     between it and the next such frame, when they are at most
@@ -295,11 +288,20 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
         Which samples have a pose.
     """
     rate = 1.0 / step
-    if rate < MIN_TRACKER_RATE_HZ:
+    if rate < MIN_TRACKER_RATE_HZ:  # (one frame: no rate, refused here too)
         raise SessionError(
             f"{poses_rel}: its frames come every {step:.4g} s ({rate:.3g} Hz), too seldom for the heartbeat's "
             f"motion (its fifth harmonic is at 7.5 Hz at 90 beats/min); record the robot and the probe at "
             f"{MIN_TRACKER_RATE_HZ:g} Hz or more (a tracking-only PLUS capture, not the video's frames)"
+        )
+    reach = MAX_FRAME_GAP * step
+    outside = (t < t_frames[0] - reach) | (t > t_frames[-1] + reach)
+    if outside.any():  # a tracker recording covers its records: a sample well outside it is on another clock
+        row = int(np.argmax(outside))
+        raise SessionError(
+            f"{rel}: row {row + 1} (time_s {float(t[row]):.3f}) lies outside the frames of {poses_rel} "
+            f"({float(t_frames[0]):.3f}-{float(t_frames[-1]):.3f} s; {int(outside.sum())} such rows); check the "
+            "PLUS clock (session.json 'poses_time_offset_s')"
         )
     seen = valid[PLUS_TRANSFORMS[0]] & valid[PLUS_TRANSFORMS[1]]
     tf = t_frames[seen]
@@ -310,14 +312,11 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
     between = (lo >= 0) & (lo < tf.size - 1)
     lo_c, hi_c = np.clip(lo, 0, max(tf.size - 2, 0)), np.clip(lo + 1, 0, max(tf.size - 1, 0))
     gap = tf[hi_c] - tf[lo_c] if tf.size > 1 else np.zeros(t.shape)
-    between &= gap <= MAX_FRAME_GAP * step
+    between &= gap <= reach
     have = at_frame | between
     if not have.any():
-        span = f"{float(tf[0]):.3f}-{float(tf[-1]):.3f} s" if tf.size else "no frame with both tools seen"
-        raise SessionError(
-            f"{rel}: no sample (time_s {float(t[0]):.3f}-{float(t[-1]):.3f}) lies between tracked frames of "
-            f"{poses_rel} ({span}); check the PLUS clock (session.json 'poses_time_offset_s')"
-        )
+        raise SessionError(f"{rel}: no sample lies between frames of {poses_rel} where the tracker saw both the "
+                           "robot and the probe")
     # a sample at a frame's time takes that frame's pose as read; the others the arc from the frame before
     start = np.where(at_frame, np.clip(lo, 0, None), lo_c)[have]
     exact = at_frame[have]
