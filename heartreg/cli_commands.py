@@ -140,7 +140,14 @@ def _model_options(args):
     kw = {}
     if args.faces is not None:
         kw["target_faces"] = args.faces
-    if args.fiducials is not None:
+    if isinstance(args.fiducials, Path):
+        from modeling.slicer import read_markups
+
+        kw["fiducials_mm"] = read_markups(args.fiducials).points_lps_mm
+        if len(kw["fiducials_mm"]) < 3:
+            raise UsageError(f"--fiducials: the markups file {args.fiducials} holds {len(kw['fiducials_mm'])} placed "
+                             "point(s); give the staples' positions (at least 3)")
+    elif args.fiducials is not None:
         kw["expected_fiducials"] = None if args.fiducials == 0 else args.fiducials
     if args.fiducial_floor_hu is not None:
         kw["fiducial_floor_hu"] = args.fiducial_floor_hu
@@ -167,6 +174,11 @@ def _model_options(args):
             seed = list(args.seed)
         kw["segmentation"] = {"seed_patient_mm": seed}
     return ModelOptions(**kw)
+
+
+def _option_files(args) -> tuple:
+    """The files the model's options name (``--seed``, ``--fiducials`` markups): inputs the output must spare."""
+    return tuple(v for v in (args.seed, args.fiducials) if isinstance(v, Path))
 
 
 def _registration_options(args):
@@ -234,7 +246,7 @@ def _cmd_model(args) -> int:
     if args.label is not None and args.mask is None:
         raise UsageError("--label chooses a label of --mask; give the label map with --mask FILE")
     options = _model_options(args)
-    inputs = (args.study_dir, args.qrs, args.mask)
+    inputs = (args.study_dir, args.qrs, args.mask, *_option_files(args))
     check_output_path(args.out_dir, inputs=inputs, what="model folder", overwrite=args.overwrite,
                       earlier=(MODEL_JSON,))
     volume, phase, phase_source, slice_phases = _open_model_input(args)
@@ -374,7 +386,7 @@ def _cmd_pipeline(args) -> int:
     run = run_pipeline(
         args.study_dir, args.session_dir, args.out_dir, series=args.series, qrs=args.qrs, mask=args.mask,
         label=args.label, model_options=_model_options(args), registration_options=_registration_options(args),
-        view=not args.no_view, overwrite=args.overwrite, progress=not args.quiet,
+        view=not args.no_view, overwrite=args.overwrite, progress=not args.quiet, option_files=_option_files(args),
     )
     reg = run.registration
     print(f"pipeline written to {run.out_dir}")

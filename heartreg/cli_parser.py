@@ -79,6 +79,15 @@ def _seed_arg(value: str):
     return tuple(_finite(x) for x in parts)
 
 
+def _fiducials_arg(value: str):
+    """``--fiducials``: a count of skin staples to insist on, or a 3D Slicer markups file of their positions."""
+    if value.lower().endswith(".json"):
+        return Path(value)
+    if not value.isdigit():
+        raise argparse.ArgumentTypeError(f"{value!r} is neither a count of fiducials nor a .mrk.json markups file")
+    return int(value)
+
+
 def _floor_hu_arg(value: str) -> float:
     """``--fiducial-floor-hu``: between soft tissue (100 HU) and metal (3000 HU)."""
     number = _finite(value)
@@ -118,8 +127,10 @@ def _add_model_options(p) -> None:
                         "markups file (its first point, LPS or RAS as it says)")
     p.add_argument("--faces", type=int, default=None,
                    help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
-    p.add_argument("--fiducials", type=int, default=None,
-                   help="skin fiducials expected, insisted on (default: those found on the skin; 0: none)")
+    p.add_argument("--fiducials", type=_fiducials_arg, default=None, metavar="N|POINTS.mrk.json",
+                   help="skin fiducials expected, insisted on (default: those found on the skin; 0: none), or their "
+                        "positions in a 3D Slicer markups file (every placed point, LPS or RAS as it says; e.g. the "
+                        "model's fiducials_ct.mrk.json corrected in Slicer), used instead of the search")
     p.add_argument("--fiducial-floor-hu", type=_floor_hu_arg, default=None,
                    help="HU above which fiducial excess density counts (100-3000)")
     p.add_argument("--keep-vessels", action="store_true",

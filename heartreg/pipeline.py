@@ -171,6 +171,7 @@ def run_pipeline(
     overwrite: bool = False,
     progress: bool = True,
     truth_rows=None,
+    option_files=(),
 ) -> PipelineResult:
     """Run phases -> model -> registration and write every output.
 
@@ -179,7 +180,9 @@ def run_pipeline(
     ``heartreg register`` (default: their defaults); ``view`` draws the
     registration's 3-D view (``--no-view``). ``truth_rows``, if given, is a
     callable ``(PipelineResult) -> list`` of recovered-vs-truth rows to put at the
-    top of the HTML report (the demo).
+    top of the HTML report (the demo). ``option_files``: files the options were
+    read from (a ``--seed`` or ``--fiducials`` markups file), inputs that the
+    output must not hold.
     """
     from imaging import write_phase_report
     from modeling import build_heart_model, write_model
@@ -203,7 +206,8 @@ def run_pipeline(
     # everything is written into a staging folder and moved into place at the end
     # (one rename when OUT_DIR is new): a failure or a signal leaves OUT_DIR as it was
     with staged_output(
-        out_dir, inputs=(study_dir, session_dir, qrs, mask), overwrite=overwrite, parts=PARTS, earlier=EARLIER,
+        out_dir, inputs=(study_dir, session_dir, qrs, mask, *option_files), overwrite=overwrite, parts=PARTS,
+        earlier=EARLIER,
     ) as staging:
         t = time.perf_counter()
         log("[1/3] cardiac phase of every CT slice")

@@ -21,7 +21,7 @@ from hrcore.memory import release_free_memory
 from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
-from modeling.fiducials import NO_FIDUCIALS, FiducialError, Fiducials, find_fiducials
+from modeling.fiducials import Fiducials, fiducial_stage
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, on_air, other_frame, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.metal import metal_in_chest, metal_near_heart
@@ -263,7 +263,7 @@ def build_heart_model(
     """
     opts = ModelOptions.of(options, **overrides)
     target_faces, expected_fiducials, fiducial_rows = opts.target_faces, opts.expected_fiducials, opts.fiducial_rows
-    fiducial_floor_hu, segmentation, trim_vessels = opts.fiducial_floor_hu, opts.segmentation, opts.trim_vessels
+    segmentation, trim_vessels = opts.segmentation, opts.trim_vessels
     min_heart_ml = opts.min_heart_ml
     T = np.asarray(volume.T_patient_from_voxel, dtype=float)
     span_mm = np.asarray(volume.hu.shape[::-1]) * np.linalg.norm(T[:3, :3], axis=0)  # along i, j, k
@@ -407,27 +407,8 @@ def build_heart_model(
     done("mesh")
 
     stage("fiducials")
-    fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
-    if expected_fiducials is not None:
-        auto = expected_fiducials == AUTO
-        kwargs = {} if fiducial_floor_hu is None else {"floor_hu": fiducial_floor_hu}
-        try:
-            fiducials = find_fiducials(
-                volume.hu, T, expected=None if auto else int(expected_fiducials), n_rows=fiducial_rows, **kwargs
-            )
-        except FiducialError as exc:
-            if not auto:
-                raise
-            fallback(f"fiducial search skipped: {exc}; {NO_FIDUCIALS}")
-        else:
-            notes.extend(fiducials.notes)
-            n_found = len(fiducials.centres_patient_mm)
-            if auto and n_found == 0:
-                fallback(f"no skin markers found: {NO_FIDUCIALS}; make it from a CT that shows the staples")
-            elif auto and n_found % fiducial_rows:
-                fallback(f"{n_found} skin marker(s) found, which cannot form {fiducial_rows} equal rows: {NO_FIDUCIALS}; "
-                         "give --fiducials N (the staples' count) to insist on it")
-                fiducials = Fiducials(np.zeros((0, 3)), np.zeros(0))
+    fiducials = fiducial_stage(volume.hu, T, opts, fallback)
+    notes.extend(fiducials.notes)
     done("fiducials")
 
     stage("frame")
@@ -462,6 +443,7 @@ def build_heart_model(
     parameters = {
         "target_faces": int(target_faces),
         "expected_fiducials": expected_fiducials,
+        "fiducials_given": opts.fiducials_mm is not None,
         "fiducial_rows": int(fiducial_rows),
         "segmentation": seg_params,
         "trim_vessels": bool(trim_vessels),

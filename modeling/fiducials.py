@@ -394,3 +394,44 @@ def find_fiducials(
     rows = n_rows if len(centres) % n_rows == 0 else 1
     order = order_fiducials(centres, n_rows=rows)
     return Fiducials(centres[order], masses[order], tuple(notes))
+
+
+def fiducial_stage(hu, T_patient_from_voxel, options, fallback) -> Fiducials:
+    """The model's fiducials as ``options`` (:class:`modeling.options.ModelOptions`) ask.
+
+    Given points (``fiducials_mm``) are taken as they are; ``expected_fiducials``
+    None looks for none; otherwise :func:`find_fiducials` searches the skin,
+    insisting on a count (an error) or, ``"auto"``, taking what it finds: a
+    search that cannot do its job then leaves the model without fiducials and
+    says why through ``fallback(message)`` (a warning written into model.json).
+    """
+    from modeling.options import AUTO
+
+    none = Fiducials(np.zeros((0, 3)), np.zeros(0))
+    expected, rows = options.expected_fiducials, options.fiducial_rows
+    if options.fiducials_mm is not None:
+        points = np.asarray(options.fiducials_mm, dtype=np.float64)
+        return Fiducials(points, np.full(len(points), np.nan),
+                         (f"fiducials: {len(points)} given (patient LPS), not searched",))
+    if expected is None:
+        return none
+    auto = expected == AUTO
+    kwargs = {} if options.fiducial_floor_hu is None else {"floor_hu": options.fiducial_floor_hu}
+    try:
+        found = find_fiducials(hu, T_patient_from_voxel, expected=None if auto else int(expected), n_rows=rows,
+                               **kwargs)
+    except FiducialError as exc:
+        if not auto:
+            raise
+        fallback(f"fiducial search skipped: {exc}; {NO_FIDUCIALS}")
+        return none
+    n_found = len(found.centres_patient_mm)
+    if auto and n_found == 0:
+        fallback(f"no skin markers found: {NO_FIDUCIALS}; make it from a CT that shows the staples, or give "
+                 "their positions (--fiducials FILE.mrk.json)")
+    elif auto and n_found % rows:
+        fallback(f"{n_found} skin marker(s) found, which cannot form {rows} equal rows: {NO_FIDUCIALS}; "
+                 "give --fiducials N (the staples' count) to insist on it, or their positions (--fiducials "
+                 "FILE.mrk.json)")
+        return Fiducials(none.centres_patient_mm, none.masses_hu_mm3, found.notes)
+    return found

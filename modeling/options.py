@@ -13,6 +13,7 @@ False
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from types import MappingProxyType
 
@@ -58,6 +59,11 @@ class ModelOptions(OptionsRecord):
         with a warning).
     min_heart_ml : float, ml
         A mask smaller than this is refused: it is not a heart.
+    fiducials_mm : sequence of (x, y, z), mm, optional
+        The CT's fiducials given (patient LPS), used as they are instead of
+        the skin search (``--fiducials FILE.mrk.json``: points picked or
+        corrected in 3D Slicer, e.g. the model's own ``fiducials_ct.mrk.json``);
+        at least 3, any order (registration finds the correspondence).
     """
 
     target_faces: int = 20000
@@ -67,6 +73,7 @@ class ModelOptions(OptionsRecord):
     segmentation: MappingProxyType | None = None
     trim_vessels: bool | None = None
     min_heart_ml: float = MIN_HEART_ML
+    fiducials_mm: tuple | None = None
 
     def __post_init__(self):
         if isinstance(self.target_faces, bool) or int(self.target_faces) != self.target_faces \
@@ -79,4 +86,18 @@ class ModelOptions(OptionsRecord):
             raise UsageError(f"fiducial_rows must be a positive integer, got {self.fiducial_rows!r}")
         if not self.min_heart_ml > 0:
             raise UsageError(f"min_heart_ml must be positive, got {self.min_heart_ml!r}")
+        if self.fiducials_mm is not None:
+            try:
+                points = tuple(tuple(float(x) for x in p) for p in self.fiducials_mm)
+            except (TypeError, ValueError):
+                points = ((),)
+            if len(points) < 3 or any(len(p) != 3 or not all(math.isfinite(x) for x in p) for p in points):
+                raise UsageError("fiducials_mm (--fiducials FILE) must be at least 3 points of 3 finite coordinates "
+                                 f"(patient LPS mm), got {len(points)}")
+            if len(points) % int(self.fiducial_rows):
+                raise UsageError(f"fiducials_mm (--fiducials FILE): {len(points)} points cannot form "
+                                 f"{self.fiducial_rows} equal rows of staples (the session touches them by rows)")
+            if e not in (None, AUTO) and int(e) != len(points):
+                raise UsageError(f"expected_fiducials ({e}) and fiducials_mm ({len(points)} points) disagree")
+            object.__setattr__(self, "fiducials_mm", points)
         self._freeze_mapping("segmentation")

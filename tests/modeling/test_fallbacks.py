@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import modeling.build
+import modeling.fiducials
 from imaging import load_study
 from modeling import FiducialError, MeshError, find_fiducials, segment_heart
 from modeling.build import ModelingWarning, build_heart_model
@@ -32,7 +33,7 @@ def test_trim_and_fiducial_search_fall_back(sample_case, monkeypatch):
     case, truth = sample_case
     volume = load_study(case / "ct")
     monkeypatch.setattr(modeling.build, "trim_vessel_stubs", _fail(MeshError("left an open surface")))
-    monkeypatch.setattr(modeling.build, "find_fiducials", _fail(FiducialError("no air around the body")))
+    monkeypatch.setattr(modeling.fiducials, "find_fiducials", _fail(FiducialError("no air around the body")))
     fit = modeling.model.fit_heart_frame
     monkeypatch.setattr(modeling.model, "fit_heart_frame", lambda *a, **k: fit(*a, **k, max_iterations=1))
     with pytest.warns(ModelingWarning) as caught:
@@ -52,6 +53,41 @@ def test_trim_and_fiducial_search_fall_back(sample_case, monkeypatch):
     with pytest.raises(FiducialError, match="no air around the body"):
         build_heart_model(volume, cardiac_phase=truth["cardiac_phase"], cardiac_phase_source="truth",
                           expected_fiducials=9, target_faces=4000)
+
+
+def test_fiducials_given_in_a_markups_file_are_taken_as_they_are(sample_case, sample_outputs, tmp_path, capsys):
+    """The model's own ``fiducials_ct.mrk.json``, checked and corrected in 3D Slicer (one staple moved 2 mm, the
+    file saved in RAS), given back with ``--fiducials FILE``: the model carries those points as they are, not a
+    search's (a CT whose staples the search misses, or whose markers are no metal, had no way to a model that
+    can be registered).  The markups file lies inside the model folder: the command refuses to replace it."""
+    import json
+
+    from heartreg.cli import main
+    from modeling.model import read_model
+
+    case, _ = sample_case
+    found = read_model(sample_outputs / "model").fiducials_patient_mm
+    doc = json.loads((sample_outputs / "model" / "fiducials_ct.mrk.json").read_text())
+    markups = doc["markups"][0]
+    assert markups["coordinateSystem"] == "LPS"
+    markups["coordinateSystem"] = "RAS"
+    for cp in markups["controlPoints"]:
+        cp["position"] = [-cp["position"][0], -cp["position"][1], cp["position"][2]]
+    markups["controlPoints"][4]["position"][2] += 2.0  # the middle staple, 2 mm superior
+    given = tmp_path / "staples.mrk.json"
+    given.write_text(json.dumps(doc))
+    out = tmp_path / "model"
+    assert main(["model", str(case / "ct"), "-o", str(out), "--fiducials", str(given), "--faces", "4000", "-q"]) == 0
+    assert "fiducials: 9 given (patient LPS), not searched" in capsys.readouterr().out
+    model = read_model(out)
+    expected = found.copy()
+    expected[4, 2] += 2.0
+    np.testing.assert_allclose(model.fiducials_patient_mm, expected, atol=1e-6)
+    assert model.parameters["fiducials_given"] is True
+    inside = out / "staples.mrk.json"
+    inside.write_text(given.read_text())
+    assert main(["model", str(case / "ct"), "-o", str(out), "--overwrite", "--fiducials", str(inside), "-q"]) == 1
+    assert "contains the input" in capsys.readouterr().err and inside.is_file()
 
 
 def test_vessel_cut_skipped_when_nothing_is_heart_thick():
