@@ -10,6 +10,8 @@ works around each (see the functions).
 
 from __future__ import annotations
 
+import bisect
+import collections
 import signal
 import struct
 import time
@@ -18,6 +20,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from hrcore.errors import HeartregError
+from registration.session_format import MAX_FRAME_GAP
 
 __all__ = [
     "DEVICE_MODEL",
@@ -326,16 +329,68 @@ def _signals(text: str):
     return values if len(values) == 3 and all(np.isfinite(values)) else None
 
 
+#: a ``Signals`` sample waits for the tracker frame after it at most this long (s, by the later samples' times);
+#: the stream's end (``idle_timeout_s``) ends every wait.
+MAX_WAIT_S = 0.25
+#: tracker frames (and transforms waiting for their frame's other tool) kept when no sample takes them.
+MAX_FRAMES = 64
+#: why a sample is skipped: no frame close enough around it (a dropout, before the first frame, frames too late),
+#: or the stream ended while it waited.
+SKIP_NO_POSE = (f"no tracker pose within {MAX_FRAME_GAP:g} frame steps of the sample (a tracker dropout, or "
+                f"frames over {MAX_WAIT_S:g} s late)")
+SKIP_ENDED = "the stream ended before the tracker frame after the sample"
+
+
+def _pose_at(frames: list, steps, t: float):
+    """The poses ``(T_tracker_from_robot, T_tracker_from_probe)`` of a sample at ``t`` from the tracker frames
+    ``(time, robot, probe)`` (time-ordered): the frame at ``t`` as received, else the relative pose interpolated
+    between the frames around ``t`` (with an identity probe: the same pose relative to the probe); None while no
+    frame after ``t`` has come; a skip reason when those frames are more than ``MAX_FRAME_GAP`` median steps
+    apart (``steps``: the last frame steps)."""
+    times = [f[0] for f in frames]
+    k = bisect.bisect_right(times, t)  # frames[:k] are at or before t
+    if k and times[k - 1] == t:
+        return frames[k - 1][1:]
+    if k == len(frames):
+        return None
+    if k == 0 or times[k] - times[k - 1] > MAX_FRAME_GAP * float(np.median(steps)):
+        return SKIP_NO_POSE
+    return _between(frames[k - 1], frames[k], t), np.eye(4)
+
+
+def _between(f0, f1, t: float) -> np.ndarray:
+    """``T_probe_from_robot`` at ``t`` between two frames, as the PLUS reader interpolates (translation linear,
+    rotation along the shortest arc); NaN when a frame's pose is no rigid transform (the sample is 'tracker')."""
+    from scipy.spatial.transform import Rotation
+
+    from hrcore.geometry import is_rigid
+    from registration.plus import RIGID_TOL
+
+    if not is_rigid(np.array([f0[1], f0[2], f1[1], f1[2]]), tol=RIGID_TOL).all():
+        return np.full((4, 4), np.nan)
+    (t0, r0, p0), (t1, r1, p1) = f0, f1
+    rel = [(p[:3, :3].T @ r[:3, :3], p[:3, :3].T @ (r[:3, 3] - p[:3, 3])) for r, p in ((r0, p0), (r1, p1))]
+    w = (t - t0) / (t1 - t0)
+    R0 = Rotation.from_matrix(rel[0][0])
+    arc = (R0.inv() * Rotation.from_matrix(rel[1][0])).as_rotvec()
+    T = np.eye(4)
+    T[:3, :3] = (R0 * Rotation.from_rotvec(w * arc)).as_matrix()
+    T[:3, 3] = (1.0 - w) * rel[0][1] + w * rel[1][1]
+    return T
+
+
 def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, skipped: dict | None = None,
                        problems: dict | None = None) -> Iterator:
-    """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample.
+    """Samples from an OpenIGTLink server (e.g. PlusServer), one chunk per sample, in time order.
 
-    A sample is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM``
-    ``ProbeToTracker`` and a ``STRING`` ``Signals`` (``"ecg_mv,flow_insp_lpm,
-    flow_exp_lpm"``: three finite numbers) with the same timestamp (the sample
-    time, s).  A sample missing a part, with bad signals or not later than the
-    one before is skipped, counted by reason in ``skipped``; one bad sample
-    does not end a live run.  The stream ends after ``idle_timeout_s`` without
+    A tracker frame is a ``TRANSFORM`` ``RobotToTracker`` and a ``TRANSFORM`` ``ProbeToTracker`` with the same
+    timestamp; a sample is a ``STRING`` ``Signals`` (``"ecg_mv,flow_insp_lpm,flow_exp_lpm"``: three finite
+    numbers) at its timestamp (the sample time, s, on the tracker's clock).  A sample takes the frame with its
+    timestamp if there is one (a server sending all three per sample), else the pose interpolated between the
+    frames around it (a tracker at its own rate): it waits for the frame after it, at most ``MAX_WAIT_S`` of
+    the samples' time.  A sample with bad signals, not later than the one before, between frames more than
+    ``MAX_FRAME_GAP`` median steps apart or with no frame after it is skipped, counted by reason in
+    ``skipped``; one bad sample does not end a live run.  The stream ends after ``idle_timeout_s`` without
     a message; a server that never answers is an :class:`IgtlError`.  A malformed message is dropped, a
     connection the server closed is opened again (:func:`lossless_client`): each counted by reason in
     ``problems`` when the stream ends.
@@ -348,7 +403,10 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
         skipped[why] = skipped.get(why, 0) + 1
 
     client, received = lossless_client(host, port, max_queued=MAX_QUEUED)
-    pending: dict[float, dict] = {}
+    parts: dict[float, dict] = {}  # a frame's transforms waiting for its other tool
+    frames: list = []  # (time, robot, probe), time-ordered, from the last one at or before the last sample
+    steps = collections.deque(maxlen=MAX_FRAMES)  # the last frame steps
+    waiting = collections.deque()  # samples (time, signals) waiting for the frame after them, time-ordered
     last = time.monotonic()
     latest = -np.inf
     heard = False
@@ -360,33 +418,51 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
                         state = "connected but sent nothing" if client.is_connected() else "no connection"
                         raise IgtlError(f"--igtl-in {host}:{port}: {state} within {idle_timeout_s:g} s "
                                         "(--idle-timeout); is the tracker's OpenIGTLink server running there?")
+                    for _ in range(len(waiting)):
+                        skip(SKIP_ENDED)
                     return
                 time.sleep(0.001)
                 continue
             last, heard = time.monotonic(), True
             msg = received.popleft()
             key = round(float(msg.timestamp), 6)
-            slot = pending.setdefault(key, {})
             if msg.device_name in (DEVICE_ROBOT, DEVICE_PROBE) and msg.message_type == "TRANSFORM":
+                slot = parts.setdefault(key, {})
                 slot[msg.device_name] = np.asarray(msg.matrix, dtype=float)
+                if len(slot) == 2:
+                    for old in [k for k in parts if k <= key]:
+                        parts.pop(old)  # an incomplete earlier frame will not complete now
+                    if not frames or key > frames[-1][0]:  # a frame older than the last is of no use
+                        if frames:
+                            steps.append(key - frames[-1][0])
+                        frames.append((key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE]))
+                        del frames[:-MAX_FRAMES]
+                while len(parts) > MAX_FRAMES:
+                    parts.pop(min(parts))
             elif msg.device_name == DEVICE_SIGNALS and msg.message_type == "STRING":
                 values = _signals(msg.string)
                 if values is None:
-                    pending.pop(key)
                     skip("Signals not three finite numbers (ecg_mv,flow_insp_lpm,flow_exp_lpm)")
                     continue
-                slot[DEVICE_SIGNALS] = values
-            if len(slot) == 3:
-                pending.pop(key)
-                for old in [k for k in pending if k < key]:
-                    pending.pop(old)  # an incomplete earlier sample will not complete now
                 if not key > latest:
                     skip("timestamp not later than the sample before")
                     continue
                 latest = key
-                ecg, fi, fe = slot[DEVICE_SIGNALS]
-                yield next(chunks_from_samples(
-                    [(key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE], True, ecg, fi, fe)]))
+                waiting.append((key, values))
+            while waiting:
+                t, values = waiting[0]
+                pose = _pose_at(frames, steps, t)
+                if pose is None:
+                    if latest - t <= MAX_WAIT_S:
+                        break  # the frame after it is yet to come
+                    pose = SKIP_NO_POSE
+                waiting.popleft()
+                while len(frames) > 1 and frames[1][0] <= t:
+                    frames.pop(0)  # the next sample is later: only the last frame at or before t may serve it
+                if isinstance(pose, str):
+                    skip(pose)
+                    continue
+                yield next(chunks_from_samples([(t, *pose, True, *values)]))
     finally:
         client.stop()
         if problems is not None:

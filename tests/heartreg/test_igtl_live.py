@@ -12,7 +12,14 @@ import time
 import numpy as np
 import pyigtl
 
-from heartreg.igtl import DEVICE_PROBE, DEVICE_ROBOT, DEVICE_SIGNALS, igtl_client_chunks
+from heartreg.igtl import (
+    DEVICE_PROBE,
+    DEVICE_ROBOT,
+    DEVICE_SIGNALS,
+    SKIP_ENDED,
+    SKIP_NO_POSE,
+    igtl_client_chunks,
+)
 
 
 def _sample(i: int) -> bytes:
@@ -181,3 +188,49 @@ def test_a_server_faster_than_the_tracker_is_held_back_not_queued():
     assert 300 <= waiting < 1100, waiting  # one 64 kB read past the limit at most (~700 messages)
     assert resumed >= 300, resumed  # reading resumed once the consumer took some
     assert sent[0] < 20000, sent  # the server was held back (flat out it sends ~100 000 samples in 3 s)
+
+
+def test_a_tracker_dropout_is_skipped_and_the_stream_goes_on():
+    """Tracker frames at 40 Hz (timestamps jittered off the signals' ticks) beside 100 Hz signals, the tracker
+    losing the robot for 0.3 s: the samples around the dropout, between frames more than 2.5 median frame steps
+    apart, are skipped and counted (as the PLUS reader drops them), the samples after it are interpolated again,
+    and the last ones, after the last frame, are counted when the stream ends.  Every sample took the frame with
+    its very timestamp: none arrived (nothing was ever placed).  The robot moves 10 mm/s along x and turns
+    0.5 rad/s about z, so the interpolated pose is the truth but for float32."""
+    rng = np.random.default_rng(3)
+    frames = 1000.0 + 0.025 * np.arange(1, 80) + rng.uniform(-0.005, 0.005, 79)
+    frames = frames[(frames < 1000.8) | (frames > 1001.1)]  # the dropout
+    signals = 1000.0 + 0.01 * np.arange(200)
+
+    def pose(t):
+        c, s = np.cos(0.5 * (t - 1000.0)), np.sin(0.5 * (t - 1000.0))
+        return np.array([[c, -s, 0, 10.0 * (t - 1000.0)], [s, c, 0, 2.0], [0, 0, 1, 3.0], [0, 0, 0, 1]])
+
+    stream = sorted([(t, 0, pyigtl.StringMessage("0.1,1.0,0.5", timestamp=t, device_name=DEVICE_SIGNALS))
+                     for t in signals]
+                    + [(t, 1, pyigtl.TransformMessage(pose(t), timestamp=t, device_name=DEVICE_ROBOT)) for t in frames]
+                    + [(t, 2, pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name=DEVICE_PROBE))
+                       for t in frames], key=lambda m: m[:2])
+
+    def script(accept):
+        conn = accept()
+        conn.sendall(b"".join(m.pack() for _, _, m in stream))
+        time.sleep(1.0)
+        conn.close()
+
+    port, server = _serve(script)
+    skipped: dict = {}
+    chunks = list(igtl_client_chunks("127.0.0.1", port, idle_timeout_s=0.5, skipped=skipped))
+    server.join(timeout=5.0)
+    t = np.array([float(c.time_s[0]) for c in chunks])
+    lo = np.searchsorted(frames, signals, side="right") - 1
+    gap = frames[np.clip(lo + 1, 0, frames.size - 1)] - frames[np.clip(lo, 0, None)]
+    ended = signals > frames[-1]
+    no_pose = ~ended & ((lo < 0) | (gap > 2.5 * np.median(np.diff(frames))))
+    assert no_pose[(signals > 1000.8) & (signals < 1001.1)].all() and 30 <= no_pose.sum() <= 40
+    assert skipped == {SKIP_NO_POSE: int(no_pose.sum()), SKIP_ENDED: int(ended.sum())}, skipped
+    np.testing.assert_allclose(t, signals[~no_pose & ~ended], atol=1e-6)  # in order, at the Signals' times
+    assert t[-1] > 1001.8  # the stream went on after the dropout
+    T = np.array([c.T_tracker_from_robot[0] for c in chunks])
+    truth = np.array([pose(x) for x in t])
+    np.testing.assert_allclose(T, truth, atol=2e-5)
