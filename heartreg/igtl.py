@@ -334,10 +334,11 @@ def _signals(text: str):
 MAX_WAIT_S = 0.25
 #: tracker frames (and transforms waiting for their frame's other tool) kept when no sample takes them.
 MAX_FRAMES = 64
-#: why a sample is skipped: no frame close enough around it (a dropout, before the first frame, frames too late),
-#: or the stream ended while it waited.
-SKIP_NO_POSE = (f"no tracker pose within {MAX_FRAME_GAP:g} frame steps of the sample (a tracker dropout, or "
-                f"frames over {MAX_WAIT_S:g} s late)")
+#: the poses of a sample with no frame close enough around it (a tracker dropout, before the first frame, frames
+#: too late): the robot not seen, logged 'tracker', its signals still feeding the phases (skipped, a dropout over
+#: a tenth of a second restarted the phases: seconds with nothing placed)
+NOT_SEEN = (np.full((4, 4), np.nan), np.eye(4))
+#: why a sample is skipped: the stream ended while it waited for the frame after it.
 SKIP_ENDED = "the stream ended before the tracker frame after the sample"
 
 
@@ -345,8 +346,8 @@ def _pose_at(frames: list, steps, t: float):
     """The poses ``(T_tracker_from_robot, T_tracker_from_probe)`` of a sample at ``t`` from the tracker frames
     ``(time, robot, probe)`` (time-ordered): the frame at ``t`` as received, else the relative pose interpolated
     between the frames around ``t`` (with an identity probe: the same pose relative to the probe); None while no
-    frame after ``t`` has come; a skip reason when those frames are more than ``MAX_FRAME_GAP`` median steps
-    apart (``steps``: the last frame steps)."""
+    frame after ``t`` has come; :data:`NOT_SEEN` when there is none before it or those frames are more than
+    ``MAX_FRAME_GAP`` median steps apart (``steps``: the last frame steps)."""
     times = [f[0] for f in frames]
     k = bisect.bisect_right(times, t)  # frames[:k] are at or before t
     if k and times[k - 1] == t:
@@ -354,7 +355,7 @@ def _pose_at(frames: list, steps, t: float):
     if k == len(frames):
         return None
     if k == 0 or times[k] - times[k - 1] > MAX_FRAME_GAP * float(np.median(steps)):
-        return SKIP_NO_POSE
+        return NOT_SEEN
     return _between(frames[k - 1], frames[k], t), np.eye(4)
 
 
@@ -388,8 +389,10 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
     numbers) at its timestamp (the sample time, s, on the tracker's clock).  A sample takes the frame with its
     timestamp if there is one (a server sending all three per sample), else the pose interpolated between the
     frames around it (a tracker at its own rate): it waits for the frame after it, at most ``MAX_WAIT_S`` of
-    the samples' time.  A sample with bad signals, not later than the one before, between frames more than
-    ``MAX_FRAME_GAP`` median steps apart or with no frame after it is skipped, counted by reason in
+    the samples' time.  A sample between frames more than ``MAX_FRAME_GAP`` median steps apart, before the
+    first frame or whose frame after it is later than that wait comes with the robot not seen
+    (:data:`NOT_SEEN`: logged 'tracker', its signals still feed the phases).  A sample with bad signals, not
+    later than the one before, or still waiting when the stream ends is skipped, counted by reason in
     ``skipped``; one bad sample does not end a live run.  The stream ends after ``idle_timeout_s`` without
     a message; a server that never answers is an :class:`IgtlError`.  A malformed message is dropped, a
     connection the server closed is opened again (:func:`lossless_client`): each counted by reason in
@@ -455,14 +458,11 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
                 if pose is None:
                     if latest - t <= MAX_WAIT_S:
                         break  # the frame after it is yet to come
-                    pose = SKIP_NO_POSE
+                    pose = NOT_SEEN
                 waiting.popleft()
                 while len(frames) > 1 and frames[1][0] <= t:
                     frames.pop(0)  # the next sample is later: only the last frame at or before t may serve it
-                if isinstance(pose, str):
-                    skip(pose)
-                    continue
-                yield next(chunks_from_samples([(t, *pose, True, *values)]))
+                yield next(chunks_from_samples([(t, *pose, pose is not NOT_SEEN, *values)]))
     finally:
         client.stop()
         if problems is not None:

@@ -17,7 +17,6 @@ from heartreg.igtl import (
     DEVICE_ROBOT,
     DEVICE_SIGNALS,
     SKIP_ENDED,
-    SKIP_NO_POSE,
     igtl_client_chunks,
 )
 
@@ -190,13 +189,14 @@ def test_a_server_faster_than_the_tracker_is_held_back_not_queued():
     assert sent[0] < 20000, sent  # the server was held back (flat out it sends ~100 000 samples in 3 s)
 
 
-def test_a_tracker_dropout_is_skipped_and_the_stream_goes_on():
+def test_a_tracker_dropout_is_the_robot_not_seen_and_the_stream_goes_on():
     """Tracker frames at 40 Hz (timestamps jittered off the signals' ticks) beside 100 Hz signals, the tracker
     losing the robot for 0.3 s: the samples around the dropout, between frames more than 2.5 median frame steps
-    apart, are skipped and counted (as the PLUS reader drops them), the samples after it are interpolated again,
-    and the last ones, after the last frame, are counted when the stream ends.  Every sample took the frame with
-    its very timestamp: none arrived (nothing was ever placed).  The robot moves 10 mm/s along x and turns
-    0.5 rad/s about z, so the interpolated pose is the truth but for float32."""
+    apart (and the one before the first frame), come with the robot not seen (logged 'tracker': their signals
+    keep the phases going, where skipping them restarted the phases after a tenth of a second), the samples
+    after it are interpolated again, and the last ones, after the last frame, are counted when the stream ends.
+    Every sample took the frame with its very timestamp: none arrived (nothing was ever placed).  The robot
+    moves 10 mm/s along x and turns 0.5 rad/s about z, so the interpolated pose is the truth but for float32."""
     rng = np.random.default_rng(3)
     frames = 1000.0 + 0.025 * np.arange(1, 80) + rng.uniform(-0.005, 0.005, 79)
     frames = frames[(frames < 1000.8) | (frames > 1001.1)]  # the dropout
@@ -228,9 +228,12 @@ def test_a_tracker_dropout_is_skipped_and_the_stream_goes_on():
     ended = signals > frames[-1]
     no_pose = ~ended & ((lo < 0) | (gap > 2.5 * np.median(np.diff(frames))))
     assert no_pose[(signals > 1000.8) & (signals < 1001.1)].all() and 30 <= no_pose.sum() <= 40
-    assert skipped == {SKIP_NO_POSE: int(no_pose.sum()), SKIP_ENDED: int(ended.sum())}, skipped
-    np.testing.assert_allclose(t, signals[~no_pose & ~ended], atol=1e-6)  # in order, at the Signals' times
+    assert skipped == {SKIP_ENDED: int(ended.sum())}, skipped
+    np.testing.assert_allclose(t, signals[~ended], atol=1e-6)  # in order, at the Signals' times
     assert t[-1] > 1001.8  # the stream went on after the dropout
+    seen = np.array([bool(c.status[0]) for c in chunks])
+    np.testing.assert_array_equal(seen, ~no_pose[~ended])
     T = np.array([c.T_tracker_from_robot[0] for c in chunks])
-    truth = np.array([pose(x) for x in t])
-    np.testing.assert_allclose(T, truth, atol=2e-5)
+    assert np.isnan(T[~seen]).all()
+    truth = np.array([pose(x) for x in t[seen]])
+    np.testing.assert_allclose(T[seen], truth, atol=2e-5)
