@@ -71,7 +71,7 @@ def _label_arg(value: str):
 
 def _seed_arg(value: str):
     """``--seed``: ``X,Y,Z`` in patient LPS mm, or a 3D Slicer markups file (``.mrk.json``) whose first point is read."""
-    if value.lower().endswith(".json"):
+    if value.lower().endswith((".json", ".fcsv")):
         return Path(value)
     parts = value.replace(",", " ").split()
     if len(parts) != 3:
@@ -81,7 +81,7 @@ def _seed_arg(value: str):
 
 def _fiducials_arg(value: str):
     """``--fiducials``: a count of skin staples to insist on, or a 3D Slicer markups file of their positions."""
-    if value.lower().endswith(".json"):
+    if value.lower().endswith((".json", ".fcsv")):
         return Path(value)
     if not value.isdigit():
         raise argparse.ArgumentTypeError(f"{value!r} is neither a count of fiducials nor a .mrk.json markups file")
@@ -124,12 +124,13 @@ def _add_model_options(p) -> None:
     p.add_argument("--seed", type=_seed_arg, default=None, metavar="X,Y,Z|POINT.mrk.json",
                    help="a point inside the heart to start the automatic segmentation from, when its own start "
                         "fails: patient LPS mm (--seed=-12.5,40,-100 when it starts with a minus), or a 3D Slicer "
-                        "markups file (its first point, LPS or RAS as it says)")
+                        "markups file (.mrk.json or the legacy .fcsv; its first point, LPS or RAS as it says)")
     p.add_argument("--faces", type=int, default=None,
                    help=f"faces of the decimated mesh (default {ModelOptions.target_faces})")
     p.add_argument("--fiducials", type=_fiducials_arg, default=None, metavar="N|POINTS.mrk.json",
                    help="skin fiducials expected, insisted on (default: those found on the skin; 0: none), or their "
-                        "positions in a 3D Slicer markups file (every placed point, LPS or RAS as it says; e.g. the "
+                        "positions in a 3D Slicer markups file (.mrk.json or .fcsv: every placed point, LPS or RAS "
+                        "as it says; e.g. the "
                         "model's fiducials_ct.mrk.json corrected in Slicer), used instead of the search")
     p.add_argument("--fiducial-floor-hu", type=_floor_hu_arg, default=None,
                    help="HU above which fiducial excess density counts (100-3000)")

@@ -1,4 +1,4 @@
-"""3D Slicer's file formats: markups ``.mrk.json`` and ITK transform ``.tfm`` files.
+"""3D Slicer's file formats: markups ``.mrk.json`` (and the legacy ``.fcsv``, read) and ITK ``.tfm`` files.
 
 Both are written in **LPS** and say so, so Slicer (whose scene is RAS) converts
 on reading, as it does for DICOM:
@@ -187,7 +187,8 @@ def read_markups(path) -> Markups:
 
     Only placed points are read: a control point whose ``positionStatus`` is
     ``undefined``, ``preview`` or ``missing`` (listed in Slicer but not yet
-    placed, being placed, or skipped) is left out.
+    placed, being placed, or skipped) is left out.  Slicer's legacy point
+    list, ``.fcsv``, is read too (:func:`_read_fcsv`).
 
     Raises
     ------
@@ -196,6 +197,8 @@ def read_markups(path) -> Markups:
         point without three finite coordinates.
     """
     path = Path(path)
+    if path.name.lower().endswith(".fcsv"):
+        return _read_fcsv(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -229,6 +232,58 @@ def read_markups(path) -> Markups:
     if system == "RAS":
         pts = pts @ _FLIP
     return Markups(name=str(m.get("name", "")), labels=tuple(labels), points_lps_mm=pts,
+                   descriptions=tuple(descriptions))
+
+
+#: ``.fcsv``'s coordinate systems: a name, or Slicer 4's number (0 RAS, 1 LPS); no line: RAS.
+_FCSV_SYSTEMS = {"RAS": "RAS", "0": "RAS", "LPS": "LPS", "1": "LPS"}
+#: the columns of a ``.fcsv`` point without a ``# columns`` line (Slicer 4.6 and later write it).
+_FCSV_COLUMNS = "id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID".split(",")
+#: Slicer 5's ``positionStatus`` written after the named columns: 2 is a placed point.
+_FCSV_PLACED = "2"
+
+
+def _read_fcsv(path: Path) -> Markups:
+    """Slicer's legacy point list (``.fcsv``): ``#`` header lines (``CoordinateSystem``, ``columns``), then
+    one comma-separated line per point; Slicer 5 adds the point's status and whether it was made automatically
+    after the named columns, and only placed points (status 2) are read."""
+    try:
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
+    except FileNotFoundError:
+        raise SlicerFileError(f"markups file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SlicerFileError(f"{path} is not a readable .fcsv markups file ({exc})") from None
+    system, columns = "RAS", _FCSV_COLUMNS
+    labels, descriptions, pts = [], [], []
+    for n, line in enumerate(lines, 1):
+        if line.startswith("#"):
+            key, _, value = (part.strip() for part in line[1:].partition("="))
+            if key == "CoordinateSystem":
+                if value not in _FCSV_SYSTEMS:
+                    raise SlicerFileError(f"{path}: CoordinateSystem {value!r} is neither LPS nor RAS")
+                system = _FCSV_SYSTEMS[value]
+            elif key == "columns":
+                columns = [c.strip() for c in value.split(",")]
+            continue
+        if not line.strip():
+            continue
+        cells = line.split(",")
+        try:
+            xyz = [float(cells[columns.index(c)]) for c in "xyz"]
+        except (ValueError, IndexError):
+            raise SlicerFileError(f"{path}: line {n} has no x, y, z of finite numbers") from None
+        if not all(math.isfinite(v) for v in xyz):
+            raise SlicerFileError(f"{path}: line {n} has no x, y, z of finite numbers")
+        if len(cells) >= len(columns) + 2 and cells[len(columns)].strip() != _FCSV_PLACED:
+            continue  # Slicer 5: listed but not placed
+        named = dict(zip(columns, cells))
+        labels.append(named.get("label", ""))
+        descriptions.append(named.get("desc", ""))
+        pts.append(xyz)
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    if system == "RAS":
+        pts = pts @ _FLIP
+    return Markups(name=path.name[: -len(".fcsv")], labels=tuple(labels), points_lps_mm=pts,
                    descriptions=tuple(descriptions))
 
 

@@ -212,3 +212,34 @@ def test_plus_session_gives_the_same_registration_as_the_csv_session(registered,
     differ = [(a, b) for a, b in zip(csv_lines, plus_lines) if a != b]
     assert len(csv_lines) == len(plus_lines)
     assert differ == [('  "session_pose_source": "csv"', '  "session_pose_source": "PLUS sequence"')]
+
+
+def test_slicers_legacy_fcsv_point_lists_are_read(tmp_path):
+    """``.fcsv``, the point list Slicer 4 wrote (and 5 still writes on request), found in many labs' datasets:
+    read for ``--seed`` and ``--fiducials`` beside ``.mrk.json``.  Slicer 4.4 numbered the coordinate system
+    (0 RAS, 1 LPS), 4.11 names it, 5 adds each point's status and 'auto-created' flag after the named
+    columns (a point listed but not placed has status 0, 1 or 3)."""
+    columns = "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+    files = {
+        "v44.fcsv": "# Markups fiducial file version = 4.4\n# CoordinateSystem = 0\n" + columns
+        + "vtkMRMLMarkupsFiducialNode_0,10.5,-20,30,0,0,0,1,1,1,0,F-1,,vtkMRMLScalarVolumeNode1\n"
+        + "vtkMRMLMarkupsFiducialNode_1,1,2,3,0,0,0,1,1,1,0,F-2,a note,\n",
+        "v411.fcsv": "# Markups fiducial file version = 4.11\n# CoordinateSystem = LPS\n" + columns
+        + "1,-10.5,20,30,0,0,0,1,1,1,0,F-1,,\n2,-1,-2,3,0,0,0,1,1,1,0,F-2,a note,\n",
+        "v54.fcsv": "# Markups fiducial file version = 5.4\n# CoordinateSystem = RAS\n" + columns
+        + "1,10.5,-20,30,0,0,0,1,1,1,0,F-1,,,2,0\n9,7,7,7,0,0,0,1,1,1,0,F-9,,,3,0\n"
+        + "2,1,2,3,0,0,0,1,1,1,0,F-2,a note,,2,0\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        m = read_markups(tmp_path / name)
+        np.testing.assert_array_equal(m.points_lps_mm, [[-10.5, 20.0, 30.0], [-1.0, -2.0, 3.0]]), name
+        assert m.labels == ("F-1", "F-2") and m.descriptions == ("", "a note"), name
+    (tmp_path / "bad.fcsv").write_text("# CoordinateSystem = LPS\n1,abc,2,3,0,0,0,1,1,1,0,F-1,,\n")
+    with pytest.raises(SlicerFileError, match=r"bad.fcsv: line 2 has no x, y, z of finite numbers"):
+        read_markups(tmp_path / "bad.fcsv")
+    (tmp_path / "ijk.fcsv").write_text("# CoordinateSystem = 2\n1,1,2,3,0,0,0,1,1,1,0,F-1,,\n")
+    with pytest.raises(SlicerFileError, match="CoordinateSystem '2' is neither LPS nor RAS"):
+        read_markups(tmp_path / "ijk.fcsv")
+    with pytest.raises(SlicerFileError, match="does not exist"):
+        read_markups(tmp_path / "none.fcsv")
