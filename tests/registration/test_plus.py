@@ -65,6 +65,13 @@ def _plus_session(tmp_path, n=1500, rate=100.0, invalid=(), shift_s=0.0, signals
     write_plus_sequence(folder / "track.igs.nrrd", time_s + shift_s, {"RobotToTracker": robot, "ProbeToTracker": probe},
                         valid={"ProbeToTracker": seen})
     cols = signals(time_s - time_s[0]) if signals else (np.full(n, 0.1), np.ones(n), np.zeros(n))
+    _write_signals_and_meta(folder, time_s, cols, rate)
+    return folder, T_probe_from_robot, time_s
+
+
+def _write_signals_and_meta(folder, time_s, cols, rate, **meta_extra):
+    """The point's signals CSV ``(ecg, flow_insp, flow_exp)`` at ``time_s``, the fiducials and session.json
+    naming ``track.igs.nrrd`` as the point's poses."""
     rows = ["time_s,ecg_mv,flow_insp_lpm,flow_exp_lpm"] + [
         f"{t:.3f},{e:.4f},{i:.3f},{x:.3f}" for t, e, i, x in zip(time_s, *cols)]
     (folder / "points" / "p0.csv").write_text("\n".join(rows) + "\n")
@@ -76,10 +83,9 @@ def _plus_session(tmp_path, n=1500, rate=100.0, invalid=(), shift_s=0.0, signals
         "quaternion_order": "wxyz", "frames": {"poses": "tracker"}, "sample_rate_hz": rate,
         "points": [{"id": 0, "file": "points/p0.csv", "poses": "track.igs.nrrd", "surface_point": 7}],
         "fiducials_file": "fiducials.csv",
-        "fiducial_order": "rows superior to inferior, within a row patient right to left",
+        "fiducial_order": "rows superior to inferior, within a row patient right to left", **meta_extra,
     }
     (folder / "session.json").write_text(json.dumps(meta))
-    return folder, T_probe_from_robot, time_s
 
 
 def test_session_poses_from_plus_drop_invalid_samples(tmp_path):
@@ -283,21 +289,8 @@ def _tracker_session(tmp_path, frame_times, T_probe_from_robot, *, rate=100.0, n
     probe[:, :3, 3] = [10.0, -200.0, 50.0]
     write_plus_sequence(folder / "track.igs.nrrd", frame_times,
                         {"RobotToTracker": probe @ T_probe_from_robot(np.asarray(frame_times)), "ProbeToTracker": probe})
-    rows = ["time_s,ecg_mv,flow_insp_lpm,flow_exp_lpm"] + [f"{t:.3f},0.1,1.000,0.000" for t in time_s]
-    (folder / "points" / "p0.csv").write_text("\n".join(rows) + "\n")
-    (folder / "fiducials.csv").write_text("fiducial,x_mm,y_mm,z_mm\n" + "".join(
-        f"{k},{k}.0,{2 * k}.0,{k * k}.0\n" for k in range(1, 10)))
-    meta = {
-        "format": "heartreg-session", "version": 1,
-        "units": {"position": "mm", "time": "s", "ecg": "mV", "flow": "L/min"},
-        "quaternion_order": "wxyz", "frames": {"poses": "tracker"}, "sample_rate_hz": rate,
-        "points": [{"id": 0, "file": "points/p0.csv", "poses": "track.igs.nrrd", "surface_point": 7}],
-        "fiducials_file": "fiducials.csv",
-        "fiducial_order": "rows superior to inferior, within a row patient right to left",
-    }
-    if offset is not None:
-        meta["poses_time_offset_s"] = offset
-    (folder / "session.json").write_text(json.dumps(meta))
+    _write_signals_and_meta(folder, time_s, (np.full(n, 0.1), np.ones(n), np.zeros(n)), rate,
+                            **({} if offset is None else {"poses_time_offset_s": offset}))
     return folder, time_s
 
 
