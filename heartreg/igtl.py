@@ -20,7 +20,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from hrcore.errors import HeartregError
-from registration.session_format import MAX_FRAME_GAP
+from registration.session_format import MAX_FRAME_GAP, MIN_TRACKER_RATE_HZ
 
 __all__ = [
     "DEVICE_MODEL",
@@ -354,7 +354,9 @@ def _pose_at(frames: list, steps, t: float):
         return frames[k - 1][1:]
     if k == len(frames):
         return None
-    if k == 0 or times[k] - times[k - 1] > MAX_FRAME_GAP * float(np.median(steps)):
+    # the gap a lost frame makes, by the tracker's median step (a slowest tracker's until three steps are known)
+    step = float(np.median(steps)) if len(steps) >= 3 else 1.0 / MIN_TRACKER_RATE_HZ
+    if k == 0 or times[k] - times[k - 1] > MAX_FRAME_GAP * step:
         return NOT_SEEN
     return _between(frames[k - 1], frames[k], t), np.eye(4)
 
@@ -435,10 +437,12 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
                 if len(slot) == 2:
                     for old in [k for k in parts if k <= key]:
                         parts.pop(old)  # an incomplete earlier frame will not complete now
-                    if not frames or key > frames[-1][0]:  # a frame older than the last is of no use
-                        if frames:
-                            steps.append(key - frames[-1][0])
-                        frames.append((key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE]))
+                    # in time order, wherever it falls: one frame stamped far ahead (a glitch) blocks no later one
+                    at = bisect.bisect_left([f[0] for f in frames], key)
+                    if at == len(frames) or frames[at][0] != key:
+                        if at:
+                            steps.append(key - frames[at - 1][0])
+                        frames.insert(at, (key, slot[DEVICE_ROBOT], slot[DEVICE_PROBE]))
                         del frames[:-MAX_FRAMES]
                 while len(parts) > MAX_FRAMES:
                     parts.pop(min(parts))
@@ -455,9 +459,9 @@ def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, ski
             while waiting:
                 t, values = waiting[0]
                 pose = _pose_at(frames, steps, t)
-                if pose is None:
+                if pose is None or pose is NOT_SEEN:
                     if latest - t <= MAX_WAIT_S:
-                        break  # the frame after it is yet to come
+                        break  # the frame after it (or a nearer one, out of order) may yet come
                     pose = NOT_SEEN
                 waiting.popleft()
                 while len(frames) > 1 and frames[1][0] <= t:

@@ -20,6 +20,7 @@ Every writer writes atomically; every reader gives back what was written.
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from dataclasses import dataclass
@@ -267,7 +268,7 @@ def _read_fcsv(path: Path) -> Markups:
             continue
         if not line.strip():
             continue
-        cells = line.split(",")
+        cells = next(csv.reader([line]))  # a label or note holding commas is quoted
         try:
             xyz = [float(cells[columns.index(c)]) for c in "xyz"]
         except (ValueError, IndexError):

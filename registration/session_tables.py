@@ -248,7 +248,10 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
     if np.any(np.abs(t_frames[k] - t) > PLUS_TIME_TOL / rate_hz):
         # the tracker on its own rate or clock: each sample's pose between the frames around it
-        step = float(np.median(np.diff(t_frames))) if n > 1 else np.inf
+        if n < 2:
+            raise SessionError(f"{poses_rel} holds a single frame, at no sample's time: record the poses over the "
+                               "whole point")
+        step = float(np.median(np.diff(t_frames)))
         T, have = _poses_between_frames(t_frames, T_robot, T_probe, seq.valid, t, step, rel, poses_rel)
         note = (f"poses interpolated from the PLUS sequence's {1.0 / step:.3g} Hz frames to the samples' "
                 f"{rate_hz:g} Hz (translation linear, rotation along the shortest arc)")
@@ -288,7 +291,7 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
         Which samples have a pose.
     """
     rate = 1.0 / step
-    if rate < MIN_TRACKER_RATE_HZ:  # (one frame: no rate, refused here too)
+    if rate < MIN_TRACKER_RATE_HZ:
         raise SessionError(
             f"{poses_rel}: its frames come every {step:.4g} s ({rate:.3g} Hz), too seldom for the heartbeat's "
             f"motion (its fifth harmonic is at 7.5 Hz at 90 beats/min); record the robot and the probe at "
@@ -300,8 +303,9 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
         row = int(np.argmax(outside))
         raise SessionError(
             f"{rel}: row {row + 1} (time_s {float(t[row]):.3f}) lies outside the frames of {poses_rel} "
-            f"({float(t_frames[0]):.3f}-{float(t_frames[-1]):.3f} s; {int(outside.sum())} such rows); check the "
-            "PLUS clock (session.json 'poses_time_offset_s')"
+            f"({float(t_frames[0]):.3f}-{float(t_frames[-1]):.3f} s; {int(outside.sum())} such rows): a tracker "
+            "recording covers its points; if PLUS ran on its own clock, give session.json 'poses_time_offset_s', "
+            "if it started late or stopped early, trim the point's rows to its frames"
         )
     seen = valid[PLUS_TRANSFORMS[0]] & valid[PLUS_TRANSFORMS[1]]
     tf = t_frames[seen]

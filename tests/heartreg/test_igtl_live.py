@@ -237,3 +237,25 @@ def test_a_tracker_dropout_is_the_robot_not_seen_and_the_stream_goes_on():
     assert np.isnan(T[~seen]).all()
     truth = np.array([pose(x) for x in t[seen]])
     np.testing.assert_allclose(T[seen], truth, atol=2e-5)
+
+
+def test_a_tracker_frame_stamped_far_ahead_blocks_no_later_frame():
+    """A server sending all three parts per sample at 100 Hz, and once a lone tracker frame stamped 1e6 s (a
+    glitch): every later frame, 'older than the last', was dropped, and every later sample came as the robot
+    not seen (21 of 100 placed; a review).  Frames are now kept in time order wherever they fall."""
+    glitch = b"".join(pyigtl.TransformMessage(np.eye(4), timestamp=1e6, device_name=d).pack()
+                      for d in (DEVICE_ROBOT, DEVICE_PROBE))
+    data = b"".join(_sample(i) + (glitch if i == 20 else b"") for i in range(100))
+
+    def script(accept):
+        conn = accept()
+        conn.sendall(data)
+        time.sleep(0.8)
+        conn.close()
+
+    port, server = _serve(script)
+    skipped: dict = {}
+    chunks = list(igtl_client_chunks("127.0.0.1", port, idle_timeout_s=0.4, skipped=skipped))
+    server.join(timeout=5.0)
+    assert len(chunks) == 100 and all(bool(c.status[0]) for c in chunks) and not skipped
+    np.testing.assert_array_equal([c.T_tracker_from_robot[0][0, 3] for c in chunks], np.arange(100.0))

@@ -109,8 +109,9 @@ def test_plus_clock_must_match_the_signals(tmp_path):
     shutil.rmtree(folder)
     folder, _, _ = _plus_session(tmp_path, shift_s=2.0)
     with pytest.raises(SessionError, match=r"points/p0.csv: row 1 \(time_s 30000.000\) lies outside the frames of "
-                                           r"track.igs.nrrd \(30002.000-30016.990 s; 198 such rows\); check the PLUS "
-                                           r"clock \(session.json 'poses_time_offset_s'\)"):
+                                           r"track.igs.nrrd \(30002.000-30016.990 s; 198 such rows\): a tracker "
+                                           r"recording covers its points; if PLUS ran on its own clock, give "
+                                           r"session.json 'poses_time_offset_s'"):
         read_session(folder)
     meta = json.loads((folder / "session.json").read_text())
     meta["poses_time_offset_s"] = -2.0  # the documented fix: the PLUS clock's offset
@@ -353,8 +354,9 @@ def test_a_tracker_too_slow_or_on_another_clock(tmp_path):
     frames = 345.6 + np.arange(0.0, 15.0, 1 / 40)
     folder, _ = _tracker_session(tmp_path, frames, lambda t: _beating(t + 30000.0 - 345.6))
     with pytest.raises(SessionError, match=r"points/p0.csv: row 1 \(time_s 30000.000\) lies outside the frames of "
-                                           r"track.igs.nrrd \(345.600-360.575 s; 1500 such rows\); check the PLUS "
-                                           r"clock \(session.json 'poses_time_offset_s'\)"):
+                                           r"track.igs.nrrd \(345.600-360.575 s; 1500 such rows\): a tracker "
+                                           r"recording covers its points; if PLUS ran on its own clock, give "
+                                           r"session.json 'poses_time_offset_s'"):
         read_session(folder)
     shutil.rmtree(folder)
     folder, _ = _tracker_session(tmp_path, frames, lambda t: _beating(t + 30000.0 - 345.6), offset=30000.0 - 345.6)

@@ -229,12 +229,19 @@ def test_slicers_legacy_fcsv_point_lists_are_read(tmp_path):
         "v54.fcsv": "# Markups fiducial file version = 5.4\n# CoordinateSystem = RAS\n" + columns
         + "1,10.5,-20,30,0,0,0,1,1,1,0,F-1,,,2,0\n9,7,7,7,0,0,0,1,1,1,0,F-9,,,3,0\n"
         + "2,1,2,3,0,0,0,1,1,1,0,F-2,a note,,2,0\n",
+        # a label or note with commas is quoted (a review: a plain split shifted the columns, and the Slicer 5
+        # status read off the wrong cell left the point out without a word)
+        "quoted.fcsv": "# Markups fiducial file version = 5.6\n# CoordinateSystem = LPS\n" + columns
+        + '1,-10.5,20,30,0,0,0,1,1,1,0,"F-1, row 1",,,2,0\n2,-1,-2,3,0,0,0,1,1,1,0,F-2,"a note, ""quoted""",,2,0\n',
     }
     for name, text in files.items():
         (tmp_path / name).write_text(text)
         m = read_markups(tmp_path / name)
         np.testing.assert_array_equal(m.points_lps_mm, [[-10.5, 20.0, 30.0], [-1.0, -2.0, 3.0]]), name
-        assert m.labels == ("F-1", "F-2") and m.descriptions == ("", "a note"), name
+        if name == "quoted.fcsv":
+            assert m.labels == ("F-1, row 1", "F-2") and m.descriptions == ("", 'a note, "quoted"')
+        else:
+            assert m.labels == ("F-1", "F-2") and m.descriptions == ("", "a note"), name
     (tmp_path / "bad.fcsv").write_text("# CoordinateSystem = LPS\n1,abc,2,3,0,0,0,1,1,1,0,F-1,,\n")
     with pytest.raises(SlicerFileError, match=r"bad.fcsv: line 2 has no x, y, z of finite numbers"):
         read_markups(tmp_path / "bad.fcsv")
