@@ -143,6 +143,10 @@ def _model_options(args):
     if isinstance(args.fiducials, Path):
         from modeling.slicer import read_markups
 
+        if args.fiducial_floor_hu is not None:
+            raise UsageError("--fiducial-floor-hu tunes the search for skin markers; --fiducials FILE gives them "
+                             "instead: give one")
+
         kw["fiducials_mm"] = read_markups(args.fiducials).points_lps_mm
         if len(kw["fiducials_mm"]) < 3:
             raise UsageError(f"--fiducials: the markups file {args.fiducials} holds {len(kw['fiducials_mm'])} placed "

@@ -442,7 +442,7 @@ def build_heart_model(
     }
     parameters = {
         "target_faces": int(target_faces),
-        "expected_fiducials": expected_fiducials,
+        "expected_fiducials": expected_fiducials if opts.fiducials_mm is None else len(opts.fiducials_mm),
         "fiducials_given": opts.fiducials_mm is not None,
         "fiducial_rows": int(fiducial_rows),
         "segmentation": seg_params,

@@ -53,6 +53,8 @@ __all__ = ["FiducialError", "Fiducials", "find_fiducials", "order_fiducials"]
 NO_FIDUCIALS = ("the model has no fiducials and cannot be registered ('heartreg register' starts from the CT's skin "
                 "staples, touched in surgery)")
 
+#: A given fiducial may lie this far outside the CT's voxels (a staple on the skin at the field of view's edge).
+GIVEN_MARGIN_MM = 10.0
 #: Excess density is counted above this HU (above any skin or soft tissue).
 FLOOR_HU = 300.0
 #: A staple lies on the skin: voxels this close to the air outside are searched.
@@ -411,6 +413,17 @@ def fiducial_stage(hu, T_patient_from_voxel, options, fallback) -> Fiducials:
     expected, rows = options.expected_fiducials, options.fiducial_rows
     if options.fiducials_mm is not None:
         points = np.asarray(options.fiducials_mm, dtype=np.float64)
+        # skin markers lie in the CT: a point far outside it is in another frame (RAS read as LPS, a tracker's)
+        ijk = np.c_[points, np.ones(len(points))] @ np.linalg.inv(np.asarray(T_patient_from_voxel, float)).T
+        margin = GIVEN_MARGIN_MM / np.linalg.norm(np.asarray(T_patient_from_voxel, float)[:3, :3], axis=0)
+        extent = np.asarray(hu.shape[::-1], float) - 1.0  # i, j, k
+        outside = np.any((ijk[:, :3] < -margin) | (ijk[:, :3] > extent + margin), axis=1)
+        if outside.any():
+            k = int(np.argmax(outside))
+            raise FiducialError(
+                f"given fiducial {k + 1} ({', '.join(f'{x:.1f}' for x in points[k])} mm) lies outside the CT "
+                f"({int(outside.sum())} of {len(points)} such): give the points in this CT's patient coordinates "
+                "(a Slicer markups file says LPS or RAS; points placed on this CT in Slicer are)")
         return Fiducials(points, np.full(len(points), np.nan),
                          (f"fiducials: {len(points)} given (patient LPS), not searched",))
     if expected is None:

@@ -88,6 +88,13 @@ def test_fiducials_given_in_a_markups_file_are_taken_as_they_are(sample_case, sa
     inside.write_text(given.read_text())
     assert main(["model", str(case / "ct"), "-o", str(out), "--overwrite", "--fiducials", str(inside), "-q"]) == 1
     assert "contains the input" in capsys.readouterr().err and inside.is_file()
+    # points in another frame (a tracker's, 600 mm away) are no skin markers of this CT
+    for cp in markups["controlPoints"]:
+        cp["position"][2] += 600.0
+    given.write_text(json.dumps(doc))
+    assert main(["model", str(case / "ct"), "-o", str(tmp_path / "far"), "--fiducials", str(given), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "given fiducial 1 (" in err[0] and "lies outside the CT (9 of 9 such)" in err[0], err
 
 
 def test_vessel_cut_skipped_when_nothing_is_heart_thick():
