@@ -83,7 +83,7 @@ def _fiducials_arg(value: str):
     """``--fiducials``: a count of skin staples to insist on, or a 3D Slicer markups file of their positions."""
     if value.lower().endswith((".json", ".fcsv")):
         return Path(value)
-    if not value.isdigit():
+    if not value.lstrip("-").isdigit():  # a negative count is refused by ModelOptions, naming the option
         raise argparse.ArgumentTypeError(f"{value!r} is neither a count of fiducials nor a .mrk.json markups file")
     return int(value)
 
