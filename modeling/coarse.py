@@ -96,6 +96,22 @@ def label_maximum(values, labels, n: int) -> np.ndarray:
     return top[1:]
 
 
+def label_counts(mask, labels, n: int) -> np.ndarray:
+    """How many voxels of ``mask`` lie in each label ``1..n``, float64.
+
+    As ``scipy.ndimage.sum_labels(mask, labels, np.arange(1, n + 1))``, by one
+    ``bincount``: scipy's path took 2 s of a whole-chest CT's segmentation
+    (five calls over thousands of components).
+
+    Examples
+    --------
+    >>> label_counts(np.array([True, True, False, True]), np.array([1, 1, 1, 3]), 3).tolist()
+    [2.0, 0.0, 1.0]
+    """
+    labels = np.asarray(labels)
+    return np.bincount(labels[np.asarray(mask, bool)], minlength=n + 1)[1:].astype(np.float64)
+
+
 def block_transform(T_patient_from_voxel, step) -> np.ndarray:
     """(4, 4): the voxel -> patient transform of the blocks of ``step`` (k, j, i) voxels
     (:func:`block_mean_max`): a block's (i, j, k) index to the centre of its voxels (a full block's)."""

@@ -45,6 +45,30 @@ CENTRE_SLOPE = 0.5
 MIN_AREA_MM2 = 30.0
 
 
+def _gaussian_derivatives_at(ct, sigma, at) -> dict:
+    """The image's Gaussian derivatives of orders 1 and 2 at the voxels ``at``, by each axis's order
+    (``(1, 0, 1)``: along k and i).
+
+    Each is ``scipy.ndimage.gaussian_filter(ct, sigma, order=...)[at]`` to the bit (the same 1-D passes, axis by
+    axis, in ``ct``'s dtype), the passes along the first axes shared between the nine: 18 passes instead of 27,
+    one filtered volume per axis alive at a time.
+    """
+    def along(image, axis, order):
+        return ndimage.gaussian_filter1d(image, sigma[axis], axis=axis, order=order, mode="reflect", truncate=4.0)
+
+    out = {}
+    for o0 in range(3):
+        first = along(ct, 0, o0)
+        for o1 in range(3 - o0):
+            second = along(first, 1, o1)
+            for o2 in range(3 - o0 - o1):
+                if o0 + o1 + o2:
+                    out[(o0, o1, o2)] = along(second, 2, o2)[at]
+            del second
+        del first
+    return out
+
+
 def fat_planes(coarse, spacing_kji, *, hu_low: float, box=None) -> np.ndarray:
     """Voxels of ``coarse`` at the floor of thin dim sheets (fat planes blurred above ``hu_low``).
 
@@ -72,21 +96,22 @@ def fat_planes(coarse, spacing_kji, *, hu_low: float, box=None) -> np.ndarray:
     if at[0].size == 0:
         return out
     sigma = SIGMA_MM / spacing
+    derivative = _gaussian_derivatives_at(ct, sigma, at)
     hessian = np.empty((at[0].size, 3, 3))
     slope = np.empty((at[0].size, 3))
     for a in range(3):
         order = [0, 0, 0]
         order[a] = 1
-        slope[:, a] = ndimage.gaussian_filter(ct, sigma, order=order)[at] / spacing[a]
+        slope[:, a] = derivative[tuple(order)] / spacing[a]
         for b in range(a, 3):
             order = [0, 0, 0]
             order[a] += 1
             order[b] += 1
-            hessian[:, a, b] = hessian[:, b, a] = (ndimage.gaussian_filter(ct, sigma, order=order)[at]
-                                                    / (spacing[a] * spacing[b]))
+            hessian[:, a, b] = hessian[:, b, a] = derivative[tuple(order)] / (spacing[a] * spacing[b])
     # a sheet's Hessian has a norm above MIN_CURVATURE and (SHEET_RATIO <= 0.5) a positive trace: only those
     # voxels need its eigen-decomposition
-    maybe = (np.trace(hessian, axis1=1, axis2=2) > 0) & (np.linalg.norm(hessian, axis=(1, 2)) > MIN_CURVATURE_HU_MM2)
+    maybe = np.trace(hessian, axis1=1, axis2=2) > 0
+    maybe[maybe] = np.linalg.norm(hessian[maybe], axis=(1, 2)) > MIN_CURVATURE_HU_MM2
     at, hessian, slope = tuple(i[maybe] for i in at), hessian[maybe], slope[maybe]
     curvature, axes = np.linalg.eigh(hessian)  # ascending: the last is across a valley
     across = curvature[:, 2]

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from modeling.coarse import fill_holes, label_maximum
+from modeling.coarse import fill_holes, label_counts, label_maximum, mask_box
 from modeling.distance import distance_mm, opening_mm
 
 __all__ = ["blood_noise_hu", "blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
@@ -126,7 +126,7 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=
         labels, n = ndimage.label(blood)
         if n == 0:
             continue
-        sizes = ndimage.sum_labels(blood, labels, index=np.arange(1, n + 1))
+        sizes = label_counts(blood, labels, n)
         # the largest component; at a weak level the next ones too (WEAK_POOL_CANDIDATES), where a whole-body
         # CT's marrow may outgrow the heart's pool
         for label in np.argsort(-sizes)[: WEAK_POOL_CANDIDATES if weak else 1] + 1:
@@ -211,7 +211,7 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu, height_axis: in
     # broke its marker (TotalSegmentator's aortic CTA with every third 1.5 mm slice: 850 ml with a lobe of liver,
     # its marker 20 ml, against 701 ml without); blood apart from the pool counts (a right heart apart from it)
     labels, n = ndimage.label(hu > blood_hu)
-    ml = ndimage.sum_labels(labels > 0, labels, index=np.arange(1, n + 1)) * float(np.prod(cspacing)) / 1000.0
+    ml = label_counts(labels > 0, labels, n) * float(np.prod(cspacing)) / 1000.0
     blood = np.isin(labels, np.flatnonzero(ml >= BLOOD_SPECK_ML) + 1)
     del labels
     solid = opening_mm(inside & ~blood, cspacing, SOLID_RADIUS_MM)
@@ -285,10 +285,17 @@ def _flood(hu, heart, other, inside):
     """The part of ``inside`` flooded from ``heart`` when it and ``other`` flood the HU, brightest first."""
     from skimage.segmentation import watershed
 
-    markers = np.zeros(hu.shape, np.int32)
-    markers[other] = 2
-    markers[heart] = 1
-    return watershed(-hu, markers, mask=inside) == 1
+    out = np.zeros(hu.shape, bool)
+    box = mask_box(inside)
+    if box is None:
+        return out
+    # within the box that holds ``inside`` (the flood stays in it; the voxels keep their raster order, and so
+    # the flood's ties): a whole-chest CT's body fills a fraction of its volume
+    markers = np.zeros(hu[box].shape, np.int32)
+    markers[other[box]] = 2
+    markers[heart[box]] = 1
+    out[box] = watershed(-np.asarray(hu[box]), markers, mask=inside[box]) == 1
+    return out
 
 
 def part_abdomen(body, heart, hu, cspacing, up_kji):
@@ -345,7 +352,7 @@ def mediastinal_seed(coarse, cspacing, *, lung_hu, soft_hu, height_axis: int = 0
     air = coarse < lung_hu
     labels, n = ndimage.label(air)
     sides = np.unique(np.concatenate([np.take(labels, [0, -1], axis=a).ravel() for a in range(3) if a != height_axis]))
-    sizes = ndimage.sum_labels(air, labels, index=np.arange(1, n + 1)) * np.prod(cspacing) / 1000.0
+    sizes = label_counts(air, labels, n) * np.prod(cspacing) / 1000.0
     is_lung = np.zeros(n + 1, bool)
     is_lung[1:] = sizes > 100.0
     # air at the volume's sides is the room's, unless it is lung cut by a tight field of view (a cardiac

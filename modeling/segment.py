@@ -56,7 +56,7 @@ from scipy import ndimage
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import apply_to_points, check_transform
-from modeling.coarse import (block_mean_max, block_transform, coarse_step, fill_holes, label_maximum,
+from modeling.coarse import (block_mean_max, block_transform, coarse_step, fill_holes, label_counts, label_maximum,
                              largest_component, mask_box, thin_metal, without_thin_metal)
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
@@ -114,7 +114,7 @@ def _seeded_part(mask, seed):
     labels, n = ndimage.label(mask)
     if n == 0:
         return None
-    counts = ndimage.sum_labels(seed, labels, index=np.arange(1, n + 1))
+    counts = label_counts(seed, labels, n)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
     return labels == int(np.argmax(counts if counts.max() > 0 else sizes)) + 1
 
