@@ -212,16 +212,7 @@ def test_a_tracker_dropout_is_the_robot_not_seen_and_the_stream_goes_on():
                     + [(t, 2, pyigtl.TransformMessage(np.eye(4), timestamp=t, device_name=DEVICE_PROBE))
                        for t in frames], key=lambda m: m[:2])
 
-    def script(accept):
-        conn = accept()
-        conn.sendall(b"".join(m.pack() for _, _, m in stream))
-        time.sleep(1.0)
-        conn.close()
-
-    port, server = _serve(script)
-    skipped: dict = {}
-    chunks = list(igtl_client_chunks("127.0.0.1", port, idle_timeout_s=0.5, skipped=skipped))
-    server.join(timeout=5.0)
+    chunks, skipped = _chunks_of(b"".join(m.pack() for _, _, m in stream), linger_s=1.0, idle_timeout_s=0.5)
     t = np.array([float(c.time_s[0]) for c in chunks])
     lo = np.searchsorted(frames, signals, side="right") - 1
     gap = frames[np.clip(lo + 1, 0, frames.size - 1)] - frames[np.clip(lo, 0, None)]
@@ -239,6 +230,21 @@ def test_a_tracker_dropout_is_the_robot_not_seen_and_the_stream_goes_on():
     np.testing.assert_allclose(T[seen], truth, atol=2e-5)
 
 
+def _chunks_of(data: bytes, *, linger_s: float, idle_timeout_s: float):
+    """The client's chunks and skip counts from a loopback server that sends ``data`` at once and lingers."""
+    def script(accept):
+        conn = accept()
+        conn.sendall(data)
+        time.sleep(linger_s)
+        conn.close()
+
+    port, server = _serve(script)
+    skipped: dict = {}
+    chunks = list(igtl_client_chunks("127.0.0.1", port, idle_timeout_s=idle_timeout_s, skipped=skipped))
+    server.join(timeout=5.0)
+    return chunks, skipped
+
+
 def test_a_tracker_frame_stamped_far_ahead_blocks_no_later_frame():
     """A server sending all three parts per sample at 100 Hz, and once a lone tracker frame stamped 1e6 s (a
     glitch): every later frame, 'older than the last', was dropped, and every later sample came as the robot
@@ -247,15 +253,6 @@ def test_a_tracker_frame_stamped_far_ahead_blocks_no_later_frame():
                       for d in (DEVICE_ROBOT, DEVICE_PROBE))
     data = b"".join(_sample(i) + (glitch if i == 20 else b"") for i in range(100))
 
-    def script(accept):
-        conn = accept()
-        conn.sendall(data)
-        time.sleep(0.8)
-        conn.close()
-
-    port, server = _serve(script)
-    skipped: dict = {}
-    chunks = list(igtl_client_chunks("127.0.0.1", port, idle_timeout_s=0.4, skipped=skipped))
-    server.join(timeout=5.0)
+    chunks, skipped = _chunks_of(data, linger_s=0.8, idle_timeout_s=0.4)
     assert len(chunks) == 100 and all(bool(c.status[0]) for c in chunks) and not skipped
     np.testing.assert_array_equal([c.T_tracker_from_robot[0][0, 3] for c in chunks], np.arange(100.0))
