@@ -239,6 +239,7 @@ def _open_model_input(args):
 def _cmd_model(args) -> int:
     from modeling import build_heart_model, write_model
     from modeling.ct_overlay import ct_panels
+    from modeling.labelmap import MASK_FILE, write_mask
     from modeling.model import JSON_FILE as MODEL_JSON
     from modeling.render import render_model_pictures
 
@@ -285,6 +286,7 @@ def _cmd_model(args) -> int:
     with staged_output(out, inputs=inputs, what="model folder", overwrite=args.overwrite,
                        earlier=(MODEL_JSON,)) as staging:
         write_model(model, staging, overwrite=True)
+        write_mask(staging / MASK_FILE, build.mask, build.T_patient_from_mask)
         render_model_pictures(model, panels, staging)  # matplotlib only: no OpenGL needed
     picture = f"{out / 'model.png'}, over the CT {out / 'model_ct.png'}"
     bar.update(1)

@@ -187,6 +187,7 @@ def run_pipeline(
     from imaging import write_phase_report
     from modeling import build_heart_model, write_model
     from modeling.ct_overlay import ct_panels
+    from modeling.labelmap import MASK_FILE, write_mask
     from modeling.options import MODEL_MEMORY_FACTOR
     from modeling.render import render_model_pictures
     from modeling.slice_phases import SlicePhases
@@ -232,6 +233,7 @@ def run_pipeline(
         )
         model_dir = write_model(build.model, staging / "model")
         paths["model"] = model_dir
+        paths["mask"] = write_mask(model_dir / MASK_FILE, build.mask, build.T_patient_from_mask)
         mesh = build.model.mesh_patient()
         paths["model_png"], paths["model_ct_png"] = render_model_pictures(  # no OpenGL needed
             build.model, ct_panels(volume.hu, volume.T_patient_from_voxel, mesh.vertices, mesh.faces), model_dir)

@@ -73,6 +73,9 @@ class ModelBuild:
     notes : tuple of str
         What each step did, fallbacks included (also in ``model.json``,
         ``parameters.notes``; fallbacks also in ``parameters.warnings``).
+    mask, T_patient_from_mask : (k, j, i) bool array and (4, 4) float64
+        The mask that was meshed, on the CT's grid within its box
+        (:func:`modeling.labelmap.write_mask` writes it beside the model).
     """
 
     model: HeartModel
@@ -80,6 +83,8 @@ class ModelBuild:
     mask_source: str
     timings_s: dict = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    mask: np.ndarray | None = None
+    T_patient_from_mask: np.ndarray | None = None
 
 
 #: the share of an external label that may lie outside the CT before a note says so.
@@ -413,7 +418,7 @@ def build_heart_model(
 
     stage("frame")
     base_hint = base_direction(mask, volume.hu[box], T_box)
-    del mask
+    meshed, mask = mask, None  # the box's mask goes out with the model (written beside it: heart_mask.nii.gz)
     v = mesh.vertices - mesh.vertices.mean(axis=0)
     long_axis = np.linalg.svd(v, full_matrices=False)[2][0]
     base_rule = "great vessels" if _along(base_hint, long_axis) else "usual orientation"
@@ -477,4 +482,4 @@ def build_heart_model(
     )
     model = replace(model, parameters={**dict(model.parameters), "notes": list(notes), "warnings": list(fallbacks)})
     done("frame")
-    return ModelBuild(model, fiducials, mask_source, timings, tuple(notes))
+    return ModelBuild(model, fiducials, mask_source, timings, tuple(notes), meshed, T_box)

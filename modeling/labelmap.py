@@ -20,7 +20,12 @@ from imaging.files import gzip_damage
 from imaging.nrrd import NrrdError, is_nrrd_path, read_nrrd
 from imaging.volume_file import degenerate_affine, load_nifti, nifti_lps_affine, nifti_misnamed, nifti_unoriented
 
-__all__ = ["LabelMapError", "LabelMap", "label_map_kind", "read_label_map", "mask_on_grid", "on_air", "other_frame"]
+__all__ = ["LabelMapError", "LabelMap", "MASK_FILE", "label_map_kind", "read_label_map", "mask_on_grid", "on_air",
+           "other_frame", "write_mask"]
+
+#: the model's mask beside its mesh (``heartreg model``, ``pipeline``): what was meshed, for 3D Slicer's Segment
+#: Editor and back through ``--mask``.
+MASK_FILE = "heart_mask.nii.gz"
 
 
 class LabelMapError(HeartregError, ValueError):
@@ -366,3 +371,28 @@ def mask_on_grid(label_map: LabelMap, shape, T_patient_from_voxel, *, label: int
     if not mask.any():
         raise _no_overlap(label, label_map)
     return mask
+
+
+def write_mask(path, mask, T_patient_from_voxel) -> Path:
+    """Write a heart mask as a gzipped NIfTI label map (1 heart, 0 not; uint8), atomically.
+
+    ``mask`` is indexed ``[k, j, i]`` and ``T_patient_from_voxel`` maps ``(i, j, k)`` to patient LPS
+    mm; the file's sform and qform (code 1, scanner) both hold it in RAS, as NIfTI's.  3D Slicer loads
+    it as a segmentation or a label map over the CT; :func:`read_label_map` reads it back to the same
+    voxels.  The bytes depend on the mask alone (the gzip stream stamps no time).
+    """
+    import gzip
+
+    import nibabel as nib
+
+    from imaging.files import atomic_path
+
+    affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(T_patient_from_voxel, dtype=np.float64)
+    image = nib.Nifti1Image(np.ascontiguousarray(np.asarray(mask, dtype=np.uint8).transpose(2, 1, 0)), affine)
+    image.set_qform(affine, code=1)
+    image.set_sform(affine, code=1)
+    image.header.set_xyzt_units("mm")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(gzip.compress(image.to_bytes(), compresslevel=6, mtime=0))
+    return path
