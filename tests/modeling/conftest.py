@@ -31,8 +31,11 @@ def phase_r_image(heart) -> float:
 
 
 @functools.lru_cache(maxsize=8)
-def dense_surface(preset: str, phase_c: float = PHASE_C, n_u: int = 1440, n_v: int = 1200):
+def dense_surface(preset: str, phase_c: float = PHASE_C, n_u: int = 720, n_v: int = 600):
     """Dense exact surface samples, their outward normals and the true volume.
+
+    720 x 600 samples (~0.35 mm apart): against 1440 x 1200 the 1 mm mesh's errors agree to 1e-4 mm (mean
+    0.0757 mm, p95 0.182 mm) and the volume to 0.002 %, in 0.4 s instead of 10 (with the tree).
 
     Returns
     -------

@@ -1,8 +1,8 @@
 """modeling.surface against the phantom's exact surface.
 
 Accuracy is measured from each mesh vertex to the true surface (tangent plane
-of the nearest of ~1.7 M exact surface samples; error of that reference
-O(h^2/R) < 1e-3 mm). Tolerances are about twice the values measured when the
+of the nearest of ~0.43 M exact surface samples, ~0.35 mm apart; error of that
+reference O(h^2/R) < 3e-3 mm). Tolerances are about twice the values measured when the
 tests were written (stated per test) so they catch regressions, not noise.
 """
 
