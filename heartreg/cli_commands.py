@@ -20,7 +20,7 @@ def _cmd_phantom(args) -> int:
     from heartreg.phantom.generate import make_phantom
 
     for flag in ("navigation", "plus"):
-        if getattr(args, flag) and args.no_session:
+        if getattr(args, flag) is not False and args.no_session:
             raise UsageError(f"--{flag} needs the session: drop --no-session")
     overrides = {}
     if args.points is not None:
@@ -50,8 +50,9 @@ def _cmd_phantom(args) -> int:
     print(f"  image phase      phi_C* = {truth['cardiac_phase']:.4f}, phi_R* = {truth['respiration_phase']:.2f}")
     if "session" in truth:
         print(f"  session points   {len(truth['session']['points'])} in {out / 'session'}")
-        if args.plus:
-            print(f"  PLUS session     {out / 'session_plus'} (poses in tracking.seq.mha)")
+        if args.plus is not False:
+            rate = "a frame per sample" if args.plus is True else f"the tracker at {args.plus:g} Hz"
+            print(f"  PLUS session     {out / 'session_plus'} (poses in tracking.seq.mha, {rate})")
     if args.navigation:
         from heartreg.phantom.navigation import write_navigation
 

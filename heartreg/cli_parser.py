@@ -88,6 +88,14 @@ def _fiducials_arg(value: str):
     return int(value)
 
 
+def _tracker_rate_arg(value: str) -> float:
+    """``phantom --plus HZ``: a tracker's rate between the slowest the reader takes (20 Hz) and the signals'."""
+    number = _finite(value)
+    if not 20.0 <= number <= 100.0:
+        raise argparse.ArgumentTypeError(f"{value} Hz is not a tracker's rate between 20 and 100 Hz (the signals')")
+    return number
+
+
 def _floor_hu_arg(value: str) -> float:
     """``--fiducial-floor-hu``: between soft tissue (100 HU) and metal (3000 HU)."""
     number = _finite(value)
@@ -203,8 +211,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--chest-wall-mm", type=_finite, default=None, metavar="MM",
                    help="sternal excursion over a breath (default the preset's; 0: a still chest)")
     p.add_argument("--no-session", action="store_true", help="write the CT study only")
-    p.add_argument("--plus", action="store_true",
-                   help="also write the session with its poses in a PLUS sequence file (session_plus/)")
+    p.add_argument("--plus", nargs="?", const=True, default=False, type=_tracker_rate_arg, metavar="HZ",
+                   help="also write the session with its poses in a PLUS sequence file (session_plus/): a frame per "
+                        "sample, or the tracker at its own rate of HZ (20-100), its frames jittered")
     p.add_argument("--navigation", action="store_true",
                    help="also a 60 s navigation session (the robot crawling) and its truth, for heartreg track")
     p.add_argument("--anatomy", default=None, choices=("spheroid", "chambers"),

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from registration.session_format import (  # the format's public names are this module's too
-    FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_JSON_BYTES, MIN_DURATION_S, PLUS_TRANSFORMS,
+    FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_FRAME_GAP, MAX_JSON_BYTES, MIN_DURATION_S, PLUS_TRANSFORMS,
     POINT_COLUMNS, QUATERNION_TOL, SESSION_FORMAT, SESSION_UNITS, SIGNAL_COLUMNS, SUPPORTED_VERSIONS,
     FiducialTrace, PointRecord, Session, SessionError, SessionNotFoundError,
 )
@@ -117,10 +117,10 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
     meta = _read_meta(folder)
     rate_hz = float(meta["sample_rate_hz"])
 
-    points, exclusions, notes, plus_files = [], [], [], {}
+    points, exclusions, notes, plus_files, dropped = [], [], [], {}, {}
     for entry in meta["points"]:
         if "poses" in entry:
-            record = _read_plus_point(folder, entry, rate_hz, meta, plus_files, notes)
+            record = _read_plus_point(folder, entry, rate_hz, meta, plus_files, notes, dropped)
         else:
             record = _read_point(folder, entry, rate_hz, quaternion_tol)
         if record.n_samples < 2 or record.duration_s < min_duration_s:
@@ -146,6 +146,12 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
             )
             continue
         points.append(record)
+    if dropped:  # one note: a tracker's frames rarely reach a record's very first and last samples
+        lost, total = (sum(v[i] for v in dropped.values()) for i in (0, 1))
+        most = max(dropped, key=lambda k: dropped[k][0])
+        notes.append(f"{lost} of {total} samples of {len(dropped)} point(s) dropped (at most {dropped[most][0]}, point "
+                     f"{most}): no tracked pose within {MAX_FRAME_GAP:g} frame steps of them in the PLUS sequence "
+                     "(a record's first or last samples, or the tracker's dropouts)")
     if not points:
         reasons = "; ".join(f"point {i}: {why}" for i, why in exclusions) or "session.json lists no points"
         raise SessionError(

@@ -222,8 +222,10 @@ def _probe_from_robot(R_robot, t_robot, R_probe, t_probe) -> np.ndarray:
     return T
 
 
-def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cache: dict, notes: list) -> PointRecord:
-    """A record whose ECG and flow are in a CSV file and poses in a PLUS sequence file."""
+def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cache: dict, notes: list,
+                     dropped: dict | None = None) -> PointRecord:
+    """A record whose ECG and flow are in a CSV file and poses in a PLUS sequence file; ``dropped`` gathers, by
+    point, the samples left without a pose between a tracker's own frames (samples, of how many) for one note."""
     rel, poses_rel = entry["file"], entry["poses"]
     data = _read_samples(folder, rel, SIGNAL_COLUMNS, rate_hz)
     if poses_rel not in cache:
@@ -257,9 +259,8 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
                 f"{rate_hz:g} Hz (translation linear, rotation along the shortest arc)")
         if note not in notes:  # once per sequence rate, not per point
             notes.append(note)
-        if not have.all():
-            notes.append(f"point {entry['id']}: {int((~have).sum())} of {len(have)} samples dropped, no tracked "
-                         f"pose within {MAX_FRAME_GAP:g} frame steps of them in its PLUS sequence")
+        if not have.all() and dropped is not None:
+            dropped[entry["id"]] = (int((~have).sum()), len(have))
         _check_millimetres(T, poses_rel)
         return _point_record(entry, rate_hz, t[have], T, data[have, 1:4], n_invalid=int((~have).sum()))
     # a frame at every sample's time (within a quarter step): each sample takes it as written

@@ -75,7 +75,7 @@ def make_phantom(
     session: bool = True,
     progress: bool = False,
     overwrite: bool = False,
-    plus: bool = False,
+    plus: bool | float = False,
     anatomy: str | None = None,
     fov_mm: float | None = None,
     markers: bool | None = None,
@@ -97,9 +97,10 @@ def make_phantom(
         Non-negative seed: the same seed gives the same bytes.
     session : bool
         Also write the intra-operative session.
-    plus : bool
+    plus : bool or float
         Also write the session with its poses in a PLUS sequence file
-        (``session_plus/``).
+        (``session_plus/``): a frame per sample (True), or the tracker at its
+        own rate, this many Hz, its frames jittered (a number).
     anatomy : {'spheroid', 'chambers'}, optional
         The heart: the paper's analytic spheroid or four chambers with great
         vessels (default: the preset's; ``human`` has chambers).
@@ -187,8 +188,9 @@ def make_phantom(
         if session:
             session_truth = write_session(staging, config, seed=int(seed), progress=progress)
             truth["session"] = session_truth.to_dict()
-            if plus:
-                write_plus_session(staging / "session", staging / "session_plus")
+            if plus is not False:
+                rate = None if plus is True else float(plus)
+                write_plus_session(staging / "session", staging / "session_plus", tracker_rate_hz=rate, seed=int(seed))
         truth["config"] = config.to_dict()
         truth = _jsonable(truth)
         (staging / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n")

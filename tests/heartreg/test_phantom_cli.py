@@ -92,9 +92,15 @@ def test_bad_arguments_are_clear_errors(tmp_path, capsys):
     # --plus --no-session wrote no PLUS session without a word
     for flags, message in ((["--points", "100000"], "n_points (--points) must be within 3..1000"),
                            (["--chest-wall-mm", "1e6"], "chest_wall_ap_mm (--chest-wall-mm) must be within 0..30 mm"),
-                           (["--plus", "--no-session"], "--plus needs the session")):
+                           (["--plus", "--no-session"], "--plus needs the session"),
+                           (["--plus", "40", "--no-session"], "--plus needs the session")):
         assert main(["phantom", str(tmp_path / "x"), *flags, "-q"]) == 1
         assert message in capsys.readouterr().err and not (tmp_path / "x").exists()
+    # a tracker's rate for the PLUS session: one the reader takes (20 Hz and up) and no faster than the signals
+    with pytest.raises(SystemExit) as exit_:
+        main(["phantom", str(tmp_path / "x"), "--plus", "12.8", "-q"])
+    assert exit_.value.code == 2 and "12.8 Hz is not a tracker's rate between 20 and 100 Hz" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
     with pytest.raises(PhantomError, match="heart_rate_hz must be within"):
         make_phantom(tmp_path / "y", heart_rate_hz=9.0)
     with pytest.raises(PhantomError, match="unknown preset"):

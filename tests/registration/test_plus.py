@@ -244,8 +244,9 @@ def test_poses_every_third_sample_are_interpolated(tmp_path):
     rec = session.points[0]
     assert session.notes == ("poses interpolated from the PLUS sequence's 33.3 Hz frames to the samples' 100 Hz "
                              "(translation linear, rotation along the shortest arc)",
-                             "point 0: 2 of 1500 samples dropped, no tracked pose within 2.5 frame steps of them in "
-                             "its PLUS sequence")  # the two after the last frame
+                             "2 of 1500 samples of 1 point(s) dropped (at most 2, point 0): no tracked pose within 2.5 "
+                             "frame steps of them in the PLUS sequence (a record's first or last samples, or the "
+                             "tracker's dropouts)")  # the two after the last frame
     np.testing.assert_array_equal(rec.time_s, time_s[:-2])
     np.testing.assert_allclose(rec.T_probe_from_robot, np.broadcast_to(T_true, rec.T_probe_from_robot.shape),
                                atol=1e-9)
@@ -327,7 +328,8 @@ def test_a_tracker_at_its_own_rate_is_interpolated_to_the_samples(tmp_path):
     kept = inside & ~dropout
     np.testing.assert_array_equal(rec.time_s, time_s[kept])
     assert rec.n_invalid == int((~kept).sum()) and session.notes[1].startswith(
-        f"point 0: {int((~kept).sum())} of 1500 samples dropped, no tracked pose within 2.5 frame steps")
+        f"{int((~kept).sum())} of 1500 samples of 1 point(s) dropped (at most {int((~kept).sum())}, point 0): no "
+        "tracked pose within 2.5 frame steps")
     truth = _beating(rec.time_s)
     err_mm = np.linalg.norm(rec.T_probe_from_robot[:, :3, 3] - truth[:, :3, 3], axis=1)
     rel = Rotation.from_matrix(rec.T_probe_from_robot[:, :3, :3]) * Rotation.from_matrix(truth[:, :3, :3]).inv()
