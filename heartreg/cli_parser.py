@@ -90,7 +90,11 @@ def _fiducials_arg(value: str):
 
 def _tracker_rate_arg(value: str) -> float:
     """``phantom --plus HZ``: a tracker's rate between the slowest the reader takes (20 Hz) and the signals'."""
-    number = _finite(value)
+    try:
+        number = _finite(value)
+    except argparse.ArgumentTypeError:  # most likely the output folder, given after a bare --plus
+        raise argparse.ArgumentTypeError(f"{value!r} is no tracker rate in Hz (give the output folder before "
+                                         "--plus, or a rate after it)") from None
     if not 20.0 <= number <= 100.0:
         raise argparse.ArgumentTypeError(f"{value} Hz is not a tracker's rate between 20 and 100 Hz (the signals')")
     return number
