@@ -21,7 +21,7 @@ from hrcore.memory import release_free_memory
 from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
-from modeling.fiducials import Fiducials, fiducial_stage
+from modeling.fiducials import Fiducials, check_given_fiducials, fiducial_stage
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, on_air, other_frame, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.metal import metal_in_chest, metal_near_heart
@@ -305,6 +305,8 @@ def build_heart_model(
         notes.append(message)
 
     fallbacks: list[str] = []
+    if opts.fiducials_mm is not None:  # given points in another frame: said before the segmentation's seconds
+        check_given_fiducials(opts.fiducials_mm, volume.hu.shape, T)
     stage("mask")
     if mask_path is not None:
         label_map = read_label_map(mask_path, structure=label if isinstance(label, str) else None)

@@ -398,6 +398,28 @@ def find_fiducials(
     return Fiducials(centres[order], masses[order], tuple(notes))
 
 
+def check_given_fiducials(points_mm, shape, T_patient_from_voxel) -> np.ndarray:
+    """Given fiducials (patient LPS mm) as an (n, 3) array, refused when one lies outside the CT.
+
+    Skin markers lie in the CT (up to :data:`GIVEN_MARGIN_MM` beyond its outermost voxel centres, a staple at
+    the field of view's edge): a point far outside it is in another frame (a tracker's, RAS read as LPS).
+    ``shape`` is the CT's ``(k, j, i)``.
+    """
+    points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    T = np.asarray(T_patient_from_voxel, dtype=np.float64)
+    ijk = np.c_[points, np.ones(len(points))] @ np.linalg.inv(T).T
+    margin = GIVEN_MARGIN_MM / np.linalg.norm(T[:3, :3], axis=0)
+    extent = np.asarray(shape[::-1], float) - 1.0  # i, j, k
+    outside = np.any((ijk[:, :3] < -margin) | (ijk[:, :3] > extent + margin), axis=1)
+    if outside.any():
+        k = int(np.argmax(outside))
+        raise FiducialError(
+            f"given fiducial {k + 1} ({', '.join(f'{x:.1f}' for x in points[k])} mm) lies outside the CT "
+            f"({int(outside.sum())} of {len(points)} such): give the points in this CT's patient coordinates "
+            "(a Slicer markups file says LPS or RAS; points placed on this CT in Slicer are)")
+    return points
+
+
 def fiducial_stage(hu, T_patient_from_voxel, options, fallback) -> Fiducials:
     """The model's fiducials as ``options`` (:class:`modeling.options.ModelOptions`) ask.
 
@@ -412,18 +434,7 @@ def fiducial_stage(hu, T_patient_from_voxel, options, fallback) -> Fiducials:
     none = Fiducials(np.zeros((0, 3)), np.zeros(0))
     expected, rows = options.expected_fiducials, options.fiducial_rows
     if options.fiducials_mm is not None:
-        points = np.asarray(options.fiducials_mm, dtype=np.float64)
-        # skin markers lie in the CT: a point far outside it is in another frame (RAS read as LPS, a tracker's)
-        ijk = np.c_[points, np.ones(len(points))] @ np.linalg.inv(np.asarray(T_patient_from_voxel, float)).T
-        margin = GIVEN_MARGIN_MM / np.linalg.norm(np.asarray(T_patient_from_voxel, float)[:3, :3], axis=0)
-        extent = np.asarray(hu.shape[::-1], float) - 1.0  # i, j, k
-        outside = np.any((ijk[:, :3] < -margin) | (ijk[:, :3] > extent + margin), axis=1)
-        if outside.any():
-            k = int(np.argmax(outside))
-            raise FiducialError(
-                f"given fiducial {k + 1} ({', '.join(f'{x:.1f}' for x in points[k])} mm) lies outside the CT "
-                f"({int(outside.sum())} of {len(points)} such): give the points in this CT's patient coordinates "
-                "(a Slicer markups file says LPS or RAS; points placed on this CT in Slicer are)")
+        points = check_given_fiducials(options.fiducials_mm, hu.shape, T_patient_from_voxel)
         return Fiducials(points, np.full(len(points), np.nan),
                          (f"fiducials: {len(points)} given (patient LPS), not searched",))
     if expected is None:

@@ -388,7 +388,10 @@ def write_mask(path, mask, T_patient_from_voxel) -> Path:
     from imaging.files import atomic_path
 
     affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(T_patient_from_voxel, dtype=np.float64)
-    image = nib.Nifti1Image(np.ascontiguousarray(np.asarray(mask, dtype=np.uint8).transpose(2, 1, 0)), affine)
+    mask = np.asarray(mask)
+    voxels = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8)
+    # (i, j, k) as a view: nibabel writes it in Fortran order, the (k, j, i) array's own, with no copy
+    image = nib.Nifti1Image(voxels.transpose(2, 1, 0), affine)
     image.set_qform(affine, code=1)
     image.set_sform(affine, code=1)
     image.header.set_xyzt_units("mm")

@@ -125,6 +125,12 @@ def make_phantom(
         raise PhantomError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise PhantomError(f"seed (--seed) must be a non-negative integer, got {seed!r}")
+    if isinstance(plus, (bool, np.bool_)):
+        plus_rate = bool(plus)
+    elif isinstance(plus, (int, float, np.integer, np.floating)) and 20.0 <= float(plus) <= 100.0:
+        plus_rate = float(plus)  # the tracker's own rate (Hz): between the slowest the reader takes and the signals'
+    else:
+        raise PhantomError(f"plus (--plus) must be True, False or a tracker's rate of 20-100 Hz, got {plus!r}")
     try:
         config = make_config(preset, **overrides)
         choices = {"heart": anatomy, "fov_mm": fov_mm, "markers": markers, "stent": stent}
@@ -188,8 +194,8 @@ def make_phantom(
         if session:
             session_truth = write_session(staging, config, seed=int(seed), progress=progress)
             truth["session"] = session_truth.to_dict()
-            if plus is not False:
-                rate = None if plus is True else float(plus)
+            if plus_rate is not False:
+                rate = None if plus_rate is True else plus_rate
                 write_plus_session(staging / "session", staging / "session_plus", tracker_rate_hz=rate, seed=int(seed))
         truth["config"] = config.to_dict()
         truth = _jsonable(truth)
