@@ -148,10 +148,12 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
         points.append(record)
     if dropped:  # one note: a tracker's frames rarely reach a record's very first and last samples
         lost, total = (sum(v[i] for v in dropped.values()) for i in (0, 1))
-        most = max(dropped, key=lambda k: dropped[k][0])
-        notes.append(f"{lost} of {total} samples of {len(dropped)} point(s) dropped (at most {dropped[most][0]}, point "
-                     f"{most}): no tracked pose within {MAX_FRAME_GAP:g} frame steps of them in the PLUS sequence "
-                     "(a record's first or last samples, or the tracker's dropouts)")
+        most = sorted(dropped, key=lambda k: -dropped[k][0])
+        listed = ", ".join(f"point {k}: {dropped[k][0]}" for k in most[:6]) + (
+            f", {len(most) - 6} more" if len(most) > 6 else "")
+        notes.append(f"{lost} of {total} samples of {len(dropped)} point(s) dropped ({listed}): no tracked pose within "
+                     f"{MAX_FRAME_GAP:g} frame steps of them in the PLUS sequence (a record's first or last samples, "
+                     "or the tracker's dropouts)")
     if not points:
         reasons = "; ".join(f"point {i}: {why}" for i, why in exclusions) or "session.json lists no points"
         raise SessionError(

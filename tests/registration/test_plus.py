@@ -244,7 +244,7 @@ def test_poses_every_third_sample_are_interpolated(tmp_path):
     rec = session.points[0]
     assert session.notes == ("poses interpolated from the PLUS sequence's 33.3 Hz frames to the samples' 100 Hz "
                              "(translation linear, rotation along the shortest arc)",
-                             "2 of 1500 samples of 1 point(s) dropped (at most 2, point 0): no tracked pose within 2.5 "
+                             "2 of 1500 samples of 1 point(s) dropped (point 0: 2): no tracked pose within 2.5 "
                              "frame steps of them in the PLUS sequence (a record's first or last samples, or the "
                              "tracker's dropouts)")  # the two after the last frame
     np.testing.assert_array_equal(rec.time_s, time_s[:-2])
@@ -328,7 +328,7 @@ def test_a_tracker_at_its_own_rate_is_interpolated_to_the_samples(tmp_path):
     kept = inside & ~dropout
     np.testing.assert_array_equal(rec.time_s, time_s[kept])
     assert rec.n_invalid == int((~kept).sum()) and session.notes[1].startswith(
-        f"{int((~kept).sum())} of 1500 samples of 1 point(s) dropped (at most {int((~kept).sum())}, point 0): no "
+        f"{int((~kept).sum())} of 1500 samples of 1 point(s) dropped (point 0: {int((~kept).sum())}): no "
         "tracked pose within 2.5 frame steps")
     truth = _beating(rec.time_s)
     err_mm = np.linalg.norm(rec.T_probe_from_robot[:, :3, 3] - truth[:, :3, 3], axis=1)
