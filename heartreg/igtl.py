@@ -364,22 +364,15 @@ def _pose_at(frames: list, steps, t: float):
 def _between(f0, f1, t: float) -> np.ndarray:
     """``T_probe_from_robot`` at ``t`` between two frames, as the PLUS reader interpolates (translation linear,
     rotation along the shortest arc); NaN when a frame's pose is no rigid transform (the sample is 'tracker')."""
-    from scipy.spatial.transform import Rotation
-
-    from hrcore.geometry import is_rigid
+    from hrcore.geometry import interpolate_poses, is_rigid
     from registration.plus import RIGID_TOL
 
     if not is_rigid(np.array([f0[1], f0[2], f1[1], f1[2]]), tol=RIGID_TOL).all():
         return np.full((4, 4), np.nan)
-    (t0, r0, p0), (t1, r1, p1) = f0, f1
-    rel = [(p[:3, :3].T @ r[:3, :3], p[:3, :3].T @ (r[:3, 3] - p[:3, 3])) for r, p in ((r0, p0), (r1, p1))]
-    w = (t - t0) / (t1 - t0)
-    R0 = Rotation.from_matrix(rel[0][0])
-    arc = (R0.inv() * Rotation.from_matrix(rel[1][0])).as_rotvec()
-    T = np.eye(4)
-    T[:3, :3] = (R0 * Rotation.from_rotvec(w * arc)).as_matrix()
-    T[:3, 3] = (1.0 - w) * rel[0][1] + w * rel[1][1]
-    return T
+    rel = np.tile(np.eye(4), (2, 1, 1))
+    for T, (_, r, p) in zip(rel, (f0, f1)):
+        T[:3, :3], T[:3, 3] = p[:3, :3].T @ r[:3, :3], p[:3, :3].T @ (r[:3, 3] - p[:3, 3])
+    return interpolate_poses(rel[:1], rel[1:], [(t - f0[0]) / (f1[0] - f0[0])])[0]
 
 
 def igtl_client_chunks(host: str, port: int, *, idle_timeout_s: float = 5.0, skipped: dict | None = None,

@@ -42,6 +42,7 @@ __all__ = [
     "apply_to_vectors",
     "invert",
     "compose",
+    "interpolate_poses",
     "kabsch",
     "frozen",
 ]
@@ -249,6 +250,45 @@ def compose(*transforms) -> np.ndarray:
     for k, T in enumerate(transforms[1:], start=1):
         out = out @ check_transform(T, name=f"transforms[{k}]", stack=True, finite=False)
     return out
+
+
+def interpolate_poses(T_a, T_b, w) -> np.ndarray:
+    """Rigid poses a fraction ``w`` of the way from ``T_a`` to ``T_b``: translation linearly, rotation along
+    the shortest arc (slerp).
+
+    Parameters
+    ----------
+    T_a, T_b : (n, 4, 4) float
+        Rigid poses (their rotations orthonormalised by scipy).
+    w : (n,) float
+        0 at ``T_a``, 1 at ``T_b``.
+
+    Returns
+    -------
+    (n, 4, 4) float64
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.spatial.transform import Rotation
+    >>> T_b = np.eye(4)[None].copy()
+    >>> T_b[0, :3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    >>> T_b[0, :3, 3] = [10.0, 0.0, 0.0]
+    >>> T = interpolate_poses(np.eye(4)[None], T_b, np.array([0.5]))
+    >>> Rotation.from_matrix(T[0, :3, :3]).as_euler("xyz", degrees=True).round(6).tolist(), T[0, :3, 3].tolist()
+    ([0.0, 0.0, 45.0], [5.0, 0.0, 0.0])
+    """
+    from scipy.spatial.transform import Rotation
+
+    T_a, T_b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
+    w = np.asarray(w, dtype=np.float64)[:, None]
+    R_a = Rotation.from_matrix(T_a[:, :3, :3])
+    arc = (R_a.inv() * Rotation.from_matrix(T_b[:, :3, :3])).as_rotvec()
+    T = np.zeros((len(w), 4, 4))
+    T[:, :3, :3] = (R_a * Rotation.from_rotvec(w * arc)).as_matrix()
+    T[:, :3, 3] = (1.0 - w) * T_a[:, :3, 3] + w * T_b[:, :3, 3]
+    T[:, 3, 3] = 1.0
+    return T
 
 
 def kabsch(source, target, *, weights=None) -> np.ndarray:

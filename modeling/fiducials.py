@@ -433,8 +433,8 @@ def fiducial_stage(hu, T_patient_from_voxel, options, fallback) -> Fiducials:
 
     none = Fiducials(np.zeros((0, 3)), np.zeros(0))
     expected, rows = options.expected_fiducials, options.fiducial_rows
-    if options.fiducials_mm is not None:
-        points = check_given_fiducials(options.fiducials_mm, hu.shape, T_patient_from_voxel)
+    if options.fiducials_mm is not None:  # checked against the CT by the build's start (check_given_fiducials)
+        points = np.asarray(options.fiducials_mm, dtype=np.float64)
         return Fiducials(points, np.full(len(points), np.nan),
                          (f"fiducials: {len(points)} given (patient LPS), not searched",))
     if expected is None:

@@ -15,7 +15,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hrcore.geometry import frozen
+from hrcore.geometry import frozen, interpolate_poses
 from registration.plus import PlusFileError, read_plus_sequence
 from registration.session_format import (
     FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, MIN_SEPARATION_MM,
@@ -223,7 +223,7 @@ def _probe_from_robot(R_robot, t_robot, R_probe, t_probe) -> np.ndarray:
 
 
 def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cache: dict, notes: list,
-                     dropped: dict | None = None) -> PointRecord:
+                     dropped: dict) -> PointRecord:
     """A record whose ECG and flow are in a CSV file and poses in a PLUS sequence file; ``dropped`` gathers, by
     point, the samples left without a pose between a tracker's own frames (samples, of how many) for one note."""
     rel, poses_rel = entry["file"], entry["poses"]
@@ -259,7 +259,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
                 f"{rate_hz:g} Hz (translation linear, rotation along the shortest arc)")
         if note not in notes:  # once per sequence rate, not per point
             notes.append(note)
-        if not have.all() and dropped is not None:
+        if not have.all():
             dropped[entry["id"]] = (int((~have).sum()), len(have))
         _check_millimetres(T, poses_rel)
         return _point_record(entry, rate_hz, t[have], T, data[have, 1:4], n_invalid=int((~have).sum()))
@@ -324,15 +324,11 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
                            "robot and the probe")
     # a sample at a frame's time takes that frame's pose as read; the others the arc from the frame before
     start = np.where(at_frame, np.clip(lo, 0, None), lo_c)[have]
-    exact = at_frame[have]
-    w = ((t[have] - tf[start]) / np.where(exact, 1.0, gap[have]))[:, None]
-    R0 = Rotation.from_matrix(T_f[start, :3, :3])
-    arc = (R0.inv() * Rotation.from_matrix(T_f[hi_c[have], :3, :3])).as_rotvec()
     T = T_f[start].copy()
-    moved = ~exact
+    moved = ~at_frame[have]
     if moved.any():
-        T[moved, :3, :3] = (R0[moved] * Rotation.from_rotvec(w[moved] * arc[moved])).as_matrix()
-        T[moved, :3, 3] = (1.0 - w[moved]) * T_f[start[moved], :3, 3] + w[moved] * T_f[hi_c[have][moved], :3, 3]
+        a, b = start[moved], hi_c[have][moved]
+        T[moved] = interpolate_poses(T_f[a], T_f[b], (t[have][moved] - tf[a]) / (tf[b] - tf[a]))
     return T, have
 
 
