@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import resource
 import sys
 import time
 from pathlib import Path
+
+# the process as heartreg's command sets it up (heartreg/cli.py): numpy asks for no transparent huge pages
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
 def main(argv: list[str]) -> int:

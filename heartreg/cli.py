@@ -10,11 +10,20 @@ non-zero exit status (``--debug`` shows the traceback instead).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
-from heartreg import __version__
-from heartreg.cli_parser import _build_parser
-from hrcore.errors import HeartregError, UsageError
+# Before numpy is imported (it reads this once): no transparent huge pages asked for numpy's arrays.  numpy
+# advises them for every array of 4 MB or more; where the kernel then defragments memory on the page fault
+# (/sys/kernel/mm/transparent_hugepage/defrag 'madvise', a common default) a process that has just read a
+# CT's files stalls on its first touch of each new volume-sized array, and the segmentation makes dozens:
+# the full-size model's mask stage took 3.0-3.6 s with them, 1.9-2.2 s without (bench/README.md).  A value
+# the user set is kept; the Dask workers of `batch` inherit it.
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+
+from heartreg import __version__  # noqa: E402 (after the environment above)
+from heartreg.cli_parser import _build_parser  # noqa: E402
+from hrcore.errors import HeartregError, UsageError  # noqa: E402
 
 __all__ = ["CommandLineError", "command_parser", "main"]
 
