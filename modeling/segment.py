@@ -427,7 +427,7 @@ def segment_heart(
     region = np.isin(labels, touched)
     del labels
     if contrast and pool is not None:
-        region, split_note = split_solid_organs(region, pool, coarse, cspacing, pool_hu, height_axis)
+        region, split_note = split_solid_organs(region, pool, coarse, cspacing, pool_hu, height_axis, mediastinum())
         if split_note:
             notes.append(split_note)
 

@@ -213,7 +213,7 @@ from modeling.vessels import APEX_LAI_LPS, base_direction
 
 from tests.data.fetch_real_cts import paths as real_cts
 
-from .realct import LEAD_KJI, REALCT, mesh_to_mask, overlap, principal_axis, write_ct_series
+from .realct import LEAD_KJI, REALCT, mesh_to_mask, overlap, principal_axis, right_heart_blood, write_ct_series
 
 pytestmark = pytest.mark.skipif(not REALCT.is_dir(), reason=f"real CT folder {REALCT} is missing")
 
@@ -596,6 +596,22 @@ def test_venous_phase(realct, heart_less_artery, as_read):
                 heart_less_artery, SPACING)
     assert m["dice"] >= 0.88 and m["msd_mm"] <= 3.0, m
     assert -build.model.frame.axes_patient[:, 2] @ APEX_LAI_LPS > 0.7
+
+
+def test_a_washed_out_right_heart_stays(realct, artery, heart_less_artery):
+    """Contrast timing: the right heart's blood washed out by a saline chaser (coronary CTA's usual look: the
+    left heart bright, the right at 100-200 HU), here the right atrium, ventricle, pulmonary artery and caval
+    veins of the real CT (:func:`right_heart_blood`) dimmed to 100 HU, the left heart as it is.  The right
+    heart is then thick tissue far from the blood, as a liver is; it lies between the lungs, the liver below
+    them.  Measured 693 ml, Dice 0.908 against the reference less its pulmonary artery (the CT as read 0.906);
+    before, 434 ml and 0.705: the right heart went with the chest wall (``modeling.seed.split_solid_organs``)."""
+    volume = realct[0]
+    hu = volume.hu.astype(np.float32)
+    right = right_heart_blood(hu, artery)
+    dim = np.rint(np.where(right, 60 + (hu - 60) * (100 - 60) / (np.median(hu[right]) - 60), hu)).astype(np.int16)
+    seg = segment_heart(dim, volume.T_patient_from_voxel)
+    m = overlap(seg.mask, heart_less_artery, SPACING)
+    assert 620 <= seg.volume_ml <= 780 and m["dice"] >= 0.88 and m["p95_mm"] <= 8.5, (seg.volume_ml, m)
 
 
 def test_thick_voxels(realct):
