@@ -43,7 +43,9 @@ Classical tools only (scipy.ndimage, scikit-image), in six steps:
    are taken out (the aortic root the opening keeps, the vessels' mouths; not
    the outflow tract in muscle below the pulmonary valve); the lumen cut at
    its valve inside the body (the aortic root's well) goes on to the mesh
-   steps (:attr:`HeartSegmentation.vessel_lumen`).
+   steps (:attr:`HeartSegmentation.vessel_lumen`); an outflow tract thinner
+   than the opening's ball, in a sleeve of muscle up to its valve, is given
+   back (:mod:`modeling.outflow`).
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ from modeling.coarse import (block_mean_max, block_transform, coarse_step, fill_
                              largest_component, mask_box, thin_metal, without_thin_metal)
 from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
+from modeling.outflow import keep_outflow_tracts
 from modeling.planes import fat_planes
 from modeling.seed import NOISE_HU, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
 
@@ -220,27 +223,12 @@ def _cut_great_vessels(body, heart, spacing_kji, *, heart_radius_mm, vessel_leng
 
 
 def segment_heart(
-    hu,
-    T_patient_from_voxel,
-    *,
-    hu_low: float = 0.0,
-    hu_high: float = 1500.0,
-    blood_hu: tuple[float, float] = (200.0, 650.0),
-    blood_floor_hu: float = 150.0,
-    seed_patient_mm=None,
-    vessel_radius_mm: float = 14.0,
-    heart_radius_mm: float = 20.0,
-    vessel_length_mm: float = 25.0,
-    vessel_root_mm: float = 10.0,
-    chamber_radius_mm: float = 17.0,
-    margin_mm: float = 1.0,
-    smooth_mm: float = 0.6,
-    coarse_mm: float = 2.0,
-    min_volume_ml: float = 50.0,
-    min_pool_radius_mm: float = 15.0,
-    lung_hu: float = -400.0,
-    soft_hu: tuple[float, float] = (-50.0, 150.0),
-    trace_vessels: bool = True,
+    hu, T_patient_from_voxel, *, hu_low: float = 0.0, hu_high: float = 1500.0,
+    blood_hu: tuple[float, float] = (200.0, 650.0), blood_floor_hu: float = 150.0, seed_patient_mm=None,
+    vessel_radius_mm: float = 14.0, heart_radius_mm: float = 20.0, vessel_length_mm: float = 25.0,
+    vessel_root_mm: float = 10.0, chamber_radius_mm: float = 17.0, margin_mm: float = 1.0, smooth_mm: float = 0.6,
+    coarse_mm: float = 2.0, min_volume_ml: float = 50.0, min_pool_radius_mm: float = 15.0, lung_hu: float = -400.0,
+    soft_hu: tuple[float, float] = (-50.0, 150.0), trace_vessels: bool = True,
 ) -> HeartSegmentation:
     """Segment the whole heart (epicardial surface inward) in a contrast CT.
 
@@ -466,7 +454,11 @@ def segment_heart(
         if (vessels.lumen & body).any():  # cut at its valve (the aortic root's well), not at the body's edge
             vessel_lumen = vessels.lumen & body
             T_lumen = block_transform(T, step)
-
+    if contrast and pool is not None:  # an outflow tract thinner than the opening's ball (modeling.outflow)
+        near, outflow_note = keep_outflow_tracts(near, core, region[box] & (coarse[box] > pool_hu), coarse[box], cspacing,
+                                                 reach, not_heart=vessels.territory[box] if trace_vessels else None,
+                                                 up_kji=T[2, 2::-1] * step)
+        notes += [outflow_note] if outflow_note else []
     # ---- full resolution inside the near band's bounding box
     nbox = ndimage.find_objects(near.astype(np.uint8))[0]
     cbox = tuple(slice(b.start + o.start, b.stop + o.start) for b, o in zip(nbox, box))
