@@ -107,6 +107,7 @@ def check_output_path(
     out = Path(out)
     _check_inputs(out, inputs, what)
     if folder:
+        _refuse_dangling_link(out, what)
         if out.exists() and not out.is_dir():
             raise OutputError(f"{what} {out} exists and is not a folder; choose a folder")
         if out.is_dir() and any(out.iterdir()):
@@ -169,6 +170,13 @@ def study_folder(path) -> Path:
     any other path is itself."""
     path = Path(path)
     return path.parent if path.name.upper() == "DICOMDIR" and path.is_file() else path
+
+
+def _refuse_dangling_link(out: Path, what: str) -> None:
+    """Refuse a link to nothing: the output would replace the link, not appear where it points."""
+    if out.is_symlink() and not out.exists():
+        raise OutputError(f"{what} {out} is a symbolic link to {os.readlink(out)}, which does not exist; make that "
+                          "folder or give another path")
 
 
 def _check_inputs(out: Path, inputs: Iterable, what: str, *, contains: bool = True) -> None:
@@ -439,6 +447,7 @@ def staged_output(
     parts = tuple(parts) if parts is not None else None
     whole = parts is None or not out.exists() or (out.is_dir() and _holds_only(out, parts))
     if parts is not None:
+        _refuse_dangling_link(out, what)
         _check_parts(out, parts, inputs, what, overwrite, tuple(earlier))
         if whole:
             _check_inputs(out, inputs, what)

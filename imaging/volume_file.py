@@ -152,9 +152,11 @@ def nifti_misnamed(path) -> str:
 
 def _check_is_file(path: Path, kind: str) -> None:
     """Refuse a missing volume file, or a folder named like one, in one line."""
+    if path.is_dir():
+        raise SeriesError(f"{path} is a folder named like a {kind} file: rename it if it holds a DICOM study")
     if not path.is_file():
-        raise SeriesError(f"{kind} file {path} does not exist" if not path.is_dir() else
-                          f"{path} is a folder named like a {kind} file: rename it if it holds a DICOM study")
+        raise SeriesError(f"{kind} file {path} does not exist" if not path.exists() else
+                          f"{kind} file {path} is not a regular file (a named pipe or device)")
 
 
 def degenerate_affine(T) -> str:

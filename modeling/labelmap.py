@@ -261,6 +261,8 @@ def read_label_map(path, structure: str | None = None) -> LabelMap:
             f"{path} is a folder without {file} (or segmentations/{file}); "
             "give a structure of the folder with --label NAME, or the label map file itself with --mask FILE"
         )
+    if not path.is_file():  # a named pipe would block the read
+        raise LabelMapError(f"label map {path} is not a regular file (a named pipe or device); give the mask's file")
     name = path.name.lower()
     if name.endswith((".nii", ".nii.gz")):
         return _read_nifti(path)

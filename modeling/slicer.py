@@ -198,6 +198,8 @@ def read_markups(path) -> Markups:
         point without three finite coordinates.
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a named pipe would block the read
+        raise SlicerFileError(f"markups file {path} is not a regular file (a folder, named pipe or device)")
     if path.name.lower().endswith(".fcsv"):
         return _read_fcsv(path)
     try:

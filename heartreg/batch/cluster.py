@@ -122,7 +122,9 @@ def _check_memory_limit(memory_limit) -> None:
     try:
         n_bytes = parse_bytes(memory_limit) if isinstance(memory_limit, str) else int(memory_limit)
     except (ValueError, TypeError):
-        raise ClusterError(f"--memory-limit {memory_limit!r} is not an amount of memory (e.g. 4GB, or auto)") from None
+        n_bytes = -1
+    if n_bytes < 0:  # dask reads '-1GB' as minus a gigabyte, and its nanny then fails to start
+        raise ClusterError(f"--memory-limit {memory_limit!r} is not an amount of memory (e.g. 4GB, or auto)")
     if 0 < n_bytes < MIN_MEMORY_LIMIT:
         raise ClusterError(f"--memory-limit {memory_limit} per worker is less than a case needs "
                            f"({MIN_MEMORY_LIMIT // 2**20} MB and up: a full-size case peaks near 0.8 GB)")

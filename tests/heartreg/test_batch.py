@@ -327,6 +327,10 @@ def test_a_service_that_is_no_scheduler_is_one_line_not_a_hang(tmp_path, sample_
     assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--workers", "1", "--memory-limit", "1MB",
                  "-q"]) == 1
     assert "less than a case needs" in capsys.readouterr().err
+    # dask reads '-1GB' as minus a gigabyte, and its nanny failed to start with a traceback (a review)
+    assert main(["batch", str(cohort), "-o", str(tmp_path / "out"), "--workers", "1", "--memory-limit=-1GB",
+                 "-q"]) == 1
+    assert "--memory-limit '-1GB' is not an amount of memory" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 

@@ -114,6 +114,19 @@ def test_bad_input_leaves_no_output_folder(case, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty_study"]
 
 
+@pytest.mark.parametrize("option, name", [("--fiducials", "points.mrk.json"), ("--seed", "seed.fcsv"),
+                                          ("--mask", "mask.nii.gz")])
+def test_a_named_pipe_given_as_an_option_file_is_refused_not_waited_on(case, tmp_path, capsys, option, name):
+    """A review: ``--fiducials``, ``--seed`` and ``--mask`` opened a named pipe and waited for a writer for ever."""
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    with time_box(60):
+        rc = main(["model", str(case["ct"]), "-o", str(tmp_path / "m"), "-q", option, str(fifo)])
+    assert rc == 1
+    assert f"{fifo} is not a regular file" in _one_error_line(capsys.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
 @pytest.mark.parametrize("option", [["--fiducials", "-1"], ["--faces", "5"]])
 @pytest.mark.parametrize("command", ["model", "pipeline"])
 def test_a_negative_fiducial_count_or_too_few_faces_is_refused(case, tmp_path, capsys, command, option):

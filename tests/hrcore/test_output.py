@@ -93,6 +93,18 @@ def test_a_link_to_an_earlier_output_is_written_through(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["latest", "runs"]
 
 
+@pytest.mark.parametrize("parts", [None, ("a",)])
+def test_a_link_to_nothing_is_refused(tmp_path, parts):
+    """A symbolic link to a folder not made yet: the output replaced the link by a folder, and nothing appeared
+    where it points (a review)."""
+    link = tmp_path / "latest"
+    link.symlink_to(tmp_path / "runs" / "new", target_is_directory=True)
+    with pytest.raises(OutputError, match=r"latest is a symbolic link to .*new, which does not exist; make that"):
+        with staged_output(link, parts=parts) as stage:
+            (stage / "a").write_text("a")
+    assert link.is_symlink() and sorted(p.name for p in tmp_path.iterdir()) == ["latest"]
+
+
 def test_non_empty_needs_overwrite_and_a_file_is_refused(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
