@@ -33,12 +33,15 @@ import numpy as np
 
 from hrcore.errors import HeartregError
 from hrcore.geometry import is_rigid
+from registration.session_format import MAX_ABS
 
 __all__ = ["PLUS_SUFFIXES", "PlusFileError", "PlusSequence", "read_plus_sequence"]
 
 PLUS_SUFFIXES = (".mha", ".mhd", ".nrrd", ".nhdr")
 #: a transform's rotation must be orthonormal to this (larger errors: not a rigid pose).
 RIGID_TOL = 1e-3
+#: largest plausible translation (mm), the session CSVs' bound: a tracker works within a metre or two.
+MAX_TRANSLATION_MM = MAX_ABS["mm"]
 
 
 class PlusFileError(HeartregError, ValueError):
@@ -130,8 +133,8 @@ def read_plus_sequence(path) -> PlusSequence:
     ------
     PlusFileError
         Missing file, no frames, a frame without ``Timestamp``, repeated
-        timestamps or one earlier than its predecessor's (a clock reset), a transform that is not 16 finite numbers of a rigid pose,
-        or a transform missing from some frames.
+        timestamps or one earlier than its predecessor's (a clock reset), a transform that is not 16 finite numbers of a rigid pose
+        or moves more than :data:`MAX_TRANSLATION_MM`, or a transform missing from some frames.
 
     Examples
     --------
@@ -252,4 +255,12 @@ def _check_poses(path: Path, name: str, T: np.ndarray, frames) -> None:
         raise PlusFileError(
             f"{path}: Seq_Frame{frames[k]:04d}_{name}Transform is not a rigid pose (rotation "
             f"orthonormal within {RIGID_TOL:g}, last row 0 0 0 1); {int(bad.sum())} such frame(s)"
+        )
+    far = np.abs(T[:, :3, 3]) > MAX_TRANSLATION_MM
+    if far.any():
+        k, i = (int(x) for x in np.argwhere(far)[0])
+        raise PlusFileError(
+            f"{path}: Seq_Frame{frames[k]:04d}_{name}Transform: translation {float(T[k, i, 3]):.6g} mm (its "
+            f"{4 * i + 4}th number) is beyond the plausible {MAX_TRANSLATION_MM:g} mm ({int(far.any(axis=1).sum())} "
+            "such frame(s)); check the tracker's units or record again"
         )

@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from hrcore.errors import HeartregError
+from hrcore.geometry import is_rigid
 from hrcore.output import staged_output
 from imaging.files import write_text_atomic
 from registration.figures import write_plots
@@ -335,7 +336,7 @@ def read_registration(out_dir) -> RegistrationResult:
     try:
         if version == 1:
             data = _upgrade_v1(data, path.parent)
-        return RegistrationResult.from_dict(data)
+        result = RegistrationResult.from_dict(data)
     except KeyError as exc:
         raise RegistrationFileError(f"{path}: missing field {exc.args[0]!r}; re-run heartreg register") from None
     except OSError as exc:
@@ -345,6 +346,47 @@ def read_registration(out_dir) -> RegistrationResult:
         ) from None
     except (TypeError, ValueError, IndexError, AttributeError) as exc:
         raise RegistrationFileError(f"{path}: bad field ({exc}); re-run heartreg register") from None
+    _check_values(result, path)
+    return result
+
+
+def _check_values(result: RegistrationResult, path: Path) -> None:
+    """Refuse, naming the field, a transform that is not a finite rigid one or a phase outside [0, 1].
+
+    A sweep's transform may be all NaN (format 1 never stored them); a bootstrap phase NaN (likewise).
+    """
+    transforms = [("T_heart_from_probe", result.T_heart_from_probe, False),
+                  ("T0_heart_from_probe", result.T0_heart_from_probe, False),
+                  ("static.T_static_heart_from_probe", result.static.T_static_heart_from_probe, False)]
+    phases = [("cardiac_phase", result.cardiac_phase, False), ("respiration_phase", result.respiration_phase, False)]
+    for key, sweep in (("respiration_sweep", result.respiration_sweep), ("cardiac_sweep", result.cardiac_sweep)):
+        if sweep is not None:
+            transforms.append((f"{key}.T_heart_from_probe", sweep.T_heart_from_probe, True))
+            phases += [(f"{key}.fixed_phase", sweep.fixed_phase, False), (f"{key}.phases", sweep.phases, False)]
+    for k, e in enumerate(result.phase_estimates):
+        phases += [(f"phase_estimates[{k}].respiration_phase", e.respiration_phase, False),
+                   (f"phase_estimates[{k}].interval", e.interval, False),
+                   (f"phase_estimates[{k}].bootstrap_phases", e.bootstrap_phases, True)]
+        if e.breath_hold_phase is not None:
+            phases.append((f"phase_estimates[{k}].breath_hold_phase", e.breath_hold_phase, False))
+    for name, value, nan_ok in transforms:
+        T = np.asarray(value, dtype=float).reshape(-1, 4, 4)
+        bad = ~is_rigid(T) & ~(nan_ok & np.isnan(T).all(axis=(1, 2)))
+        if bad.any():
+            at = f"[{int(np.argmax(bad))}]" if np.ndim(value) == 3 else ""
+            raise RegistrationFileError(
+                f"{path}: field {name}{at} is not a finite rigid transform (rotation orthonormal, last row "
+                "0 0 0 1); the file is damaged: re-run heartreg register"
+            )
+    for name, value, nan_ok in phases:
+        v = np.atleast_1d(np.asarray(value, dtype=float))
+        bad = ~((v >= 0.0) & (v <= 1.0)) & ~(nan_ok & np.isnan(v))
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RegistrationFileError(
+                f"{path}: field {name}{f'[{k}]' if np.ndim(value) else ''} = {float(v[k])!r} is not a phase "
+                "in [0, 1]; the file is damaged: re-run heartreg register"
+            )
 
 
 def _upgrade_v1(data: dict, folder: Path) -> dict:

@@ -209,6 +209,8 @@ def _read_meta(folder: Path) -> dict:
         meta = json.loads(file.read_text(encoding="utf-8-sig"))  # -sig: a byte-order mark is accepted
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise SessionError(f"{file} is not valid JSON: {' '.join(str(exc).split())}") from None
+    except ValueError:  # Python's limit on integer digits: no id or count has thousands
+        raise SessionError(f"{file} holds an integer of thousands of digits: check its point ids") from None
     if not isinstance(meta, dict):
         raise SessionError(f"{file} must hold a JSON object, got {type(meta).__name__}")
     if meta.get("format") != SESSION_FORMAT:
@@ -278,6 +280,9 @@ def _read_meta(folder: Path) -> dict:
             value = entry.get(key)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise SessionError(f"{where}: {key!r} must be an integer, got {value!r}")
+            if not -(2**63) <= value < 2**63:  # stored as int64 (the registration's point_ids)
+                raise SessionError(f"{where}: {key!r} is {value}, outside the 64-bit integers "
+                                   f"(-2**63 to 2**63 - 1) a point is stored with; number the points again")
         if not isinstance(entry.get("file"), str) or not entry["file"]:
             raise SessionError(f"{where}: 'file' must name the record's CSV file")
         _check_relative(file, f"points[{k}].file", entry["file"])

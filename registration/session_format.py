@@ -57,6 +57,8 @@ PLUS_TIME_TOL = 0.25
 #: heartbeat's fifth harmonic, the motion model's highest, is 7.5 Hz at 90 beats/min.
 MAX_FRAME_GAP = 2.5
 MIN_TRACKER_RATE_HZ = 20.0
+#: largest accepted ``poses_time_offset_s`` (three centuries: room for a PLUS clock counting Unix time).
+MAX_TIME_OFFSET_S = 1e10
 FIDUCIAL_TRACE_COLUMNS = (
     "time_s", "fiducial",
     "stylus_x_mm", "stylus_y_mm", "stylus_z_mm",

@@ -19,7 +19,7 @@ from hrcore.geometry import frozen, interpolate_poses
 from registration.plus import PlusFileError, read_plus_sequence
 from registration.session_format import (
     FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, MIN_SEPARATION_MM,
-    MAX_FRAME_GAP, MIN_TRACKER_RATE_HZ, N_FIDUCIALS, PLUS_TIME_TOL,
+    MAX_FRAME_GAP, MAX_TIME_OFFSET_S, MIN_TRACKER_RATE_HZ, N_FIDUCIALS, PLUS_TIME_TOL,
     PLUS_TRANSFORMS, POINT_COLUMNS, QUATERNION_TOL, RATE_TOL, SIGNAL_COLUMNS, FiducialTrace, PointRecord,
     SessionError, SessionNotFoundError,
 )
@@ -239,12 +239,22 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
     offset = meta.get("poses_time_offset_s", 0.0)
     if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
         raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
+    if abs(offset) > MAX_TIME_OFFSET_S:
+        raise SessionError(f"session.json: 'poses_time_offset_s' is {offset:.6g} s, more than the "
+                           f"{MAX_TIME_OFFSET_S:g} s (three centuries) two clocks can differ by: give the PLUS "
+                           "clock's offset from the signals' clock in seconds")
     try:
         T_robot, T_probe = (seq.transform(name) for name in PLUS_TRANSFORMS)
     except PlusFileError as exc:
         raise SessionError(str(exc)) from None
     t_frames, t = seq.time_s + float(offset), data[:, 0]
     n = len(t_frames)
+    same = np.diff(t_frames) <= 0
+    if same.any():  # the shifted times lost the precision that told the frames apart
+        k = int(np.argmax(same))
+        raise SessionError(f"{poses_rel}: with session.json 'poses_time_offset_s' = {float(offset):.6g} s its frames "
+                           f"{k} and {k + 1} fall on one time ({int(same.sum())} such pairs): the offset is too "
+                           "large for the timestamps' precision; give the PLUS clock's offset in seconds")
     after = np.searchsorted(t_frames, t)
     lo, hi = np.clip(after - 1, 0, n - 1), np.clip(after, 0, n - 1)
     k = np.where(np.abs(t_frames[lo] - t) <= np.abs(t_frames[hi] - t), lo, hi)
@@ -291,6 +301,8 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
     have : (n,) bool
         Which samples have a pose.
     """
+    if not step > 0:  # pragma: no cover - the caller refuses frames on one time
+        raise SessionError(f"{poses_rel}: its frames do not advance in time; record the poses again")
     rate = 1.0 / step
     if rate < MIN_TRACKER_RATE_HZ:
         raise SessionError(

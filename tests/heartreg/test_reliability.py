@@ -195,6 +195,21 @@ def test_a_pose_of_1e30_is_refused_by_register_naming_file_row_and_value(case, t
     assert sorted(p.name for p in tmp_path.iterdir()) == ["session"] and digest(session) == before
 
 
+def test_a_point_id_beyond_int64_is_refused_by_register_naming_file_and_point(case, tmp_path, capsys):
+    # before: OverflowError storing the registration's point ids, exit 70
+    session = tmp_path / "session"
+    shutil.copytree(case["session"], session)
+    meta = json.loads((session / "session.json").read_text())
+    meta["points"][2]["id"] = 2**63
+    (session / "session.json").write_text(json.dumps(meta))
+    before = digest(session)
+    rc = main(["register", str(case["model"]), str(session), "-o", str(tmp_path / "r"), "-q"])
+    assert rc == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert f"{session / 'session.json'}: points[2]: 'id' is 9223372036854775808, outside the 64-bit" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session"] and digest(session) == before
+
+
 def test_model_picture_failure_leaves_no_half_model(case, tmp_path, monkeypatch, capsys):
     """The picture is drawn inside the staging folder: when it fails, there is no
     folder with heart.ply and model.json but no model.png."""

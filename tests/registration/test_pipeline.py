@@ -291,6 +291,39 @@ def test_bad_registration_files_are_one_line_naming_the_file(case, tmp_path, dam
     assert "\n" not in message and str(folder / "registration.json") in message
 
 
+def _set(path, value):
+    def damage(data):
+        *keys, last = path
+        for k in keys:
+            data = data[k]
+        data[last] = value
+    return damage
+
+
+@pytest.mark.parametrize("damage, match", [
+    (_set(("T_heart_from_probe", 0, 0), None), r"field T_heart_from_probe is not a finite rigid transform"),
+    (_set(("T0_heart_from_probe", 1, 1), 2.0), r"field T0_heart_from_probe is not a finite rigid transform"),
+    (_set(("static", "T_static_heart_from_probe", 3, 3), 1e300), r"field static.T_static_heart_from_probe is not"),
+    (_set(("respiration_sweep", "T_heart_from_probe", 4, 0, 3), None),
+     r"field respiration_sweep.T_heart_from_probe\[4\] is not a finite rigid"),
+    (_set(("respiration_phase",), 5.0), r"field respiration_phase = 5.0 is not a phase in \[0, 1\]"),
+    (_set(("cardiac_phase",), -0.25), r"field cardiac_phase = -0.25 is not a phase"),
+    (_set(("cardiac_sweep", "phases", 2), 1.5), r"field cardiac_sweep.phases\[2\] = 1.5 is not a phase"),
+    (_set(("phase_estimates", 0, "respiration_phase"), 2.0), r"field phase_estimates\[0\].respiration_phase = 2.0"),
+])
+def test_a_registration_with_a_damaged_transform_or_phase_is_refused_naming_the_field(case, tmp_path, damage,
+                                                                                     match):
+    # before: track crashed deep inside (closest points: "points must be finite"; Localiser: "must be a phase")
+    data = json.loads((case["root"] / "out" / "registration.json").read_text())
+    damage(data)
+    (tmp_path / "registration.json").write_text(json.dumps(data))
+    with pytest.raises(RegistrationFileError, match=match) as info:
+        read_registration(tmp_path)
+    message = str(info.value)
+    assert "\n" not in message and str(tmp_path / "registration.json") in message
+    assert message.endswith("the file is damaged: re-run heartreg register")
+
+
 def test_cli_register_end_to_end(case, tmp_path, capsys):
     out = tmp_path / "reg"
     rc = main(["register", str(case["root"] / "model"), str(case["phantom"] / "session"),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 
 import numpy as np
 import pytest
@@ -407,3 +408,42 @@ def test_a_session_tracked_at_40_hz_registers_like_the_100_hz_one(sample_case, s
         assert mm <= 2.0 and deg <= 2.0, (mm, deg)
     mm, deg = error(plus_T, csv_T)
     assert mm <= 0.4 and deg <= 0.4, (mm, deg)
+
+
+@pytest.mark.parametrize("offset", [1e20, 1e308, -1e300])
+def test_an_offset_no_two_clocks_have_is_refused(tmp_path, offset):
+    """A huge poses_time_offset_s put every frame on one time: ZeroDivisionError (the frames' rate) before."""
+    folder, _ = _tracker_session(tmp_path, 30000.004 + np.arange(0.0, 15.0, 0.01), _beating, offset=offset)
+    assert _refused(folder) == (
+        f"session {folder}: session.json: 'poses_time_offset_s' is {offset:.6g} s, more than the 1e+10 s (three "
+        "centuries) two clocks can differ by: give the PLUS clock's offset from the signals' clock in seconds")
+
+
+def test_frames_an_offset_puts_on_one_time_are_refused(tmp_path):
+    """Within the bound, an offset can still round frames a microsecond apart onto one time (1e10 s: 2e-6 s)."""
+    folder, _ = _tracker_session(tmp_path, 1e-6 * np.arange(1500), _beating, offset=1e10)
+    assert _refused(folder) == (
+        f"session {folder}: track.igs.nrrd: with session.json 'poses_time_offset_s' = 1e+10 s its frames 1 and 2 "
+        "fall on one time (713 such pairs): the offset is too large for the timestamps' precision; give the PLUS "
+        "clock's offset in seconds")
+
+
+@pytest.mark.parametrize("value", ["1e300", "-2e4"])
+def test_a_pose_beyond_the_csv_bound_is_refused_naming_file_and_frame(tmp_path, value):
+    """A 1e300 mm pose in a PLUS file was read (two bare overflow warnings, exit 0) while the CSV reader refused
+    1e30 mm naming file, row and value: the same bound (MAX_ABS['mm']) now holds for the PLUS frames."""
+    folder, _, _ = _plus_session(tmp_path, n=200)
+    f = folder / "track.igs.nrrd"
+    lines = f.read_bytes().decode().split("\n")
+    at = next(j for j, ln in enumerate(lines) if ln.startswith("Seq_Frame0007_RobotToTrackerTransform:="))
+    key, numbers = lines[at].split(":=")
+    cells = numbers.split()
+    cells[7] = value  # the y translation
+    lines[at] = f"{key}:={' '.join(cells)}"
+    f.write_bytes("\n".join(lines).encode())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        message = _refused(folder)
+    assert message == (f"{f}: Seq_Frame0007_RobotToTrackerTransform: translation {float(value):.6g} mm (its 8th "
+                       "number) is beyond the plausible 10000 mm (1 such frame(s)); check the tracker's units or "
+                       "record again")

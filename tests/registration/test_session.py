@@ -268,6 +268,13 @@ def test_not_json(copy):
         read_session(copy)
 
 
+def test_an_integer_of_thousands_of_digits_is_refused(copy):
+    meta = (copy / "session.json").read_text()
+    (copy / "session.json").write_text(meta.replace('"format"', '"n": ' + "9" * 5000 + ', "format"', 1))
+    with pytest.raises(SessionError, match="session.json holds an integer of thousands of digits"):
+        read_session(copy)  # before: Python's ValueError on its limit of integer digits
+
+
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
@@ -290,6 +297,13 @@ def test_not_json(copy):
             r"points\[1\]: point id 0 is used twice",
         ),
         ({"points": []}, "no usable point record.*lists no points"),
+        # before: an id past int64 crashed register (OverflowError storing the registration's point_ids)
+        ({"points": [{"id": 2**63, "file": "points/point_000.csv", "surface_point": 0}]},
+         r"points\[0\]: 'id' is 9223372036854775808, outside the 64-bit integers"),
+        ({"points": [{"id": -(2**63) - 1, "file": "points/point_000.csv", "surface_point": 0}]},
+         r"points\[0\]: 'id' is -9223372036854775809, outside"),
+        ({"points": [{"id": 0, "file": "points/point_000.csv", "surface_point": 2**64}]},
+         r"points\[0\]: 'surface_point' is 18446744073709551616, outside the 64-bit integers"),
     ],
 )
 def test_bad_metadata(copy, changes, match):
