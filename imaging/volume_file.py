@@ -14,7 +14,9 @@ no acquisition times, so its cardiac phase is unknown (see
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import logging
 import warnings
 from pathlib import Path
 
@@ -77,7 +79,8 @@ def _stored_shape(path) -> tuple[int, int, int] | None:
         else:  # the spatial axes first (x, y, z, then time or components)
             import nibabel as nib
 
-            sizes = [int(v) for v in nib.load(str(path)).shape][:3]  # the header only: the voxels load lazily
+            with _nibabel_fixes():  # said again, judged, by the reader
+                sizes = [int(v) for v in nib.load(str(path)).shape][:3]  # the header only: the voxels load lazily
     except Exception:  # noqa: BLE001 - a bad file is refused by its reader, in its words
         return None
     return tuple(sizes) if len(sizes) == 3 else None
@@ -184,10 +187,19 @@ def load_nifti(path):
     Trailing axes of length one are dropped (``x, y, z, 1`` or ``x, y, z, 1, 1``:
     one time point, one component, as some tools write a 3-D volume).
     """
-    import logging
-
     import nibabel as nib
 
+    with _nibabel_fixes() as fixes:
+        img = nib.load(str(path))
+        data = np.asarray(img.dataobj)
+    while data.ndim > 3 and data.shape[-1] == 1:
+        data = data[..., 0]
+    return img, data, fixes
+
+
+@contextlib.contextmanager
+def _nibabel_fixes():
+    """The messages nibabel's logger gives within the block (its header repairs), as a list, not printed."""
     fixes = []
 
     class _Catch(logging.Handler):
@@ -195,14 +207,10 @@ def load_nifti(path):
             fixes.append(record.getMessage())
 
     logger = logging.getLogger("nibabel.global")
-    catch, kept = _Catch(), logger.handlers[:]
-    logger.handlers[:] = [catch]
+    kept = logger.handlers[:]
+    logger.handlers[:] = [_Catch()]
     try:
-        img = nib.load(str(path))
-        data = np.asarray(img.dataobj)
-        while data.ndim > 3 and data.shape[-1] == 1:
-            data = data[..., 0]
-        return img, data, fixes
+        yield fixes
     finally:
         logger.handlers[:] = kept
 
