@@ -188,6 +188,9 @@ def _find_folder(path: Path) -> Path:
         raise SessionNotFoundError(f"session folder {path} does not exist")
     if path.is_file() and path.name == "session.json":
         path = path.parent
+    if not path.is_dir():
+        raise SessionNotFoundError(f"session {path} is not a folder; pass the folder written by the tracker logger "
+                                   "or the phantom (it holds session.json, points/ and fiducials.csv)")
     if not (path / "session.json").is_file() and (path / "session" / "session.json").is_file():
         path = path / "session"
     if not (path / "session.json").is_file():

@@ -385,7 +385,9 @@ def read_cohort(path) -> tuple[Case, ...]:
         if not cases:
             raise CohortError(f"cohort file {path} has a header but no cases")
     else:
-        raise CohortError(f"cohort {path} does not exist; give a CSV file or a folder of study folders")
+        raise CohortError(f"cohort {path} " + ("does not exist" if not path.exists() else
+                                               "is no regular file nor folder (a named pipe or device)")
+                          + "; give a CSV file or a folder of study folders")
     seen = {}
     for i, case in enumerate(cases):
         if case.name.lower() in seen:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import shutil
 import tempfile
@@ -260,6 +261,9 @@ def test_missing_folder_and_session_json(tmp_path, copy):
         read_session(copy)
     with pytest.raises(FileNotFoundError):  # also catchable as the built-in
         read_session(copy)
+    os.mkfifo(tmp_path / "pipe")  # a named pipe was said to have no session.json (a review)
+    with pytest.raises(SessionNotFoundError, match="pipe is not a folder"):
+        read_session(tmp_path / "pipe")
 
 
 def test_not_json(copy):
