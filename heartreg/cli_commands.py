@@ -148,10 +148,13 @@ def _model_options(args):
             raise UsageError("--fiducial-floor-hu tunes the search for skin markers; --fiducials FILE gives them "
                              "instead: give one")
 
+        from registration.session_format import FIDUCIAL_ORDER, N_FIDUCIALS
+
         kw["fiducials_mm"] = read_markups(args.fiducials).points_lps_mm
-        if len(kw["fiducials_mm"]) < 3:
+        if len(kw["fiducials_mm"]) != N_FIDUCIALS:  # the session touches that many: register needs each once
             raise UsageError(f"--fiducials: the markups file {args.fiducials} holds {len(kw['fiducials_mm'])} placed "
-                             "point(s); give the staples' positions (at least 3)")
+                             f"point(s); heartreg register needs the {N_FIDUCIALS} staples the session touches, one "
+                             f"point each ({FIDUCIAL_ORDER}): place exactly {N_FIDUCIALS}")
     elif args.fiducials is not None:
         kw["expected_fiducials"] = None if args.fiducials == 0 else args.fiducials
     if args.fiducial_floor_hu is not None:

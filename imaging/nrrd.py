@@ -15,7 +15,7 @@ from __future__ import annotations
 import bz2
 import gzip
 import re
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
@@ -86,12 +86,18 @@ def read_nrrd_header(path) -> dict:
 
 
 def _data_file(header: Path, name: str) -> bytes:
-    """The bytes of a detached header's one data file (a name relative to the header's folder, or absolute)."""
+    """The bytes of a detached header's one data file, named relative to the header's folder and inside it (an
+    absolute name or one climbing out with ``..`` is refused: a header does not read files elsewhere)."""
     parts = name.split()
     if len(parts) != 1 or parts[0].upper() == "LIST":  # "LIST", or a format string with its index range
         raise NrrdError(f"NRRD header {header} spreads its data over several files ({name[:60]!r}); save the "
                         "volume as a single .nrrd")
-    data = Path(parts[0]) if Path(parts[0]).is_absolute() else header.parent / parts[0]
+    given = PurePosixPath(parts[0].replace("\\", "/"))
+    if given.is_absolute() or PureWindowsPath(parts[0]).drive or ".." in given.parts:  # only a file beside it
+        raise NrrdError(f"NRRD header {header} names its data file {parts[0][:200]}, outside the header's folder "
+                        f"{header.resolve().parent}; copy the two files together and name the data file without "
+                        "a folder")
+    data = header.parent / given
     if not data.is_file():
         raise NrrdError(f"NRRD header {header} names its data file {parts[0]}, which is not beside it; copy the "
                         "two files together")
@@ -165,7 +171,8 @@ def read_nrrd(path) -> tuple[np.ndarray, np.ndarray, dict]:
         dtype = dtype.newbyteorder("<" if fields.get("endian", "little") == "little" else ">")
     n = int(np.prod(sizes))
     if len(body) < n * dtype.itemsize:
-        raise NrrdError(f"NRRD file {path} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
+        of = "" if detached is None else f" (its data file {detached.strip()[:200]})"
+        raise NrrdError(f"NRRD file {path}{of} is truncated ({len(body)} of {n * dtype.itemsize} bytes)")
     if len(body) > n * dtype.itemsize:
         raise NrrdError(f"NRRD file {path} holds {len(body) - n * dtype.itemsize} bytes more than its sizes and "
                         f"type say: the header and the data disagree")

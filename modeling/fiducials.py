@@ -414,7 +414,7 @@ def check_given_fiducials(points_mm, shape, T_patient_from_voxel) -> np.ndarray:
     if outside.any():
         k = int(np.argmax(outside))
         raise FiducialError(
-            f"given fiducial {k + 1} ({', '.join(f'{x:.1f}' for x in points[k])} mm) lies outside the CT "
+            f"given fiducial {k + 1} ({', '.join(f'{x:.6g}' for x in points[k])} mm) lies outside the CT "
             f"({int(outside.sum())} of {len(points)} such): give the points in this CT's patient coordinates "
             "(a Slicer markups file says LPS or RAS; points placed on this CT in Slicer are)")
     return points

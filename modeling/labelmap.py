@@ -159,8 +159,13 @@ def _read_nifti(path: Path) -> LabelMap:
     return LabelMap(np.ascontiguousarray(labels.transpose(2, 1, 0)), T, str(path), names, unoriented=unoriented)
 
 
+#: Largest distance of a float label map's value from a whole number (float rounding of a saved label).
+WHOLE_TOL = 1e-3
+
+
 def _whole_labels(data, path) -> np.ndarray:
-    """A label map's voxels as int32 labels: float values rounded, NaN or infinite ones no label.
+    """A label map's voxels as int32 labels: float values whole within :data:`WHOLE_TOL`, NaN or infinite ones
+    no label; a negative or fractional value is refused (one line naming the file and the value).
 
     A float map (a probability map, or labels saved as float) is common in
     NIfTI and NRRD alike; a NaN cast to int would be label -2147483648.
@@ -170,10 +175,24 @@ def _whole_labels(data, path) -> np.ndarray:
         if not finite.any():
             raise LabelMapError(f"label map {path} holds no number (NaN or infinite everywhere)")
         data = np.where(finite, data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
+    low = data.min()
+    if low < 0:  # a label is a whole number >= 0 (0 the background): -1 rounds to no label of any mask
+        n = int(np.count_nonzero(data < 0))
+        hint = ("is it the CT, not a mask? give the mask's file" if low <= -100 else
+                "write the mask again with 0 outside and 1 (or a label of its own) for the heart")
+        raise LabelMapError(f"label map {path} holds the negative value {float(low):.6g} ({n} voxel(s)); labels "
+                            f"are whole numbers >= 0 (0 the background): {hint}")
     labels = np.round(data).astype(np.int32)
-    if not labels.any() and np.any(data):
-        raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
-                            f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
+    if np.issubdtype(data.dtype, np.floating):
+        off = np.abs(data - labels) > WHOLE_TOL
+        if off.any() and not labels.any():  # a probability map (0 to 1)
+            raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
+                                f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
+        if off.any():  # rounding 3.7 to label 4 (or an interpolated edge to its neighbour's label) says nothing
+            value = float(data[np.unravel_index(int(np.argmax(off)), off.shape)])
+            raise LabelMapError(f"label map {path} holds the value {value:.6g}, not a whole-number label "
+                                f"({int(np.count_nonzero(off))} such voxel(s)): labels are whole numbers >= 0; "
+                                "threshold a probability map, or resample the mask with nearest neighbour")
     return labels
 
 

@@ -204,7 +204,8 @@ def register_session(
     try:
         fid = register_fiducials(fid_probe, fid_model, max_fre_mm=max_fre_mm)
     except FiducialError as exc:
-        raise RegistrationError(f"fiducial registration failed: {exc}") from exc
+        raise RegistrationError(f"fiducial registration of session {session.path} failed: {exc} (source: the "
+                                "session's touched staples, target: the model's fiducials)") from exc
     T0 = fid.T_heart_from_probe
     timings["fiducials"] = time.perf_counter() - t
     if fid.reordered:

@@ -38,7 +38,7 @@ from registration.session_format import (  # the format's public names are this 
     FiducialTrace, PointRecord, Session, SessionError, SessionNotFoundError,
 )
 from registration.session_tables import (
-    _check_relative, _read_fiducial_trace, _read_fiducials, _read_plus_point, _read_point,
+    _check_relative, _check_time_offset, _read_fiducial_trace, _read_fiducials, _read_plus_point, _read_point,
 )
 
 __all__ = ["read_session"]  # the format's names are importable from here too (imported above)
@@ -154,6 +154,9 @@ def _read_folder(folder: Path, min_duration_s: float, quaternion_tol: float) -> 
         notes.append(f"{lost} of {total} samples of {len(dropped)} point(s) dropped ({listed}): no tracked pose within "
                      f"{MAX_FRAME_GAP:g} frame steps of them in the PLUS sequence (a record's first or last samples, "
                      "or the tracker's dropouts)")
+    if meta.get("poses_time_offset_s", 0) and not plus_files:
+        notes.append("session.json's 'poses_time_offset_s' is unused: no point takes its poses from a PLUS sequence "
+                     "(the CSV poses are on the signals' clock)")
     if not points:
         reasons = "; ".join(f"point {i}: {why}" for i, why in exclusions) or "session.json lists no points"
         raise SessionError(
@@ -266,6 +269,7 @@ def _read_meta(folder: Path) -> dict:
         if not isinstance(trace, str) or not trace:
             raise SessionError(f"{file}: 'fiducial_trace_file' must name a file, got {trace!r}")
         _check_relative(file, "fiducial_trace_file", trace)
+    _check_time_offset(meta)  # refused where it is wrong, PLUS poses or not
     fid = meta.get("fiducials_file")
     if not isinstance(fid, str) or not fid:
         raise SessionError(f"{file}: 'fiducials_file' must name a file, got {fid!r}")

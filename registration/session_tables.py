@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.geometry import frozen, interpolate_poses
+from registration.fiducial import COLLINEAR_RATIO
 from registration.plus import PlusFileError, read_plus_sequence
 from registration.session_format import (
     FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, MIN_SEPARATION_MM,
@@ -23,6 +24,19 @@ from registration.session_format import (
     PLUS_TRANSFORMS, POINT_COLUMNS, QUATERNION_TOL, RATE_TOL, SIGNAL_COLUMNS, FiducialTrace, PointRecord,
     SessionError, SessionNotFoundError,
 )
+
+def _check_time_offset(meta: dict) -> None:
+    """``poses_time_offset_s``, where given (PLUS poses or not): a finite number of at most three centuries."""
+    if "poses_time_offset_s" not in meta:
+        return
+    offset = meta["poses_time_offset_s"]
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
+        raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
+    if abs(offset) > MAX_TIME_OFFSET_S:
+        raise SessionError(f"session.json: 'poses_time_offset_s' is {offset:.6g} s, more than the "
+                           f"{MAX_TIME_OFFSET_S:g} s (three centuries) two clocks can differ by: give the PLUS "
+                           "clock's offset from the signals' clock in seconds")
+
 
 def _check_relative(file: Path, key: str, name: str) -> None:
     p = PurePosixPath(name)
@@ -146,8 +160,26 @@ def _read_samples(folder: Path, rel: str, columns, rate_hz: float) -> np.ndarray
     data = data.reshape(-1, len(columns))
     _check_finite(data, rel, columns)
     _check_magnitude(data, rel, columns)
+    _check_non_negative(data, rel, columns)
     _check_clock(data[:, 0], rel, rate_hz)
     return data
+
+
+def _check_non_negative(data: np.ndarray, rel: str, columns) -> None:
+    """Refuse a negative time (seconds after midnight) or airflow (each line's flow, >= 0 by the format)."""
+    which = [k for k, c in enumerate(columns) if c == "time_s" or c.endswith("_lpm")]
+    bad = data[:, which] < 0
+    if bad.any():
+        row, k = np.argwhere(bad)[0]
+        name = columns[which[k]]
+        what = ("seconds after midnight of the day of surgery (>= 0): check the logger's clock" if name == "time_s"
+                else "the airflow in that line (>= 0; the other line carries the other direction): check the flow "
+                     "sensor's sign and zero")
+        raise SessionError(
+            f"{rel}: column {name!r}, row {row + 1} (line {row + 2}): value {float(data[row, which[k]]):.6g} "
+            f"{_unit_of(name)} is negative ({int(bad[:, k].sum())} such values in the column); the format needs "
+            f"{what}"
+        )
 
 
 def _point_record(entry: dict, rate_hz: float, time_s, T_probe_from_robot, signals, n_invalid=0) -> PointRecord:
@@ -236,13 +268,7 @@ def _read_plus_point(folder: Path, entry: dict, rate_hz: float, meta: dict, cach
         except PlusFileError as exc:
             raise SessionError(str(exc)) from None
     seq = cache[poses_rel]
-    offset = meta.get("poses_time_offset_s", 0.0)
-    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
-        raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
-    if abs(offset) > MAX_TIME_OFFSET_S:
-        raise SessionError(f"session.json: 'poses_time_offset_s' is {offset:.6g} s, more than the "
-                           f"{MAX_TIME_OFFSET_S:g} s (three centuries) two clocks can differ by: give the PLUS "
-                           "clock's offset from the signals' clock in seconds")
+    offset = meta.get("poses_time_offset_s", 0.0)  # a finite number of plausible size (checked with session.json)
     try:
         T_robot, T_probe = (seq.transform(name) for name in PLUS_TRANSFORMS)
     except PlusFileError as exc:
@@ -380,6 +406,14 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
             f"{rel}: the 9 staples lie within {spread:.3g} mm of each other, closer than two staples can be "
             f"({MIN_SEPARATION_MM:g} mm): are the positions in metres? the format needs mm (multiply them by 1000)"
         )
+    centred = data[:, 1:4] - data[:, 1:4].mean(axis=0)
+    s = np.linalg.svd(centred, compute_uv=False)
+    if s[1] < COLLINEAR_RATIO * s[0]:  # a 3 x 3 grid of staples spans a plane: on a line, the touches went wrong
+        raise SessionError(
+            f"{rel}: the {N_FIDUCIALS} touched staples lie on one line (singular values {s[0]:.3g}, {s[1]:.3g} mm): "
+            "the rotation about it is undetermined; touch the staples again, each its own staple, or check the "
+            "file's rows"
+        )
     labels = data[:, 0]
     if not np.array_equal(labels, np.arange(1, N_FIDUCIALS + 1)):
         raise SessionError(
@@ -397,6 +431,7 @@ def _read_fiducial_trace(folder: Path, rel: str, rate_hz: float) -> FiducialTrac
         raise SessionError(f"{rel} holds a header and no rows; record the trace again, or remove "
                            "'fiducial_trace_file' from session.json to register with the touched fiducials alone")
     _check_finite(data, rel, FIDUCIAL_TRACE_COLUMNS)
+    _check_non_negative(data, rel, FIDUCIAL_TRACE_COLUMNS)
     time_s = data[:, 0]
     steps = np.diff(time_s)
     if (steps <= 0).any():

@@ -82,3 +82,26 @@ def test_options_are_frozen_and_overridable():
     with pytest.raises(TypeError, match="no_such_option"):
         RegistrationOptions.of(None, no_such_option=1)
 
+
+
+@pytest.mark.parametrize("n", [2, 8, 18])
+def test_given_fiducials_are_the_staples_register_needs(tmp_path, n):
+    """A review: a markups file of 18 points (two sets of staples) made a model that ``register`` refused later;
+    ``model --fiducials FILE`` now asks for the count ``register`` needs (the session's 9 staples), in one line."""
+    import json
+
+    from registration.session_format import N_FIDUCIALS
+
+    points = [{"position": [float(k), 10.0 * (k % 3), 5.0 * k], "positionStatus": "defined"} for k in range(n)]
+    given = tmp_path / "staples.mrk.json"
+    given.write_text(json.dumps({"markups": [{"type": "Fiducial", "coordinateSystem": "LPS",
+                                              "controlPoints": points}]}))
+    args = cli.command_parser().parse_args(["model", "study", "-o", "out", "--fiducials", str(given)])
+    with pytest.raises(UsageError) as info:
+        cli_commands._model_options(args)
+    message = str(info.value)
+    assert message.startswith(f"--fiducials: the markups file {given} holds {n} placed point(s); heartreg register "
+                              f"needs the {N_FIDUCIALS} staples the session touches") and "\n" not in message
+    nine = [{"position": [float(k), 10.0 * (k % 3), 5.0 * k], "positionStatus": "defined"} for k in range(N_FIDUCIALS)]
+    given.write_text(json.dumps({"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "controlPoints": nine}]}))
+    assert len(cli_commands._model_options(args).fiducials_mm) == N_FIDUCIALS

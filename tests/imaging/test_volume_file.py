@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import nibabel as nib
 import numpy as np
 import pytest
@@ -224,6 +226,18 @@ def test_bad_nrrd_files(tmp_path):
     (tmp_path / "ct.nhdr").write_bytes(head + b"data file: ct.raw\n")
     with pytest.raises(SeriesError, match="names its data file ct.raw, which is not beside it; copy the two files"):
         read_volume_file(tmp_path / "ct.nhdr")
+    # a data file outside the header's folder (absolute, or climbing out) is refused by name, not read and then
+    # called "truncated" (it read /etc/passwd)
+    for outside in ("/etc/passwd", "../../../../etc/shadow", "sub/../../ct.raw", "C:\\ct.raw"):
+        (tmp_path / "ct.nhdr").write_bytes(head + f"data file: {outside}\n".encode())
+        with pytest.raises(SeriesError, match=f"names its data file {re.escape(outside)}, outside the header's "
+                           f"folder {re.escape(str(tmp_path.resolve()))}; copy the two files together"):
+            read_volume_file(tmp_path / "ct.nhdr")
+    (tmp_path / "ct.raw").write_bytes(bytes(4))  # a data file of the wrong size is named with its header
+    (tmp_path / "ct.nhdr").write_bytes(head + b"data file: ct.raw\n")
+    with pytest.raises(SeriesError, match=r"ct.nhdr \(its data file ct.raw\) is truncated \(4 of 16 bytes\)"):
+        read_volume_file(tmp_path / "ct.nhdr")
+    (tmp_path / "ct.raw").unlink()
     (tmp_path / "ct.nhdr").write_bytes(head + b"data file: LIST\nct1.raw\n")
     with pytest.raises(SeriesError, match="spreads its data over several files"):
         read_volume_file(tmp_path / "ct.nhdr")

@@ -96,3 +96,15 @@ def test_staple_centres_under_partial_volume(spacing_kji, tol_mm, cable):
     found = find_fiducials(hu, T, expected=6, n_rows=2).centres_patient_mm
     err = np.linalg.norm(found[:, None, :] - truth[None], axis=-1).min(axis=1)
     assert err.max() <= tol_mm, err.round(2)
+
+
+def test_a_given_fiducial_far_outside_the_ct_is_named_in_short_numbers():
+    """A review: a markups point at 1e300 mm was printed as a 300-digit integer in the refusal."""
+    from modeling.fiducials import FiducialError, check_given_fiducials
+
+    points = np.array([[10.0, 20.0, 30.0], [1e300, -2.5e-7, 40.0], [12.0, 22.0, 33.0]])
+    with pytest.raises(FiducialError) as info:
+        check_given_fiducials(points, (50, 60, 70), np.diag([1.0, 1.0, 2.0, 1.0]))
+    message = str(info.value)
+    assert message.startswith("given fiducial 2 (1e+300, -2.5e-07, 40 mm) lies outside the CT (1 of 3 such)")
+    assert len(message) < 400 and "\n" not in message

@@ -468,3 +468,32 @@ def test_header_conflicts_and_other_nrrd_forms(tmp_path):
     (tmp_path / "odd.nrrd").write_bytes(header.format("block").encode() + b"\n" + labels.tobytes())
     with pytest.raises(LabelMapError, match=r"odd.nrrd: voxel type 'block' is not read"):
         read_label_map(tmp_path / "odd.nrrd")
+
+
+@pytest.mark.parametrize(("fill", "match"), [
+    (-1.0, r"m.nii.gz holds the negative value -1 \(\d+ voxel\(s\)\); labels are whole numbers >= 0 \(0 the "
+           r"background\): write the mask again"),
+    (-1024.0, r"m.nii.gz holds the negative value -1024 .*: is it the CT, not a mask\?"),
+    (3.7, r"m.nii.gz holds the value 3.7, not a whole-number label \(\d+ such voxel\(s\)\): labels are whole "
+          r"numbers >= 0; threshold a probability map, or resample the mask with nearest neighbour$"),
+    (0.5, r"m.nii.gz holds no whole-number label: its values \(0 to 0.5\) round to 0"),
+])
+def test_negative_and_fractional_labels_are_refused_alike(tmp_path, fill, match):
+    """A review: a mask of -1 or of 3.7 in the heart built a model without a word (3.7 read as label 4, -1 as a
+    label of its own), while 0.5 was refused as 'no whole-number label'."""
+    import nibabel as nib
+
+    T, shape = _source_T()
+    inside = _ball_labels(T, shape).transpose(2, 1, 0) > 0
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ T
+    nib.save(nib.Nifti1Image(np.where(inside, fill, 0.0).astype(np.float32), ras), str(tmp_path / "m.nii.gz"))
+    with pytest.raises(LabelMapError, match=match) as info:
+        read_label_map(tmp_path / "m.nii.gz")
+    assert "\n" not in str(info.value)
+    if fill < 0:  # an integer map alike
+        nib.save(nib.Nifti1Image(np.where(inside, fill, 0).astype(np.int16), ras), str(tmp_path / "m.nii.gz"))
+        with pytest.raises(LabelMapError, match=match):
+            read_label_map(tmp_path / "m.nii.gz")
+    # a float map of whole labels (within float rounding) is read as before
+    nib.save(nib.Nifti1Image(np.where(inside, 3.0000001, 0.0).astype(np.float32), ras), str(tmp_path / "ok.nii.gz"))
+    assert set(np.unique(read_label_map(tmp_path / "ok.nii.gz").labels)) == {0, 3}

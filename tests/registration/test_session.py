@@ -187,7 +187,8 @@ def _minimal_session(folder: Path, rows: np.ndarray, *, n_points: int = 1) -> No
     header = ",".join(reader.POINT_COLUMNS)
     for k in range(n_points):
         np.savetxt(folder / f"points/point_{k:03d}.csv", rows, delimiter=",", header=header, comments="", fmt="%.12g")
-    fid = np.column_stack([np.arange(1, 10), np.arange(27).reshape(9, 3)])
+    grid = [(50.0 * (1 - c), 40.0 * (1 - r), 3.0 * (r + c)) for r in range(3) for c in range(3)]  # 3 x 3 staples
+    fid = np.column_stack([np.arange(1, 10), grid])
     np.savetxt(folder / "fiducials.csv", fid, delimiter=",", header="fiducial,x_mm,y_mm,z_mm", comments="", fmt="%.6g")
     meta = {
         "format": "heartreg-session",
@@ -308,6 +309,10 @@ def test_an_integer_of_thousands_of_digits_is_refused(copy):
          r"points\[0\]: 'id' is -9223372036854775809, outside"),
         ({"points": [{"id": 0, "file": "points/point_000.csv", "surface_point": 2**64}]},
          r"points\[0\]: 'surface_point' is 18446744073709551616, outside the 64-bit integers"),
+        # a review: a non-number passed where no point takes PLUS poses (refused only in a PLUS session)
+        ({"poses_time_offset_s": "x"}, r"session.json: 'poses_time_offset_s' must be a number of seconds, got 'x'"),
+        ({"poses_time_offset_s": float("nan")}, r"'poses_time_offset_s' must be a number of seconds, got nan"),
+        ({"poses_time_offset_s": 1e300}, r"'poses_time_offset_s' is 1e\+300 s, more than the 1e\+10 s"),
     ],
 )
 def test_bad_metadata(copy, changes, match):
@@ -562,3 +567,37 @@ def test_positions_in_metres_are_refused(copy, phantom):
     assert _refused(copy) == (
         f"session {copy}: fiducials.csv: the 9 staples lie within {spread:.3g} mm of each other, closer than two "
         "staples can be (1 mm): are the positions in metres? the format needs mm (multiply them by 1000)")
+
+
+def test_an_unused_time_offset_is_said(copy):
+    """``poses_time_offset_s`` shifts PLUS poses only: in a session of CSV poses a number is said to be unused."""
+    _edit_meta(copy, poses_time_offset_s=2.5)
+    assert any("'poses_time_offset_s' is unused" in note for note in read_session(copy).notes)
+
+
+@pytest.mark.parametrize(("file", "column", "value", "line"), [
+    ("points/point_001.csv", "flow_insp_lpm", "-5", 11),
+    ("points/point_001.csv", "flow_exp_lpm", "-0.25", 3),
+    ("points/point_001.csv", "time_s", "-1.5", 2),
+    ("fiducial_trace.csv", "flow_exp_lpm", "-2", 7),
+])
+def test_a_negative_time_or_flow_is_refused(copy, file, column, value, line):
+    """A review: negative airflow (the format says >= 0 in each line) and negative seconds after midnight passed
+    without a word."""
+    _edit_cell(copy / file, line - 1, column, value)
+    unit = "s" if column == "time_s" else "L/min"
+    assert _refused(copy).startswith(
+        f"session {copy}: {file}: column '{column}', row {line - 1} (line {line}): value {float(value):g} {unit} is "
+        "negative (1 such values in the column); the format needs ")
+
+
+def test_touched_staples_on_one_line_are_refused(copy):
+    """A review: staples touched along one line failed in the registration as 'source points are collinear',
+    naming neither the session nor its fiducials file."""
+    rows = "".join(f"{k},{10.0 * k},{5.0 * k},0\n" for k in range(1, 10))
+    (copy / "fiducials.csv").write_text("fiducial,x_mm,y_mm,z_mm\n" + rows)
+    message = _refused(copy)
+    assert message.startswith(f"session {copy}: fiducials.csv: the 9 touched staples lie on one line (singular "
+                              "values ") and message.endswith("touch the staples again, each its own staple, or "
+                                                              "check the file's rows")
+    assert "\n" not in message
