@@ -164,8 +164,9 @@ WHOLE_TOL = 1e-3
 
 
 def _whole_labels(data, path) -> np.ndarray:
-    """A label map's voxels as int32 labels: float values whole within :data:`WHOLE_TOL`, NaN or infinite ones
-    no label; a negative or fractional value is refused (one line naming the file and the value).
+    """A label map's voxels as int32 labels: float values whole within :data:`WHOLE_TOL`, or all within 0-1 (a
+    probability or soft-edged mask, cut at 0.5), NaN or infinite ones no label; a negative value, or a
+    fractional one above 1, is refused (one line naming the file and the value).
 
     A float map (a probability map, or labels saved as float) is common in
     NIfTI and NRRD alike; a NaN cast to int would be label -2147483648.
@@ -188,7 +189,7 @@ def _whole_labels(data, path) -> np.ndarray:
         if off.any() and not labels.any():  # a probability map (0 to 1)
             raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
                                 f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
-        if off.any():  # rounding 3.7 to label 4 (or an interpolated edge to its neighbour's label) says nothing
+        if off.any() and data.max() > 1.0:  # rounding 3.7 to label 4 says nothing; a soft mask of 0-1 is cut at 0.5
             value = float(data[np.unravel_index(int(np.argmax(off)), off.shape)])
             raise LabelMapError(f"label map {path} holds the value {value:.6g}, not a whole-number label "
                                 f"({int(np.count_nonzero(off))} such voxel(s)): labels are whole numbers >= 0; "

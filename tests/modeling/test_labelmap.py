@@ -497,3 +497,18 @@ def test_negative_and_fractional_labels_are_refused_alike(tmp_path, fill, match)
     # a float map of whole labels (within float rounding) is read as before
     nib.save(nib.Nifti1Image(np.where(inside, 3.0000001, 0.0).astype(np.float32), ras), str(tmp_path / "ok.nii.gz"))
     assert set(np.unique(read_label_map(tmp_path / "ok.nii.gz").labels)) == {0, 3}
+
+
+def test_a_soft_edged_mask_is_cut_at_half(tmp_path):
+    """A mask resampled with linear interpolation (1 inside, fractions at its edge) or a probability map is cut
+    at 0.5, as before the review's rule for fractional labels (which is for values above 1: 3.7)."""
+    import nibabel as nib
+    from scipy import ndimage
+
+    T, shape = _source_T()
+    inside = _ball_labels(T, shape).transpose(2, 1, 0) > 0
+    soft = ndimage.gaussian_filter(inside.astype(np.float32), 1.0)
+    nib.save(nib.Nifti1Image(soft, np.diag([-1.0, -1.0, 1.0, 1.0]) @ T), str(tmp_path / "soft.nii.gz"))
+    labels = read_label_map(tmp_path / "soft.nii.gz").labels
+    assert set(np.unique(labels)) == {0, 1}
+    assert np.array_equal(labels, (soft > 0.5).transpose(2, 1, 0))
