@@ -415,7 +415,8 @@ def segment_heart(
     region = np.isin(labels, touched)
     del labels
     if contrast and pool is not None:
-        region, split_note = split_solid_organs(region, pool, coarse, cspacing, pool_hu, height_axis, mediastinum())
+        region, split_note = split_solid_organs(region, pool, coarse, cspacing, pool_hu, height_axis,
+                                                seed_between()[1:] if seed_between() else None, T[2, 2::-1] * step)
         if split_note:
             notes.append(split_note)
 
