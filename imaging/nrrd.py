@@ -15,7 +15,7 @@ from __future__ import annotations
 import bz2
 import gzip
 import re
-from pathlib import Path, PurePosixPath, PureWindowsPath
+from pathlib import Path
 
 import numpy as np
 
@@ -86,21 +86,17 @@ def read_nrrd_header(path) -> dict:
 
 
 def _data_file(header: Path, name: str) -> bytes:
-    """The bytes of a detached header's one data file, named relative to the header's folder and inside it (an
-    absolute name or one climbing out with ``..`` is refused: a header does not read files elsewhere)."""
+    """The bytes of a detached header's one data file: a name relative to the header's folder, or absolute (the
+    NRRD format allows both; teem and pynrrd write either)."""
     parts = name.split()
     if len(parts) != 1 or parts[0].upper() == "LIST":  # "LIST", or a format string with its index range
         raise NrrdError(f"NRRD header {header} spreads its data over several files ({name[:60]!r}); save the "
                         "volume as a single .nrrd")
-    given = PurePosixPath(parts[0].replace("\\", "/"))
-    if given.is_absolute() or PureWindowsPath(parts[0]).drive or ".." in given.parts:  # only a file beside it
-        raise NrrdError(f"NRRD header {header} names its data file {parts[0][:200]}, outside the header's folder "
-                        f"{header.resolve().parent}; copy the two files together and name the data file without "
-                        "a folder")
-    data = header.parent / given
+    data = Path(parts[0]) if Path(parts[0]).is_absolute() else header.parent / parts[0]
     if not data.is_file():
-        raise NrrdError(f"NRRD header {header} names its data file {parts[0]}, which is not beside it; copy the "
-                        "two files together")
+        raise NrrdError(f"NRRD header {header} names its data file {parts[0][:200]}, which "
+                        + ("does not exist" if Path(parts[0]).is_absolute() else "is not beside it")
+                        + "; copy the two files together")
     return data.read_bytes()
 
 

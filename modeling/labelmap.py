@@ -161,39 +161,43 @@ def _read_nifti(path: Path) -> LabelMap:
 
 #: Largest distance of a float label map's value from a whole number (float rounding of a saved label).
 WHOLE_TOL = 1e-3
+#: A float map whose values all stay below this is one structure's mask, rounded (cut at 0.5): a binary mask
+#: resampled with linear or cubic interpolation (-0.1 to 1.35 with scipy's cubic spline), a probability map.
+#: Fractional values in a map reaching it are labels of several structures that no rounding names (3.7).
+ONE_MASK_BELOW = 1.5
 
 
 def _whole_labels(data, path) -> np.ndarray:
-    """A label map's voxels as int32 labels: float values whole within :data:`WHOLE_TOL`, or all within 0-1 (a
-    probability or soft-edged mask, cut at 0.5), NaN or infinite ones no label; a negative value, or a
-    fractional one above 1, is refused (one line naming the file and the value).
+    """A label map's voxels as int32 labels, NaN or infinite ones no label; a float map is rounded.
 
-    A float map (a probability map, or labels saved as float) is common in
-    NIfTI and NRRD alike; a NaN cast to int would be label -2147483648.
+    A value that rounds to a negative label is refused, and so is a fractional value in a map of several labels
+    (reaching :data:`ONE_MASK_BELOW`), in one line naming the file and the value.  A float map (a probability
+    map, a mask resampled by interpolation, labels saved as float) is common in NIfTI and NRRD alike; a NaN cast
+    to int would be label -2147483648.
     """
     if np.issubdtype(data.dtype, np.floating):
         finite = np.isfinite(data)
         if not finite.any():
             raise LabelMapError(f"label map {path} holds no number (NaN or infinite everywhere)")
         data = np.where(finite, data, 0.0)  # NaN or inf is no label (it was cast to -2147483648)
-    low = data.min()
-    if low < 0:  # a label is a whole number >= 0 (0 the background): -1 rounds to no label of any mask
-        n = int(np.count_nonzero(data < 0))
+    labels = np.round(data).astype(np.int32)
+    low = int(labels.min())
+    if low < 0:  # a label is a whole number >= 0 (0 the background): -1 is no label of any mask
+        n = int(np.count_nonzero(labels < 0))
         hint = ("is it the CT, not a mask? give the mask's file" if low <= -100 else
                 "write the mask again with 0 outside and 1 (or a label of its own) for the heart")
-        raise LabelMapError(f"label map {path} holds the negative value {float(low):.6g} ({n} voxel(s)); labels "
-                            f"are whole numbers >= 0 (0 the background): {hint}")
-    labels = np.round(data).astype(np.int32)
+        raise LabelMapError(f"label map {path} holds the negative value {float(data.min()):.6g} ({n} voxel(s)); "
+                            f"labels are whole numbers >= 0 (0 the background): {hint}")
     if np.issubdtype(data.dtype, np.floating):
         off = np.abs(data - labels) > WHOLE_TOL
-        if off.any() and not labels.any():  # a probability map (0 to 1)
+        if off.any() and not labels.any():  # a probability map below 0.5 everywhere
             raise LabelMapError(f"label map {path} holds no whole-number label: its values ({float(data.min()):g} to "
                                 f"{float(data.max()):g}) round to 0 (a probability map? threshold it at 0.5 first)")
-        if off.any() and data.max() > 1.0:  # rounding 3.7 to label 4 says nothing; a soft mask of 0-1 is cut at 0.5
-            value = float(data[np.unravel_index(int(np.argmax(off)), off.shape)])
+        if off.any() and data.max() >= ONE_MASK_BELOW:  # rounding 3.7 to label 4 names no structure
+            value = float(data[off][0])
             raise LabelMapError(f"label map {path} holds the value {value:.6g}, not a whole-number label "
                                 f"({int(np.count_nonzero(off))} such voxel(s)): labels are whole numbers >= 0; "
-                                "threshold a probability map, or resample the mask with nearest neighbour")
+                                "resample the label map with nearest neighbour")
     return labels
 
 

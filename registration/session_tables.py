@@ -30,10 +30,13 @@ def _check_time_offset(meta: dict) -> None:
     if "poses_time_offset_s" not in meta:
         return
     offset = meta["poses_time_offset_s"]
-    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or offset != offset or offset in (
+            float("inf"), float("-inf")):
         raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
-    if abs(offset) > MAX_TIME_OFFSET_S:
-        raise SessionError(f"session.json: 'poses_time_offset_s' is {offset:.6g} s, more than the "
+    if abs(offset) > MAX_TIME_OFFSET_S:  # compared exactly: an integer of hundreds of digits is no float
+        shown = (f"{offset:.6g}" if isinstance(offset, float) or abs(offset) < 1e300 else
+                 f"{'-' if offset < 0 else ''}1e+{len(str(abs(offset))) - 1}")
+        raise SessionError(f"session.json: 'poses_time_offset_s' is {shown} s, more than the "
                            f"{MAX_TIME_OFFSET_S:g} s (three centuries) two clocks can differ by: give the PLUS "
                            "clock's offset from the signals' clock in seconds")
 

@@ -313,6 +313,8 @@ def test_an_integer_of_thousands_of_digits_is_refused(copy):
         ({"poses_time_offset_s": "x"}, r"session.json: 'poses_time_offset_s' must be a number of seconds, got 'x'"),
         ({"poses_time_offset_s": float("nan")}, r"'poses_time_offset_s' must be a number of seconds, got nan"),
         ({"poses_time_offset_s": 1e300}, r"'poses_time_offset_s' is 1e\+300 s, more than the 1e\+10 s"),
+        # an integer of 400 digits (JSON allows it) reached numpy and a traceback (a review)
+        ({"poses_time_offset_s": 10**400}, r"'poses_time_offset_s' is 1e\+400 s, more than the 1e\+10 s"),
     ],
 )
 def test_bad_metadata(copy, changes, match):
