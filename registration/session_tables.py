@@ -168,10 +168,17 @@ def _read_samples(folder: Path, rel: str, columns, rate_hz: float) -> np.ndarray
     return data
 
 
+#: Airflow (L/min) down to this below zero is a flow sensor's zero offset and noise, not a reversed sign (a
+#: ventilator's breath peaks at 30-60 L/min).
+FLOW_ZERO_TOL_LPM = 1.0
+
+
 def _check_non_negative(data: np.ndarray, rel: str, columns) -> None:
-    """Refuse a negative time (seconds after midnight) or airflow (each line's flow, >= 0 by the format)."""
+    """Refuse a negative time (seconds after midnight) or airflow (each line's flow, >= 0 by the format, less a
+    sensor's zero offset: :data:`FLOW_ZERO_TOL_LPM`)."""
     which = [k for k, c in enumerate(columns) if c == "time_s" or c.endswith("_lpm")]
-    bad = data[:, which] < 0
+    floor = np.array([0.0 if columns[k] == "time_s" else -FLOW_ZERO_TOL_LPM for k in which])
+    bad = data[:, which] < floor
     if bad.any():
         row, k = np.argwhere(bad)[0]
         name = columns[which[k]]

@@ -579,7 +579,7 @@ def test_an_unused_time_offset_is_said(copy):
 
 @pytest.mark.parametrize(("file", "column", "value", "line"), [
     ("points/point_001.csv", "flow_insp_lpm", "-5", 11),
-    ("points/point_001.csv", "flow_exp_lpm", "-0.25", 3),
+    ("points/point_001.csv", "flow_exp_lpm", "-1.25", 3),
     ("points/point_001.csv", "time_s", "-1.5", 2),
     ("fiducial_trace.csv", "flow_exp_lpm", "-2", 7),
 ])
@@ -591,6 +591,13 @@ def test_a_negative_time_or_flow_is_refused(copy, file, column, value, line):
     assert _refused(copy).startswith(
         f"session {copy}: {file}: column '{column}', row {line - 1} (line {line}): value {float(value):g} {unit} is "
         "negative (1 such values in the column); the format needs ")
+
+
+def test_a_flow_sensors_zero_offset_is_no_negative_flow(copy):
+    """A review of the review: -0.02 L/min, a flow sensor's zero offset, refused a real session; down to
+    ``FLOW_ZERO_TOL_LPM`` below zero a flow is read as it is."""
+    _edit_cell(copy / "points/point_001.csv", 2, "flow_exp_lpm", "-0.02")
+    read_session(copy)
 
 
 def test_touched_staples_on_one_line_are_refused(copy):
