@@ -755,7 +755,7 @@ def test_a_trim_reading_chamber_walls_is_refused(realct, heart_less_artery, tmp_
     with the blood within 12 mm of the heart dimmed half-way to 40 HU (its pool still above the arterial
     200 HU) 39 %.  Under the former bound (half the faces) both ran and took a quarter of the heart
     (measured 525 and 551 ml, Dice 0.705 and 0.775 against the whole reference; the robustness sweep of
-    session 15, ``/work/scratch/s15h``).  A trim that would remove more than 30 % is refused: the phantoms'
+    session 15, ``/work/scratch/s15h``).  A trim that would remove more than 25 % is refused: the phantoms'
     stubs take 5-18 %.  Measured now: 793 / 705 ml; against the reference less its pulmonary artery
     Dice 0.849 / 0.899, MSD 4.1 / 2.7 mm (as read 0.897 / 2.8 mm).  The resampled CT's remaining loss is
     not the trim's: with its 2.5 mm slices the tissue behind the left atrium joins the heart (the model
@@ -776,7 +776,7 @@ def test_a_trim_reading_chamber_walls_is_refused(realct, heart_less_artery, tmp_
     nib.save(image, tmp_path / "ct.nii.gz")
     rc, caught = _run_model(["model", str(tmp_path / "ct.nii.gz"), "-o", str(tmp_path / "model"), "-q"])
     assert rc == 0
-    assert any(re.search(r"vessel stub trim skipped.*would remove (3\d|4\d)% .*at most 30%", w) for w in caught), caught
+    assert any(re.search(r"vessel stub trim skipped.*would remove (3\d|4\d)% .*at most 25%", w) for w in caught), caught
     model, m = _metrics(tmp_path / "model", volume, heart_less_artery)
     assert 650.0 <= check_mesh(model.mesh_patient()).volume_mm3 / 1000.0 <= 850.0
     assert m["dice"] >= 0.83 and m["msd_mm"] <= 4.5, m
