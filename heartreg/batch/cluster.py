@@ -214,9 +214,12 @@ def open_client(*, workers: int | None = None, scheduler: str | None = None,
                                "(more only wait for each other); for more, start a cluster and give --scheduler")
         _check_memory_limit(memory_limit)
         try:  # the scheduler's http server (the dashboard's, with bokeh) on a free loopback port
+            # the workers' own log only at CRITICAL: a heartbeat that meets the scheduler closing after a Ctrl-C
+            # logs an ERROR with its traceback (a fresh CI run); a case's failure comes back with its result
             with _children_ignore_sigint():
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, memory_limit=memory_limit,
-                                       host="127.0.0.1", dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
+                                       host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                                       silence_logs=logging.CRITICAL)
         except ValueError as exc:
             raise ClusterError(f"cannot start {n} local worker(s) with memory limit {memory_limit!r}: {exc}") from None
         client = Client(cluster, set_as_default=False)
