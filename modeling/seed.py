@@ -197,7 +197,7 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu, height_axis: in
     (``mediastinum``: the region between them and the lungs, from
     :func:`mediastinal_seed`, when the CT shows them) and not just under a
     lung (:data:`UNDER_LUNG_MM` along ``up_kji``, the patient's height per
-    index step): a right heart whose contrast has washed out (a saline chaser,
+    index step, needed with ``mediastinum``): a right heart whose contrast has washed out (a saline chaser,
     the usual coronary CTA) is as thick and as far from the left heart's
     blood, and nearly as dim as a liver; the chest wall lies outside the
     lungs, the liver below them or, its dome, under a lung's base.  On ``shared/realct`` with its right heart's blood dimmed to
@@ -232,12 +232,10 @@ def split_solid_organs(region, pool, coarse, cspacing, blood_hu, height_axis: in
     del labels
     solid = opening_mm(inside & ~blood, cspacing, SOLID_RADIUS_MM)
     solid &= distance_mm(~blood, cspacing) > SOLID_FAR_MM
-    if mediastinum is not None:  # a washed-out right heart is no liver (mediastinum: (between the lungs, lung))
+    if mediastinum is not None:  # a washed-out right heart is no liver; a liver's dome lies under a lung's base
         between, lung = (m[box] for m in mediastinum)
-        if up_kji is not None:  # a liver's dome lies under a lung's base (UNDER_LUNG_MM)
-            reach = max(1, int(round(UNDER_LUNG_MM / abs(float(up_kji[height_axis])))))
-            between = between & ~_under(lung, height_axis, float(up_kji[height_axis]) > 0, reach)
-        solid &= ~between
+        up = float(up_kji[height_axis])
+        solid &= ~(between & ~_under(lung, height_axis, up > 0, max(1, int(round(UNDER_LUNG_MM / abs(up))))))
     if not solid.any() and inside.sum() == region.sum():
         return region, ""
     seeds, flood_hu = _heart_seeds(blood_pool, hu, cspacing)

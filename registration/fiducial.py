@@ -101,10 +101,16 @@ def _check_pair(source, target):
     return source, target
 
 
+def collinear(points) -> tuple[float, float] | None:
+    """The two largest singular values (mm) of ``points`` about their centre when they lie on a line (the second
+    below :data:`COLLINEAR_RATIO` of the first), else None."""
+    points = np.asarray(points, dtype=np.float64)
+    s = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return (float(s[0]), float(s[1])) if s[0] == 0 or s[1] / s[0] < COLLINEAR_RATIO else None
+
+
 def _check_not_collinear(points, name):
-    centred = points - points.mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False)
-    if s[0] == 0 or s[1] / s[0] < COLLINEAR_RATIO:
+    if (s := collinear(points)) is not None:
         raise FiducialError(
             f"{name} points are collinear (singular values {s[0]:.3g}, {s[1]:.3g}): "
             "the rotation about their line is undetermined; use non-collinear fiducials"

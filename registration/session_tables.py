@@ -9,6 +9,7 @@ column and the row.
 
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path, PurePosixPath
 
@@ -16,7 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hrcore.geometry import frozen, interpolate_poses
-from registration.fiducial import COLLINEAR_RATIO
+from registration.fiducial import collinear
 from registration.plus import PlusFileError, read_plus_sequence
 from registration.session_format import (
     FIDUCIAL_COLUMNS, FIDUCIAL_ORDER, FIDUCIAL_TRACE_COLUMNS, MAX_ABS, MAX_CSV_BYTES, MIN_SEPARATION_MM,
@@ -30,8 +31,8 @@ def _check_time_offset(meta: dict) -> None:
     if "poses_time_offset_s" not in meta:
         return
     offset = meta["poses_time_offset_s"]
-    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or offset != offset or offset in (
-            float("inf"), float("-inf")):
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or (isinstance(offset, float)
+                                                                         and not math.isfinite(offset)):
         raise SessionError(f"session.json: 'poses_time_offset_s' must be a number of seconds, got {offset!r}")
     if abs(offset) > MAX_TIME_OFFSET_S:  # compared exactly: an integer of hundreds of digits is no float
         shown = (f"{offset:.6g}" if isinstance(offset, float) or abs(offset) < 1e300 else
@@ -337,8 +338,6 @@ def _poses_between_frames(t_frames, T_robot, T_probe, valid, t, step, rel, poses
     have : (n,) bool
         Which samples have a pose.
     """
-    if not step > 0:  # pragma: no cover - the caller refuses frames on one time
-        raise SessionError(f"{poses_rel}: its frames do not advance in time; record the poses again")
     rate = 1.0 / step
     if rate < MIN_TRACKER_RATE_HZ:
         raise SessionError(
@@ -416,9 +415,7 @@ def _read_fiducials(folder: Path, rel: str) -> np.ndarray:
             f"{rel}: the 9 staples lie within {spread:.3g} mm of each other, closer than two staples can be "
             f"({MIN_SEPARATION_MM:g} mm): are the positions in metres? the format needs mm (multiply them by 1000)"
         )
-    centred = data[:, 1:4] - data[:, 1:4].mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False)
-    if s[1] < COLLINEAR_RATIO * s[0]:  # a 3 x 3 grid of staples spans a plane: on a line, the touches went wrong
+    if (s := collinear(data[:, 1:4])) is not None:  # a 3 x 3 grid of staples spans a plane: the touches went wrong
         raise SessionError(
             f"{rel}: the {N_FIDUCIALS} touched staples lie on one line (singular values {s[0]:.3g}, {s[1]:.3g} mm): "
             "the rotation about it is undetermined; touch the staples again, each its own staple, or check the "
