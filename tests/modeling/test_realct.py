@@ -41,7 +41,10 @@ Further measurements (session seg9, voxel masks on the CT grid, ``overlap``):
 - with the pulmonary artery cut at its valve no surface can meet the issue's
   p95 against this reference: the reference less its own pulmonary artery
   (dilated by 2 voxels, opened, largest part; "r2") scores Dice 0.946, MSD
-  2.2 mm, p95 19.5 mm against the whole reference.  Against r2, the reference
+  2.2 mm, p95 19.5 mm against the whole reference; less the artery and one
+  voxel of its wall, largest part (session 29): 0.962 / 1.68 / 16.8 mm, the
+  set difference alone 0.966 / 0.21 / 1.5 mm only because it keeps the
+  artery's wall as a one-voxel sleeve.  Against r2, the reference
   grown by one or two layers of its wall tissue (> 0 HU, < 250 HU) still
   scores Dice 0.95-0.98, MSD 0.5-1.05 mm, p95 1.5-3 mm: the targets are
   reachable against the reference less its pulmonary artery;
@@ -413,12 +416,40 @@ def test_frame_from_mesh_and_mask_agree(auto_model, mask_model_less_artery):
 
 @pytest.mark.xfail(strict=True, reason="issue 9's surface targets are not reached yet (measured Dice 0.879, MSD "
                    "3.6 mm, p95 14.8 mm); see the module docstring for why part of the gap is the reference "
-                   "(against it less its pulmonary artery: Dice 0.906, MSD 2.6 mm, p95 7.0 mm); its p95 cannot be met with "
-                   "the pulmonary artery cut at its valve (the reference less its own pulmonary artery: p95 19.5 mm)")
+                   "(against it less its pulmonary artery: Dice 0.906, MSD 2.6 mm, p95 7.0 mm); its MSD and p95 cannot be met "
+                   "with the pulmonary artery cut at its valve (the best such surface: 1.7-2.4 mm, p95 14-17 mm; "
+                   "test_what_the_artery_cut_costs_against_the_whole_reference)")
 def test_issue_targets(realct, auto_model):
     volume, _, reference = realct
     _, m = _metrics(auto_model[2], volume, reference)
     assert m["dice"] >= 0.92 and m["msd_mm"] <= 1.5 and m["p95_mm"] <= 5.0, m
+
+
+def test_what_the_artery_cut_costs_against_the_whole_reference(realct, artery):
+    """Why test_issue_targets stays an xfail: the best surface that cuts the pulmonary artery, as the issue
+    asks, cannot meet its MSD and p95 against the whole reference, which keeps the trunk and its branches.
+
+    That surface, idealised from the reference itself: the reference less the artery and one voxel of the
+    artery's wall, its largest part, then grown by one or two layers of wall tissue (0-250 HU: an epicardial
+    surface at the thin walls, where the reference's edge is the blood pool's).  Measured (session 29):
+    cut 0.962 / 1.68 / 16.8 mm; grown 0.930 / 2.32 / 16.4 and 0.913 / 2.41 / 14.3 mm against the whole
+    reference; against it less its artery 0.962 / 1.18 / 2.1 and 0.943 / 1.39 / 3.0 mm, where the model
+    scores 0.906 / 2.65 / 7.0 (test below).  The plain set difference ``reference & ~artery`` scores 0.966 /
+    0.21 / 1.5 mm only because it keeps the artery's wall as a one-voxel sleeve, a shape no heart has."""
+    from scipy import ndimage
+
+    volume, _, reference = realct
+    cross = ndimage.generate_binary_structure(3, 1)
+    wall = ndimage.binary_dilation(artery, cross)
+    labels, _ = ndimage.label(reference & ~wall)
+    cut = labels == np.argmax(np.bincount(labels.ravel())[1:]) + 1
+    grown = cut.copy()
+    for _ in range(2):
+        grown |= ndimage.binary_dilation(grown, cross) & (volume.hu > 0) & (volume.hu < 250) & ~wall
+    for mask in (cut, grown):
+        whole, less = overlap(mask, reference, SPACING), overlap(mask, reference & ~artery, SPACING)
+        assert whole["p95_mm"] > 10.0 and whole["msd_mm"] > 1.5, whole  # the issue's 5 mm and 1.5 mm: out of reach
+        assert less["p95_mm"] <= 3.0 and less["msd_mm"] <= 1.5 and less["dice"] >= 0.94, less  # within reach
 
 
 def test_against_the_reference_less_its_pulmonary_artery(realct, auto_model, artery, heart_less_artery):
