@@ -227,7 +227,7 @@ def segment_heart(
     blood_hu: tuple[float, float] = (200.0, 650.0), blood_floor_hu: float = 150.0, seed_patient_mm=None,
     vessel_radius_mm: float = 14.0, heart_radius_mm: float = 20.0, vessel_length_mm: float = 25.0,
     vessel_root_mm: float = 10.0, chamber_radius_mm: float = 17.0, margin_mm: float = 1.0, smooth_mm: float = 0.6,
-    coarse_mm: float = 2.0, min_volume_ml: float = 50.0, min_pool_radius_mm: float = 15.0, lung_hu: float = -400.0,
+    coarse_mm: float = 2.0, min_volume_ml: float = 50.0, min_pool_radius_mm: float = 13.0, lung_hu: float = -400.0,
     soft_hu: tuple[float, float] = (-50.0, 150.0), trace_vessels: bool = True,
 ) -> HeartSegmentation:
     """Segment the whole heart (epicardial surface inward) in a contrast CT.
@@ -283,7 +283,12 @@ def segment_heart(
         The largest ``blood_hu`` component is a contrast blood pool only if it
         holds a ball of this radius (a cardiac chamber's lumen: 12-25 mm); in a
         CT without contrast that component is the skeleton, whose marrow and
-        cortex are thinner.
+        cortex are thinner (a thoracic vertebral body, 20-25 mm high between
+        its discs, holds at most ~11 mm).  13 mm: in a pulmonary CTA only the
+        right heart is bright, and the real CT's right atrium and ventricle
+        hold 13 mm on the coarse grid (15 mm, before session 29, gave no
+        model); at the weaker levels of a venous phase the pool must hold
+        18 mm (:data:`modeling.seed.WEAK_POOL_RADIUS_MM`).
     lung_hu : float
         Air below this HU, enclosed by the body, is lung (for the seed without contrast).
     soft_hu : (float, float)
