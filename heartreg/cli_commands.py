@@ -301,8 +301,10 @@ def _cmd_model(args) -> int:
     print(f"  mesh              {model.mesh.faces.shape[0]} faces, watertight, heart frame (mm)")
     shown = "unknown" if model.cardiac_phase is None else f"{model.cardiac_phase:.4f}"
     print(f"  image phase       phi_C* = {shown} ({phase_source})")
+    fit = (f"cycled among {model.frame.cycle} axes up to {model.frame.axis_change_deg:.1f} deg apart, their mean"
+           if model.frame.cycle else f"last change {model.frame.axis_change_deg:.3f} deg")
     print(f"  heart frame       Euler XYZ = ({e[0]:.1f}, {e[1]:.1f}, {e[2]:.1f}) deg, "
-          f"{model.frame.iterations} iterations, last change {model.frame.axis_change_deg:.3f} deg")
+          f"{model.frame.iterations} iterations, {fit}")
     print(f"  fiducials         {len(model.fiducials_patient_mm)}")
     print("  time              " + ", ".join(f"{k} {v:.2f} s" for k, v in build.timings_s.items()))
     print(f"  picture           {picture}")

@@ -477,6 +477,10 @@ def build_heart_model(
                  "as usual: check the model (dextrocardia, or a segmentation error)")
     if frame_warning := model.frame.convergence_warning():
         fallback(frame_warning)
+    elif model.frame.cycle:
+        notes.append(f"heart frame: the long axis's fit cycled among {model.frame.cycle} axes up to "
+                     f"{model.frame.axis_change_deg:.1f} deg apart (the slabs' ellipses it accepts change with it); "
+                     "the frame's axis is their mean")
     notes.append(
         {"great vessels": "heart frame: base where the great vessels leave",
          "usual orientation": "heart frame: apex towards the patient's left-anterior-inferior (no vessel told the base)",

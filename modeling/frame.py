@@ -66,6 +66,12 @@ ANTERIOR_LPS = np.array([0.0, -1.0, 0.0])
 #: alternates between axes this close (a vertex crossing a slab's edge; slicerio's CTChest4, 10 mm slices:
 #: 0.029 deg, every iteration from the 3rd on), far within what any use of the frame can tell.  Not warned.
 SETTLED_DEG = 0.5
+#: The slabs' choice is discrete (which slab is accepted, which run of them is the longest), so the iteration
+#: can come back to an axis it had: a limit cycle.  The axis is then the mean of the cycle's axes; a cycle whose
+#: axes lie at most this far apart (deg) is not warned (the mean lies within half of it from each).  The real
+#: CT's left heart dimmed as in a pulmonary CTA: a cycle of 3 axes up to 6.9 deg apart, whose last axis after 20
+#: iterations was warned as unreliable.
+CYCLE_SETTLED_DEG = 10.0
 
 
 class FrameError(HeartregError, ValueError):
@@ -87,9 +93,13 @@ class HeartFrame:
     iterations : int
         Axis updates performed.
     axis_change_deg : float
-        Angle between the last two axis estimates.
+        Angle between the last two axis estimates; after a cycle, the largest
+        angle between the cycle's axes.
     converged : bool
         ``axis_change_deg < tol_deg`` was reached within ``max_iterations``.
+    cycle : int
+        The number of axes the iteration cycled among (0: no cycle); the
+        axis is then their mean (:data:`CYCLE_SETTLED_DEG`).
     base_rule : str
         ``"cross-section"`` or ``"hint"``: how the apex-to-base sign was chosen.
     n_rejected_slabs : int
@@ -104,6 +114,7 @@ class HeartFrame:
     converged: bool
     base_rule: str
     n_rejected_slabs: int
+    cycle: int = 0
 
     def __post_init__(self):
         T = frozen(check_transform(self.T_heart_from_patient, name="T_heart_from_patient"), np.float64)
@@ -123,15 +134,22 @@ class HeartFrame:
             and self.converged == other.converged
             and self.base_rule == other.base_rule
             and self.n_rejected_slabs == other.n_rejected_slabs
+            and self.cycle == other.cycle
         )
 
     __hash__ = None
 
     def convergence_warning(self) -> str | None:
         """One line when the axis fit did not converge (the model's warning), None when it did or settled
-        (:data:`SETTLED_DEG`)."""
+        (:data:`SETTLED_DEG`), or cycled among axes close together (:data:`CYCLE_SETTLED_DEG`)."""
         if self.converged or self.axis_change_deg < SETTLED_DEG:
             return None
+        if self.cycle:
+            if self.axis_change_deg <= CYCLE_SETTLED_DEG:
+                return None
+            return (f"the heart frame's fit cycled among {self.cycle} long axes up to {self.axis_change_deg:.1f} deg "
+                    "apart: the frame's axes (z, x, the Euler angles), their mean, are unreliable; check that the mask "
+                    "is one whole heart (its slabs' ellipses must line up)")
         return (f"the heart frame's fit did not converge ({self.iterations} iterations, the long axis still moved "
                 f"{self.axis_change_deg:.1f} deg in the last): the frame's axes (z, x, the Euler angles) are "
                 "unreliable; check that the mask is one whole heart (its slabs' ellipses must line up)")
@@ -225,8 +243,9 @@ def fit_heart_frame(
     else:
         z = _unit(initial_axis, "initial_axis")
 
-    iterations = 0
+    iterations = cycle = 0
     change_deg = np.inf
+    axes = [z]
     while iterations < int(max_iterations):
         slabs = _longest_run(_fit_slabs(v, z, slab_mm, int(min_points))[0])
         if len(slabs) < 3:
@@ -237,11 +256,19 @@ def fit_heart_frame(
         _, z_new = _fit_line([s["centre"] for s in slabs])
         if z_new @ z < 0:
             z_new = -z_new
-        change_deg = float(np.degrees(np.arccos(np.clip(z_new @ z, -1.0, 1.0))))
+        change_deg = _angle_deg(z_new, z)
         z = z_new
         iterations += 1
         if change_deg < tol_deg:
             break
+        back = [k for k, earlier in enumerate(axes[:-1]) if _angle_deg(z, earlier) < tol_deg]
+        if back:  # a limit cycle (CYCLE_SETTLED_DEG): the axis is the mean of the cycle's
+            members = np.array([a if a @ z >= 0 else -a for a in axes[back[0]:]])
+            z = _unit(members.sum(axis=0), "the cycle's mean axis")
+            cycle = len(members)
+            change_deg = max(_angle_deg(a, b) for a in members for b in members)
+            break
+        axes.append(z)
     converged = bool(change_deg < tol_deg)
 
     # final ellipses about the final axis
@@ -319,7 +346,12 @@ def fit_heart_frame(
         converged=converged,
         base_rule=base_rule,
         n_rejected_slabs=n_rejected,
+        cycle=cycle,
     )
+
+
+def _angle_deg(a, b) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
 
 
 def _unit(vec, name: str) -> np.ndarray:

@@ -310,6 +310,7 @@ def _model_json(model: HeartModel) -> dict:
             "converged": fr.converged,
             "base_rule": fr.base_rule,
             "n_rejected_slabs": fr.n_rejected_slabs,
+            "cycle": fr.cycle,
         },
         "ellipses": [e.to_dict() for e in fr.ellipses],
         "source": dict(model.source),
@@ -464,6 +465,7 @@ def read_model(model_dir) -> HeartModel:
             converged=bool(fit["converged"]),
             base_rule=str(fit["base_rule"]),
             n_rejected_slabs=int(fit["n_rejected_slabs"]),
+            cycle=int(fit.get("cycle", 0)),  # models written before session 29 have none
         )
         model = HeartModel(
             mesh=mesh,
