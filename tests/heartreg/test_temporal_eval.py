@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
-from heartreg.temporal_eval import CRITERIA, evaluate, true_phase
+from heartreg.temporal_eval import CRITERIA, evaluate, read_evidence, shape_from_evidence, transform_error, true_phase
+from hrcore.errors import UsageError
 
 
 def test_true_phases_are_drawn_away_from_the_papers():
@@ -59,6 +60,26 @@ def test_grid_outputs_agree_with_the_cases(grid_slice, capsys):
     # re-summarised by the CLI without running anything: the same table
     assert main(["evaluate-temporal", "-o", str(out), "--trials", "4", "--seeds", "3", "--report-only"]) == 0
     assert table in capsys.readouterr().out
+
+
+def test_the_saved_evidence_gives_the_shape_row_again(grid_slice):
+    # issue 12: an estimator's variant is scored on the grid's own cases from their saved sweeps, without
+    # new ICP runs (bench/temporal_rescore.py), which holds only if the evidence gives the stored row again
+    out, result = grid_slice
+    shape = result["cases"][0]["estimates"][0]
+    ev = read_evidence(out, "wood2018-trial4", 3)
+    est = shape_from_evidence(ev)
+    assert est.respiration_phase == shape["phase"]
+    assert est.interval.tolist() == [shape["interval_low"], shape["interval_high"]]
+    assert est.transform_mm == shape["transform_90_mm"]
+    assert transform_error(ev["T_heart_from_probe"][est.index], ev) == (shape["transform_mm"], shape["transform_deg"])
+    # options go to estimate_phase: the same sweep, another bootstrap
+    assert shape_from_evidence(ev, n_bootstrap=40).bootstrap_phases.shape == (40,)
+    # an older grid's evidence (no registered points' means, vertices subsampled) is refused in one line
+    with pytest.raises(UsageError, match="run the grid again"):
+        shape_from_evidence({k: v for k, v in ev.items() if k != "mean_points_map_mm"})
+    with pytest.raises(UsageError, match="no evidence"):
+        read_evidence(out, "wood2018-trial4", 99)
 
 
 def test_the_grid_runs_on_the_batch_machinery_and_records_a_failed_case(tmp_path):
