@@ -42,7 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hrcore.errors import UsageError  # noqa: E402
 from hrcore.geometry import kabsch  # noqa: E402
-from heartreg.temporal_eval import CRITERIA, read_evidence, shape_from_evidence, transform_error  # noqa: E402
+from heartreg.temporal_eval import CRITERIA  # noqa: E402
+from heartreg.temporal_evidence import read_evidence, shape_from_evidence, transform_error  # noqa: E402
 import registration.temporal as temporal  # noqa: E402
 from registration.phase_estimate import wrap_phase  # noqa: E402
 

@@ -13,9 +13,8 @@ a local Dask cluster or a running scheduler, one task and one record per
 case)::
 
     OUT/cases/<preset>_s<seed>.json   one case: its row per estimator
-    OUT/cases/<preset>_s<seed>.npz    its sweep's evidence (:func:`read_evidence`): the shape estimator
-                                      re-runs from it without ICP (:func:`shape_from_evidence`,
-                                      ``bench/temporal_rescore.py``)
+    OUT/cases/<preset>_s<seed>.npz    its sweep's evidence: the shape estimator re-runs from it without
+                                      ICP (:mod:`heartreg.temporal_evidence`, ``bench/temporal_rescore.py``)
     OUT/temporal_eval.csv             every case x estimator
     OUT/temporal_eval.md              the summary table (README, docs/reproduction.md)
     OUT/temporal_eval.json            the summary and the rows
@@ -45,8 +44,7 @@ from hrcore.output import staged_output
 from imaging.files import write_text_atomic
 from registration.phase_estimate import wrap_phase
 
-__all__ = ["GRID_PRESETS", "CRITERIA", "true_phase", "run_case", "summarize", "evaluate", "read_evidence",
-           "shape_from_evidence", "transform_error"]
+__all__ = ["GRID_PRESETS", "CRITERIA", "true_phase", "run_case", "summarize", "evaluate"]
 
 GRID_PRESETS = tuple(f"wood2018-trial{k}" for k in range(1, 7))
 #: phase tolerance (cycles), transform tolerances (mm, deg).
@@ -63,66 +61,6 @@ def true_phase(preset: str, seed: int) -> float:
         phase = round(float(rng.uniform(0.0, 1.0)), 2) % 1.0
         if abs(wrap_phase(phase - AWAY_FROM[0])) >= AWAY_FROM[1]:
             return phase
-
-
-def transform_error(T, evidence) -> tuple[float, float]:
-    """Error of a final transform ``T`` (heart from probe) of a saved case: mean displacement (mm) of the map's
-    vertices and rotation (deg) from the truth, as the case's rows are scored (:func:`run_case`).
-
-    Parameters
-    ----------
-    T : (4, 4) float
-    evidence : mapping
-        The case's evidence (:func:`read_evidence`); needs ``T_true`` and ``vertices_all_mm``.
-    """
-    return _transform_error(np.asarray(T, dtype=float), np.asarray(evidence["T_true"]),
-                            np.asarray(evidence["vertices_all_mm"]))
-
-
-def read_evidence(out_dir, preset: str, seed: int) -> dict:
-    """A case's saved sweep evidence, ``OUT/cases/<preset>_s<seed>.npz`` (:func:`run_case`), as a dict of arrays."""
-    path = Path(out_dir) / "cases" / f"{preset}_s{int(seed)}.npz"
-    if not path.is_file():
-        raise UsageError(f"no evidence {path}: run the case first (heartreg evaluate-temporal -o {out_dir})")
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
-
-
-def shape_from_evidence(evidence, **options):
-    """The shape estimate of phi_R* re-run from a case's saved evidence, as ``heartreg register`` ran it.
-
-    With no ``options`` it gives the case's stored ``shape`` row again (phase, interval, the transform's
-    90 % radius; ``tests/heartreg/test_temporal_eval.py``); ``options`` go to
-    :func:`registration.temporal.estimate_phase` (``n_bootstrap``, ``curvature_per_mm``, ...), so that a
-    variant is scored on the same cases without new ICP runs.  Needs evidence saved with
-    ``mean_points_map_mm`` and ``vertices_all_mm`` (grids run since issue 12's re-scoring).
-
-    Returns
-    -------
-    TemporalEstimate
-    """
-    from registration.fiducial_curve import FiducialCurve
-    from registration.temporal import estimate_phase
-
-    missing = [k for k in ("mean_points_map_mm", "vertices_all_mm") if k not in evidence]
-    if missing:
-        raise UsageError(f"the case's evidence lacks {', '.join(missing)} (saved by an older heartreg): run the "
-                         "grid again into a new output folder to re-score it")
-    curve = None
-    if "fiducial_residuals_mm" in evidence:
-        res = np.asarray(evidence["fiducial_residuals_mm"])
-        curve = FiducialCurve(
-            phases=np.asarray(evidence["phases"]), positions_probe_mm=np.asarray(evidence["fiducial_curve_source_mm"]),
-            T0_heart_from_probe=np.asarray(evidence["fiducial_curve_T"]), residuals_mm=res,
-            sse_mm2=(res ** 2).sum(axis=1), trace_rms_mm=np.asarray(evidence["fiducial_trace_rms_mm"]),
-            n_samples=np.asarray(evidence.get("fiducial_curve_n_samples", np.zeros(res.shape[1], dtype=np.int64))))
-    kwargs = {"distances_mm": evidence["distances_mm"]}
-    if options.get("curvature_per_mm") is not None:  # the map's offsets are removed from the signed distances
-        kwargs["distances_mm"] = evidence["signed_distances_mm"]
-    kwargs.update(options)
-    return estimate_phase(evidence["phases"], T_heart_from_probe=evidence["T_heart_from_probe"],
-                          vertices_mm=evidence["vertices_all_mm"], fiducials=curve,
-                          points_mm=evidence["mean_points_map_mm"], **kwargs)
 
 
 def _transform_error(T, T_true, vertices):

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from heartreg.cli import main
-from heartreg.temporal_eval import CRITERIA, evaluate, read_evidence, shape_from_evidence, transform_error, true_phase
+from heartreg.temporal_eval import CRITERIA, evaluate, true_phase
+from heartreg.temporal_evidence import read_evidence, shape_from_evidence, transform_error
 from hrcore.errors import UsageError
 
 
