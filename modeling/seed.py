@@ -26,7 +26,7 @@ from scipy import ndimage
 from modeling.coarse import fill_holes, label_counts, label_maximum, mask_box
 from modeling.distance import distance_mm, opening_mm
 
-__all__ = ["blood_noise_hu", "blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
+__all__ = ["blood_ceiling_hu", "blood_noise_hu", "blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
 
 #: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
 POOL_STEP_HU = 25.0
@@ -145,6 +145,38 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=
                     continue
             return pool, float(low)
     return None, None
+
+
+#: The pool reaches this many times the blood's own level (:func:`blood_ceiling_hu`), at least ``blood_hu[1]``.
+BRIGHT_BLOOD_FACTOR = 1.3
+
+
+def blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high) -> float:
+    """The pool's upper HU for this CT's contrast: ``blood_hu[1]``, or above it for brighter blood.
+
+    The upper bound keeps bone's cortex, calcium and metal out of the pool; 650
+    HU holds diagnostic CTAs at 120 kV (blood 300-600 HU: the real CT's 496).
+    At 70-80 kV (low-dose cardiac CT, children) and in a dual-energy CT's
+    40-50 keV image, iodine reads 700-1200 HU: the pool, only blood below
+    650 HU, then broke apart (the real CT's blood scaled to 600 HU: Dice 0.863;
+    to 750 HU or more: no model).  The blood's level is the median HU of the
+    chambers' lumen: the voxels at least :data:`CHAMBER_CORE_MM` deep in the
+    largest component above ``blood_hu[0]`` (below ``hu_high``); the bound is
+    :data:`BRIGHT_BLOOD_FACTOR` times that.  Without contrast that component
+    is the skeleton, whose thin marrow and cortex hold no such core, or a
+    core of marrow (250-350 HU): the bound stays ``blood_hu[1]``.
+    """
+    bright = (coarse > blood_hu[0]) & (coarse < hu_high)
+    labels, n = ndimage.label(bright)
+    if n == 0:
+        return float(blood_hu[1])
+    largest = labels == int(np.argmax(label_counts(bright, labels, n))) + 1
+    box = mask_box(largest)
+    core = distance_mm(np.pad(largest[box], 1), cspacing)[1:-1, 1:-1, 1:-1] >= CHAMBER_CORE_MM  # the edge: outside
+    if not core.any():
+        return float(blood_hu[1])
+    level = float(np.median(coarse[box][core]))
+    return float(min(hu_high, max(blood_hu[1], BRIGHT_BLOOD_FACTOR * level)))
 
 
 #: Distance (mm) between the voxels whose HU differences measure the blood's noise (:func:`blood_noise_hu`).

@@ -64,7 +64,7 @@ from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
 from modeling.outflow import keep_outflow_tracts
 from modeling.planes import fat_planes
-from modeling.seed import NOISE_HU, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
+from modeling.seed import NOISE_HU, blood_ceiling_hu, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
@@ -242,7 +242,9 @@ def segment_heart(
         Tissue range; ``hu_low`` sits midway between pericardial fat (~-100 HU)
         and myocardium (~100 HU).
     blood_hu : (float, float)
-        Range of contrast-enhanced blood, for the automatic seed.
+        Range of contrast-enhanced blood, for the automatic seed; the upper
+        bound rises with brighter blood (low kV, a low-keV image:
+        :func:`modeling.seed.blood_ceiling_hu`).
     blood_floor_hu : float
         Lowest lower bound tried for the blood pool when no chamber reaches
         ``blood_hu[0]`` (a venous-phase CT: blood 150-250 HU).
@@ -352,6 +354,7 @@ def segment_heart(
             tissue &= ndimage.binary_dilation(between, iterations=1)
         return tissue
 
+    blood_hu = (blood_hu[0], blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high))  # bright blood at low kV
     pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
     noise = None if pool is None or smooth_mm <= 0 else blood_noise_hu(raw, pool, cspacing)
     if noise is not None and noise > NOISE_HU:  # a noisy CT: smoothed more, as much as its noise is above NOISE_HU
