@@ -679,6 +679,27 @@ def test_bright_contrast_at_low_kv(realct, heart_less_artery, blood_hu):
     assert seg.parameters["blood_hu"][1] > 650.0  # the pool reaches above 120 kV's bound
 
 
+def test_a_sharp_kernel(realct, heart_less_artery):
+    """A sharp reconstruction kernel (a stent or lung kernel, the series a user may pick from a study): edges
+    enhanced (the CT plus its difference from a 1.5 mm Gaussian blur, overshoot of 100-200 HU at the blood's
+    edge) and noise amplified (100 HU).  The noise's extra smoothing (``modeling.seed.NOISE_HU``) takes the
+    overshoot too, once the noise is measured: before session 29 it was measured only in a pool found at the
+    light smoothing, which the overshoot and the noise parted in 3 of 5 noise draws (no model, "no heart-sized
+    region" or "the blood-pool seed does not touch any tissue"); now the pool is looked for again smoothed over
+    1.2 mm (``modeling.segment.NOISE_PROBE_MM``) to measure it: measured 631-644 ml, Dice 0.896-0.907, p95
+    6.9-7.5 mm against the reference less its pulmonary artery in the five draws (at 150 HU 0.896-0.906; white
+    noise of 150 HU alone 0.896-0.898).  Limit, not a scanner's: the same enhancement without the noise, 149 ml,
+    Dice 0.31 (the blood's rim above the pool's 650 HU, the chambers' lobes thin as vessels)."""
+    from scipy import ndimage
+
+    volume = realct[0]
+    hu = volume.hu.astype(np.float32)
+    sharp = 2.0 * hu - ndimage.gaussian_filter(hu, 1.0) + np.random.default_rng(0).normal(0.0, 100.0, hu.shape)
+    seg = segment_heart(np.rint(np.clip(sharp, -1024, 3071)).astype(np.int16), volume.T_patient_from_voxel)
+    m = overlap(seg.mask, heart_less_artery, SPACING)
+    assert 580 <= seg.volume_ml <= 780 and m["dice"] >= 0.87 and m["p95_mm"] <= 9.5, (seg.volume_ml, m)
+
+
 def _pulmonary_cta(hu, artery, left_hu) -> np.ndarray:
     """The real CT's left atrium, ventricle and aorta (its blood apart from :func:`right_heart_blood`) dimmed
     to ``left_hu``, as stored (int16)."""
