@@ -64,14 +64,11 @@ from modeling.distance import distance_mm, opening_mm
 from modeling.greatvessels import trace_great_vessels
 from modeling.outflow import keep_outflow_tracts
 from modeling.planes import fat_planes
-from modeling.seed import NOISE_HU, blood_ceiling_hu, blood_noise_hu, blood_pool, mediastinal_seed, not_hounsfield, part_abdomen, split_solid_organs
+from modeling.seed import (blood_ceiling_hu, mediastinal_seed, not_hounsfield, part_abdomen, pool_at_the_cts_noise,
+                           split_solid_organs)
 
 __all__ = ["SegmentationError", "HeartSegmentation", "segment_heart"]
 
-#: Smoothing (mm) of the coarse grid at which the blood pool is looked for again, to measure the CT's noise in it,
-#: when none is found at ``smooth_mm``: a sharp kernel's edge overshoot with 100 HU of noise parted the real CT's
-#: pool in 3 of 5 noise draws (no model), the noise then unmeasured and the grid not smoothed for it.
-NOISE_PROBE_MM = 1.2
 #: Thickness (mm) of the distance shells in which a great-vessel branch's radius is followed out from the heart body.
 ROOT_SHELL_MM = 5.0
 #: Fat planes are looked for this far (mm) around the contrast blood pool.
@@ -359,18 +356,9 @@ def segment_heart(
         return tissue
 
     blood_hu = (blood_hu[0], blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high))  # bright blood at low kV
-    pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
-    probe = pool
-    if probe is None and smooth_mm > 0:  # noise can part the pool at light smoothing: the noise is measured in one
-        probe = blood_pool(ndimage.gaussian_filter(raw, sigma=NOISE_PROBE_MM / cspacing), cspacing, blood_hu,
-                           min_pool_radius_mm, blood_floor_hu, mediastinum)[0]  # found smoothed as for ~160 HU
-    noise = None if probe is None or smooth_mm <= 0 else blood_noise_hu(raw, probe, cspacing)
-    if noise is not None and noise > NOISE_HU:  # a noisy CT: smoothed more, as much as its noise is above NOISE_HU
-        smoothing = smooth_mm * float(np.sqrt(noise / NOISE_HU))
-        coarse = ndimage.gaussian_filter(raw, sigma=smoothing / cspacing)
-        pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
-        notes.append(f"noisy CT (the blood's noise {noise:.0f} HU, above {NOISE_HU:.0f}): the coarse grid "
-                     f"smoothed over {smoothing:.2f} mm instead of {smooth_mm:.2f}")
+    pool, pool_hu, coarse, noise_note = pool_at_the_cts_noise(
+        raw, coarse, cspacing, smooth_mm, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
+    notes += [noise_note] if noise_note else []
     tissue = (coarse > hu_low) & (coarse < hu_high)
     if seed_patient_mm is None:
         if pool is not None:

@@ -686,7 +686,7 @@ def test_a_sharp_kernel(realct, heart_less_artery):
     overshoot too, once the noise is measured: before session 29 it was measured only in a pool found at the
     light smoothing, which the overshoot and the noise parted in 3 of 5 noise draws (no model, "no heart-sized
     region" or "the blood-pool seed does not touch any tissue"); now the pool is looked for again smoothed over
-    1.2 mm (``modeling.segment.NOISE_PROBE_MM``) to measure it: measured 631-644 ml, Dice 0.896-0.907, p95
+    1.2 mm (``modeling.seed.NOISE_PROBE_MM``) to measure it: measured 631-644 ml, Dice 0.896-0.907, p95
     6.9-7.5 mm against the reference less its pulmonary artery in the five draws (at 150 HU 0.896-0.906; white
     noise of 150 HU alone 0.896-0.898).  Limit, not a scanner's: the same enhancement without the noise, 149 ml,
     Dice 0.31 (the blood's rim above the pool's 650 HU, the chambers' lobes thin as vessels)."""
