@@ -156,7 +156,7 @@ def test_wide_premature_beats_before_a_pause_are_found():
     0.45 s after the last, then a 0.75 s pause) under 0.01 mV of noise.  Its QRS-band energy is a tenth of the
     narrow beats' (MIT-BIH 208's wide premature beats: a tenth to a quarter), below half of threshold 1, and
     the search-back across the pause missed them (neurokit2 finds them all).  A peak that stands out
-    of its neighbours (4 x their median energy) and is at least half as large as the QRS complexes now passes at
+    of its neighbours (4 x their median energy) and is at least 0.4 as large as the QRS complexes now passes at
     a quarter of threshold 1.  Wider still (a
     Gaussian of 45 ms: a twenty-fifth of the energy) they are missed (README, Limits)."""
     fs, t = 360.0, np.arange(int(60.0 * 360.0)) / 360.0
@@ -182,7 +182,8 @@ def test_blocked_p_waves_in_pauses_are_no_beats(p_width_s):
     """Sinus beats (R 1 mV, 10 ms) every 0.8 s, every eighth followed by a 2 s pause holding a blocked P wave
     (0.3 mV, sharp, 0.45 s after the R) under 0.005 mV of noise: the P wave stands out of the quiet pause and
     its QRS-band energy passes a quarter of threshold 1, so the rule for wide premature beats took all 15 (the
-    session-22 review); it is no beat, being less than half as large as the QRS complexes."""
+    session-22 review); it is no beat, being 0.3 of the QRS complexes' size, below ``qrs_classify.QRS_SIZE_RATIO``
+    (0.4)."""
     fs = 360.0
     t = np.arange(int(120 * fs)) / fs
     ecg, beats, b = np.zeros_like(t), [], 0.5

@@ -234,7 +234,7 @@ def _with_pauses(record, minutes=10.0, seed=0):
 def test_pauses_take_no_p_wave_and_lose_no_beat(record):
     """Pauses of 2-4 beats cut into ten minutes of a record (:func:`_with_pauses`).  The P wave left before
     each pause is no beat: search-back takes only a peak as steep as a QRS; and a pause is no part of the
-    rhythm the detector learns.  Measured false / missed beats on 100, 102, 106, 116, 119: 1/0, 1/0, 6/0, 1/0,
+    rhythm the detector learns.  Measured false / missed beats on 100, 102, 106, 116, 119: 1/0, 1/0, 1/0, 1/0,
     6/0 (neurokit2's default on the same signals 3/1, 1/0, 20/0, 1/0, 47/0); before session 20 53/0, 23/0,
     60/0, 28/1 and 43/44 (after a pause the stretched rhythm made 119's bigeminy PVCs "too early")."""
     x, fs, ref = _with_pauses(record)
@@ -271,8 +271,8 @@ def _irregular(record, minutes=10.0, mean_rr_s=0.6, cv=0.3, min_rr_s=0.4):
 def test_an_irregular_rhythm_loses_no_beat(record):
     """Ten minutes of each record re-timed as atrial fibrillation (:func:`_irregular`: 100 beats/min, R-R
     0.4-1.6 s, coefficient of variation 0.3).  Pan-Tompkins' rules learn a regular R-R: an early beat, a
-    long gap and the search-back are all read against it.  Measured F1 100 / 99.95 / 99.15 / 100 / 99.80 /
-    99.80 / 100 / 99.90 % on 100, 102, 104, 105, 106, 108, 116, 119 (neurokit2's default on the same signals
+    long gap and the search-back are all read against it.  Measured F1 100 / 99.95 / 99.30 / 100 / 99.95 /
+    99.80 / 100 / 99.95 % on 100, 102, 104, 105, 106, 108, 116, 119 (neurokit2's default on the same signals
     99.90 / 100 / 97.09 / 99.90 / 99.85 / 96.11 / 100 / 99.90 %)."""
     x, fs, ref = _irregular(record)
     detected = detect_r_peaks(x, fs).times_s
@@ -281,11 +281,156 @@ def test_an_irregular_rhythm_loses_no_beat(record):
     assert f1(tp, int((~used).sum()), ref.size - tp) >= (0.99 if record == "104" else 0.995)
 
 
+def _qrs_shape(x, b, half):
+    """The QRS window ``x[b - half : b + half + 1]`` less the straight line between its ends (zero at both)."""
+    q = x[b - half: b + half + 1]
+    return q - np.linspace(q[0], q[-1], q.size)
+
+
+def _stretched(q, before, after):
+    """``q`` (its middle sample the R) resampled ``before`` times longer left of the R, ``after`` right of it;
+    returns the new shape and the R's index in it."""
+    c = q.size // 2
+    left = np.interp(np.linspace(0.0, c, int(round(c * before)) + 1), np.arange(c + 1), q[: c + 1])
+    right = np.interp(np.linspace(c, q.size - 1.0, int(round(c * after)) + 1), np.arange(c, q.size), q[c:])
+    return np.concatenate([left, right[1:]]), left.size - 1
+
+
+def _qrs_beats(x, fs, ref, half):
+    """Reference beats (samples) with a whole QRS window (R +- half) inside the record, not overlapping."""
+    beats = np.rint(ref * fs).astype(int)
+    beats = beats[(beats > 3 * half) & (beats < x.size - 3 * half)]
+    return beats[np.concatenate([[True], np.diff(beats) > 2 * half + 1])]
+
+
+#: Bundle branch block shapes of :func:`_bundle_branch_block`: (stretch before the R, after it, echo delay (s)).
+BBB_SHAPES = {"rbbb": (1.0, 2.5, 0.0), "notch": (1.2, 1.2, 0.045), "lbbb": (2.0, 1.5, 0.0),
+              "x1.5": (1.5, 1.5, 0.0), "x1.8": (1.8, 1.8, 0.0), "x2.2": (2.2, 2.2, 0.0)}
+
+
+def _bundle_branch_block(record, shape):
+    """The whole record with every QRS widened as in bundle branch block, the rest of each beat as recorded
+    (each R-R longer by the widening; the reference beats moved with it).  Each QRS window, R +- 60 ms, less the
+    line between its ends, is stretched (:data:`BBB_SHAPES`): "rbbb", its part after the R 2.5 times (a broad
+    slurred terminal part, as in right bundle branch block: QRS 80 -> 140 ms); "lbbb", before the R 2 times and
+    after it 1.5 (a slurred upstroke); "x1.5" .. "x2.2" uniformly; "notch", 1.2 times and added to itself 45 ms
+    later (0.75 and 0.65 of it: a notched RSR' complex, 130-140 ms).  MIT-BIH 109, 111, 207, 214 (left) and
+    118, 124, 212, 231 (right) are in bundle branch block; none of the eight is.  Returns the signal, its rate
+    and the beats (s)."""
+    x, fs, ref = _load(record)
+    half = int(round(0.060 * fs))
+    beats = _qrs_beats(x, fs, ref, half)
+    parts, new, at = [x[: beats[0] - half]], [], beats[0] - half
+    for i, b in enumerate(beats):
+        before, after, echo_s = BBB_SHAPES[shape]
+        wide, r = _stretched(_qrs_shape(x, b, half), before, after)
+        if echo_s:
+            lag = int(round(echo_s * fs))
+            wide = np.concatenate([0.75 * wide, np.zeros(lag)]) + np.concatenate([np.zeros(lag), 0.65 * wide])
+        parts.append(wide + np.linspace(x[b - half], x[b + half], wide.size))
+        new.append(at + r)
+        rest = x[b + half + 1: beats[i + 1] - half if i + 1 < beats.size else x.size]
+        parts.append(rest)
+        at += wide.size + rest.size
+    return np.concatenate(parts), fs, np.asarray(new) / fs
+
+
+@pytest.mark.parametrize("shape", ["notch", "rbbb"])
+def test_bundle_branch_block_loses_no_beat(shape):
+    """Record 106 with every QRS widened as in bundle branch block (:func:`_bundle_branch_block`); its premature
+    ventricular beats (a fifth of its beats, often in runs), wide already, become 150-250 ms wide, of low QRS-band
+    energy.  Measured F1 99.78 / 99.90 % (missed / false 9 / 0 and 3 / 1) for notch / rbbb; neurokit2's default
+    on the same signals 99.36 / 99.31 % (14 / 12, 10 / 18); before the standing-out rule ran as the peaks come
+    (``qrs_classify._Classifier._standing_out_qrs``) 98.93 / 99.15 % (43 / 0, 33 / 1).  The eight records so
+    widened: README, accuracy table."""
+    x, fs, ref = _bundle_branch_block("106", shape)
+    used, errors = match_beats(detect_r_peaks(x, fs).times_s, ref)
+    tp = int(np.isfinite(errors).sum())
+    assert f1(tp, int((~used).sum()), ref.size - tp) >= 0.995
+    assert ref.size - tp <= 15, ref.size - tp
+
+
+def _premature(record, every=2, width_s=0.150, size=1.0, coupling=0.7, minutes=10.0, run=1):
+    """The record's first minutes with every ``every``-th beat (and the ``run - 1`` after it: couplets) made a
+    wide premature ventricular one: its QRS window (R +- 60 ms, less the line between its ends) stretched to
+    ``width_s`` (of a 90 ms QRS), times ``-size`` (the opposite polarity), ``coupling`` of the R-R after the
+    beat before it, with a broad T wave
+    opposite to its largest deflection (0.35 of it, 70 ms, ~300 ms after it); the next beat keeps its time
+    (a full compensatory pause).  Before it the record goes on as recorded (cut where it starts); after it the
+    replaced beat's ST-T, T-P and the next P wave are resampled into the pause.  MIT-BIH 200, 203, 208, 233 have
+    such beats by the thousand (208: a tenth to a quarter of the narrow beats' QRS-band energy); returns the
+    signal, its rate and the beats (s)."""
+    x, fs, ref = _load(record)
+    x = x[: int(minutes * 60 * fs)]
+    half = int(round(0.060 * fs))
+    beats = _qrs_beats(x, fs, ref[ref < minutes * 60 - 0.5], half)
+    factor = width_s / 0.090
+    # (time, source beat, premature?): a premature beat early after the beat before it; the next narrow one as
+    # long after the last narrow one as in the record
+    plan, narrow = [(beats[0], 0, False)], (beats[0], 0)
+    for i in range(1, beats.size):
+        if i % every < run and i >= every and i + run - i % every < beats.size:
+            plan.append((plan[-1][0] + int(round(coupling * (beats[i] - beats[i - 1]))), i, True))
+        else:
+            plan.append((narrow[0] + beats[i] - beats[narrow[1]], i, False))
+            narrow = plan[-1][:2]
+    parts, times, at = [x[: beats[0] - half]], [], beats[0] - half
+    t_sd, t_at = int(0.07 * fs), int(0.28 * fs + 0.5 * half * factor)
+    t_waves = []
+    for k, (t, i, early) in enumerate(plan):
+        b = beats[i]
+        if early:
+            shape, r = _stretched(_qrs_shape(x, b, half), factor, factor)
+            shape = -size * shape
+        else:
+            shape, r = x[b - half: b + half + 1], half
+        if k:
+            j = beats[plan[k - 1][1]] + half + 1  # after the last complex: as recorded, or resampled into the pause
+            n = t - r - at
+            gap = x[j: j + n] if early else np.interp(np.linspace(j, b - half - 1, n), np.arange(x.size), x)
+            parts.append(gap)
+            at += n
+        if early:
+            t_waves.append((at + r, -0.35 * shape[np.argmax(np.abs(shape))]))
+            shape = shape + np.linspace(parts[-1][-1], x[b + half + 1], shape.size)
+        parts.append(shape)
+        times.append(at + r)
+        at += shape.size
+    parts.append(x[beats[plan[-1][1]] + half + 1:])
+    y = np.concatenate(parts)
+    n = np.arange(y.size)
+    for r, height in t_waves:
+        lo, hi = max(0, r + t_at - 4 * t_sd), min(y.size, r + t_at + 4 * t_sd)
+        y[lo:hi] += height * np.exp(-0.5 * ((n[lo:hi] - r - t_at) / t_sd) ** 2)
+    return y, fs, np.asarray(times) / fs
+
+
+@pytest.mark.parametrize("width_s, size", [(0.150, 1.0), (0.120, 0.5), (0.120, 2.0)])
+def test_wide_premature_beats_in_a_bigeminy_are_found(width_s, size):
+    """Ten minutes of each record with every second beat a wide premature one (:func:`_premature`: 150 ms and the
+    size of the record's QRS; 120 ms and half of it; 120 ms and twice it; inverted).  One class of beats has far
+    less QRS-band energy than the other (the wide ones; in the last, the narrow ones).  Measured F1 over the
+    eight records 99.42 / 98.98 / 99.59 %, the worst record 97.42 / 95.57 / 98.79 % (104, paced: 33 / 47 / 10
+    false beats); neurokit2's default on the same signals 98.02 / 95.85 / 99.44 %, worst 95.19 / 92.26 / 98.45 %
+    (104; with twice the size it beats us on 100, 102, 105, 116, 119 by 1-7 beats); before the standing-out rule
+    ran as the peaks come 95.05 / 89.98 / 95.67 %, worst 67.51 (105) / 66.67 (105) / 70.70 % (100): the weaker
+    class was never taken, the regular R-R became twice the true one, so the search-back never ran, and the
+    early-beat rule rejected the weaker beats above threshold 1."""
+    tp = fp = fn = 0
+    for record in RECORDS:
+        x, fs, ref = _premature(record, width_s=width_s, size=size)
+        used, errors = match_beats(detect_r_peaks(x, fs).times_s, ref)
+        hit = int(np.isfinite(errors).sum())
+        assert f1(hit, int((~used).sum()), ref.size - hit) >= 0.95, record
+        tp, fp, fn = tp + hit, fp + int((~used).sum()), fn + ref.size - hit
+    assert f1(tp, fp, fn) >= 0.985, (tp, fp, fn)
+
+
 @pytest.mark.parametrize("where", ["mid", "start"])
 def test_a_lead_gone_to_noise_gives_no_beats(where):
     """Five minutes of each record with a stretch of 50 uV noise and no ECG: 20 s from 1:00 (an electrode
     floating) or the first 10 s (put on late).  Measured false / missed beats over the eight records: mid
-    37 / 3 (0 on five records; 104: 6, 106: 2, 108: 29), start 12 / 2; before session 20, 187 / 3 and 131 / 2
+    33 / 2 (0 on five records; 104: 7, 106: 2, 108: 24), start 13 / 1; before session 20, 187 / 3 and 131 / 2
     (about a beat a second in the noise: once no beat came for the search-back limit the threshold decayed
     to the noise, and the first noise peak taken became the signal level; at the start the levels were
     learnt from the first 8 s alone).  A peak after the rhythm is lost must stand out of the peaks around
@@ -306,7 +451,7 @@ def test_a_lead_gone_to_noise_gives_no_beats(where):
 
 def test_pacing_spikes_between_beats_are_no_beats():
     """A 5 mV one-sample spike halfway between every two beats (asynchronous pacing, recorded unfiltered),
-    five minutes of each record: F1 >= 0.98 on every record (measured 0.987-1.000; before session 20's 4 ms
+    five minutes of each record: F1 >= 0.98 on every record (measured 0.988-1.000; before session 20's 4 ms
     running median ahead of the detection 0.43 / 0.63 / 0.63 / 0.74 on 108 / 102 / 104 / 106, neurokit2
     0.64 on 108)."""
     for record in RECORDS:
