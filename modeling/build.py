@@ -22,6 +22,7 @@ from hrcore.redact import pseudonym_uid, pseudonymize_uids
 from modeling.coarse import mask_box
 from modeling.edge import edge_refinable, refine_to_edge
 from modeling.fiducials import Fiducials, check_given_fiducials, fiducial_stage
+from modeling.frame import SETTLED_DEG
 from modeling.labelmap import LabelMapError, label_map_kind, mask_on_grid, on_air, other_frame, read_label_map
 from modeling.mesh import vertex_normals
 from modeling.metal import metal_in_chest, metal_near_heart
@@ -477,7 +478,7 @@ def build_heart_model(
                  "as usual: check the model (dextrocardia, or a segmentation error)")
     if frame_warning := model.frame.convergence_warning():
         fallback(frame_warning)
-    elif model.frame.cycle:
+    elif model.frame.cycle and model.frame.axis_change_deg >= SETTLED_DEG:
         notes.append(f"heart frame: the long axis's fit cycled among {model.frame.cycle} axes up to "
                      f"{model.frame.axis_change_deg:.1f} deg apart (the slabs' ellipses it accepts change with it); "
                      "the frame's axis is their mean")

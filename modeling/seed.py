@@ -149,9 +149,14 @@ def blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum=
 
 #: The pool reaches this many times the blood's own level (:func:`blood_ceiling_hu`), at least ``blood_hu[1]``.
 BRIGHT_BLOOD_FACTOR = 1.3
+#: Least volume (ml) of the lumen's core (at least CHAMBER_CORE_MM deep) that raises the pool's upper bound: the
+#: chambers' (the real CT's: 126 ml), not a dense vertebra's or a calcified mass's (a ball of
+#: 14 mm radius: 1 ml; lung1 without contrast with one at 800 HU in a vertebral body got a 1041 HU bound, and the
+#: vertebra became the pool: a "heart" of 129 ml in the spine; session 29's review).
+BRIGHT_CORE_ML = 20.0
 
 
-def blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high) -> float:
+def blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high, mediastinum=None) -> float:
     """The pool's upper HU for this CT's contrast: ``blood_hu[1]``, or above it for brighter blood.
 
     The upper bound keeps bone's cortex, calcium and metal out of the pool; 650
@@ -162,9 +167,13 @@ def blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high) -> float:
     to 750 HU or more: no model).  The blood's level is the median HU of the
     chambers' lumen: the voxels at least :data:`CHAMBER_CORE_MM` deep in the
     largest component above ``blood_hu[0]`` (below ``hu_high``); the bound is
-    :data:`BRIGHT_BLOOD_FACTOR` times that.  Without contrast that component
-    is the skeleton, whose thin marrow and cortex hold no such core, or a
-    core of marrow (250-350 HU): the bound stays ``blood_hu[1]``.
+    :data:`BRIGHT_BLOOD_FACTOR` times that, capped at ``hu_high``.  It is
+    raised only for a core of a chamber's size (:data:`BRIGHT_CORE_ML`), and
+    only the core's part between the lungs counts where there are lungs
+    (``mediastinum()``, as :func:`blood_pool`): a dense vertebra, a calcified
+    mass, a bladder full of excreted contrast joined through the aorta raise
+    nothing.  Without contrast the largest component is
+    the skeleton, whose thin marrow and cortex hold no such core.
     """
     bright = (coarse > blood_hu[0]) & (coarse < hu_high)
     labels, n = ndimage.label(bright)
@@ -173,10 +182,18 @@ def blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high) -> float:
     largest = labels == int(np.argmax(label_counts(bright, labels, n))) + 1
     box = mask_box(largest)
     core = distance_mm(np.pad(largest[box], 1), cspacing)[1:-1, 1:-1, 1:-1] >= CHAMBER_CORE_MM  # the edge: outside
-    if not core.any():
-        return float(blood_hu[1])
-    level = float(np.median(coarse[box][core]))
-    return float(min(hu_high, max(blood_hu[1], BRIGHT_BLOOD_FACTOR * level)))
+    def level():  # the core's median HU, or None for a core smaller than a chamber's
+        return None if np.count_nonzero(core) * float(np.prod(cspacing)) / 1000.0 < BRIGHT_CORE_ML else float(
+            np.median(coarse[box][core]))
+
+    if (found := level()) is None or BRIGHT_BLOOD_FACTOR * found <= blood_hu[1]:
+        return float(blood_hu[1])  # the common case: the lungs' region is not needed
+    between = None if mediastinum is None else mediastinum()
+    if between is not None:  # only the core between the lungs: not a bladder joined to it through the aorta
+        core &= between[box]
+        if (found := level()) is None:
+            return float(blood_hu[1])
+    return float(max(blood_hu[1], min(hu_high, BRIGHT_BLOOD_FACTOR * found)))
 
 
 #: Distance (mm) between the voxels whose HU differences measure the blood's noise (:func:`blood_noise_hu`).
@@ -229,7 +246,8 @@ def pool_at_the_cts_noise(raw, coarse, cspacing, smooth_mm, blood_hu, min_radius
     again over ``smooth_mm * sqrt(noise / NOISE_HU)`` and the pool looked for
     on it.  Where no pool is found at ``smooth_mm`` the noise is measured in
     one found smoothed over :data:`NOISE_PROBE_MM` (the smoothing for ~160 HU
-    of noise); that pool serves only to measure it.
+    of noise); that pool serves only to measure it, and the grid is then
+    smoothed at least as much.
 
     Returns
     -------
@@ -245,6 +263,8 @@ def pool_at_the_cts_noise(raw, coarse, cspacing, smooth_mm, blood_hu, min_radius
     if noise is None or noise <= NOISE_HU:
         return pool, pool_hu, coarse, None
     smoothing = smooth_mm * float(np.sqrt(noise / NOISE_HU))
+    if pool is None:  # found by the probe: at least its smoothing, where the pool was seen
+        smoothing = max(smoothing, NOISE_PROBE_MM)
     coarse = ndimage.gaussian_filter(raw, sigma=smoothing / cspacing)
     pool, pool_hu = blood_pool(coarse, cspacing, blood_hu, min_radius_mm, floor_hu, mediastinum)
     return pool, pool_hu, coarse, (f"noisy CT (the blood's noise {noise:.0f} HU, above {NOISE_HU:.0f}): the coarse "

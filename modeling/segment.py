@@ -355,7 +355,7 @@ def segment_heart(
             tissue &= ndimage.binary_dilation(between, iterations=1)
         return tissue
 
-    blood_hu = (blood_hu[0], blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high))  # bright blood at low kV
+    blood_hu = (blood_hu[0], blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high, mediastinum))  # bright blood
     pool, pool_hu, coarse, noise_note = pool_at_the_cts_noise(
         raw, coarse, cspacing, smooth_mm, blood_hu, min_pool_radius_mm, blood_floor_hu, mediastinum)
     notes += [noise_note] if noise_note else []
