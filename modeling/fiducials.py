@@ -246,7 +246,7 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 
     kji = np.argwhere(part)
     extent = float(np.max((kji.max(axis=0) - kji.min(axis=0) + 1) * spacing_kji))
     if extent > MAX_EXTENT_MM:
-        return f"larger than a marker ({extent:.0f} mm > {MAX_EXTENT_MM:.0f} mm)"
+        return f"{SIZE_REASON}{extent:.0f} mm > {MAX_EXTENT_MM:.0f} mm)"
     lo, hi = kji.min(axis=0) + [g.start for g in big], kji.max(axis=0) + [g.start for g in big]
     if any(lo[a] == 0 or hi[a] == hu.shape[a] - 1 for a in plane_axes):
         return "cut by the edge of the field of view"
@@ -262,6 +262,21 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 
     if not (near & body).any():
         return "not touching the body (it lies in the air)"
     return ""
+
+
+#: The reason :func:`_not_on_skin` gives a blob larger than a marker begins so (its size follows in brackets).
+SIZE_REASON = "larger than a marker ("
+
+
+def _by_reason(rejected) -> dict[str, int]:
+    """The rejected blobs counted per reason, those larger than a marker in one count with the range of their
+    sizes (the real CT made as a pulmonary CTA gave nine notes, one per size)."""
+    out = {why: n for why, n in rejected.items() if not why.startswith(SIZE_REASON)}
+    sizes = {int(why[len(SIZE_REASON):].split()[0]): n for why, n in rejected.items() if why.startswith(SIZE_REASON)}
+    if sizes:
+        lo, hi = min(sizes), max(sizes)
+        out[f"{SIZE_REASON}{lo}{'' if lo == hi else f'-{hi}'} mm > {MAX_EXTENT_MM:.0f} mm)"] = sum(sizes.values())
+    return out
 
 
 def find_fiducials(
@@ -383,7 +398,7 @@ def find_fiducials(
         centres.append(centre)
         masses.append(mass)
 
-    notes.extend(f"{n} dense blob(s) near the skin ignored: {why}" for why, n in sorted(rejected.items()))
+    notes.extend(f"{n} dense blob(s) near the skin ignored: {why}" for why, n in sorted(_by_reason(rejected).items()))
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
     masses = np.asarray(masses, dtype=float)
     if expected is not None and len(centres) != expected:

@@ -108,3 +108,16 @@ def test_a_given_fiducial_far_outside_the_ct_is_named_in_short_numbers():
     message = str(info.value)
     assert message.startswith("given fiducial 2 (1e+300, -2.5e-07, 40 mm) lies outside the CT (1 of 3 such)")
     assert len(message) < 400 and "\n" not in message
+
+
+def test_blobs_larger_than_a_marker_are_one_note_with_their_sizes():
+    """The real CT made as a pulmonary CTA gave nine notes 'dense blob(s) near the skin ignored: larger than a
+    marker (16 mm > 15 mm)', one per size; now one note with the range of sizes, the other reasons as before."""
+    from collections import Counter
+
+    from modeling.fiducials import _by_reason
+
+    rejected = Counter({"larger than a marker (16 mm > 15 mm)": 1, "larger than a marker (60 mm > 15 mm)": 2,
+                        "larger than a marker (27 mm > 15 mm)": 3, "cut by the edge of the field of view": 1})
+    assert _by_reason(rejected) == {"larger than a marker (16-60 mm > 15 mm)": 6, "cut by the edge of the field of view": 1}
+    assert _by_reason(Counter({"larger than a marker (20 mm > 15 mm)": 2})) == {"larger than a marker (20 mm > 15 mm)": 2}
