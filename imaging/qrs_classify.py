@@ -227,9 +227,9 @@ class _Classifier:
     def _standing_out_qrs(self, j: int, last: int, th1: float) -> bool:
         """Whether peak ``j``, below threshold 1 ``th1`` or early, is a QRS all the same, as the peaks come:
         it passes the search-back's test for a wide premature beat (:meth:`_standing_out`), is as steep as a QRS
-        (:data:`SEARCH_BACK_SLOPE_RATIO`) and no T wave after the QRS ``last``.
+        (:data:`SEARCH_BACK_SLOPE_RATIO`) and lies past the T-wave window after the QRS ``last``.
 
-        Never within the T-wave window after ``last``: a T wave 0.65 of the QRS's size (peaked T waves,
+        Nothing within that window, steep or not (:meth:`_t_wave` lets a steep peak through): a T wave 0.65 of the QRS's size (peaked T waves,
         leads V2-V3) is proportionally steeper and passed the slope test: MIT-BIH 119 with its T waves 2.5 times
         as large gave 150 false beats, 230-300 ms after each true one (none before the rule; session 29's review).
 

@@ -218,8 +218,9 @@ def _centre_over_skin(hu, dense_kji, spacing_kji, floor_hu) -> np.ndarray:
     return centre + lo
 
 
-def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 2)) -> str:
-    """Why a dense blob found in the skin shell is not a skin marker ('' if it is one).
+def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 2)) -> tuple[str, float | None]:
+    """Why a dense blob found in the skin shell is not a skin marker ('' if it is one), and its size (mm) when
+    it is :data:`TOO_LARGE`.
 
     A staple is a small piece of metal wholly on the skin.  The dense voxels
     (> ``floor_hu``) connected to the blob, looked at ``MARKER_CONTEXT_MM``
@@ -236,20 +237,20 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 
     touched = np.unique(labels[inner][blob])
     touched = touched[touched > 0]
     if touched.size == 0:
-        return ""
+        return "", None
     part = np.isin(labels, touched)
     shell = np.zeros(part.shape, bool)
     shell[inner] = in_shell
     beneath = part & ~shell
     if beneath.sum() > part.sum() * MAX_BENEATH_FRACTION:
-        return "dense tissue continues beneath the skin (bone or a contrast vessel)"
+        return "dense tissue continues beneath the skin (bone or a contrast vessel)", None
     kji = np.argwhere(part)
     extent = float(np.max((kji.max(axis=0) - kji.min(axis=0) + 1) * spacing_kji))
     if extent > MAX_EXTENT_MM:
-        return f"{SIZE_REASON}{extent:.0f} mm > {MAX_EXTENT_MM:.0f} mm)"
+        return TOO_LARGE, extent
     lo, hi = kji.min(axis=0) + [g.start for g in big], kji.max(axis=0) + [g.start for g in big]
     if any(lo[a] == 0 or hi[a] == hu.shape[a] - 1 for a in plane_axes):
-        return "cut by the edge of the field of view"
+        return "cut by the edge of the field of view", None
     # the part's own box, grown past the contact distance: nothing outside it is near
     grow = np.ceil(SKIN_CONTACT_MM / np.asarray(spacing_kji, float)).astype(int) + 1
     around = tuple(slice(max(a - g, 0), min(b + 1 + g, n))
@@ -260,22 +261,21 @@ def _not_on_skin(hu, box, blob, in_shell, floor_hu, spacing_kji, plane_axes=(1, 
         part, structure=np.ones((3, 3, 3), bool)
     )  # the neighbouring voxels at least, however coarse the grid
     if not (near & body).any():
-        return "not touching the body (it lies in the air)"
-    return ""
+        return "not touching the body (it lies in the air)", None
+    return "", None
 
 
-#: The reason :func:`_not_on_skin` gives a blob larger than a marker begins so (its size follows in brackets).
-SIZE_REASON = "larger than a marker ("
+#: The reason :func:`_not_on_skin` gives a blob larger than a marker (its size apart).
+TOO_LARGE = "larger than a marker"
 
 
-def _by_reason(rejected) -> dict[str, int]:
-    """The rejected blobs counted per reason, those larger than a marker in one count with the range of their
-    sizes (the real CT made as a pulmonary CTA gave nine notes, one per size)."""
-    out = {why: n for why, n in rejected.items() if not why.startswith(SIZE_REASON)}
-    sizes = {int(why[len(SIZE_REASON):].split()[0]): n for why, n in rejected.items() if why.startswith(SIZE_REASON)}
-    if sizes:
-        lo, hi = min(sizes), max(sizes)
-        out[f"{SIZE_REASON}{lo}{'' if lo == hi else f'-{hi}'} mm > {MAX_EXTENT_MM:.0f} mm)"] = sum(sizes.values())
+def _by_reason(rejected, sizes_mm) -> dict[str, int]:
+    """The rejected blobs counted per reason, those larger than a marker (:data:`TOO_LARGE`) with the range of
+    their sizes ``sizes_mm`` (one note, not one per size: the real CT made as a pulmonary CTA gave nine)."""
+    out = {why: n for why, n in rejected.items() if why != TOO_LARGE}
+    if rejected.get(TOO_LARGE):
+        lo, hi = round(min(sizes_mm)), round(max(sizes_mm))
+        out[f"{TOO_LARGE} ({lo}{'' if lo == hi else f'-{hi}'} mm > {MAX_EXTENT_MM:.0f} mm)"] = rejected[TOO_LARGE]
     return out
 
 
@@ -363,6 +363,7 @@ def find_fiducials(
 
     notes = []
     rejected: Counter = Counter()
+    sizes_mm: list[float] = []  # of the blobs larger than a marker
     centres, masses = [], []
     for cbox in ndimage.find_objects(labels):
         # the blob's box at full resolution, one coarse voxel wider
@@ -380,9 +381,10 @@ def find_fiducials(
             if mass > 0.1 * min_mass:
                 rejected[f"excess mass outside {min_mass:.3g}-{max_mass:.3g} HU.mm3"] += 1
             continue
-        why = _not_on_skin(hu, box, weight > 0, in_shell, floor_hu, spacing_kji, plane_axes)
+        why, size_mm = _not_on_skin(hu, box, weight > 0, in_shell, floor_hu, spacing_kji, plane_axes)
         if why:
             rejected[why] += 1
+            sizes_mm += [] if size_mm is None else [size_mm]
             continue
         kji = np.argwhere(weight > 0)
         w = weight[weight > 0]
@@ -398,7 +400,7 @@ def find_fiducials(
         centres.append(centre)
         masses.append(mass)
 
-    notes.extend(f"{n} dense blob(s) near the skin ignored: {why}" for why, n in sorted(_by_reason(rejected).items()))
+    notes.extend(f"{n} dense blob(s) near the skin ignored: {why}" for why, n in sorted(_by_reason(rejected, sizes_mm).items()))
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
     masses = np.asarray(masses, dtype=float)
     if expected is not None and len(centres) != expected:

@@ -26,7 +26,8 @@ from scipy import ndimage
 from modeling.coarse import fill_holes, label_counts, label_maximum, mask_box
 from modeling.distance import distance_mm, opening_mm
 
-__all__ = ["blood_ceiling_hu", "blood_noise_hu", "blood_pool", "pool_at_the_cts_noise", "mediastinal_seed", "not_hounsfield", "part_abdomen", "split_solid_organs"]
+__all__ = ["blood_ceiling_hu", "blood_noise_hu", "blood_pool", "mediastinal_seed", "not_hounsfield", "part_abdomen",
+           "pool_at_the_cts_noise", "split_solid_organs"]
 
 #: Step (HU) by which the blood pool's lower bound is lowered towards ``blood_floor_hu`` when no chamber is found.
 POOL_STEP_HU = 25.0
@@ -182,16 +183,18 @@ def blood_ceiling_hu(coarse, cspacing, blood_hu, hu_high, mediastinum=None) -> f
     largest = labels == int(np.argmax(label_counts(bright, labels, n))) + 1
     box = mask_box(largest)
     core = distance_mm(np.pad(largest[box], 1), cspacing)[1:-1, 1:-1, 1:-1] >= CHAMBER_CORE_MM  # the edge: outside
-    def level():  # the core's median HU, or None for a core smaller than a chamber's
-        return None if np.count_nonzero(core) * float(np.prod(cspacing)) / 1000.0 < BRIGHT_CORE_ML else float(
-            np.median(coarse[box][core]))
 
-    if (found := level()) is None or BRIGHT_BLOOD_FACTOR * found <= blood_hu[1]:
+    def level(part):  # the part's median HU, or None for a part smaller than a chamber's core
+        small = np.count_nonzero(part) * float(np.prod(cspacing)) / 1000.0 < BRIGHT_CORE_ML
+        return None if small else float(np.median(coarse[box][part]))
+
+    found = level(core)
+    if found is None or BRIGHT_BLOOD_FACTOR * found <= blood_hu[1]:
         return float(blood_hu[1])  # the common case: the lungs' region is not needed
     between = None if mediastinum is None else mediastinum()
     if between is not None:  # only the core between the lungs: not a bladder joined to it through the aorta
-        core &= between[box]
-        if (found := level()) is None:
+        found = level(core & between[box])
+        if found is None:
             return float(blood_hu[1])
     return float(max(blood_hu[1], min(hu_high, BRIGHT_BLOOD_FACTOR * found)))
 
